@@ -1,0 +1,59 @@
+"""The ComponentEvent stream: what happened to which node, on a latched topic."""
+from __future__ import annotations
+
+import time
+
+from cloneguard_interfaces.msg import ComponentEvent
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+EVENTS_TOPIC = "~/_container/component_events"
+
+# Late joiners (a launcher that subscribes after a load) still see the last
+# 100 events, as with the upstream launcher this container is built for.
+EVENTS_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+LOADED = ComponentEvent.LOADED
+UNLOADED = ComponentEvent.UNLOADED
+LOAD_FAILED = ComponentEvent.LOAD_FAILED
+CRASHED = ComponentEvent.CRASHED
+
+
+class EventPublisher:
+    def __init__(self, node):
+        self._node = node
+        self._pub = node.create_publisher(ComponentEvent, EVENTS_TOPIC, EVENTS_QOS)
+
+    def publish(
+        self,
+        event_type: int,
+        *,
+        unique_id: int = 0,
+        full_node_name: str = "",
+        package_name: str = "",
+        plugin_name: str = "",
+        error_message: str = "",
+        pid: int = 0,
+        exit_signal: int = 0,
+        exit_code: int = 0,
+        start_time_ns: int = 0,
+    ) -> ComponentEvent:
+        now = time.time_ns()
+        msg = ComponentEvent()
+        msg.stamp.sec, msg.stamp.nanosec = divmod(now, 1_000_000_000)
+        msg.event_type = event_type
+        msg.unique_id = unique_id
+        msg.full_node_name = full_node_name
+        msg.package_name = package_name
+        msg.plugin_name = plugin_name
+        msg.error_message = error_message
+        msg.pid = pid
+        msg.exit_signal = exit_signal
+        msg.exit_code = exit_code
+        msg.start_time = start_time_ns
+        self._pub.publish(msg)
+        return msg

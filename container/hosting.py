@@ -1,0 +1,61 @@
+"""Where a loaded node's callbacks run.
+
+The manager decides *what* is loaded; a host decides *where* it runs. The
+thread host spins every node on the container's own executor (single- or
+multi-threaded). The isolated host (``container.isolated.host``) gives each
+node its own clone(CLONE_VM) child. Both take the same calls:
+
+``start(unique_id, cls, args) -> Hosted``
+    build the node and start running it; raise ``LoadError`` if it cannot be.
+``stop(hosted)``
+    stop running it and destroy it.
+``close()``
+    stop everything (container shutdown).
+
+A host that can lose a node on its own (a child that dies) reports it through
+the ``on_death(unique_id, death)`` callback the manager gives it.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+from rclpy.node import Node
+
+from . import factory
+from .options import NodeArguments
+
+
+@dataclass
+class Hosted:
+    """A node that a host is running."""
+
+    unique_id: int
+    full_node_name: str
+    pid: int
+    start_time_ns: int
+    node: Node | None = None   # the node object, where the container holds it
+    detail: object = field(default=None, repr=False)  # host-specific state
+
+
+class ThreadHost:
+    """Every node on the container's own executor, as upstream's containers."""
+
+    def __init__(self, executor, context):
+        self._executor = executor
+        self._context = context
+
+    def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
+        start = time.time_ns()
+        node = factory.construct(cls, args, self._context)
+        self._executor.add_node(node)
+        return Hosted(unique_id, node.get_fully_qualified_name(), os.getpid(), start, node)
+
+    def stop(self, hosted: Hosted) -> None:
+        self._executor.remove_node(hosted.node)
+        hosted.node.destroy_node()
+
+    def close(self, hosted_nodes) -> None:
+        for hosted in hosted_nodes:
+            self.stop(hosted)

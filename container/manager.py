@@ -1,0 +1,121 @@
+"""The component manager: LoadNode / UnloadNode / ListNodes and their events.
+
+It owns the table of loaded nodes and the unique-id counter; it validates a
+request, asks the host to start or stop a node, and publishes what happened.
+Its behaviour follows rclcpp_components' ComponentManager: ids start at 1 and
+are never reused (a load that fails after an id was taken still uses it up),
+a failed load answers unique_id 0 and an empty full_node_name.
+"""
+from __future__ import annotations
+
+import threading
+
+from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+
+from . import events, options, registry
+from .events import EventPublisher
+from .hosting import Hosted
+from .options import LoadError
+
+
+class ComponentManager:
+    def __init__(self, node, host, *, logger=None):
+        self._node = node
+        self._host = host
+        self._log = logger or node.get_logger()
+        self._events = EventPublisher(node)
+        self._lock = threading.Lock()       # guards the two fields below
+        self._next_id = 1
+        self._loaded: dict[int, tuple[Hosted, registry.ComponentSpec]] = {}
+        node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
+        node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
+        node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
+
+    # -- services -------------------------------------------------------------
+
+    def _on_load_node(self, request, response):
+        try:
+            spec = registry.find(request.package_name, request.plugin_name)
+            args = options.from_request(request)
+            cls = spec.load_class()
+        except LoadError as exc:
+            return self._load_failed(request, response, str(exc))
+        unique_id = self._take_id()
+        try:
+            hosted = self._host.start(unique_id, cls, args)
+        except LoadError as exc:
+            return self._load_failed(request, response, str(exc))
+        with self._lock:
+            self._loaded[unique_id] = (hosted, spec)
+        self._log.info(
+            f"Loaded {spec.plugin_name} as {hosted.full_node_name} "
+            f"(unique_id {unique_id}, pid {hosted.pid})"
+        )
+        self._publish(events.LOADED, hosted, spec)
+        response.success = True
+        response.full_node_name = hosted.full_node_name
+        response.unique_id = unique_id
+        return response
+
+    def _on_unload_node(self, request, response):
+        with self._lock:
+            entry = self._loaded.pop(request.unique_id, None)
+        if entry is None:
+            response.success = False
+            response.error_message = f"No node found with unique_id: {request.unique_id}"
+            self._log.warning(response.error_message)
+            return response
+        hosted, spec = entry
+        self._host.stop(hosted)
+        self._log.info(f"Unloaded {hosted.full_node_name} (unique_id {hosted.unique_id})")
+        self._publish(events.UNLOADED, hosted, spec)
+        response.success = True
+        return response
+
+    def _on_list_nodes(self, request, response):
+        with self._lock:
+            entries = sorted(self._loaded.items())
+        response.unique_ids = [uid for uid, _ in entries]
+        response.full_node_names = [hosted.full_node_name for _, (hosted, _s) in entries]
+        return response
+
+    # -- life cycle -----------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop every node (container shutdown); no events, the context is gone."""
+        with self._lock:
+            entries, self._loaded = list(self._loaded.values()), {}
+        self._host.close([hosted for hosted, _spec in entries])
+
+    # -- helpers --------------------------------------------------------------
+
+    def _take_id(self) -> int:
+        with self._lock:
+            unique_id, self._next_id = self._next_id, self._next_id + 1
+        return unique_id
+
+    def _load_failed(self, request, response, message: str):
+        self._log.error(f"Failed to load component: {message}")
+        self._events.publish(
+            events.LOAD_FAILED,
+            package_name=request.package_name,
+            plugin_name=request.plugin_name,
+            error_message=message,
+        )
+        response.success = False
+        response.error_message = message
+        response.full_node_name = ""
+        response.unique_id = 0
+        return response
+
+    def _publish(self, event_type, hosted: Hosted, spec, **extra) -> None:
+        self._events.publish(
+            event_type,
+            unique_id=hosted.unique_id,
+            full_node_name=hosted.full_node_name,
+            package_name=spec.package_name,
+            plugin_name=spec.plugin_name,
+            pid=hosted.pid,
+            start_time_ns=hosted.start_time_ns,
+            **extra,
+        )

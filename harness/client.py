@@ -1,0 +1,223 @@
+"""A typed client of a component container, over ROS 2 only.
+
+It has its own rclpy Context on the container's domain and spins it on a
+thread of its own, so tests call it like a plain object. Every call has a
+timeout and raises :class:`HarnessTimeout` saying what did not happen.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import rclpy
+from cloneguard_interfaces.msg import ComponentEvent
+from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+EVENT_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+EVENT_NAMES = {
+    ComponentEvent.LOADED: "LOADED",
+    ComponentEvent.UNLOADED: "UNLOADED",
+    ComponentEvent.LOAD_FAILED: "LOAD_FAILED",
+    ComponentEvent.CRASHED: "CRASHED",
+}
+
+
+class HarnessTimeout(AssertionError):
+    """Something the harness waited for did not happen in time."""
+
+
+@dataclass(frozen=True)
+class Received:
+    """A message and when (CLOCK_MONOTONIC ns) the harness got it."""
+
+    msg: object
+    at_ns: int
+
+
+class Recorder:
+    """Everything that arrives on one topic, with a way to wait for more."""
+
+    def __init__(self, description: str):
+        self.description = description
+        self._cond = threading.Condition()
+        self._items: list[Received] = []
+
+    def _add(self, msg) -> None:
+        with self._cond:
+            self._items.append(Received(msg, time.monotonic_ns()))
+            self._cond.notify_all()
+
+    def items(self) -> list[Received]:
+        with self._cond:
+            return list(self._items)
+
+    def messages(self) -> list:
+        return [r.msg for r in self.items()]
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+    def wait_for(self, predicate, timeout: float, what: str = ""):
+        """Wait until ``predicate(msg)`` holds for some message; return it."""
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._cond:
+            while True:
+                for item in self._items[seen:]:
+                    if predicate(item.msg):
+                        return item.msg
+                seen = len(self._items)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise HarnessTimeout(
+                        f"no {what or 'matching message'} on {self.description} "
+                        f"within {timeout:.1f} s ({seen} messages seen)"
+                    )
+                self._cond.wait(left)
+
+    def wait_count(self, count: int, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while len(self._items) < count:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise HarnessTimeout(
+                        f"{self.description}: {len(self._items)} of {count} messages "
+                        f"within {timeout:.1f} s"
+                    )
+                self._cond.wait(left)
+
+
+def to_parameter_msgs(values: dict[str, object]) -> list[ParameterMsg]:
+    return [Parameter(name, value=value).to_parameter_msg() for name, value in values.items()]
+
+
+class ContainerClient:
+    def __init__(self, domain_id: int, container_fqn: str = "/ComponentManager", *, name: str = "harness"):
+        self.container_fqn = container_fqn.rstrip("/") or "/ComponentManager"
+        self._closed = False
+        self._ctx = rclpy.Context()
+        rclpy.init(context=self._ctx, domain_id=domain_id)
+        self.node = Node(name, context=self._ctx)
+        base = f"{self.container_fqn}/_container"
+        self._load = self.node.create_client(LoadNode, f"{base}/load_node")
+        self._unload = self.node.create_client(UnloadNode, f"{base}/unload_node")
+        self._list = self.node.create_client(ListNodes, f"{base}/list_nodes")
+        self.events = Recorder(f"{base}/component_events")
+        self._event_sub = self.node.create_subscription(
+            ComponentEvent, f"{base}/component_events", self.events._add, EVENT_QOS
+        )
+        self._subs = []
+        self._executor = SingleThreadedExecutor(context=self._ctx)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="harness-client", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self._executor.spin()
+        except Exception:  # context shut down under us at close()
+            if self._ctx.ok():
+                raise
+
+    # -- generic --------------------------------------------------------------
+
+    def call(self, client, request, timeout: float = 10.0):
+        """Call a service; wait for it to exist and answer within ``timeout``."""
+        deadline = time.monotonic() + timeout
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise HarnessTimeout(f"service {client.srv_name} not available within {timeout:.1f} s")
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(max(0.0, deadline - time.monotonic())):
+            client.remove_pending_request(future)
+            raise HarnessTimeout(f"no answer from {client.srv_name} within {timeout:.1f} s")
+        return future.result()
+
+    def service_client(self, srv_type, name: str):
+        return self.node.create_client(srv_type, name)
+
+    def subscribe(self, msg_type, topic: str, qos=10) -> Recorder:
+        rec = Recorder(topic)
+        self._subs.append(self.node.create_subscription(msg_type, topic, rec._add, qos))
+        return rec
+
+    # -- composition_interfaces -----------------------------------------------
+
+    def load_request(
+        self,
+        package_name: str,
+        plugin_name: str,
+        *,
+        node_name: str = "",
+        node_namespace: str = "",
+        log_level: int = 0,
+        remap_rules: list[str] = (),
+        parameters: dict[str, object] | list[ParameterMsg] = (),
+        extra_arguments: dict[str, object] | list[ParameterMsg] = (),
+    ) -> LoadNode.Request:
+        req = LoadNode.Request()
+        req.package_name = package_name
+        req.plugin_name = plugin_name
+        req.node_name = node_name
+        req.node_namespace = node_namespace
+        req.log_level = log_level
+        req.remap_rules = list(remap_rules)
+        req.parameters = to_parameter_msgs(parameters) if isinstance(parameters, dict) else list(parameters)
+        req.extra_arguments = (
+            to_parameter_msgs(extra_arguments) if isinstance(extra_arguments, dict) else list(extra_arguments)
+        )
+        return req
+
+    def load(self, package_name: str, plugin_name: str, *, timeout: float = 15.0, **fields) -> LoadNode.Response:
+        return self.call(self._load, self.load_request(package_name, plugin_name, **fields), timeout)
+
+    def load_ok(self, package_name: str, plugin_name: str, **fields) -> LoadNode.Response:
+        """Load and insist that it worked."""
+        resp = self.load(package_name, plugin_name, **fields)
+        if not resp.success:
+            raise AssertionError(f"LoadNode {package_name}/{plugin_name} failed: {resp.error_message}")
+        return resp
+
+    def unload(self, unique_id: int, *, timeout: float = 10.0) -> UnloadNode.Response:
+        req = UnloadNode.Request()
+        req.unique_id = unique_id
+        return self.call(self._unload, req, timeout)
+
+    def list(self, *, timeout: float = 10.0) -> list[tuple[int, str]]:
+        resp = self.call(self._list, ListNodes.Request(), timeout)
+        return list(zip(resp.unique_ids, resp.full_node_names))
+
+    def wait_for_event(self, event_type: int, *, unique_id: int | None = None, timeout: float = 10.0) -> ComponentEvent:
+        def match(ev):
+            return ev.event_type == event_type and (unique_id is None or ev.unique_id == unique_id)
+        what = EVENT_NAMES.get(event_type, str(event_type)) + (f" for unique_id {unique_id}" if unique_id else "")
+        return self.events.wait_for(match, timeout, what)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self._ctx.try_shutdown()
+        self._thread.join(timeout=5.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

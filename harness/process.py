@@ -1,0 +1,162 @@
+"""The container under test, as a real process the harness owns.
+
+It runs in a session (and so a process group) of its own, with
+PR_SET_PDEATHSIG=SIGKILL so it cannot outlive the harness, its own
+ROS_DOMAIN_ID, Fast DDS on UDP only by default, and its output in a log file.
+Stopping it is SIGTERM to its process group, 2 s of grace, then SIGKILL.
+Only process groups this module started are ever signalled.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from . import procfs
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+NO_SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_no_shm.xml"
+STOP_GRACE_S = 2.0
+
+
+def default_container_exe() -> str:
+    """The ``component_container`` next to this interpreter, else on PATH."""
+    beside = Path(sys.prefix) / "bin" / "component_container"
+    if beside.exists():
+        return str(beside)
+    found = shutil.which("component_container")
+    if found is None:
+        raise FileNotFoundError("component_container is not installed (pip install -e .)")
+    return found
+
+
+def ros_environment(domain_id: int, *, fastdds_profile: Path | None = NO_SHM_PROFILE) -> dict[str, str]:
+    """The ROS variables a harness-launched process (and the harness) runs with."""
+    env = {
+        "ROS_DOMAIN_ID": str(domain_id),
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        # Discovery stays on this machine: tests never talk to the network.
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+    }
+    if fastdds_profile is not None:
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(fastdds_profile)
+    return env
+
+
+@dataclass(frozen=True)
+class ExitStatus:
+    returncode: int          # as subprocess reports it: -N for signal N
+    forced: bool             # True when SIGKILL was needed
+    stop_seconds: float
+
+
+class ContainerProcess:
+    """One started container. Use :meth:`stop` (or the context manager)."""
+
+    def __init__(
+        self,
+        args: list[str],
+        *,
+        domain_id: int,
+        log_path: Path,
+        exe: str | None = None,
+        node_name: str = "ComponentManager",
+        fastdds_profile: Path | None = NO_SHM_PROFILE,
+        extra_env: dict[str, str] | None = None,
+    ):
+        self.exe = exe or default_container_exe()
+        self.node_name = node_name
+        self.domain_id = domain_id
+        self.log_path = Path(log_path)
+        ros_args = [] if node_name == "ComponentManager" else ["--ros-args", "-r", f"__node:={node_name}"]
+        self.argv = [self.exe, *args, *ros_args]
+        env = dict(os.environ)
+        # A stale profile variable from the caller must not leak in when the
+        # harness asks for Fast DDS defaults (SHM on).
+        env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+        env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
+        env["PYTHONUNBUFFERED"] = "1"
+        env.update(extra_env or {})
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.log_path, "ab", buffering=0)
+        # setpriv sets PR_SET_PDEATHSIG in the child and execs the container,
+        # so the pid below is the container's own.
+        self._popen = subprocess.Popen(
+            ["setpriv", "--pdeathsig", "KILL", "--", *self.argv],
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
+        self.pid = self._popen.pid
+        self.pgid = self.pid   # start_new_session: the leader of its own group
+        self.exit_status: ExitStatus | None = None
+
+    @property
+    def fqn(self) -> str:
+        return "/" + self.node_name.lstrip("/")
+
+    def alive(self) -> bool:
+        return self._popen.poll() is None
+
+    def log_text(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except FileNotFoundError:
+            return ""
+
+    def group_members(self) -> list[int]:
+        """Live or zombie processes still in the container's process group."""
+        return procfs.pids_in_group(self.pgid)
+
+    def signal(self, sig: int) -> None:
+        """Signal the container process itself (not its group)."""
+        if self.alive():
+            os.kill(self.pid, sig)
+
+    def wait(self, timeout: float) -> int | None:
+        try:
+            return self._popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def stop(self, grace: float = STOP_GRACE_S) -> ExitStatus:
+        """SIGTERM the group, wait ``grace`` s, then SIGKILL what is left."""
+        if self.exit_status is not None:
+            return self.exit_status
+        t0 = time.monotonic()
+        forced = False
+        if self.alive():
+            self._killpg(signal.SIGTERM)
+            if self.wait(grace) is None:
+                forced = True
+                self._killpg(signal.SIGKILL)
+                self._popen.wait()
+        code = self._popen.wait()
+        # The leader is gone; anything left in its group is a leak of the
+        # container's (a child that outlived it). It is ours: end it.
+        if procfs.pids_in_group(self.pgid):
+            forced = True
+            self._killpg(signal.SIGKILL)
+            procfs.wait_group_empty(self.pgid, timeout=grace)
+        self._log.close()
+        self.exit_status = ExitStatus(code, forced, time.monotonic() - t0)
+        return self.exit_status
+
+    def _killpg(self, sig: int) -> None:
+        try:
+            os.killpg(self.pgid, sig)
+        except ProcessLookupError:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()

