@@ -49,6 +49,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 INTERFACES_DIR = REPO / "interfaces"
+SHARED_CMAKE_DIR = INTERFACES_DIR / "cmake"
 
 # Bump when the way the packages are built changes, to force one rebuild.
 RECIPE = "1"
@@ -224,9 +225,10 @@ def toolchain_versions() -> dict[str, str]:
 
 
 def source_files(pkg: Package) -> list[Path]:
+    """The package's own files and the CMake helpers all packages include."""
     files = []
-    for path in sorted(pkg.source.rglob("*")):
-        rel = path.relative_to(pkg.source)
+    for path in sorted([*pkg.source.rglob("*"), *SHARED_CMAKE_DIR.rglob("*")]):
+        rel = path.relative_to(INTERFACES_DIR)
         if any(part.startswith(".") or part in ("build", "dist", "__pycache__") for part in rel.parts):
             continue
         if path.is_file():
@@ -239,7 +241,7 @@ def stamp_digest(pkg: Package, toolchain: dict[str, str]) -> str:
     h.update(f"recipe={RECIPE}\npython={sys.implementation.name}-{sys.version_info[:2]}\n".encode())
     h.update(json.dumps(toolchain, sort_keys=True).encode())
     for path in source_files(pkg):
-        h.update(b"\0file\0" + str(path.relative_to(pkg.source)).encode() + b"\0")
+        h.update(b"\0file\0" + str(path.relative_to(INTERFACES_DIR)).encode() + b"\0")
         h.update(path.read_bytes())
     return h.hexdigest()
 
