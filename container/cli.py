@@ -10,19 +10,21 @@ container's own node, named ``ComponentManager`` by default.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import threading
 
 import rclpy
-from rclpy.executors import (
-    ExternalShutdownException,
-    MultiThreadedExecutor,
-    SingleThreadedExecutor,
-)
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from .hosting import ThreadHost
+from .isolated import profiles
 from .manager import ComponentManager
+from .stop_signals import StopSignals
 
 DEFAULT_NODE_NAME = "ComponentManager"
 
@@ -42,22 +44,32 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "--isolated", action="store_true",
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
     )
+    parser.add_argument(
+        "--profile", choices=profiles.PROFILES, default=profiles.DEFAULT,
+        help="isolated mode: where nodes are built; 'per-node' gives each child "
+        "its own rclpy Context and DDS participant, 'shared' builds them on the "
+        "container's (default: %(default)s)",
+    )
     return parser.parse_args(argv)
 
 
-def _make_host(opts, executor, context):
-    if opts.isolated:
-        raise SystemExit(
-            "component_container: --isolated is not available yet: per-node "
-            "clone(CLONE_VM) isolation is not implemented in this version"
-        )
-    return ThreadHost(executor, context)
+def _make_host(opts, executor, context, logger):
+    if not opts.isolated:
+        return ThreadHost(executor, context)
+    # Imported here: thread mode must work where the C core cannot.
+    from .isolated.assumptions import IsolationUnavailable
+    from .isolated.host import IsolatedHost
+    try:
+        return IsolatedHost(context, profile=opts.profile, logger=logger)
+    except IsolationUnavailable as exc:
+        raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     opts = parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    stop = StopSignals()
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
     executor = (
@@ -66,27 +78,53 @@ def main(argv: list[str] | None = None) -> int:
         else SingleThreadedExecutor(context=context)
     )
     try:
-        host = _make_host(opts, executor, context)
+        host = _make_host(opts, executor, context, node.get_logger())
     except SystemExit:
         node.destroy_node()
         rclpy.try_shutdown()
         raise
     manager = ComponentManager(node, host)
+    if opts.isolated:
+        host.on_death = manager.on_death
     executor.add_node(node)
+    spinner = threading.Thread(target=_spin, args=(executor, stop), name="container-executor")
+    spinner.start()
     node.get_logger().info(
         f"{node.get_fully_qualified_name()} ready "
-        f"({'multi' if opts.use_multi_threaded_executor else 'single'}-threaded executor)"
+        f"({'multi' if opts.use_multi_threaded_executor else 'single'}-threaded executor"
+        f"{', isolated, profile ' + opts.profile if opts.isolated else ''})"
     )
+    signum = stop.wait()
+    node.get_logger().info(
+        f"stopping ({signal.Signals(signum).name if signum else 'executor ended'})"
+    )
+    # Stop serving first, then stop the nodes, then tear down our own DDS side.
+    executor.shutdown()
+    spinner.join()
+    manager.close()
+    node.destroy_node()
+    rclpy.try_shutdown()
+    # Destroying the context destroys its DDS participant now, which unlinks
+    # its /dev/shm segments when the SHM transport is on.
+    context.destroy()
+    stop.close()
+    if opts.isolated:
+        # Objects a dead child left behind (see isolated/host.py) must never
+        # be destroyed: the C++ static destructors that exit() runs would do
+        # it (Fast DDS destroys every participant it still knows) and block
+        # on a condition variable the dead child was waiting on. Everything
+        # of ours is already stopped; flush and leave without them.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    return 0
+
+
+def _spin(executor, stop: StopSignals) -> None:
     try:
         executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
     finally:
-        manager.close()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+        stop.post()   # if spin ended on its own (an error), the main thread stops too
 
 
 if __name__ == "__main__":

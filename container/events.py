@@ -4,6 +4,7 @@ from __future__ import annotations
 import time
 
 from cloneguard_interfaces.msg import ComponentEvent
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 EVENTS_TOPIC = "~/_container/component_events"
@@ -55,5 +56,14 @@ class EventPublisher:
         msg.exit_signal = exit_signal
         msg.exit_code = exit_code
         msg.start_time = start_time_ns
-        self._pub.publish(msg)
+        # Children can die while the container shuts down (they got the same
+        # SIGTERM); once the context is gone there is no one to tell.
+        if not self._node.context.ok():
+            return None
+        try:
+            self._pub.publish(msg)
+        except RCLError:
+            if self._node.context.ok():
+                raise
+            return None
         return msg

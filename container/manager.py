@@ -24,9 +24,11 @@ class ComponentManager:
         self._host = host
         self._log = logger or node.get_logger()
         self._events = EventPublisher(node)
-        self._lock = threading.Lock()       # guards the two fields below
+        self._lock = threading.Lock()       # guards the fields below
         self._next_id = 1
         self._loaded: dict[int, tuple[Hosted, registry.ComponentSpec]] = {}
+        self._starting: set[int] = set()    # ids whose host.start() is running
+        self._early_deaths: dict[int, object] = {}   # deaths seen while starting
         node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
         node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
         node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
@@ -44,14 +46,21 @@ class ComponentManager:
         try:
             hosted = self._host.start(unique_id, cls, args)
         except LoadError as exc:
+            with self._lock:
+                self._starting.discard(unique_id)
             return self._load_failed(request, response, str(exc))
         with self._lock:
-            self._loaded[unique_id] = (hosted, spec)
+            self._starting.discard(unique_id)
+            early_death = self._early_deaths.pop(unique_id, None)
+            if early_death is None:
+                self._loaded[unique_id] = (hosted, spec)
         self._log.info(
             f"Loaded {spec.plugin_name} as {hosted.full_node_name} "
             f"(unique_id {unique_id}, pid {hosted.pid})"
         )
         self._publish(events.LOADED, hosted, spec)
+        if early_death is not None:
+            self._report_crash(hosted, spec, early_death)
         response.success = True
         response.full_node_name = hosted.full_node_name
         response.unique_id = unique_id
@@ -79,6 +88,30 @@ class ComponentManager:
         response.full_node_names = [hosted.full_node_name for _, (hosted, _s) in entries]
         return response
 
+    # -- deaths (called by the host, from its monitor's thread) -----------------
+
+    def on_death(self, unique_id: int, death) -> None:
+        """A node's process died without being unloaded."""
+        with self._lock:
+            if unique_id in self._starting:
+                self._early_deaths[unique_id] = death
+                return
+            entry = self._loaded.pop(unique_id, None)
+        if entry is not None:   # None: an unload got there first
+            self._report_crash(*entry, death)
+
+    def _report_crash(self, hosted: Hosted, spec, death) -> None:
+        self._log.error(
+            f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "
+            f"died: {death.reason}"
+        )
+        self._publish(
+            events.CRASHED, hosted, spec,
+            error_message=death.reason,
+            exit_signal=death.exit_signal,
+            exit_code=death.exit_code,
+        )
+
     # -- life cycle -----------------------------------------------------------
 
     def close(self) -> None:
@@ -92,6 +125,7 @@ class ComponentManager:
     def _take_id(self) -> int:
         with self._lock:
             unique_id, self._next_id = self._next_id, self._next_id + 1
+            self._starting.add(unique_id)
         return unique_id
 
     def _load_failed(self, request, response, message: str):

@@ -21,6 +21,7 @@ from . import procfs
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NO_SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_no_shm.xml"
+SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_shm.xml"
 STOP_GRACE_S = 2.0
 
 
@@ -35,17 +36,16 @@ def default_container_exe() -> str:
     return found
 
 
-def ros_environment(domain_id: int, *, fastdds_profile: Path | None = NO_SHM_PROFILE) -> dict[str, str]:
-    """The ROS variables a harness-launched process (and the harness) runs with."""
-    env = {
+def ros_environment(domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE) -> dict[str, str]:
+    """The ROS variables a harness-launched process (and the harness) runs with.
+
+    Both profiles keep every packet on the loopback interface.
+    """
+    return {
         "ROS_DOMAIN_ID": str(domain_id),
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-        # Discovery stays on this machine: tests never talk to the network.
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "FASTRTPS_DEFAULT_PROFILES_FILE": str(fastdds_profile),
     }
-    if fastdds_profile is not None:
-        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(fastdds_profile)
-    return env
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,7 @@ class ContainerProcess:
         log_path: Path,
         exe: str | None = None,
         node_name: str = "ComponentManager",
-        fastdds_profile: Path | None = NO_SHM_PROFILE,
+        fastdds_profile: Path = NO_SHM_PROFILE,
         extra_env: dict[str, str] | None = None,
     ):
         self.exe = exe or default_container_exe()
@@ -76,9 +76,8 @@ class ContainerProcess:
         ros_args = [] if node_name == "ComponentManager" else ["--ros-args", "-r", f"__node:={node_name}"]
         self.argv = [self.exe, *args, *ros_args]
         env = dict(os.environ)
-        # A stale profile variable from the caller must not leak in when the
-        # harness asks for Fast DDS defaults (SHM on).
-        env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+        # A discovery-range setting would replace the profile's transports.
+        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
         env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
         env["PYTHONUNBUFFERED"] = "1"
         env.update(extra_env or {})

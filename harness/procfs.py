@@ -74,3 +74,19 @@ def status_field(pid: int, key: str) -> str | None:
     except FileNotFoundError:
         return None
     return None
+
+
+_SYS_KCMP = 312          # x86_64
+_KCMP_VM = 1
+
+
+def same_address_space(pid1: int, pid2: int) -> bool:
+    """kcmp(2) KCMP_VM: do the two processes share one mm? (needs ptrace rights)"""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    rc = libc.syscall(_SYS_KCMP, pid1, pid2, _KCMP_VM, 0, 0)
+    if rc < 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"kcmp({pid1}, {pid2}, KCMP_VM): {os.strerror(err)}")
+    return rc == 0

@@ -39,6 +39,7 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
     # The harness's own participant runs under the same rules as the
     # containers it launches: UDP on loopback only. Set before any rclpy init.
+    os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
     for key, value in ros_environment(0).items():
         if key != "ROS_DOMAIN_ID":
             os.environ[key] = value

@@ -33,6 +33,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.type_support import check_for_type_support
 
+from harness.domains import lease
+
 # Upstream ROS 2 Jazzy type hashes of composition_interfaces.  Read from the
 # generated type descriptions (share/composition_interfaces/srv/*.json,
 # "type_hashes") of an upstream build of ros2/rcl_interfaces, branch jazzy at
@@ -252,22 +254,12 @@ def test_component_event_hash_consistent():
 
 # --- through rclpy and Fast DDS -------------------------------------------------
 
-def _lease_domain():
-    """A ROS domain of our own, from the harness when it is there."""
-    try:
-        from harness.domains import lease
-        held = lease()
-        return held, held.domain_id
-    except Exception:
-        return None, 1 + os.getpid() % 101
-
-
 @pytest.fixture(scope="module")
 def ros():
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    held, domain_id = _lease_domain()
+    # The harness plugin has already pointed Fast DDS at the loopback-only profile.
+    held = lease()
     context = Context()
-    rclpy.init(context=context, domain_id=domain_id)
+    rclpy.init(context=context, domain_id=held.domain_id)
     node = rclpy.create_node("cloneguard_interfaces_test", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -277,8 +269,7 @@ def ros():
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
-        if held is not None:
-            held.release()
+        held.release()
 
 
 def _endpoints(node, topic):

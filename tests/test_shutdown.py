@@ -4,6 +4,7 @@ import signal
 import pytest
 
 from harness import shm
+from harness.process import SHM_PROFILE
 
 PKG = "cloneguard"
 
@@ -30,7 +31,7 @@ def test_signal_stops_the_container_cleanly(container, client, sig):
 
 def test_graceful_stop_with_shared_memory_leaves_no_segment(container_factory):
     before = shm.segments()
-    proc = container_factory.start([], fastdds_profile=None)   # Fast DDS defaults: SHM on
+    proc = container_factory.start([], fastdds_profile=SHM_PROFILE)
     cli = container_factory.connect(proc)
     _load_demo_set(cli)
     created = shm.segments() - before
