@@ -1,0 +1,381 @@
+"""Every assumption the isolated core rests on, in one place, each one checked.
+
+The C core (clonecore.c) builds a glibc thread descriptor by hand for a task
+glibc did not create.  That is only sound on a platform we have looked at, with
+the struct pthread layout we believe in.  This module says which platforms
+those are, finds every layout value at run time (from glibc's own debugger
+descriptors, the kernel's view of the calling thread, and exported symbols)
+and checks each one against the live calling thread before any child exists.
+
+``self_check()`` returns a Report or raises IsolationUnavailable naming every
+check that failed.  Its keyword arguments fake what it would otherwise read
+(glibc version, Python version, machine, kernel release, any layout value), so
+a test can show the refusal and its message.
+
+Where each value comes from and how it is checked:
+
+  tcbhead_t (sysdeps/x86_64/nptl/tls.h; x86_64 ABI: gcc emits %fs:0x28 for the
+  stack protector, glibc's PTR_MANGLE uses %fs:0x30):
+    tcb 0x00, self 0x10   both must hold the thread pointer itself
+    multiple_threads 0x18 0/1; must be 1 once the process has a second thread
+    stack_guard 0x28      non-zero
+    pointer_guard 0x30    non-zero
+    feature_1 0x48        must be 0: CET (IBT/SHSTK) is not handled
+  struct pthread (nptl/descr.h):
+    tid              _thread_db_pthread_tid; TCB+tid == gettid()
+    list             _thread_db_pthread_list; list.next->prev == &list
+    robust_head      kernel's get_robust_list(0) - TCB; must be tid + 16
+                     (tid, robust_prev, robust_head: __PTHREAD_MUTEX_HAVE_PREV)
+    robust_futex_offset  head.futex_offset as glibc set it; must equal
+                     offsetof(__lock) - offsetof(__list.__next) (compiled)
+    specific         _thread_db_pthread_specific (32 pointers)
+    specific_1stblock  specific - 32 * _thread_db_sizeof_pthread_key_data;
+                     TCB+specific[0] must point at TCB+specific_1stblock
+    rseq_cpu_id      __rseq_offset + 4 (struct rseq.cpu_id); inside struct
+                     pthread; the calling thread's cpu_id >= 0 if registered
+  libc TLS:
+    resp_tls         dlvsym("__resp", GLIBC_PRIVATE) - TCB; initial-exec, so
+                     below the TCB; main thread: holds &_res; other threads:
+                     points into their own struct pthread (start_thread)
+  Needed symbols: _dl_allocate_tls, _dl_deallocate_tls (GLIBC_PRIVATE).
+  Kernel: clone3 + CLONE_CLEAR_SIGHAND (5.5), CLONE_INTO_CGROUP (5.7),
+  waitid(P_PIDFD) (5.4), pidfd_send_signal (5.1); probed as well.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import threading
+from dataclasses import dataclass, field, fields
+from typing import Mapping
+
+SUPPORTED_MACHINES = ("x86_64",)
+SUPPORTED_GLIBC = ("2.36",)
+SUPPORTED_PYTHON = ((3, 11),)
+MIN_KERNEL = (5, 7)
+
+TCBHEAD = {
+    "tcb": 0x00,
+    "self": 0x10,
+    "multiple_threads": 0x18,
+    "stack_guard": 0x28,
+    "pointer_guard": 0x30,
+}
+TCBHEAD_FEATURE_1 = 0x48
+RSEQ_CPU_ID = 4          # offsetof(struct rseq, cpu_id), linux/rseq.h
+PTHREAD_KEY_2NDLEVEL_SIZE = 32
+
+
+class IsolationUnavailable(RuntimeError):
+    """The platform is not one the isolated core is known to be sound on."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Byte offsets from the thread pointer; mirrors struct cg_layout."""
+
+    tcb: int
+    self: int
+    multiple_threads: int
+    stack_guard: int
+    pointer_guard: int
+    list: int
+    tid: int
+    robust_head: int
+    specific: int
+    specific_1stblock: int
+    rseq_cpu_id: int
+    resp_tls: int
+    robust_futex_offset: int
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass(frozen=True)
+class Report:
+    machine: str
+    glibc: str
+    python: str
+    kernel: str
+    layout: Layout
+    checks: tuple[str, ...]
+    notes: tuple[str, ...] = field(default=())
+
+    def __str__(self) -> str:
+        head = (f"isolation available: {self.machine}, glibc {self.glibc}, "
+                f"Python {self.python}, kernel {self.kernel}")
+        return "\n".join([head, *("  ok   " + c for c in self.checks),
+                          *("  note " + n for n in self.notes)])
+
+
+def _glibc_version() -> str:
+    try:
+        return os.confstr("CS_GNU_LIBC_VERSION").split()[1]
+    except (ValueError, OSError, AttributeError, IndexError):
+        return "none"
+
+
+def _kernel_tuple(release: str) -> tuple[int, int]:
+    parts = release.split(".")
+    try:
+        return int(parts[0]), int("".join(ch for ch in parts[1] if ch.isdigit()))
+    except (IndexError, ValueError):
+        return (0, 0)
+
+
+def _task_count() -> int:
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:
+        return threading.active_count()
+
+
+class _Checker:
+    """Collects passes and failures so one run names every problem."""
+
+    def __init__(self) -> None:
+        self.passed: list[str] = []
+        self.failed: list[str] = []
+        self.notes: list[str] = []
+
+    def check(self, ok: bool, good: str, bad: str) -> bool:
+        (self.passed.append(good) if ok else self.failed.append(bad))
+        return ok
+
+
+def self_check(*, glibc_version: str | None = None,
+               python_version: tuple[int, int] | None = None,
+               machine: str | None = None,
+               kernel_release: str | None = None,
+               overrides: Mapping[str, int] | None = None) -> Report:
+    """Check the platform and discover the layout; raise if anything fails.
+
+    Each keyword replaces what would be read from the running system (for
+    tests).  ``overrides`` replaces discovered Layout values by name before
+    they are checked, e.g. ``overrides={"tid": 724}``.
+    """
+    ck = _Checker()
+    machine = machine or platform.machine()
+    glibc = glibc_version or _glibc_version()
+    pyver = tuple(python_version or sys.version_info[:2])
+    kernel = kernel_release or platform.release()
+    overrides = dict(overrides or {})
+    unknown = set(overrides) - {f.name for f in fields(Layout)}
+    if unknown:
+        raise ValueError(f"unknown layout field(s) to override: {sorted(unknown)}")
+
+    ck.check(machine in SUPPORTED_MACHINES, f"machine {machine}",
+             f"machine {machine!r} is not supported (only {SUPPORTED_MACHINES})")
+    ck.check(glibc in SUPPORTED_GLIBC, f"glibc {glibc}",
+             f"glibc version {glibc!r} is not supported (only {SUPPORTED_GLIBC})")
+    ck.check(sys.implementation.name == "cpython" and pyver in SUPPORTED_PYTHON,
+             f"CPython {pyver[0]}.{pyver[1]}",
+             f"Python {sys.implementation.name} {pyver[0]}.{pyver[1]} is not "
+             f"supported (only CPython {SUPPORTED_PYTHON})")
+    ck.check(_kernel_tuple(kernel) >= MIN_KERNEL, f"kernel {kernel}",
+             f"kernel {kernel} is older than {MIN_KERNEL[0]}.{MIN_KERNEL[1]} "
+             "(clone3 with CLONE_INTO_CGROUP/CLONE_CLEAR_SIGHAND, P_PIDFD)")
+    if ck.failed:   # no point reading memory with layouts we never checked
+        raise IsolationUnavailable("; ".join(ck.failed))
+
+    try:
+        from container.isolated._clonecore import ffi, lib
+    except ImportError as e:
+        raise IsolationUnavailable(f"C core not built: {e}") from e
+
+    err = lib.cg_probe_clone3()
+    ck.check(err == 0, "clone3 syscall present",
+             f"clone3 probe failed: {os.strerror(err)}")
+    try:
+        os.close(os.pidfd_open(os.getpid()))
+        ck.passed.append("pidfd_open works")
+    except (OSError, AttributeError) as e:
+        ck.failed.append(f"pidfd_open failed: {e}")
+
+    layout = _discover_and_verify(ck, ffi, lib, overrides)
+    try:
+        with open("/proc/sys/kernel/core_pattern") as f:
+            pattern = f.read().strip()
+        ck.notes.append(f"core_pattern {pattern!r}: children run with "
+                        "RLIMIT_CORE=1, which means no dump for file and pipe "
+                        "patterns alike")
+    except OSError:
+        pass
+    if ck.failed:
+        raise IsolationUnavailable("; ".join(ck.failed))
+    return Report(machine, glibc, f"{pyver[0]}.{pyver[1]}", kernel, layout,
+                  tuple(ck.passed), tuple(ck.notes))
+
+
+def check_multithreaded() -> None:
+    """Raise unless glibc already treats the process as multi-threaded.
+
+    clone3 children share the parent's malloc and stdio; glibc only takes its
+    locks (and x86 atomics their lock prefix) once it knows of a second thread.
+    Call after the monitor thread has started.
+    """
+    from container.isolated._clonecore import ffi, lib
+
+    tp = lib.cg_thread_pointer()
+    mt = ffi.cast("int32_t *", tp + TCBHEAD["multiple_threads"])[0]
+    single = ffi.cast("char *", lib.cg_lookup(b"__libc_single_threaded", ffi.NULL))
+    if mt != 1 or (single != ffi.NULL and single[0] != b"\0"):
+        raise IsolationUnavailable(
+            f"glibc still thinks the process is single-threaded "
+            f"(multiple_threads={mt}) after the monitor thread started")
+
+
+def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
+    def u64(addr: int) -> int:
+        return int(ffi.cast("uint64_t *", addr)[0])
+
+    def i64(addr: int) -> int:
+        return int(ffi.cast("int64_t *", addr)[0])
+
+    def i32(addr: int) -> int:
+        return int(ffi.cast("int32_t *", addr)[0])
+
+    def sym(name: str, version: str | None) -> int:
+        p = lib.cg_lookup(name.encode(), version.encode() if version else ffi.NULL)
+        return int(ffi.cast("uintptr_t", p))
+
+    def desc(name: str) -> tuple[int, int, int]:
+        """nptl_db descriptor: (bits per element, element count, offset)."""
+        a = sym(name, "GLIBC_PRIVATE")
+        if not a:
+            raise IsolationUnavailable(f"glibc symbol {name} not found")
+        p = ffi.cast("uint32_t *", a)
+        return int(p[0]), int(p[1]), int(p[2])
+
+    for name in ("_dl_allocate_tls", "_dl_deallocate_tls"):
+        ck.check(sym(name, "GLIBC_PRIVATE") != 0, f"{name}@GLIBC_PRIVATE found",
+                 f"glibc symbol {name}@GLIBC_PRIVATE not found")
+
+    tp = int(lib.cg_thread_pointer())
+    if not tp:
+        raise IsolationUnavailable("arch_prctl(ARCH_GET_FS) gave no thread pointer")
+    size_addr = sym("_thread_db_sizeof_pthread", "GLIBC_PRIVATE")
+    if not size_addr:
+        raise IsolationUnavailable("glibc symbol _thread_db_sizeof_pthread not found")
+    sizeof_pthread = int(ffi.cast("uint32_t *", size_addr)[0])
+    is_main = lib.cg_gettid() == os.getpid()
+
+    # --- discovery -------------------------------------------------------
+    found = dict(TCBHEAD)
+    bits, n, tid = desc("_thread_db_pthread_tid")
+    ck.check((bits, n) == (32, 1), "tid descriptor shape",
+             f"_thread_db_pthread_tid describes {n}x{bits} bits, expected 1x32")
+    found["tid"] = tid
+    bits, n, lst = desc("_thread_db_pthread_list")
+    ck.check((bits, n) == (128, 1), "list descriptor shape",
+             f"_thread_db_pthread_list describes {n}x{bits} bits, expected 1x128")
+    found["list"] = lst
+    head = int(lib.cg_robust_list_head())
+    found["robust_head"] = head - tp if head else -1
+    bits, n, spec = desc("_thread_db_pthread_specific")
+    # glibc describes it as one 2048-bit field; either shape is 32 pointers.
+    ck.check(bits * n == 64 * PTHREAD_KEY_2NDLEVEL_SIZE, "specific descriptor shape",
+             f"_thread_db_pthread_specific describes {n}x{bits} bits, expected "
+             "32 pointers")
+    found["specific"] = spec
+    kd = int(ffi.cast("uint32_t *", sym("_thread_db_sizeof_pthread_key_data",
+                                        "GLIBC_PRIVATE"))[0])
+    found["specific_1stblock"] = spec - PTHREAD_KEY_2NDLEVEL_SIZE * kd
+    rseq_off_addr = sym("__rseq_offset", "GLIBC_2.35")
+    rseq_size_addr = sym("__rseq_size", "GLIBC_2.35")
+    found["rseq_cpu_id"] = (i64(rseq_off_addr) + RSEQ_CPU_ID) if rseq_off_addr else -1
+    resp = sym("__resp", "GLIBC_PRIVATE")
+    found["resp_tls"] = resp - tp if resp else 0
+    found["robust_futex_offset"] = int(lib.cg_mutex_futex_offset())
+    found.update(overrides)
+    L = Layout(**{f.name: found[f.name] for f in fields(Layout)})
+
+    # --- verification against the calling thread --------------------------
+    def inside(name: str, off: int, width: int) -> bool:
+        """Bounds first: a wrong offset must fail, not read wild memory."""
+        if 0 <= off and off + width <= sizeof_pthread:
+            return True
+        ck.failed.append(f"offset {name}={off} lies outside struct pthread "
+                         f"({sizeof_pthread} bytes)")
+        return False
+
+    for name in ("tcb", "self"):
+        off = getattr(L, name)
+        if inside(name, off, 8):
+            v = u64(tp + off)
+            ck.check(v == tp, f"tcbhead.{name} @{off:#x} == thread pointer",
+                     f"offset {name}={off:#x} does not hold: TCB+{off:#x} has "
+                     f"{v:#x}, the thread pointer is {tp:#x}")
+    if inside("multiple_threads", L.multiple_threads, 4):
+        v = i32(tp + L.multiple_threads)
+        want = (1,) if _task_count() > 1 else (0, 1)
+        ck.check(v in want, f"multiple_threads @{L.multiple_threads:#x} = {v}",
+                 f"offset multiple_threads={L.multiple_threads:#x} does not hold: "
+                 f"value {v}, expected one of {want}")
+    for name in ("stack_guard", "pointer_guard"):
+        off = getattr(L, name)
+        if inside(name, off, 8):
+            ck.check(u64(tp + off) != 0, f"{name} @{off:#x} set",
+                     f"offset {name}={off:#x} does not hold: value is 0")
+    f1 = i32(tp + TCBHEAD_FEATURE_1)
+    ck.check(f1 == 0, "CET (tcbhead.feature_1) off",
+             f"CET is active (tcbhead.feature_1={f1:#x}); not supported")
+
+    if inside("tid", L.tid, 4):
+        v, me = i32(tp + L.tid), int(lib.cg_gettid())
+        ck.check(v == me, f"tid @{L.tid} == gettid() ({me})",
+                 f"offset tid={L.tid} does not hold: TCB+{L.tid} has {v}, "
+                 f"gettid() is {me}")
+    if inside("list", L.list, 16):
+        nxt = u64(tp + L.list)
+        ok = nxt != 0 and u64(nxt + 8) == tp + L.list
+        ck.check(ok, f"list @{L.list}: list.next->prev == &list",
+                 f"offset list={L.list} does not hold: TCB+{L.list} is not a "
+                 "linked list_t")
+    if inside("robust_head", L.robust_head, 24):
+        ck.check(head == tp + L.robust_head,
+                 f"robust_head @{L.robust_head} == get_robust_list(0)",
+                 f"offset robust_head={L.robust_head} does not hold: the kernel "
+                 f"has {head - tp} (get_robust_list)")
+        ck.check(L.robust_head == L.tid + 16, "robust_head == tid + 16",
+                 f"offset robust_head={L.robust_head} is not tid+16 ({L.tid + 16})")
+        fo = i64(tp + L.robust_head + 8)
+        ck.check(fo == L.robust_futex_offset,
+                 f"robust futex_offset {fo} == pthread_mutex_t layout",
+                 f"robust_futex_offset={L.robust_futex_offset} does not hold: "
+                 f"glibc registered {fo}")
+    if inside("specific", L.specific, 8) and inside(
+            "specific_1stblock", L.specific_1stblock,
+            PTHREAD_KEY_2NDLEVEL_SIZE * 16):
+        v = u64(tp + L.specific)
+        ck.check(v == tp + L.specific_1stblock,
+                 f"specific[0] @{L.specific} -> specific_1stblock @{L.specific_1stblock}",
+                 f"offset specific={L.specific}/specific_1stblock="
+                 f"{L.specific_1stblock} does not hold: specific[0] is "
+                 f"{v:#x}, expected {tp + L.specific_1stblock:#x}")
+    if inside("rseq_cpu_id", L.rseq_cpu_id, 4):
+        registered = rseq_size_addr and int(ffi.cast("uint32_t *", rseq_size_addr)[0]) > 0
+        cpu = i32(tp + L.rseq_cpu_id)
+        if registered:
+            ck.check(0 <= cpu < 65536, f"rseq cpu_id @{L.rseq_cpu_id} = {cpu}",
+                     f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: value "
+                     f"{cpu} is not a CPU number")
+        else:
+            ck.notes.append("rseq not registered by glibc (tunable?)")
+            ck.check(cpu in (-1, -2), f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
+                     f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}")
+    ck.check(-65536 < L.resp_tls < 0, f"__resp in static TLS ({L.resp_tls})",
+             f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB")
+    if -65536 < L.resp_tls < 0:
+        v = u64(tp + L.resp_tls)
+        if is_main:
+            ok, want = v == sym("_res", "GLIBC_2.2.5"), "&_res"
+        else:
+            ok, want = tp < v < tp + sizeof_pthread, "this thread's struct pthread"
+        ck.check(ok, f"__resp @{L.resp_tls} -> {want}",
+                 f"offset resp_tls={L.resp_tls} does not hold: value {v:#x} "
+                 f"is not {want}")
+    return L

@@ -1,0 +1,725 @@
+/*
+ * clonecore.c - the C core of cloneguard's --isolated mode.
+ *
+ * A "child" is a task made with clone3(CLONE_VM) and no CLONE_THREAD: its own
+ * pid, signal dispositions and rlimits, but the container's address space.
+ * glibc knows nothing of such a task, so this file gives it what
+ * pthread_create would have: a TLS block with a struct pthread in it, a stack,
+ * a robust-futex list, a locale.  Everything layout-dependent (offsets into
+ * struct pthread, TLS offsets) comes from assumptions.py through struct
+ * cg_layout; that module discovers each value and checks it against a live
+ * thread before anything here runs.  x86_64 and glibc only.
+ *
+ * Threads and who may touch what:
+ *   - The monitor thread (one, started by cg_start) performs every clone3,
+ *     because PR_SET_PDEATHSIG fires when the *spawning thread* dies.  It
+ *     waits on pidfds, reaps children and reports to Python through a pipe of
+ *     fixed-size records.  It never takes the GIL.  It alone touches the child
+ *     list (g_children) and cg_child.stop_reported.
+ *   - Python threads call cg_spawn / cg_request_stop / cg_release; cffi
+ *     releases the GIL around each call.
+ *   - A child runs child_main on its own stack and TLS, then the Python
+ *     callable under PyGILState_Ensure, then leaves with a raw SYS_exit.
+ */
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE
+#endif
+#include <Python.h>
+#include <asm/prctl.h>
+#include <dlfcn.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <linux/futex.h>
+#include <linux/sched.h> /* struct clone_args, CLONE_INTO_CGROUP, ... */
+#include <locale.h>
+#include <pthread.h>
+#include <resolv.h>
+#include <signal.h>
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/epoll.h>
+#include <sys/eventfd.h>
+#include <sys/mman.h>
+#include <sys/prctl.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+#if !defined(__x86_64__)
+#error "clonecore.c: x86_64 only (clone3 trampoline and TLS layout)"
+#endif
+
+/* ---------------------------------------------------------------------- */
+/* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
+
+struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
+    long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
+    long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
+    long rseq_cpu_id;        /* __rseq_offset + offsetof(struct rseq, cpu_id) */
+    long resp_tls;           /* &__resp (initial-exec TLS in libc) - tp */
+    long robust_futex_offset;/* robust_list_head.futex_offset glibc uses */
+};
+
+enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3 };
+struct cg_event {            /* one record on the event pipe: 32 bytes */
+    uint32_t kind;
+    int32_t pid;
+    int32_t status;          /* death: si_status; stop: CG_STOP_* */
+    int32_t code;            /* death: si_code (CLD_EXITED/KILLED/DUMPED),
+                                0 if someone else reaped the child */
+    uint64_t serial;
+    int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
+};
+
+enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
+enum { CG_RUNNING = 0, CG_REAPED = 1 };
+enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
+#define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
+
+struct cg_child {            /* control block, lives in container memory */
+    /* read by Python */
+    int pid;
+    int pidfd;
+    uint64_t serial;         /* Python's name for the child */
+    int64_t start_ns;
+    int state;               /* CG_RUNNING / CG_REAPED (atomic) */
+    int stop_requested;      /* CG_STOP_* (atomic; child, parent, monitor) */
+    int py_phase;            /* CG_PY_* (atomic; written by the child) */
+    /* set up before the clone */
+    PyObject *target;        /* borrowed: Python keeps it alive until reaped */
+    int flags;
+    int cgroup_fd;           /* -1: stay in the container's cgroup */
+    int parent_tgid;
+    char *map;               /* guard page + stack */
+    size_t map_len, stack_size;
+    char *tcb;               /* from _dl_allocate_tls */
+    /* monitor-only */
+    int stop_reported;
+    struct cg_child *next;
+    /* the child's own resolver state, as start_thread gives each thread */
+    struct __res_state res;
+};
+
+/* ---------------------------------------------------------------------- */
+/* Globals                                                                 */
+
+static struct cg_layout L;
+static void *(*dl_allocate_tls)(void *);
+static void (*dl_deallocate_tls)(void *, bool);
+
+static int g_epfd = -1, g_wakefd = -1, g_cmd[2] = {-1, -1}, g_ev[2] = {-1, -1};
+static pthread_t g_monitor;
+static int g_started;
+static struct cg_child *g_children;   /* monitor-only */
+
+/* Which child the current task is.  initial-exec so the SIGTERM handler
+   reads it with a plain %fs-relative load (no __tls_get_addr, no malloc);
+   the static TLS block is part of every _dl_allocate_tls. */
+static __thread struct cg_child *cg_self __attribute__((tls_model("initial-exec")));
+
+static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
+
+#define AT(base, off, type) (*(type *)((char *)(base) + (off)))
+
+static int64_t mono_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+/* ---------------------------------------------------------------------- */
+/* Small helpers assumptions.py uses to discover and check the layout.     */
+
+uintptr_t cg_thread_pointer(void)
+{
+    unsigned long fs = 0;
+    syscall(SYS_arch_prctl, ARCH_GET_FS, &fs);
+    return fs;
+}
+
+uintptr_t cg_robust_list_head(void)   /* what the kernel has for this task */
+{
+    void *head = NULL;
+    size_t len = 0;
+    if (syscall(SYS_get_robust_list, 0, &head, &len) != 0)
+        return 0;
+    return (uintptr_t)head;
+}
+
+long cg_gettid(void) { return syscall(SYS_gettid); }
+
+void *cg_lookup(const char *name, const char *version)
+{
+    return version ? dlvsym(RTLD_DEFAULT, name, version)
+                   : dlsym(RTLD_DEFAULT, name);
+}
+
+long cg_mutex_futex_offset(void)   /* glibc: futex word minus list.__next */
+{
+    return (long)offsetof(pthread_mutex_t, __data.__lock) -
+           (long)offsetof(pthread_mutex_t, __data.__list.__next);
+}
+
+int cg_probe_clone3(void)   /* 0 if the kernel has clone3, else errno */
+{
+    /* A size of 0 is below CLONE_ARGS_SIZE_VER0: EINVAL if clone3 exists. */
+    long r = syscall(SYS_clone3, NULL, (size_t)0);
+    return (r < 0 && errno == EINVAL) ? 0 : (r < 0 ? errno : EEXIST);
+}
+
+/* ---------------------------------------------------------------------- */
+/* The clone3 trampoline.
+ *
+ *   long cg_clone3(struct clone_args *args, size_t size,
+ *                  int (*fn)(void *), void *arg);
+ *
+ * The child comes back from the syscall on its new stack (the kernel sets
+ * rsp = stack + stack_size, page aligned, hence 16-byte aligned for the call)
+ * with every register but rax/rcx/r11 as the parent had them.  So fn and arg
+ * travel in r8/r9.  The child must not return into the parent's frame: it
+ * calls fn and ends with a raw SYS_exit, which ends only this task and runs
+ * no atexit handler and no stdio flush in the shared address space.
+ */
+long cg_clone3(struct clone_args *args, size_t size, int (*fn)(void *), void *arg);
+__asm__(
+    ".text\n"
+    ".p2align 4\n"
+    ".type cg_clone3, @function\n"
+    "cg_clone3:\n"
+    "    mov %rdx, %r8\n"            /* fn  */
+    "    mov %rcx, %r9\n"            /* arg */
+    "    mov $" "435" ", %eax\n"     /* SYS_clone3 (x86_64) */
+    "    syscall\n"
+    "    test %rax, %rax\n"
+    "    jnz 1f\n"                   /* parent (pid) or error (-errno) */
+    "    xor %ebp, %ebp\n"           /* child: outermost frame */
+    "    mov %r9, %rdi\n"
+    "    call *%r8\n"
+    "    mov %eax, %edi\n"
+    "    mov $60, %eax\n"            /* SYS_exit */
+    "    syscall\n"
+    "    hlt\n"
+    "1:  ret\n"
+    ".size cg_clone3, .-cg_clone3\n");
+_Static_assert(SYS_clone3 == 435, "SYS_clone3 number used in the trampoline");
+
+/* ---------------------------------------------------------------------- */
+/* A fresh TLS block + struct pthread for a child, filled in the parent.    */
+
+static char *tls_new(void)
+{
+    char *tcb = dl_allocate_tls(NULL);   /* struct pthread zeroed, dtv set */
+    if (!tcb)
+        return NULL;
+    char *me = (char *)cg_thread_pointer();
+
+    AT(tcb, L.tcb, void *) = tcb;        /* THREAD_SELF reads these */
+    AT(tcb, L.self, void *) = tcb;
+    /* x86 catomic_* skip the lock prefix when this is 0: must be 1. */
+    AT(tcb, L.multiple_threads, int) = 1;
+    /* The canary only needs to be stable per task, but pointer_guard must
+       equal every other thread's: mangled pointers (setjmp buffers, atexit
+       and dl handlers) are shared. */
+    AT(tcb, L.stack_guard, uintptr_t) = AT(me, L.stack_guard, uintptr_t);
+    AT(tcb, L.pointer_guard, uintptr_t) = AT(me, L.pointer_guard, uintptr_t);
+    /* Not on GL(dl_stack_used): an empty self-linked list keeps list_del
+       (fork in a child) harmless. */
+    AT(tcb, L.list, void *) = tcb + L.list;
+    AT(tcb, L.list + 8, void *) = tcb + L.list;
+    /* pthread_getspecific for keys < 32 goes through specific[0]. */
+    AT(tcb, L.specific, void *) = tcb + L.specific_1stblock;
+    /* Empty robust list: list points at the head itself. */
+    AT(tcb, L.robust_head, void *) = tcb + L.robust_head;
+    AT(tcb, L.robust_head + 8, long) = L.robust_futex_offset;
+    AT(tcb, L.robust_head + 16, void *) = NULL;
+    /* rseq is not registered for the child: RSEQ_CPU_ID_REGISTRATION_FAILED
+       makes sched_getcpu fall back to the syscall. */
+    AT(tcb, L.rseq_cpu_id, int32_t) = -2;
+    /* tid is written by the kernel (CLONE_{CHILD,PARENT}_SETTID). */
+    return tcb;
+}
+
+/* ---------------------------------------------------------------------- */
+/* The child.                                                              */
+
+static void on_sigterm(int sig)
+{
+    (void)sig;
+    int saved = errno;
+    struct cg_child *c = cg_self;
+    int none = CG_STOP_NONE;
+    if (c && __atomic_compare_exchange_n(&c->stop_requested, &none,
+                                         CG_STOP_SIGNAL, false,
+                                         __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST)) {
+        uint64_t one = 1;   /* eventfd write: async-signal-safe */
+        if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */ }
+    }
+    errno = saved;
+}
+
+static int exit_code_of_current_exception(void)   /* GIL held */
+{
+    if (!PyErr_ExceptionMatches(PyExc_SystemExit)) {
+        /* Never PyErr_Print: it sets sys.last_* in the shared interpreter
+           and would exit the *container* on SystemExit. */
+        PyErr_PrintEx(0);
+        return 1;
+    }
+    PyObject *type, *value, *tb;
+    PyErr_Fetch(&type, &value, &tb);
+    PyErr_NormalizeException(&type, &value, &tb);
+    PyObject *code = value ? PyObject_GetAttrString(value, "code") : NULL;
+    int rc = 1;
+    if (code == NULL)
+        PyErr_Clear();
+    else if (code == Py_None)
+        rc = 0;
+    else if (PyLong_Check(code))
+        rc = (int)PyLong_AsLong(code);
+    else
+        PyObject_Print(code, stderr, Py_PRINT_RAW), fputc('\n', stderr);
+    if (PyErr_Occurred())
+        PyErr_Clear();
+    Py_XDECREF(code);
+    Py_XDECREF(type);
+    Py_XDECREF(value);
+    Py_XDECREF(tb);
+    return rc;
+}
+
+static int child_main(void *arg)
+{
+    struct cg_child *c = arg;
+
+    /* 1. Core dumps off for this thread group (rlimits are per thread
+       group, so the container keeps its own).  A dump would write the whole
+       shared address space.  1, not 0: below the minimum dump size for a
+       file core_pattern, and the "don't dump" value for a pipe one. */
+    if (!(c->flags & CG_FLAG_ALLOW_CORE)) {
+        struct rlimit no_core = {1, 1};
+        syscall(SYS_prlimit64, 0, RLIMIT_CORE, &no_core, NULL);
+    }
+    /* 2. The kernel marks robust mutexes we hold as owner-died on our exit
+       only if it knows our list.  Must be done by this task itself. */
+    syscall(SYS_set_robust_list, c->tcb + L.robust_head,
+            sizeof(struct robust_list_head));
+    /* 3. Locale: the fresh TLS has no ctype tables; uselocale sets them. */
+    uselocale(LC_GLOBAL_LOCALE);
+    AT(c->tcb, L.resp_tls, struct __res_state *) = &c->res;
+    /* 4. Die with the monitor thread (= the container).  If it is already
+       gone we have been reparented: leave. */
+    prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (getppid() != c->parent_tgid)
+        return 127;
+    /* 5. Graceful stop: our own SIGTERM handler (CLONE_CLEAR_SIGHAND left
+       every handler at SIG_DFL), then unblock what the monitor blocked. */
+    cg_self = c;
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_sigterm;
+    sa.sa_flags = SA_RESTART;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGTERM, &sa, NULL);
+    sigset_t none;
+    sigemptyset(&none);
+    sigprocmask(SIG_SETMASK, &none, NULL);
+
+    /* 6. Python.  Our TLS has no thread state, so PyGILState_Ensure makes
+       one; Release deletes it. */
+    __atomic_store_n(&c->py_phase, CG_PY_INSIDE, __ATOMIC_RELEASE);
+    PyGILState_STATE g = PyGILState_Ensure();
+    PyObject *r = PyObject_CallNoArgs(c->target);
+    int code = 0;
+    if (r)
+        Py_DECREF(r);
+    else
+        code = exit_code_of_current_exception();
+    PyGILState_Release(g);
+    __atomic_store_n(&c->py_phase, CG_PY_LEFT, __ATOMIC_RELEASE);
+    return code;                         /* trampoline: SYS_exit(code) */
+}
+
+int cg_self_stop_requested(void)   /* -1 when not called from a child */
+{
+    struct cg_child *c = cg_self;
+    return c ? __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) : -1;
+}
+
+/* ---------------------------------------------------------------------- */
+/* The monitor thread.                                                     */
+
+enum { CMD_SPAWN = 1, CMD_STOP = 2 };
+struct cg_cmd {              /* lives on the caller's stack */
+    int op;
+    struct cg_child *child;
+    int result;
+    uint32_t done;           /* futex word */
+};
+
+static void cmd_finish(struct cg_cmd *cmd, int result)
+{
+    cmd->result = result;
+    __atomic_store_n(&cmd->done, 1, __ATOMIC_RELEASE);
+    /* The caller may already have returned; a wake on a stale address is a
+       harmless spurious wake-up. */
+    syscall(SYS_futex, &cmd->done, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
+}
+
+static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
+{
+    /* 8-byte writes to a pipe are atomic: no lock to be left held. */
+    ssize_t n;
+    do
+        n = write(g_cmd[1], &cmd, sizeof cmd);
+    while (n < 0 && errno == EINTR);
+    if (n != sizeof cmd)
+        return -EPIPE;
+    while (__atomic_load_n(&cmd->done, __ATOMIC_ACQUIRE) == 0)
+        syscall(SYS_futex, &cmd->done, FUTEX_WAIT_PRIVATE, 0, NULL, NULL, 0);
+    return cmd->result;
+}
+
+static void emit(uint32_t kind, const struct cg_child *c, int status,
+                 int code, int64_t t)
+{
+    struct cg_event ev = {kind, c ? c->pid : 0, status, code,
+                          c ? c->serial : 0, t};
+    const char *p = (const char *)&ev;
+    size_t left = sizeof ev;
+    while (left) {   /* blocks if Python lags >2048 records behind */
+        ssize_t n = write(g_ev[1], p, left);
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n < 0)
+            return;
+        p += n, left -= (size_t)n;
+    }
+}
+
+static void report_stop(struct cg_child *c, int64_t t)
+{
+    int s = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
+    if (s != CG_STOP_NONE && !c->stop_reported) {
+        c->stop_reported = 1;
+        emit(CG_EV_STOP, c, s, 0, t);
+    }
+}
+
+static int do_spawn(struct cg_child *c)
+{
+    struct clone_args a;
+    memset(&a, 0, sizeof a);
+    a.flags = CLONE_VM | CLONE_FS | CLONE_FILES | CLONE_PIDFD | CLONE_SETTLS |
+              CLONE_CLEAR_SIGHAND | CLONE_CHILD_SETTID | CLONE_PARENT_SETTID;
+    a.pidfd = (uintptr_t)&c->pidfd;
+    a.child_tid = a.parent_tid = (uintptr_t)(c->tcb + L.tid);
+    a.exit_signal = SIGCHLD;
+    a.stack = (uintptr_t)(c->map + (c->map_len - c->stack_size));
+    a.stack_size = c->stack_size;
+    a.tls = (uintptr_t)c->tcb;
+    if (c->cgroup_fd >= 0) {
+        a.flags |= CLONE_INTO_CGROUP;
+        a.cgroup = (uint64_t)c->cgroup_fd;
+    }
+    c->parent_tgid = getpid();
+    c->start_ns = mono_ns();
+
+    long pid = cg_clone3(&a, sizeof a, child_main, c);
+    if (pid < 0)
+        return (int)pid;
+    c->pid = (int)pid;
+
+    struct epoll_event ev = {.events = EPOLLIN, .data.ptr = c};
+    if (epoll_ctl(g_epfd, EPOLL_CTL_ADD, c->pidfd, &ev) < 0) {
+        int err = errno;   /* cannot watch it: do not let it run */
+        siginfo_t si;
+        syscall(SYS_pidfd_send_signal, c->pidfd, SIGKILL, NULL, 0);
+        waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si, WEXITED | __WALL);
+        close(c->pidfd);
+        return -err;
+    }
+    c->next = g_children;
+    g_children = c;
+    return 0;
+}
+
+static void reap(struct cg_child *c, int64_t t)
+{
+    siginfo_t si;
+    memset(&si, 0, sizeof si);
+    int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
+                   WEXITED | __WALL | WNOHANG);
+    if (r == 0 && si.si_pid == 0)
+        return;                  /* readable but not yet waitable */
+    if (r < 0 && errno != ECHILD)
+        return;
+    /* ECHILD: something else in the container reaped it (a waitpid(-1)).
+       It is dead, the status is lost: report code 0. */
+    int status = r == 0 ? si.si_status : -1;
+    int code = r == 0 ? si.si_code : 0;
+
+    report_stop(c, t);           /* never after the death record */
+    epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
+    for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
+        if (*p == c) {
+            *p = c->next;
+            break;
+        }
+    __atomic_store_n(&c->state, CG_REAPED, __ATOMIC_RELEASE);
+    emit(CG_EV_DEATH, c, status, code, t);
+}
+
+static void *monitor_main(void *unused)
+{
+    (void)unused;
+    struct epoll_event evs[32];
+    for (;;) {
+        int n = epoll_wait(g_epfd, evs, 32, -1);
+        if (n < 0)
+            continue;                    /* EINTR; all signals are blocked */
+        int64_t t = mono_ns();
+        /* Commands and stop notices first, deaths second: a stop notice of
+           a child must reach Python before its death record. */
+        for (int i = 0; i < n; i++) {
+            if (evs[i].data.ptr == &TAG_WAKE) {
+                uint64_t v;
+                if (read(g_wakefd, &v, sizeof v) < 0) { /* EAGAIN */ }
+                for (struct cg_child *c = g_children; c; c = c->next)
+                    report_stop(c, t);
+            } else if (evs[i].data.ptr == &TAG_CMD) {
+                struct cg_cmd *cmd;
+                if (read(g_cmd[0], &cmd, sizeof cmd) != sizeof cmd)
+                    continue;
+                if (cmd->op == CMD_SPAWN) {
+                    cmd_finish(cmd, do_spawn(cmd->child));
+                } else if (cmd->op == CMD_STOP) {
+                    if (g_children) {
+                        cmd_finish(cmd, -EBUSY);
+                    } else {
+                        emit(CG_EV_CLOSED, NULL, 0, 0, t);
+                        cmd_finish(cmd, 0);
+                        return NULL;
+                    }
+                }
+            }
+        }
+        for (int i = 0; i < n; i++)
+            if (evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
+                reap(evs[i].data.ptr, t);
+    }
+}
+
+static void close_fds(void)
+{
+    int *fds[] = {&g_epfd, &g_wakefd, &g_cmd[0], &g_cmd[1], &g_ev[1]};
+    for (size_t i = 0; i < sizeof fds / sizeof fds[0]; i++)
+        if (*fds[i] >= 0)
+            close(*fds[i]), *fds[i] = -1;
+}
+
+/* Start the monitor.  *event_fd receives the read end of the event pipe,
+   which Python owns (and closes after cg_stop). */
+int cg_start(const struct cg_layout *layout, int *event_fd)
+{
+    if (g_started)
+        return -EALREADY;
+    dl_allocate_tls = (void *(*)(void *))dlvsym(RTLD_DEFAULT,
+                                 "_dl_allocate_tls", "GLIBC_PRIVATE");
+    dl_deallocate_tls = (void (*)(void *, bool))dlvsym(RTLD_DEFAULT,
+                                 "_dl_deallocate_tls", "GLIBC_PRIVATE");
+    if (!dl_allocate_tls || !dl_deallocate_tls)
+        return -ENOSYS;
+    L = *layout;
+
+    g_epfd = epoll_create1(EPOLL_CLOEXEC);
+    g_wakefd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
+    if (g_epfd < 0 || g_wakefd < 0 || pipe2(g_cmd, O_CLOEXEC) < 0 ||
+        pipe2(g_ev, O_CLOEXEC) < 0) {
+        int err = errno;
+        close_fds();
+        return -err;
+    }
+    struct epoll_event e1 = {.events = EPOLLIN, .data.ptr = &TAG_CMD};
+    struct epoll_event e2 = {.events = EPOLLIN, .data.ptr = &TAG_WAKE};
+    epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_cmd[0], &e1);
+    epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_wakefd, &e2);
+
+    /* The monitor runs with every signal blocked (process-directed signals
+       go to other threads); children inherit that mask and clear it. */
+    sigset_t all, old;
+    sigfillset(&all);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
+    int err = pthread_create(&g_monitor, NULL, monitor_main, NULL);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
+    if (err) {
+        close(g_ev[0]);
+        g_ev[0] = -1;
+        close_fds();
+        return -err;
+    }
+    g_started = 1;
+    *event_fd = g_ev[0];
+    g_ev[0] = -1;
+    return 0;
+}
+
+/* Stop the monitor: -EBUSY while any child is unreaped. */
+int cg_stop(void)
+{
+    if (!g_started)
+        return -EALREADY;
+    struct cg_cmd cmd = {CMD_STOP, NULL, 0, 0};
+    int r = submit(&cmd);
+    if (r != 0)
+        return r;
+    pthread_join(g_monitor, NULL);
+    close_fds();
+    g_started = 0;
+    return 0;
+}
+
+/* ---------------------------------------------------------------------- */
+/* Children, from Python.                                                  */
+
+int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
+             int flags, struct cg_child **out)
+{
+    if (!g_started)
+        return -ESRCH;
+    size_t page = (size_t)sysconf(_SC_PAGESIZE);
+    stack_size = (stack_size + page - 1) & ~(page - 1);
+    if (stack_size < 16 * page)
+        return -EINVAL;
+
+    struct cg_child *c = calloc(1, sizeof *c);
+    if (!c)
+        return -ENOMEM;
+    c->target = target;
+    c->serial = serial;
+    c->flags = flags;
+    c->cgroup_fd = cgroup_fd;
+    c->pidfd = -1;
+    c->stack_size = stack_size;
+    c->map_len = stack_size + page;      /* + a PROT_NONE guard below */
+    c->map = mmap(NULL, c->map_len, PROT_READ | PROT_WRITE,
+                  MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE | MAP_STACK,
+                  -1, 0);
+    if (c->map == MAP_FAILED) {
+        free(c);
+        return -ENOMEM;
+    }
+    mprotect(c->map, page, PROT_NONE);
+    c->tcb = tls_new();
+    if (!c->tcb) {
+        munmap(c->map, c->map_len);
+        free(c);
+        return -ENOMEM;
+    }
+    struct cg_cmd cmd = {CMD_SPAWN, c, 0, 0};
+    int r = submit(&cmd);
+    if (r < 0) {
+        dl_deallocate_tls(c->tcb, true);
+        munmap(c->map, c->map_len);
+        free(c);
+        return r;
+    }
+    *out = c;
+    return 0;
+}
+
+/* Set the child's stop flag; 1 if this call set it. */
+int cg_request_stop(struct cg_child *c)
+{
+    int none = CG_STOP_NONE;
+    if (!__atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_PARENT,
+                                     false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST))
+        return 0;
+    uint64_t one = 1;
+    if (write(g_wakefd, &one, sizeof one) < 0) { /* counter cannot overflow */ }
+    return 1;
+}
+
+/* A child killed inside Python leaves its PyThreadState linked into the
+   interpreter, with tstate->cframe pointing into the child's stack; once
+   that stack is unmapped, sys._current_frames() would crash.  Unlink it.
+   (Objects its frames referenced leak.  If the child died holding the GIL
+   this blocks forever: GIL repair is not done here.) */
+static void forget_thread_state(unsigned long ident)
+{
+    PyGILState_STATE g = PyGILState_Ensure();
+    PyThreadState *me = PyThreadState_Get();
+    for (PyThreadState *t = PyInterpreterState_ThreadHead(me->interp); t;
+         t = PyThreadState_Next(t))
+        if (t != me && t->thread_id == ident) {
+            PyThreadState_Clear(t);
+            PyThreadState_Delete(t);
+            break;
+        }
+    PyGILState_Release(g);
+}
+
+/* Free what a reaped child had: -EBUSY if it is not reaped yet. */
+int cg_release(struct cg_child *c)
+{
+    if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
+        return -EBUSY;
+    if (__atomic_load_n(&c->py_phase, __ATOMIC_ACQUIRE) == CG_PY_INSIDE)
+        forget_thread_state((unsigned long)c->tcb);  /* = its pthread_self */
+    munmap(c->map, c->map_len);
+    dl_deallocate_tls(c->tcb, true);
+    close(c->pidfd);
+    free(c);
+    return 0;
+}
+
+/* ---------------------------------------------------------------------- */
+/* Robust mutexes in container memory.                                     */
+
+pthread_mutex_t *cg_rmutex_new(void)
+{
+    pthread_mutex_t *m = calloc(1, sizeof *m);
+    pthread_mutexattr_t a;
+    if (!m)
+        return NULL;
+    pthread_mutexattr_init(&a);
+    pthread_mutexattr_setrobust(&a, PTHREAD_MUTEX_ROBUST);
+    /* ERRORCHECK: relocking by the owner gives EDEADLK, not a hang. */
+    pthread_mutexattr_settype(&a, PTHREAD_MUTEX_ERRORCHECK);
+    int r = pthread_mutex_init(m, &a);
+    pthread_mutexattr_destroy(&a);
+    if (r) {
+        free(m);
+        return NULL;
+    }
+    return m;
+}
+
+void cg_rmutex_free(pthread_mutex_t *m)
+{
+    pthread_mutex_destroy(m);
+    free(m);
+}
+
+/* 0, EOWNERDEAD (we own it, state suspect), ETIMEDOUT, ENOTRECOVERABLE,
+   EDEADLK.  timeout_ns < 0: wait forever. */
+int cg_rmutex_lock(pthread_mutex_t *m, int64_t timeout_ns)
+{
+    if (timeout_ns < 0)
+        return pthread_mutex_lock(m);
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    int64_t ns = ts.tv_nsec + timeout_ns % 1000000000;
+    ts.tv_sec += timeout_ns / 1000000000 + ns / 1000000000;
+    ts.tv_nsec = ns % 1000000000;
+    return pthread_mutex_clocklock(m, CLOCK_MONOTONIC, &ts);
+}
+
+int cg_rmutex_trylock(pthread_mutex_t *m) { return pthread_mutex_trylock(m); }
+int cg_rmutex_consistent(pthread_mutex_t *m) { return pthread_mutex_consistent(m); }
+int cg_rmutex_unlock(pthread_mutex_t *m) { return pthread_mutex_unlock(m); }

@@ -1,0 +1,320 @@
+"""CloneCore: spawn clone3(CLONE_VM) children that run a Python callable.
+
+Data flow: spawn() hands a request to the C monitor thread, which clones and
+watches the child's pidfd; when the child dies (or asks to stop) the monitor
+writes a record to a pipe; the listener thread here reads it and calls
+``on_event``.  The monitor never takes the GIL; the listener blocks in
+os.read with the GIL released.
+
+    core = CloneCore(on_event=print)
+    child = core.spawn(work)          # work() runs in the child
+    core.kill(child, signal.SIGTERM)  # or core.request_stop(child)
+    death = core.wait(child, timeout=5)
+    core.release(child)               # frees stack, TLS, pidfd
+    core.close()
+
+Inside a child, ``stop_requested()`` tells whether it was asked to stop.
+"""
+
+from __future__ import annotations
+
+import atexit
+import itertools
+import os
+import signal
+import sys
+import threading
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from container.isolated import assumptions
+from container.isolated.assumptions import IsolationUnavailable
+from container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD,
+                                       CoreEvent, Death, StopRequested, decode)
+
+__all__ = ["CloneCore", "Child", "Death", "StopRequested", "CoreEvent",
+           "IsolationUnavailable", "stop_requested", "in_child"]
+
+DEFAULT_STACK = 8 << 20
+
+
+@dataclass(frozen=True)
+class Child:
+    pid: int
+    pidfd: int
+    serial: int
+    start_time_ns: int          # CLOCK_MONOTONIC at clone
+    stack_size: int
+    cgroup_fd: int | None
+    _block: Any = field(default=None, repr=False, compare=False)
+
+
+class _Entry:
+    """CloneCore's bookkeeping for one child (guarded by CloneCore._lock)."""
+
+    def __init__(self, target: Callable[[], None]) -> None:
+        self.target: Callable[[], None] | None = target  # alive until reaped
+        self.child: Child | None = None
+        self.spawned = threading.Event()   # spawn() has returned (or failed)
+        self.dead = threading.Event()
+        self.death: Death | None = None
+        self.released = False
+
+
+def _lib():
+    from container.isolated._clonecore import ffi, lib
+    return ffi, lib
+
+
+def stop_requested() -> bool:
+    """Inside a child: has it been asked to stop (SIGTERM or the parent)?"""
+    _, lib = _lib()
+    s = lib.cg_self_stop_requested()
+    if s < 0:
+        raise RuntimeError("stop_requested() called outside an isolated child")
+    return s != 0
+
+
+def in_child() -> bool:
+    """Is the calling code running in a clone child?"""
+    _, lib = _lib()
+    return lib.cg_self_stop_requested() >= 0
+
+
+class CloneCore:
+    """The process's one clone3 spawner and monitor.
+
+    ``on_event`` is called from the listener thread with each Death and
+    StopRequested, in the order the monitor saw them (a child's
+    StopRequested always precedes its Death).  Exceptions it raises are
+    printed and otherwise ignored.  It should return promptly: while it runs
+    no other event is delivered, and after ~2000 undelivered records the
+    monitor (and so spawn) waits.  It must not call close().
+
+    Only one may be open per process (there is one C monitor).  An open core
+    is kept alive by the class until close(); atexit closes it.
+    """
+
+    _instance_lock = threading.Lock()
+    _open: "CloneCore | None" = None
+
+    def __init__(self, on_event: Callable[[CoreEvent], None] | None = None) -> None:
+        self.report = assumptions.self_check()
+        ffi, lib = _lib()
+        with CloneCore._instance_lock:
+            if CloneCore._open is not None:
+                raise RuntimeError("only one CloneCore may be open per process")
+            fd = ffi.new("int *")
+            layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
+            rc = lib.cg_start(layout, fd)
+            if rc < 0:
+                raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
+            CloneCore._open = self
+        self._event_fd = fd[0]
+        self._on_event = on_event
+        # _lock guards _entries, _closed, _spawning, and every use of a
+        # child's block or pidfd (so none can race with release()).
+        self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)   # _spawning == 0
+        self._entries: dict[int, _Entry] = {}
+        self._serials = itertools.count(1)
+        self._spawning = 0
+        self._closed = False        # spawn refused
+        self._stopped = False       # monitor stopped
+        try:
+            assumptions.check_multithreaded()
+        except IsolationUnavailable:
+            self._shutdown_monitor()
+            os.close(self._event_fd)
+            raise
+        self._listener = threading.Thread(target=self._listen, daemon=True,
+                                          name="cloneguard-core-listener")
+        self._listener.start()
+
+    # -- children ---------------------------------------------------------
+    def spawn(self, target: Callable[[], None], *, cgroup_fd: int | None = None,
+              stack_size: int = DEFAULT_STACK,
+              _allow_core_dump: bool = False) -> Child:
+        """Run ``target()`` in a new child; return once its pid is known.
+
+        Exit code 0 if target returns, 1 if it raises (traceback printed),
+        n for SystemExit(n).  ``cgroup_fd``: a cgroup2 directory fd the child
+        is born in.  ``_allow_core_dump`` is for experiments only: a dump
+        writes the whole shared address space.
+        """
+        if not callable(target):
+            raise TypeError("target must be callable")
+        if in_child():
+            raise RuntimeError("spawn() from inside a child is not supported")
+        ffi, lib = _lib()
+        entry = _Entry(target)
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("CloneCore is closed")
+            serial = next(self._serials)
+            self._entries[serial] = entry
+            self._spawning += 1
+        out = ffi.new("struct cg_child **")
+        flags = lib.CG_FLAG_ALLOW_CORE if _allow_core_dump else 0
+        try:
+            # The child gets a borrowed pointer; entry.target keeps it alive.
+            rc = lib.cg_spawn(ffi.cast("void *", id(target)), serial, stack_size,
+                              -1 if cgroup_fd is None else cgroup_fd, flags, out)
+            if rc < 0:
+                raise OSError(-rc, f"spawn failed: {os.strerror(-rc)}")
+            b = out[0]
+            entry.child = Child(b.pid, b.pidfd, serial, b.start_ns, stack_size,
+                                cgroup_fd, b)
+            return entry.child
+        finally:
+            with self._lock:
+                if entry.child is None:
+                    del self._entries[serial]
+                self._spawning -= 1
+                self._idle.notify_all()
+            entry.spawned.set()
+
+    def request_stop(self, child: Child) -> bool:
+        """Set the child's stop flag (no signal); True if it was not set."""
+        _, lib = _lib()
+        with self._lock:
+            self._entry(child)
+            return bool(lib.cg_request_stop(child._block))
+
+    def kill(self, child: Child, sig: int = signal.SIGKILL) -> bool:
+        """pidfd_send_signal; False if the child has already died."""
+        with self._lock:
+            self._entry(child)
+            try:
+                signal.pidfd_send_signal(child.pidfd, sig)
+                return True
+            except ProcessLookupError:
+                return False
+
+    def wait(self, child: Child, timeout: float | None = None) -> Death | None:
+        """The child's Death once reaped, or None on timeout."""
+        with self._lock:
+            entry = self._entry(child)
+        entry.dead.wait(timeout)
+        return entry.death
+
+    def release(self, child: Child) -> None:
+        """Free a reaped child's stack, TLS and pidfd (once).
+
+        A child killed inside Python also leaves its thread state behind;
+        release unlinks it from the interpreter first.
+        """
+        _, lib = _lib()
+        with self._lock:
+            entry = self._entry(child)
+            if not entry.dead.is_set():
+                raise RuntimeError(f"child {child.pid} has not been reaped yet")
+            del self._entries[child.serial]
+            rc = lib.cg_release(child._block)
+        if rc < 0:   # cannot happen once the death record was seen
+            raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
+
+    def children(self) -> list[Child]:
+        """Children spawned and not yet released."""
+        with self._lock:
+            return [e.child for e in self._entries.values() if e.child]
+
+    # -- shutdown ---------------------------------------------------------
+    def close(self, *, kill: bool = True, timeout: float = 10.0) -> None:
+        """Stop the monitor.  With kill=True, SIGKILL, reap and release every
+        child first; with kill=False refuse (RuntimeError) while any lives.
+        """
+        if threading.current_thread() is self._listener:
+            raise RuntimeError("close() cannot be called from on_event")
+        with self._lock:
+            if self._stopped:
+                return
+            self._closed = True                 # no new spawn from here on
+            self._idle.wait_for(lambda: self._spawning == 0)
+            live = [e for e in self._entries.values() if not e.dead.is_set()]
+            if live and not kill:
+                self._closed = False
+                raise RuntimeError(f"{len(live)} children still alive")
+        for e in live:
+            self.kill(e.child, signal.SIGKILL)
+        for e in live:
+            if not e.dead.wait(timeout):
+                raise TimeoutError(f"child {e.child.pid} not reaped after SIGKILL")
+        with self._lock:
+            left = [e.child for e in self._entries.values()]
+        for child in left:
+            try:
+                self.release(child)
+            except ValueError:                  # released meanwhile
+                pass
+        self._shutdown_monitor()
+        self._stopped = True
+        self._listener.join()                   # it closes the event fd
+
+    def __enter__(self) -> "CloneCore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals --------------------------------------------------------
+    def _shutdown_monitor(self) -> None:
+        _, lib = _lib()
+        rc = lib.cg_stop()
+        if rc < 0:
+            raise OSError(-rc, f"cannot stop the monitor: {os.strerror(-rc)}")
+        with CloneCore._instance_lock:
+            CloneCore._open = None
+
+    def _entry(self, child: Child) -> _Entry:
+        """Look a child up; caller holds self._lock."""
+        entry = self._entries.get(child.serial)
+        if entry is None or entry.child is not child:
+            raise ValueError(f"{child} is not an unreleased child of this CloneCore")
+        return entry
+
+    def _listen(self) -> None:
+        try:
+            pending = b""
+            while True:
+                data = os.read(self._event_fd, RECORD.size * 64)  # GIL released
+                if not data:
+                    return
+                pending += data
+                while len(pending) >= RECORD.size:
+                    rec, pending = pending[:RECORD.size], pending[RECORD.size:]
+                    kind, event = decode(rec)
+                    if kind == KIND_CLOSED:
+                        return
+                    self._dispatch(kind, event)
+        finally:
+            os.close(self._event_fd)
+
+    def _dispatch(self, kind: int, event: CoreEvent) -> None:
+        with self._lock:
+            entry = self._entries.get(event.serial)
+        if entry is None:
+            return
+        entry.spawned.wait()        # never report a child before spawn() returns
+        if kind == KIND_DEATH:
+            entry.death = event
+            entry.target = None     # reaped: nothing runs it any more
+            entry.dead.set()
+        if self._on_event is not None:
+            try:
+                self._on_event(event)
+            except Exception:
+                print("cloneguard: on_event raised:", file=sys.stderr)
+                traceback.print_exc()
+
+
+@atexit.register
+def _close_at_exit() -> None:
+    """Kill and reap children before the interpreter they run in goes away."""
+    core = CloneCore._open
+    if core is not None:
+        try:
+            core.close()
+        except Exception:
+            traceback.print_exc()

@@ -1,0 +1,5 @@
+# The only reason this file exists: setuptools takes cffi extension modules
+# from setup() keywords, not from pyproject.toml. Everything else is there.
+from setuptools import setup
+
+setup(cffi_modules=["container/isolated/_build_core.py:ffibuilder"])
