@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+import traceback
 
 import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
@@ -87,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     if opts.isolated:
         host.on_death = manager.on_death
     executor.add_node(node)
-    spinner = threading.Thread(target=_spin, args=(executor, stop), name="container-executor")
+    failure: list[BaseException] = []
+    spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
     spinner.start()
     node.get_logger().info(
         f"{node.get_fully_qualified_name()} ready "
@@ -95,9 +97,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{', isolated, profile ' + opts.profile if opts.isolated else ''})"
     )
     signum = stop.wait()
-    node.get_logger().info(
-        f"stopping ({signal.Signals(signum).name if signum else 'executor ended'})"
-    )
+    if failure:
+        # As with rclcpp: an exception escaping a callback ends the container.
+        node.get_logger().fatal(f"stopping: a callback raised {type(failure[0]).__name__}: {failure[0]}")
+    else:
+        node.get_logger().info(f"stopping ({signal.Signals(signum).name})")
     # Stop serving first, then stop the nodes, then tear down our own DDS side.
     executor.shutdown()
     spinner.join()
@@ -116,13 +120,16 @@ def main(argv: list[str] | None = None) -> int:
         # of ours is already stopped; flush and leave without them.
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(0)
-    return 0
+        os._exit(1 if failure else 0)
+    return 1 if failure else 0
 
 
-def _spin(executor, stop: StopSignals) -> None:
+def _spin(executor, stop: StopSignals, failure: list) -> None:
     try:
         executor.spin()
+    except BaseException as exc:
+        traceback.print_exc()
+        failure.append(exc)
     finally:
         stop.post()   # if spin ended on its own (an error), the main thread stops too
 

@@ -1,0 +1,289 @@
+"""The isolated host: each loaded node's executor in its own clone(CLONE_VM) child.
+
+Two participant profiles say where a node is built:
+
+``per-node`` (default)
+    The child creates its own rclpy Context (its own DDS participant) and
+    builds the node in it. A child that dies takes only its own participant's
+    threads and locks with it.
+``shared``
+    The node is built in the container, on the container's Context (one DDS
+    participant for all), and only its executor spins in the child. A child
+    that dies inside DDS can leave the container's participant locked.
+
+Either way the child runs one SingleThreadedExecutor. Stopping a node:
+cancel (stop flag + executor wake-up), SIGTERM, up to 500 ms, then SIGKILL.
+
+After a child dies on its own the node's objects are not destroyed: the dead
+child may have held locks inside them (rclpy, Fast DDS), and destroying them
+could block the container on a lock nobody will release. They are kept,
+counted and logged, a bounded leak per crash.
+"""
+from __future__ import annotations
+
+import os
+import select
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+from .. import factory
+from ..hosting import Hosted
+from ..options import LoadError
+from .core import CloneCore, Death, StopRequested, stop_requested
+from .profiles import DEFAULT, PROFILES, SHARED
+
+STOP_TIMEOUT_S = 0.5
+CONSTRUCT_TIMEOUT_S = 60.0
+
+
+@dataclass(frozen=True)
+class NodeDeath:
+    """What the manager is told when a node's process dies on its own."""
+
+    pid: int
+    exit_signal: int
+    exit_code: int
+    reason: str
+
+
+class _Handoff:
+    """One-shot word from a child to the thread waiting for it: a pipe, so a
+    child that dies half-way can never leave a lock behind for the waiter."""
+
+    def __init__(self):
+        self._r, self._w = os.pipe2(os.O_CLOEXEC)
+
+    def post(self, word: bytes) -> None:
+        os.write(self._w, word)
+
+    def wait(self, timeout: float) -> bytes | None:
+        ready, _, _ = select.select([self._r], [], [], timeout)
+        return os.read(self._r, 64) if ready else None
+
+    def close(self) -> None:
+        for fd in (self._r, self._w):
+            os.close(fd)
+
+
+@dataclass
+class _NodeProcess:
+    unique_id: int
+    profile: str
+    state: str = "starting"            # starting -> running -> stopping -> gone
+    child: object = None
+    node: object = None
+    executor: object = None
+    context: object = None             # the child's own Context (per-node)
+    full_name: str = ""
+    error: str = ""                    # why construction failed in the child
+    death: Death | None = None
+    handoff: _Handoff = field(default_factory=_Handoff)
+
+
+class IsolatedHost:
+    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger):
+        if profile not in PROFILES:
+            raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
+        self._context = context
+        self.profile = profile
+        self.on_death = on_death
+        self._log = logger
+        self._lock = threading.Lock()
+        self._by_pid: dict[int, _NodeProcess] = {}
+        self.leaked: list[_NodeProcess] = []
+        self._core = CloneCore(on_event=self._on_core_event)
+
+    # -- host interface ---------------------------------------------------------
+
+    def start(self, unique_id: int, cls, args) -> Hosted:
+        proc = _NodeProcess(unique_id, self.profile)
+        start_ns = time.time_ns()
+        if self.profile == SHARED:
+            proc.node = factory.construct(cls, args, self._context)
+            proc.full_name = proc.node.get_fully_qualified_name()
+            proc.executor = SingleThreadedExecutor(context=self._context)
+            proc.executor.add_node(proc.node)
+            target = self._spin_target(proc)
+        else:
+            target = self._build_and_spin_target(proc, cls, args)
+        with self._lock:
+            proc.child = self._core.spawn(target)
+            self._by_pid[proc.child.pid] = proc
+        if self.profile != SHARED:
+            self._await_construction(proc)
+        with self._lock:
+            # The handoff is closed under the lock that guards posting to it.
+            proc.handoff.close()
+            died = proc.death
+            proc.state = "running" if died is None else "dead"
+        hosted = Hosted(unique_id, proc.full_name, proc.child.pid, start_ns, detail=proc)
+        if died is not None:   # died between construction and now
+            self._crashed(proc, died)
+        return hosted
+
+    def stop(self, hosted: Hosted) -> None:
+        self._stop_all([hosted.detail])
+
+    def close(self, hosted_nodes) -> None:
+        self._stop_all([h.detail for h in hosted_nodes])
+        self._core.close(kill=True)
+
+    # -- what runs in the child -------------------------------------------------
+
+    @staticmethod
+    def _spin_until_stopped(executor) -> None:
+        # rclpy's signal handler in the container shuts down every Context on
+        # SIGINT/SIGTERM, the children's too: that is a stop request as well.
+        try:
+            while not stop_requested():
+                executor.spin_once(timeout_sec=None)
+        except ExternalShutdownException:
+            pass
+
+    def _spin_target(self, proc: _NodeProcess):
+        def run():
+            self._spin_until_stopped(proc.executor)
+        return run
+
+    def _build_and_spin_target(self, proc: _NodeProcess, cls, args):
+        def run():
+            ctx = Context()
+            rclpy.init(args=[], context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+            try:
+                node = factory.construct(cls, args, ctx)
+            except LoadError as exc:
+                proc.error = str(exc)
+                ctx.try_shutdown()
+                ctx.destroy()
+                proc.handoff.post(b"failed")
+                return
+            executor = SingleThreadedExecutor(context=ctx)
+            executor.add_node(node)
+            proc.node, proc.executor, proc.context = node, executor, ctx
+            proc.full_name = node.get_fully_qualified_name()
+            proc.handoff.post(b"ready")
+            self._spin_until_stopped(executor)
+            executor.shutdown()
+            node.destroy_node()
+            ctx.try_shutdown()
+            ctx.destroy()       # its participant, and any SHM segments, go now
+        return run
+
+    # -- parent side --------------------------------------------------------------
+
+    def _await_construction(self, proc: _NodeProcess) -> None:
+        word = proc.handoff.wait(CONSTRUCT_TIMEOUT_S)
+        if word == b"ready":
+            return
+        if word is None:
+            self._core.kill(proc.child, signal.SIGKILL)
+            why = f"the node was not constructed within {CONSTRUCT_TIMEOUT_S:.0f} s; its process was killed"
+        elif word == b"failed":
+            why = proc.error
+        else:  # b"died", posted by _on_core_event
+            why = f"the node's process died during construction ({_describe(proc.death)})"
+        self._core.wait(proc.child)
+        with self._lock:
+            proc.handoff.close()
+            proc.state = "gone"
+        self._forget(proc, leak=word != b"failed")
+        raise LoadError(why)
+
+    def _stop_all(self, procs: list[_NodeProcess]) -> None:
+        """Cancel, SIGTERM, wait up to 500 ms, SIGKILL; reap; release."""
+        live = []
+        for proc in procs:
+            with self._lock:
+                if proc.state != "running":
+                    continue
+                proc.state = "stopping"
+            self._core.request_stop(proc.child)
+            _wake(proc)
+            self._core.kill(proc.child, signal.SIGTERM)
+            live.append(proc)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for proc in live:
+            death = self._core.wait(proc.child, timeout=max(0.0, deadline - time.monotonic()))
+            if death is None:
+                self._log.warning(
+                    f"{proc.full_name} (pid {proc.child.pid}) did not stop "
+                    f"within {STOP_TIMEOUT_S * 1000:.0f} ms: SIGKILL"
+                )
+                self._core.kill(proc.child, signal.SIGKILL)
+                death = self._core.wait(proc.child)
+            clean = death.exit_code == 0
+            if clean and proc.profile == SHARED:
+                proc.executor.shutdown()
+                proc.node.destroy_node()
+            self._forget(proc, leak=not clean)
+
+    def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
+        with self._lock:
+            self._by_pid.pop(proc.child.pid, None)
+            proc.state = "gone"
+        if leak:
+            self.leaked.append(proc)
+            self._log.warning(
+                f"unique_id {proc.unique_id}: the dead process's node, executor"
+                + (" and DDS participant" if proc.profile != SHARED else "")
+                + " are left in memory (destroying them could block on a lock it held); "
+                f"{len(self.leaked)} such leak(s) so far"
+            )
+        else:
+            self._core.release(proc.child)
+
+    def _on_core_event(self, event) -> None:
+        with self._lock:
+            proc = self._by_pid.get(event.pid)
+        if proc is None:
+            return
+        if isinstance(event, StopRequested):
+            # Someone sent the child SIGTERM: let its executor see the flag.
+            if event.by_signal:
+                _wake(proc)
+            return
+        assert isinstance(event, Death)
+        with self._lock:
+            proc.death = event
+            state = proc.state
+            if state == "starting":
+                proc.handoff.post(b"died")
+            elif state == "running":
+                proc.state = "dead"
+        if state == "running":
+            self._crashed(proc, event)
+
+    def _crashed(self, proc: _NodeProcess, death: Death) -> None:
+        self._forget(proc, leak=True)
+        if self.on_death is not None:
+            self.on_death(proc.unique_id, NodeDeath(
+                pid=death.pid,
+                exit_signal=death.exit_signal or 0,
+                exit_code=death.exit_code or 0,
+                reason=_describe(death),
+            ))
+
+
+def _wake(proc: _NodeProcess) -> None:
+    """Wake the node's executor so its spin loop sees the stop flag."""
+    try:
+        proc.executor.wake()
+    except Exception:   # the child is tearing the executor down itself
+        pass
+
+
+def _describe(death: Death | None) -> str:
+    if death is None:
+        return "unknown"
+    if death.exit_signal:
+        return f"killed by {signal.Signals(death.exit_signal).name}"
+    if death.status_lost:
+        return "exited, status unknown"
+    return f"exited with code {death.exit_code}"

@@ -1,0 +1,110 @@
+"""--isolated: each node in its own clone(CLONE_VM) process, on real containers."""
+import os
+import signal
+
+import pytest
+from cloneguard_interfaces.msg import ComponentEvent
+from cloneguard_interfaces.srv import Echo
+from std_msgs.msg import String, UInt64
+
+from harness import procfs
+
+PKG = "cloneguard"
+PROFILES = [
+    pytest.param(["--isolated", "--profile", "per-node"], id="per-node"),
+    pytest.param(["--isolated", "--profile", "shared"], id="shared"),
+]
+
+
+def _loaded_pid(client, unique_id):
+    return client.wait_for_event(ComponentEvent.LOADED, unique_id=unique_id).pid
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_each_node_is_its_own_process_in_one_address_space(client, container):
+    ids = [client.load_ok(PKG, "cloneguard::Heartbeat", node_name=f"hb{i}").unique_id for i in range(3)]
+    pids = [_loaded_pid(client, uid) for uid in ids]
+    assert len(set(pids)) == 3 and container.pid not in pids
+    for pid in pids:
+        assert procfs.stat(pid).ppid == container.pid
+        assert procfs.stat(pid).pgrp == container.pgid
+        assert procfs.same_address_space(container.pid, pid)
+    # A plain process is not in that address space (the check can say no).
+    assert not procfs.same_address_space(container.pid, os.getpid())
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_messages_flow_between_children_and_to_an_outside_node(client):
+    chatter = client.subscribe(String, "/chatter")
+    counts = client.subscribe(UInt64, "/listener/received")
+    client.load_ok(PKG, "cloneguard::Talker", parameters={"period": 0.02})
+    client.load_ok(PKG, "cloneguard::Listener")
+    chatter.wait_count(5, timeout=10)
+    counts.wait_for(lambda m: m.data >= 5, timeout=10, what="listener count >= 5")
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_a_service_is_served_by_the_nodes_own_process(client):
+    uid = client.load_ok(PKG, "cloneguard::EchoService").unique_id
+    pid = _loaded_pid(client, uid)
+    req = Echo.Request(data="ping")
+    answer = client.call(client.service_client(Echo, "/echo/echo"), req)
+    assert (answer.data, answer.served, answer.pid) == ("ping", 1, pid)
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+@pytest.mark.parametrize("sig", [signal.SIGSEGV, signal.SIGABRT, signal.SIGKILL], ids=lambda s: s.name)
+def test_one_child_dies_and_the_rest_goes_on(client, container, sig):
+    victim = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="victim")
+    survivor = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="survivor")
+    victim_pid = _loaded_pid(client, victim.unique_id)
+    beats = client.subscribe(UInt64, "/survivor/heartbeat")
+    beats.wait_count(3, timeout=10)
+
+    os.kill(victim_pid, sig)
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=victim.unique_id)
+    assert (crashed.pid, crashed.exit_signal, crashed.exit_code) == (victim_pid, sig, 0)
+    assert crashed.full_node_name == "/victim"
+    assert signal.Signals(sig).name in crashed.error_message
+
+    # The container still answers, the survivor still beats, new loads work.
+    assert container.alive()
+    assert client.list() == [(survivor.unique_id, "/survivor")]
+    seen = len(beats)
+    beats.wait_count(seen + 5, timeout=10)
+    again = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="victim")
+    client.subscribe(UInt64, "/victim/heartbeat").wait_count(3, timeout=10)
+    assert client.list() == [(survivor.unique_id, "/survivor"), (again.unique_id, "/victim")]
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_unload_stops_and_reaps_the_child(client, container):
+    uid = client.load_ok(PKG, "cloneguard::Talker").unique_id
+    pid = _loaded_pid(client, uid)
+    assert client.unload(uid).success
+    unloaded = client.wait_for_event(ComponentEvent.UNLOADED, unique_id=uid)
+    assert unloaded.pid == pid
+    assert procfs.stat(pid) is None, "the child was not reaped"
+    assert procfs.zombies_of(container.pid) == []
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_shutdown_with_twenty_nodes_stops_and_reaps_every_child(client, container):
+    for i in range(20):
+        client.load_ok(PKG, "cloneguard::Heartbeat", node_name=f"hb{i}")
+    assert len(procfs.children_of(container.pid)) >= 20
+    container.signal(signal.SIGTERM)
+    assert container.wait(timeout=10) == 0, container.log_text()[-3000:]
+    assert container.group_members() == []
+
+
+def test_isolated_load_failures_answer_like_thread_mode(container_factory, misfit_env):
+    proc = container_factory.start(["--isolated"], extra_env=misfit_env)
+    client = container_factory.connect(proc)
+    resp = client.load("misfit-components", "misfits::Raises")
+    assert not resp.success and "sensor not found" in resp.error_message
+    assert client.load(PKG, TALKER_MISSING := "cloneguard::Nope").error_message == (
+        "Failed to find class with the requested plugin name."
+    )
+    assert client.load_ok(PKG, "cloneguard::Talker").unique_id == 2
+    assert client.list() == [(2, "/talker")]
