@@ -58,7 +58,10 @@ class ComponentManager:
             f"Loaded {spec.plugin_name} as {hosted.full_node_name} "
             f"(unique_id {unique_id}, pid {hosted.pid})"
         )
-        self._publish(events.LOADED, hosted, spec)
+        if args.drop_loaded_event:
+            self._log.warning(f"not publishing LOADED for unique_id {unique_id} (fault injection: {options.DROP_LOADED_EVENT})")
+        else:
+            self._publish(events.LOADED, hosted, spec)
         if early_death is not None:
             self._report_crash(hosted, spec, early_death)
         response.success = True

@@ -17,7 +17,13 @@ from rclpy.validate_node_name import validate_node_name
 LOG_LEVELS = {10: "debug", 20: "info", 30: "warn", 40: "error", 50: "fatal"}
 
 # extra_arguments this container understands, and the type each must have.
-KNOWN_EXTRA_ARGUMENTS = {"use_intra_process_comms": Parameter.Type.BOOL}
+# DROP_LOADED_EVENT is a fault-injection hook for the harness: the node loads
+# normally but its LOADED event is not published (a lost event).
+DROP_LOADED_EVENT = "cloneguard.fault.drop_loaded_event"
+KNOWN_EXTRA_ARGUMENTS = {
+    "use_intra_process_comms": Parameter.Type.BOOL,
+    DROP_LOADED_EVENT: Parameter.Type.BOOL,
+}
 
 
 class LoadError(Exception):
@@ -31,6 +37,7 @@ class NodeArguments:
     cli_args: list[str]
     parameter_overrides: list[Parameter]
     use_intra_process_comms: bool = False
+    drop_loaded_event: bool = False
     log_level: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
@@ -121,6 +128,7 @@ def from_request(request) -> NodeArguments:
         cli_args=cli_args,
         parameter_overrides=_parameters(request.parameters),
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
+        drop_loaded_event=bool(extra.get(DROP_LOADED_EVENT, False)),
         log_level=request.log_level,
         extra=extra,
     )

@@ -52,11 +52,24 @@ class Recorder:
         self.description = description
         self._cond = threading.Condition()
         self._items: list[Received] = []
+        self._listeners: list = []
 
     def _add(self, msg) -> None:
         with self._cond:
             self._items.append(Received(msg, time.monotonic_ns()))
             self._cond.notify_all()
+            listeners = list(self._listeners)
+        for listener in listeners:   # outside our lock: they take their own
+            listener(msg)
+
+    def add_listener(self, fn) -> None:
+        """Call ``fn(msg)`` for every message from now on (on the spin thread)."""
+        with self._cond:
+            self._listeners.append(fn)
+
+    def remove_listener(self, fn) -> None:
+        with self._cond:
+            self._listeners.remove(fn)
 
     def items(self) -> list[Received]:
         with self._cond:

@@ -152,7 +152,13 @@ class _Leftovers:
             found.append(f"zombie children of the harness: {zombies}")
         new_segments = shm.segments() - self.shm_before
         if new_segments and self.factories:
-            found.append(f"new /dev/shm segments: {sorted(new_segments)}")
+            # Orphans among what appeared during the test are ours: remove
+            # them, but still report them. Segments in use are not touched.
+            removed = shm.remove_orphans(new_segments)
+            found.append(
+                f"new /dev/shm files: {sorted(new_segments)}"
+                + (f" (removed the orphaned: {[s.name for s in removed]})" if removed else "")
+            )
         return found
 
 

@@ -1,0 +1,156 @@
+"""Fault components: nodes that fail on purpose, loaded like any other.
+
+Each is an installed entry point of the ``cloneguard`` package (see
+pyproject.toml), configured by ROS parameters:
+
+``delay``      seconds from construction to the fault (default 0.2)
+``jitter``     extra random seconds in [0, jitter), drawn from ``seed``
+``seed``       makes the instant (and any other choice) reproducible
+
+Just before a fault fires the component writes one line to stderr,
+``cloneguard-fault: <fault> firing at <time.time_ns()> pid <pid>``, written
+with a single write(2) so it is in the container's log before the fault can
+take the process down. The harness reads it to measure fault-to-event
+latency against the CRASHED event's stamp (same host clock).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import random
+import signal
+import time
+
+from rclpy.node import Node
+
+FIRING_MARK = "cloneguard-fault:"
+
+
+def announce(fault: str) -> None:
+    line = f"{FIRING_MARK} {fault} firing at {time.time_ns()} pid {os.getpid()}\n"
+    os.write(2, line.encode())
+
+
+class _FaultNode(Node):
+    """A node whose ``fire()`` runs once, ``delay`` (+ jitter) after start."""
+
+    fault = "fault"
+
+    def __init__(self, default_name: str, **kwargs):
+        super().__init__(default_name, **kwargs)
+        delay = self.declare_parameter("delay", 0.2).value
+        jitter = self.declare_parameter("jitter", 0.0).value
+        seed = self.declare_parameter("seed", 0).value
+        if delay < 0 or jitter < 0:
+            raise ValueError("parameters 'delay' and 'jitter' must not be negative")
+        self.rng = random.Random(seed)
+        when = delay + self.rng.uniform(0.0, jitter)
+        self._timer = self.create_timer(max(when, 1e-3), self._once)
+
+    def _once(self):
+        self._timer.cancel()
+        announce(self.fault)
+        self.fire()
+
+    def fire(self):
+        raise NotImplementedError
+
+
+class SegfaultInCallback(_FaultNode):
+    """SIGSEGV from a NULL read in a timer callback.
+
+    ``mode`` "gil-held": through ctypes.string_at, which calls into C without
+    releasing the GIL, so the process dies holding it. "gil-released": through
+    libc memcpy called via ctypes.CDLL, which releases the GIL first.
+    """
+
+    fault = "segfault"
+
+    def __init__(self, **kwargs):
+        super().__init__("segfault", **kwargs)
+        self.mode = self.declare_parameter("mode", "gil-held").value
+        if self.mode not in ("gil-held", "gil-released"):
+            raise ValueError(f"parameter 'mode' must be 'gil-held' or 'gil-released', got {self.mode!r}")
+        self.fault = f"segfault-{self.mode}"
+
+    def fire(self):
+        if self.mode == "gil-held":
+            ctypes.string_at(0, 1)
+        else:
+            libc = ctypes.CDLL(None)
+            buf = ctypes.create_string_buffer(1)
+            libc.memcpy(buf, ctypes.c_void_p(0), ctypes.c_size_t(1))
+
+
+class AbortInCallback(_FaultNode):
+    """abort() in a timer callback (SIGABRT, with the GIL held)."""
+
+    fault = "abort"
+
+    def __init__(self, **kwargs):
+        super().__init__("abort", **kwargs)
+
+    def fire(self):
+        os.abort()
+
+
+class RaiseInCallback(_FaultNode):
+    """An exception nobody catches, raised from a timer callback."""
+
+    fault = "exception"
+
+    def __init__(self, **kwargs):
+        super().__init__("raiser", **kwargs)
+
+    def fire(self):
+        raise RuntimeError("uncaught exception injected by faults::RaiseInCallback")
+
+
+class HangInCallback(_FaultNode):
+    """A callback that never returns.
+
+    ``mode`` "sleep": blocks with the GIL released; "spin": loops in Python
+    (the interpreter still hands the GIL to others every few ms).
+    """
+
+    fault = "hang"
+
+    def __init__(self, **kwargs):
+        super().__init__("hanger", **kwargs)
+        self.mode = self.declare_parameter("mode", "sleep").value
+        if self.mode not in ("sleep", "spin"):
+            raise ValueError(f"parameter 'mode' must be 'sleep' or 'spin', got {self.mode!r}")
+        self.fault = f"hang-{self.mode}"
+
+    def fire(self):
+        while True:
+            if self.mode == "sleep":
+                time.sleep(3600)
+
+
+class SlowConstructor(Node):
+    """Takes ``seconds`` (default 12, longer than the 10 s loading fallback)
+    to construct."""
+
+    def __init__(self, **kwargs):
+        super().__init__("slow", **kwargs)
+        seconds = self.declare_parameter("seconds", 12.0).value
+        time.sleep(seconds)
+
+
+class DieInConstructor(Node):
+    """Dies by ``signal`` (default SIGKILL) half-way through construction,
+    after its publisher exists: a node killed while being built."""
+
+    def __init__(self, **kwargs):
+        super().__init__("dies_early", **kwargs)
+        name = self.declare_parameter("signal", "SIGKILL").value
+        try:
+            sig = signal.Signals[name]
+        except KeyError:
+            raise ValueError(f"parameter 'signal' must name a signal, got {name!r}") from None
+        from std_msgs.msg import String
+
+        self._pub = self.create_publisher(String, "~/never", 10)
+        announce(f"die-in-constructor-{sig.name}")
+        os.kill(os.getpid(), sig)
