@@ -26,6 +26,7 @@ from .hosting import ThreadHost
 from .isolated import profiles
 from .manager import ComponentManager
 from .stop_signals import StopSignals
+from .watchdog import Watchdog
 
 DEFAULT_NODE_NAME = "ComponentManager"
 
@@ -44,6 +45,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument(
         "--isolated", action="store_true",
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
+    )
+    parser.add_argument(
+        "--watchdog", type=float, default=None, metavar="SECONDS",
+        help="exit with every thread's stack when the container's executor makes no "
+        "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
     )
     parser.add_argument(
         "--profile", choices=profiles.PROFILES, default=profiles.DEFAULT,
@@ -88,6 +94,13 @@ def main(argv: list[str] | None = None) -> int:
     if opts.isolated:
         host.on_death = manager.on_death
     executor.add_node(node)
+    watchdog_s = opts.watchdog if opts.watchdog is not None else (10.0 if opts.isolated else 0.0)
+    watchdog = None
+    if watchdog_s > 0:
+        # In isolated mode each tick also reads the progress board, so a lock
+        # a dead child left on it is found and repaired even when idle.
+        on_tick = host.board.snapshot if opts.isolated else None
+        watchdog = Watchdog(node, watchdog_s, on_tick=on_tick)
     failure: list[BaseException] = []
     spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
     spinner.start()
@@ -103,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         node.get_logger().info(f"stopping ({signal.Signals(signum).name})")
     # Stop serving first, then stop the nodes, then tear down our own DDS side.
+    if watchdog is not None:
+        watchdog.close()
     executor.shutdown()
     spinner.join()
     manager.close()

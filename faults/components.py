@@ -154,3 +154,31 @@ class DieInConstructor(Node):
         self._pub = self.create_publisher(String, "~/never", 10)
         announce(f"die-in-constructor-{sig.name}")
         os.kill(os.getpid(), sig)
+
+
+class DieHoldingContainerLock(_FaultNode):
+    """Takes the lock of the container's progress board (a robust mutex of
+    the container's), leaves the slot it guards half-written, and dies by
+    SIGKILL while holding both. Needs ``--isolated``.
+
+    The kill is sent through libc (ctypes releases the GIL first), so what is
+    measured is the robust mutex, not the interpreter lock.
+    """
+
+    fault = "die-holding-container-lock"
+
+    def __init__(self, **kwargs):
+        super().__init__("lock_holder", **kwargs)
+        from container.isolated import board
+
+        self._board = board.current()
+        if self._board is None:
+            raise RuntimeError("faults::DieHoldingContainerLock needs an isolated container (--isolated)")
+
+    def fire(self):
+        slot = self._board.slot_of_pid(os.getpid())
+        if slot is None:
+            raise RuntimeError(f"pid {os.getpid()} has no slot on the progress board")
+        self._board.begin_torn_write(slot)
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.kill(os.getpid(), signal.SIGKILL)

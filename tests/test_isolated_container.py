@@ -1,6 +1,7 @@
 """--isolated: each node in its own clone(CLONE_VM) process, on real containers."""
 import os
 import signal
+import time
 
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
@@ -108,3 +109,25 @@ def test_isolated_load_failures_answer_like_thread_mode(container_factory, misfi
     )
     assert client.load_ok(PKG, "cloneguard::Talker").unique_id == 2
     assert client.list() == [(2, "/talker")]
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_a_child_dying_with_a_container_lock_leaves_it_recoverable(client, container):
+    survivor = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="survivor")
+    beats = client.subscribe(UInt64, "/survivor/heartbeat")
+    beats.wait_count(3, timeout=10)
+    holder = client.load_ok("cloneguard", "faults::DieHoldingContainerLock", parameters={"delay": 0.3})
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
+    assert crashed.exit_signal == signal.SIGKILL
+    # The next locker got EOWNERDEAD and repaired the half-written slot ...
+    wanted = f"repaired 1 half-written slot(s) of unique_id(s) [{holder.unique_id}]"
+    deadline = time.monotonic() + 10
+    while wanted not in container.log_text():
+        assert time.monotonic() < deadline, "no EOWNERDEAD repair in the log"
+        time.sleep(0.05)
+    # ... and everyone goes on: the survivor beats (it takes that lock after
+    # every callback), the container answers and loads.
+    seen = len(beats)
+    beats.wait_count(seen + 5, timeout=10)
+    again = client.load_ok(PKG, "cloneguard::Talker")
+    assert client.list() == [(survivor.unique_id, "/survivor"), (again.unique_id, "/talker")]

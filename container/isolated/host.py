@@ -30,12 +30,13 @@ from dataclasses import dataclass, field
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 from .. import factory
 from ..hosting import Hosted
 from ..options import LoadError
+from .board import ProgressBoard
 from .core import CloneCore, Death, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
 
@@ -82,6 +83,7 @@ class _NodeProcess:
     executor: object = None
     context: object = None             # the child's own Context (per-node)
     full_name: str = ""
+    slot: int = -1                     # this node's slot on the progress board
     error: str = ""                    # why construction failed in the child
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
@@ -98,12 +100,14 @@ class IsolatedHost:
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
+        self.board = ProgressBoard(on_repair=self._board_repaired)
         self._core = CloneCore(on_event=self._on_core_event)
 
     # -- host interface ---------------------------------------------------------
 
     def start(self, unique_id: int, cls, args) -> Hosted:
         proc = _NodeProcess(unique_id, self.profile)
+        proc.slot = self.board.register(unique_id)
         start_ns = time.time_ns()
         if self.profile == SHARED:
             proc.node = factory.construct(cls, args, self._context)
@@ -137,19 +141,17 @@ class IsolatedHost:
 
     # -- what runs in the child -------------------------------------------------
 
-    @staticmethod
-    def _spin_until_stopped(executor) -> None:
-        # rclpy's signal handler in the container shuts down every Context on
-        # SIGINT/SIGTERM, the children's too: that is a stop request as well.
-        try:
-            while not stop_requested():
-                executor.spin_once(timeout_sec=None)
-        except ExternalShutdownException:
-            pass
+    def _spin_until_stopped(self, proc: _NodeProcess) -> None:
+        """The child's loop: one callback at a time until asked to stop,
+        recording progress on the board after each."""
+        self.board.set_pid(proc.slot, os.getpid())
+        while not stop_requested():
+            proc.executor.spin_once(timeout_sec=None)
+            self.board.beat(proc.slot)
 
     def _spin_target(self, proc: _NodeProcess):
         def run():
-            self._spin_until_stopped(proc.executor)
+            self._spin_until_stopped(proc)
         return run
 
     def _build_and_spin_target(self, proc: _NodeProcess, cls, args):
@@ -169,7 +171,7 @@ class IsolatedHost:
             proc.node, proc.executor, proc.context = node, executor, ctx
             proc.full_name = node.get_fully_qualified_name()
             proc.handoff.post(b"ready")
-            self._spin_until_stopped(executor)
+            self._spin_until_stopped(proc)
             executor.shutdown()
             node.destroy_node()
             ctx.try_shutdown()
@@ -228,6 +230,7 @@ class IsolatedHost:
         with self._lock:
             self._by_pid.pop(proc.child.pid, None)
             proc.state = "gone"
+        self.board.unregister(proc.unique_id)
         if leak:
             self.leaked.append(proc)
             self._log.warning(
@@ -259,6 +262,13 @@ class IsolatedHost:
                 proc.state = "dead"
         if state == "running":
             self._crashed(proc, event)
+
+    def _board_repaired(self, repair) -> None:
+        # Runs in whichever process locked the board next (maybe a child).
+        self._log.warning(
+            "progress board: its lock's owner died holding it (EOWNERDEAD); repaired "
+            f"{len(repair.torn_slots)} half-written slot(s) of unique_id(s) {list(repair.torn_slots)}"
+        )
 
     def _crashed(self, proc: _NodeProcess, death: Death) -> None:
         self._forget(proc, leak=True)
