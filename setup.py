@@ -2,4 +2,9 @@
 # from setup() keywords, not from pyproject.toml. Everything else is there.
 from setuptools import setup
 
-setup(cffi_modules=["container/isolated/_build_core.py:ffibuilder"])
+setup(
+    cffi_modules=[
+        "container/isolated/_build_core.py:ffibuilder",
+        "faults/_build_hammer.py:ffibuilder",
+    ]
+)

@@ -47,6 +47,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
     )
     parser.add_argument(
+        "--cgroups", action="store_true",
+        help="isolated mode: each node's process in a cgroup of its own (cgroup2, "
+        "CLONE_INTO_CGROUP); LoadNode extra argument 'cloneguard.cpu_quota' (CPUs) sets a CPU quota",
+    )
+    parser.add_argument(
         "--watchdog", type=float, default=None, metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
@@ -62,13 +67,22 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def _make_host(opts, executor, context, logger):
     if not opts.isolated:
+        if opts.cgroups:
+            raise SystemExit("component_container: --cgroups needs --isolated")
         return ThreadHost(executor, context)
     # Imported here: thread mode must work where the C core cannot.
     from .isolated.assumptions import IsolationUnavailable
+    from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
     from .isolated.host import IsolatedHost
     try:
-        return IsolatedHost(context, profile=opts.profile, logger=logger)
+        cgroups = NodeCgroups() if opts.cgroups else None
+    except CgroupsUnavailable as exc:
+        raise SystemExit(f"component_container: --cgroups is unavailable here: {exc}") from None
+    try:
+        return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups)
     except IsolationUnavailable as exc:
+        if cgroups is not None:
+            cgroups.close()
         raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from rclpy.node import Node
 
 from . import factory
-from .options import NodeArguments
+from .options import CPU_QUOTA, LoadError, NodeArguments
 
 
 @dataclass
@@ -47,6 +47,8 @@ class ThreadHost:
         self._context = context
 
     def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
+        if args.cpu_quota is not None:
+            raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         start = time.time_ns()
         node = factory.construct(cls, args, self._context)
         self._executor.add_node(node)

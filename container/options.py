@@ -19,11 +19,15 @@ LOG_LEVELS = {10: "debug", 20: "info", 30: "warn", 40: "error", 50: "fatal"}
 # extra_arguments this container understands, and the type each must have.
 # DROP_LOADED_EVENT is a fault-injection hook for the harness: the node loads
 # normally but its LOADED event is not published (a lost event).
+# CPU_QUOTA (CPUs, e.g. 0.5) puts an isolated node in a cgroup with that quota.
 DROP_LOADED_EVENT = "cloneguard.fault.drop_loaded_event"
+CPU_QUOTA = "cloneguard.cpu_quota"
 KNOWN_EXTRA_ARGUMENTS = {
     "use_intra_process_comms": Parameter.Type.BOOL,
     DROP_LOADED_EVENT: Parameter.Type.BOOL,
+    CPU_QUOTA: Parameter.Type.DOUBLE,
 }
+_TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double"}
 
 
 class LoadError(Exception):
@@ -38,6 +42,7 @@ class NodeArguments:
     parameter_overrides: list[Parameter]
     use_intra_process_comms: bool = False
     drop_loaded_event: bool = False
+    cpu_quota: float | None = None
     log_level: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
@@ -101,8 +106,10 @@ def _extra_arguments(messages) -> dict[str, object]:
         wanted = KNOWN_EXTRA_ARGUMENTS.get(param.name)
         if wanted is not None and param.type_ != wanted:
             raise LoadError(
-                f"Extra component argument '{param.name}' must be a boolean"
+                f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}"
             )
+        if param.name == CPU_QUOTA and not param.value > 0:
+            raise LoadError(f"Extra component argument '{CPU_QUOTA}' must be positive, got {param.value}")
         extra[param.name] = param.value
     return extra
 
@@ -129,6 +136,7 @@ def from_request(request) -> NodeArguments:
         parameter_overrides=_parameters(request.parameters),
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
         drop_loaded_event=bool(extra.get(DROP_LOADED_EVENT, False)),
+        cpu_quota=extra.get(CPU_QUOTA),
         log_level=request.log_level,
         extra=extra,
     )

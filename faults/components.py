@@ -23,6 +23,10 @@ import time
 
 from rclpy.node import Node
 
+# Imported here, in the container, when the class is looked up: a C library
+# loaded for the first time inside a clone child is best avoided.
+from faults._hammer import lib as hammer
+
 FIRING_MARK = "cloneguard-fault:"
 
 
@@ -182,3 +186,41 @@ class DieHoldingContainerLock(_FaultNode):
         self._board.begin_torn_write(slot)
         libc = ctypes.CDLL(None, use_errno=True)
         libc.kill(os.getpid(), signal.SIGKILL)
+
+
+class MallocHammer(_FaultNode):
+    """Allocates and frees without pause from a callback (in C, GIL
+    released), handing one block in eight to ring ``ring`` for a
+    :class:`MallocDrain` to free. It never stops: the harness SIGKILLs it at a
+    random instant, most likely inside malloc() or free()."""
+
+    fault = "malloc-hammer"
+
+    def __init__(self, **kwargs):
+        super().__init__("malloc_hammer", **kwargs)
+        self._ring = self.declare_parameter("ring", 0).value
+        self._seed = self.rng.getrandbits(64) or 1
+
+    def fire(self):
+        hammer.hammer_run(self._ring, self._seed)
+
+
+class MallocDrain(Node):
+    """Frees what a :class:`MallocHammer` hands over on ring ``ring``, every
+    ``period`` s, and publishes the running total on ``~/freed``: a sibling
+    whose progress shows whether the allocator is still usable."""
+
+    def __init__(self, **kwargs):
+        super().__init__("malloc_drain", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self._ring = self.declare_parameter("ring", 0).value
+        period = self.declare_parameter("period", 0.005).value
+        self._freed = 0
+        self._msg = UInt64
+        self._pub = self.create_publisher(UInt64, "~/freed", 10)
+        self._timer = self.create_timer(period, self._drain)
+
+    def _drain(self):
+        self._freed += hammer.drain_some(self._ring)
+        self._pub.publish(self._msg(data=self._freed))

@@ -90,3 +90,18 @@ def same_address_space(pid1: int, pid2: int) -> bool:
         err = ctypes.get_errno()
         raise OSError(err, f"kcmp({pid1}, {pid2}, KCMP_VM): {os.strerror(err)}")
     return rc == 0
+
+
+def cgroup_dirs_named(name: str) -> list:
+    """Directories called ``name`` at the top of any mounted cgroup hierarchy."""
+    from pathlib import Path
+
+    found = []
+    with open("/proc/self/mounts") as f:
+        for line in f:
+            parts = line.split()
+            if len(parts) > 2 and parts[2] in ("cgroup", "cgroup2"):
+                d = Path(parts[1]) / name
+                if d.is_dir():
+                    found.append(d)
+    return found

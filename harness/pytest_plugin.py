@@ -12,7 +12,8 @@ Options
     --container-exe PATH   the container executable under test (default: ours)
 
 After every test that started a container: its process group is empty, the
-harness has no zombie child, and no /dev/shm/fastrtps_* segment appeared.
+harness has no zombie child, and no orphaned /dev/shm/fastrtps_* segment
+appeared.
 """
 from __future__ import annotations
 
@@ -147,18 +148,21 @@ class _Leftovers:
                 members = proc.group_members()
                 if members:
                     found.append(f"processes left in group {proc.pgid}: {members}")
+                cgroups = procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
+                if cgroups:
+                    found.append(f"cgroups left behind: {[str(d) for d in cgroups]}")
         zombies = procfs.zombies_of(os.getpid())
         if zombies:
             found.append(f"zombie children of the harness: {zombies}")
+        # A segment that appeared during the test and whose owner is gone
+        # (its lock file can be locked) was left by a process the test
+        # stopped. Those are reported and removed; segments still in use
+        # belong to live processes (maybe not ours) and are left alone.
         new_segments = shm.segments() - self.shm_before
         if new_segments and self.factories:
-            # Orphans among what appeared during the test are ours: remove
-            # them, but still report them. Segments in use are not touched.
-            removed = shm.remove_orphans(new_segments)
-            found.append(
-                f"new /dev/shm files: {sorted(new_segments)}"
-                + (f" (removed the orphaned: {[s.name for s in removed]})" if removed else "")
-            )
+            orphans = shm.remove_orphans(new_segments)
+            if orphans:
+                found.append(f"orphaned /dev/shm segments (now removed): {[seg.name for seg in orphans]}")
         return found
 
 

@@ -35,7 +35,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from .. import factory
 from ..hosting import Hosted
-from ..options import LoadError
+from ..options import CPU_QUOTA, LoadError
 from .board import ProgressBoard
 from .core import CloneCore, Death, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
@@ -84,13 +84,14 @@ class _NodeProcess:
     context: object = None             # the child's own Context (per-node)
     full_name: str = ""
     slot: int = -1                     # this node's slot on the progress board
+    cgroup: object = None              # NodeCgroup, with --cgroups
     error: str = ""                    # why construction failed in the child
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
 
 class IsolatedHost:
-    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger):
+    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger, cgroups=None):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
@@ -101,11 +102,14 @@ class IsolatedHost:
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
         self.board = ProgressBoard(on_repair=self._board_repaired)
+        self.cgroups = cgroups          # NodeCgroups, or None: no per-node cgroups
         self._core = CloneCore(on_event=self._on_core_event)
 
     # -- host interface ---------------------------------------------------------
 
     def start(self, unique_id: int, cls, args) -> Hosted:
+        if args.cpu_quota is not None and self.cgroups is None:
+            raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
         proc = _NodeProcess(unique_id, self.profile)
         proc.slot = self.board.register(unique_id)
         start_ns = time.time_ns()
@@ -117,9 +121,13 @@ class IsolatedHost:
             target = self._spin_target(proc)
         else:
             target = self._build_and_spin_target(proc, cls, args)
+        if self.cgroups is not None:
+            proc.cgroup = self.cgroups.create(unique_id, args.cpu_quota)
         with self._lock:
-            proc.child = self._core.spawn(target)
+            proc.child = self._core.spawn(target, cgroup_fd=proc.cgroup.fd if proc.cgroup else None)
             self._by_pid[proc.child.pid] = proc
+        if proc.cgroup is not None:
+            self.cgroups.attach(proc.cgroup, proc.child.pid)
         if self.profile != SHARED:
             self._await_construction(proc)
         with self._lock:
@@ -138,6 +146,8 @@ class IsolatedHost:
     def close(self, hosted_nodes) -> None:
         self._stop_all([h.detail for h in hosted_nodes])
         self._core.close(kill=True)
+        if self.cgroups is not None:
+            self.cgroups.close()
 
     # -- what runs in the child -------------------------------------------------
 
@@ -231,6 +241,8 @@ class IsolatedHost:
             self._by_pid.pop(proc.child.pid, None)
             proc.state = "gone"
         self.board.unregister(proc.unique_id)
+        if proc.cgroup is not None:        # the process is reaped: the group is empty
+            self.cgroups.remove(proc.cgroup)
         if leak:
             self.leaked.append(proc)
             self._log.warning(

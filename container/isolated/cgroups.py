@@ -1,0 +1,135 @@
+"""Per-node cgroups: each node's process is born in a cgroup of its own.
+
+The child is placed at birth with clone3(CLONE_INTO_CGROUP), which takes a
+cgroup2 directory fd, so there is no moment where it runs elsewhere. A CPU
+quota goes where a cpu controller is: the cgroup2 directory's ``cpu.max``
+when cgroup2 has the controller, else the cgroup v1 ``cpu`` hierarchy
+(``cpu.cfs_quota_us``; on a hybrid machine such as Debian 12 with v1
+controllers, the v2 tree has none). A v1 group cannot be entered at birth:
+the pid is written to it right after the clone.
+
+Layout, all removed when the node or the container goes:
+    <cgroup2 mount>/cloneguard-<container pid>/node-<unique_id>
+    <v1 cpu mount>/cloneguard-<container pid>/node-<unique_id>   (quota only)
+"""
+from __future__ import annotations
+
+import errno
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+CFS_PERIOD_US = 100_000
+
+
+class CgroupsUnavailable(RuntimeError):
+    pass
+
+
+def _mounts() -> list[tuple[str, str, str]]:
+    """(mount point, fstype, options) of every mount."""
+    out = []
+    with open("/proc/self/mounts") as f:
+        for line in f:
+            parts = line.split()
+            if len(parts) >= 4:
+                out.append((parts[1], parts[2], parts[3]))
+    return out
+
+
+def cgroup2_mount() -> Path | None:
+    for point, fstype, _opts in _mounts():
+        if fstype == "cgroup2":
+            return Path(point)
+    return None
+
+
+def v1_cpu_mount() -> Path | None:
+    for point, fstype, opts in _mounts():
+        if fstype == "cgroup" and "cpu" in opts.split(","):
+            return Path(point)
+    return None
+
+
+@dataclass
+class NodeCgroup:
+    unique_id: int
+    v2_dir: Path
+    fd: int                      # open cgroup2 dir, for CLONE_INTO_CGROUP
+    cpu_v1_dir: Path | None = None
+
+
+def _rmdir(path: Path, timeout: float = 1.0) -> None:
+    """rmdir a cgroup; it can be briefly busy while the kernel lets a dead
+    task go, so EBUSY is retried for up to ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            path.rmdir()
+            return
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            if exc.errno != errno.EBUSY or time.monotonic() >= deadline:
+                raise
+            time.sleep(0.005)
+
+
+class NodeCgroups:
+    def __init__(self, name: str | None = None):
+        v2 = cgroup2_mount()
+        if v2 is None:
+            raise CgroupsUnavailable("no cgroup2 hierarchy is mounted (needed for CLONE_INTO_CGROUP)")
+        self.name = name or f"cloneguard-{os.getpid()}"
+        self.v2_root = v2 / self.name
+        try:
+            self.v2_root.mkdir(exist_ok=False)
+        except OSError as exc:
+            raise CgroupsUnavailable(f"cannot create {self.v2_root}: {exc.strerror}") from None
+        controllers = (v2 / "cgroup.controllers").read_text().split()
+        self._v2_cpu = "cpu" in controllers
+        if self._v2_cpu:
+            (v2 / "cgroup.subtree_control").write_text("+cpu")
+            (self.v2_root / "cgroup.subtree_control").write_text("+cpu")
+        self._v1_cpu = None if self._v2_cpu else v1_cpu_mount()
+        self.v1_root = self._v1_cpu / self.name if self._v1_cpu else None
+
+    def cpu_quota_supported(self) -> bool:
+        return self._v2_cpu or self._v1_cpu is not None
+
+    def create(self, unique_id: int, cpu_quota: float | None = None) -> NodeCgroup:
+        """A cgroup for one node; ``cpu_quota`` in CPUs (0.5 = half a core)."""
+        if cpu_quota is not None and not self.cpu_quota_supported():
+            raise CgroupsUnavailable("no cpu controller is available for a CPU quota")
+        v2_dir = self.v2_root / f"node-{unique_id}"
+        v2_dir.mkdir()
+        cg = NodeCgroup(unique_id, v2_dir, os.open(v2_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC))
+        if cpu_quota is not None:
+            quota_us = max(1000, int(cpu_quota * CFS_PERIOD_US))
+            if self._v2_cpu:
+                (v2_dir / "cpu.max").write_text(f"{quota_us} {CFS_PERIOD_US}")
+            else:
+                self.v1_root.mkdir(exist_ok=True)
+                cg.cpu_v1_dir = self.v1_root / f"node-{unique_id}"
+                cg.cpu_v1_dir.mkdir()
+                (cg.cpu_v1_dir / "cpu.cfs_period_us").write_text(str(CFS_PERIOD_US))
+                (cg.cpu_v1_dir / "cpu.cfs_quota_us").write_text(str(quota_us))
+        return cg
+
+    def attach(self, cg: NodeCgroup, pid: int) -> None:
+        """After the clone: join the v1 cpu group, if the node has one."""
+        if cg.cpu_v1_dir is not None:
+            (cg.cpu_v1_dir / "cgroup.procs").write_text(str(pid))
+
+    def remove(self, cg: NodeCgroup) -> None:
+        """Once the node's process is gone."""
+        os.close(cg.fd)
+        _rmdir(cg.v2_dir)
+        if cg.cpu_v1_dir is not None:
+            _rmdir(cg.cpu_v1_dir)
+
+    def close(self) -> None:
+        _rmdir(self.v2_root)
+        if self.v1_root is not None and self.v1_root.exists():
+            _rmdir(self.v1_root)

@@ -1,0 +1,23 @@
+"""cffi (API mode) builder for faults._hammer (the malloc hammer, hammer.c)."""
+from pathlib import Path
+
+from cffi import FFI
+
+HERE = Path(__file__).resolve().parent
+
+ffibuilder = FFI()
+ffibuilder.cdef("""
+    int hammer_run(int ring, uint64_t seed);
+    long drain_some(int ring);
+    uint64_t hammer_ops_done(int ring);
+""")
+ffibuilder.set_source(
+    "faults._hammer",
+    '#include "hammer.c"\n',
+    include_dirs=[str(HERE)],
+    depends=[str(HERE / "hammer.c")],
+    extra_compile_args=["-O2", "-std=gnu11"],
+)
+
+if __name__ == "__main__":
+    ffibuilder.compile(tmpdir=str(HERE.parent), verbose=False)

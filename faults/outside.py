@@ -1,0 +1,34 @@
+"""Faults injected from outside the container: signals at chosen instants.
+
+Every random choice comes from a ``random.Random`` the caller seeds, so a
+trial can be replayed exactly.
+"""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import time
+
+
+def kill_at(pid: int, sig: int, delay_s: float) -> int:
+    """Sleep ``delay_s``, then send ``sig`` to ``pid``; time.time_ns() of the send."""
+    time.sleep(delay_s)
+    sent = time.time_ns()
+    try:
+        os.kill(pid, sig)
+    except ProcessLookupError:
+        pass
+    return sent
+
+
+def random_delay(rng: random.Random, low_s: float, high_s: float) -> float:
+    return rng.uniform(low_s, high_s)
+
+
+def sigkill_container(proc) -> int:
+    """SIGKILL the container process itself (not its group): nothing of its
+    own shutdown runs; its children follow by PR_SET_PDEATHSIG."""
+    sent = time.time_ns()
+    proc.signal(signal.SIGKILL)
+    return sent

@@ -1,0 +1,167 @@
+"""A container under test with a witness: what scenarios inject faults into.
+
+A rig is a running container, a client, and one *survivor* node (a
+heartbeat) whose beats show that the rest of the container goes on. A trial
+injects a fault into a *victim* node, then judges the outcome:
+
+``survived``  the victim's death was reported (CRASHED, right signal) and
+              afterwards the survivor still beats, the container answers
+              ListNodes and can load a new node;
+``hung``      the container process lives but one of those stopped: the
+              rig captures a diagnosis (gdb stacks, blocked locks, owners);
+``crashed``   the container process itself died;
+``failed``    something else went wrong (e.g. no CRASHED for a death).
+
+The rig restarts the container after a trial that did not survive.
+"""
+from __future__ import annotations
+
+import re
+import signal
+import time
+from dataclasses import dataclass, field
+
+from cloneguard_interfaces.msg import ComponentEvent
+from std_msgs.msg import UInt64
+
+from . import diagnose
+from .client import ContainerClient, HarnessTimeout
+from .process import ContainerProcess
+
+SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
+FIRING = re.compile(r"cloneguard-fault: (\S+) firing at (\d+) pid (\d+)")
+
+# Container arguments per profile; scenarios are parametrized over these.
+PROFILES = {
+    "threads": [],
+    "per-node": ["--isolated", "--profile", "per-node"],
+    "shared": ["--isolated", "--profile", "shared"],
+}
+
+
+@dataclass
+class Outcome:
+    outcome: str
+    latency_ms: dict[str, float] = field(default_factory=dict)
+    details: dict = field(default_factory=dict)
+    diagnosis: diagnose.Diagnosis | None = None
+
+
+class Rig:
+    def __init__(self, factory, profile: str, *, extra_args=(), extra_env=None, fastdds_profile=None):
+        self._factory = factory
+        self.profile = profile
+        self._args = [*PROFILES[profile], *extra_args]
+        self._env = extra_env
+        self._fastdds = fastdds_profile
+        self.restarts = 0
+        self._start()
+
+    # -- life cycle ---------------------------------------------------------------
+
+    def _start(self) -> None:
+        kwargs = {"extra_env": self._env}
+        if self._fastdds is not None:
+            kwargs["fastdds_profile"] = self._fastdds
+        self.proc: ContainerProcess = self._factory.start(self._args, **kwargs)
+        self.client: ContainerClient = self._factory.connect(self.proc)
+        resp = self.client.load_ok(*SURVIVOR, node_name="survivor", parameters={"period": 0.02})
+        self.survivor_id = resp.unique_id
+        self.beats = self.client.subscribe(UInt64, "/survivor/heartbeat")
+        self.beats.wait_count(3, timeout=10)
+
+    def restart(self) -> None:
+        self.client.close()
+        self.proc.stop()
+        self.restarts += 1
+        self._start()
+
+    # -- what the harness knows about pids ---------------------------------------------
+
+    def nodes_by_pid(self) -> dict[int, str]:
+        return {e.pid: e.full_node_name for e in self.client.events.messages()
+                if e.event_type in (ComponentEvent.LOADED, ComponentEvent.CRASHED) and e.pid}
+
+    def dead_pids(self) -> set[int]:
+        return {e.pid for e in self.client.events.messages() if e.event_type == ComponentEvent.CRASHED}
+
+    def firing_ns(self, pid: int) -> int | None:
+        """When the fault in ``pid`` announced itself (time.time_ns()), from the log."""
+        for m in FIRING.finditer(self.proc.log_text()):
+            if int(m.group(3)) == pid:
+                return int(m.group(2))
+        return None
+
+    def wait_firing(self, pid: int, timeout: float = 10.0) -> int:
+        """Wait until the fault in ``pid`` has announced itself; its time_ns."""
+        deadline = time.monotonic() + timeout
+        while (ns := self.firing_ns(pid)) is None:
+            if time.monotonic() >= deadline:
+                raise HarnessTimeout(f"the fault in pid {pid} did not fire within {timeout:.0f} s")
+            time.sleep(0.02)
+        return ns
+
+    def loaded_pid(self, unique_id: int, timeout: float = 10.0) -> int:
+        return self.client.wait_for_event(ComponentEvent.LOADED, unique_id=unique_id, timeout=timeout).pid
+
+    # -- judging a trial --------------------------------------------------------------
+
+    def goes_on(self, timeout: float = 5.0) -> str | None:
+        """None if the container goes on; else what stopped."""
+        if not self.proc.alive():
+            return "container exited"
+        try:
+            seen = len(self.beats)
+            self.beats.wait_count(seen + 3, timeout=timeout)
+        except HarnessTimeout as exc:
+            return f"survivor stopped beating: {exc}"
+        try:
+            self.client.list(timeout=timeout)
+            probe = self.client.load(*SURVIVOR, node_name="probe", timeout=timeout)
+            if not probe.success:
+                return f"a new load failed: {probe.error_message}"
+            self.client.unload(probe.unique_id, timeout=timeout)
+        except HarnessTimeout as exc:
+            return f"container stopped answering: {exc}"
+        return None
+
+    def judge_death(self, unique_id: int, pid: int, *, signal_expected: int | None,
+                    fault_ns: int | None, timeout: float = 5.0) -> Outcome:
+        """After a fault in node ``unique_id`` (process ``pid``): what happened."""
+        try:
+            ev = self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=unique_id, timeout=timeout)
+        except HarnessTimeout:
+            return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
+        out = Outcome("survived", details={"pid": pid, "exit_signal": ev.exit_signal, "exit_code": ev.exit_code})
+        event_ns = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec
+        fault_ns = fault_ns if fault_ns is not None else self.firing_ns(pid)
+        if fault_ns is not None:
+            out.latency_ms["death_to_event"] = (event_ns - fault_ns) / 1e6
+        if signal_expected is not None and ev.exit_signal != signal_expected:
+            out.outcome = "failed"
+            out.details["why"] = (f"reported signal {ev.exit_signal}, expected "
+                                  f"{signal.Signals(signal_expected).name}")
+            return out
+        stopped = self.goes_on()
+        if stopped:
+            return self.not_survived(stopped, out)
+        return out
+
+    def not_survived(self, why: str, out: Outcome | None = None) -> Outcome:
+        out = out or Outcome("hung")
+        out.details["why"] = why
+        if not self.proc.alive():
+            out.outcome = "crashed"
+            out.details["exit_code"] = self.proc.wait(0)
+        else:
+            out.outcome = "hung"
+            if diagnose.gdb_available():
+                out.diagnosis = diagnose.diagnose(
+                    self.proc.pid, nodes_by_pid=self.nodes_by_pid(), dead_pids=self.dead_pids())
+        return out
+
+    def settle(self, outcome: Outcome) -> None:
+        """After a trial: a container that did not survive is replaced."""
+        if outcome.outcome != "survived":
+            self.restart()
+

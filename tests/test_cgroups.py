@@ -1,0 +1,68 @@
+"""--cgroups: each isolated node born in its own cgroup, with an optional CPU quota."""
+import time
+from pathlib import Path
+
+import pytest
+from cloneguard_interfaces.msg import ComponentEvent
+
+from container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
+
+PKG = "cloneguard"
+CG_ARGS = ["--isolated", "--cgroups"]
+
+
+def _cgroup_dirs(container_pid):
+    name = f"cloneguard-{container_pid}"
+    dirs = [cgroup2_mount() / name]
+    if v1_cpu_mount():
+        dirs.append(v1_cpu_mount() / name)
+    return dirs
+
+
+@pytest.mark.parametrize("container_args", [CG_ARGS])
+def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, container):
+    uid = client.load_ok(PKG, "cloneguard::Heartbeat").unique_id
+    pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=uid).pid
+    v2_line = [l for l in Path(f"/proc/{pid}/cgroup").read_text().splitlines() if l.startswith("0::")][0]
+    assert v2_line == f"0::/cloneguard-{container.pid}/node-{uid}"
+    assert (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").is_dir()
+    client.unload(uid)
+    assert not (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").exists()
+
+
+@pytest.mark.skipif(v1_cpu_mount() is None and "cpu" not in (cgroup2_mount() / "cgroup.controllers").read_text(),
+                    reason="no cpu controller on this machine")
+@pytest.mark.parametrize("container_args", [CG_ARGS])
+def test_a_cpu_quota_throttles_a_busy_node(client, container):
+    resp = client.load_ok("cloneguard", "faults::HangInCallback", parameters={"mode": "spin", "delay": 0.0},
+                          extra_arguments={"cloneguard.cpu_quota": 0.2})
+    pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id).pid
+    v1 = v1_cpu_mount()
+    group = (v1 if v1 else cgroup2_mount()) / f"cloneguard-{container.pid}" / f"node-{resp.unique_id}"
+    assert str(pid) in (group / "cgroup.procs").read_text().split()
+    # A node spinning at 100% against a 20% quota gets throttled, in the
+    # kernel's own count, within a few periods.
+    deadline = time.monotonic() + 5
+    while True:
+        stat = dict(line.split() for line in (group / "cpu.stat").read_text().splitlines())
+        if int(stat["nr_throttled"]) > 0:
+            break
+        assert time.monotonic() < deadline, f"never throttled: {stat}"
+        time.sleep(0.1)
+
+
+@pytest.mark.parametrize("container_args", [[], ["--isolated"]])
+def test_a_cpu_quota_without_cgroups_is_refused(client):
+    resp = client.load(PKG, "cloneguard::Talker", extra_arguments={"cloneguard.cpu_quota": 0.5})
+    assert not resp.success and "needs" in resp.error_message and "--cgroups" in resp.error_message
+
+
+@pytest.mark.parametrize("container_args", [CG_ARGS])
+def test_stopping_the_container_removes_its_cgroups(client, container):
+    client.load_ok(PKG, "cloneguard::Talker", extra_arguments={"cloneguard.cpu_quota": 0.5})
+    client.load_ok(PKG, "cloneguard::Heartbeat")
+    dirs = _cgroup_dirs(container.pid)
+    assert all(d.is_dir() for d in dirs)
+    container.stop()
+    assert container.exit_status.returncode == 0
+    assert not any(d.exists() for d in dirs)
