@@ -22,6 +22,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
+from . import allocator
 from .hosting import ThreadHost
 from .isolated import profiles
 from .manager import ComponentManager
@@ -45,6 +46,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument(
         "--isolated", action="store_true",
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
+    )
+    parser.add_argument(
+        "--jemalloc", action="store_true",
+        help="run on jemalloc (re-executes with Debian's libjemalloc2 preloaded)",
+    )
+    parser.add_argument(
+        "--jemalloc-arenas", choices=("own", "auto"), default="own",
+        help="isolated mode under jemalloc: 'own' binds each node's process to an arena "
+        "of its own, 'auto' leaves the choice to jemalloc (default: %(default)s)",
     )
     parser.add_argument(
         "--cgroups", action="store_true",
@@ -89,6 +99,11 @@ def _make_host(opts, executor, context, logger):
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     opts = parse_args(remove_ros_args(argv)[1:])
+    if opts.jemalloc:
+        try:
+            allocator.ensure_jemalloc(argv)     # returns only once jemalloc is in use
+        except allocator.AllocatorUnavailable as exc:
+            raise SystemExit(f"component_container: --jemalloc: {exc}") from None
     stop = StopSignals()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     context = rclpy.get_default_context()
@@ -121,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     node.get_logger().info(
         f"{node.get_fully_qualified_name()} ready "
         f"({'multi' if opts.use_multi_threaded_executor else 'single'}-threaded executor"
-        f"{', isolated, profile ' + opts.profile if opts.isolated else ''})"
+        f"{', isolated, profile ' + opts.profile if opts.isolated else ''}, {allocator.describe()})"
     )
     signum = stop.wait()
     if failure:

@@ -1,0 +1,86 @@
+"""Command line of the harness: ``python -m harness SUBCOMMAND ...``.
+
+    compare RUN_A RUN_B [--fail-on-regression] [--test z|wilson] [--alpha A]
+    render RUN [-o OUT.html]
+
+RUN is a report directory, its report.json, or reports/latest.
+
+Adding a subcommand: write ``_add_NAME(subparsers)``, which creates its
+parser and calls ``set_defaults(func=run_NAME)``, and ``run_NAME(args) ->
+exit code``; then append ``_add_NAME`` to ``SUBCOMMANDS``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _add_compare(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compare", help="compare two runs' survival rates and latencies",
+        description="Per scenario: survival rate A -> B with counts and significance, "
+                    "median latency A -> B per series, and scenarios only in one run.",
+    )
+    p.add_argument("run_a", metavar="RUN_A", help="report directory or report.json (the baseline)")
+    p.add_argument("run_b", metavar="RUN_B", help="report directory or report.json (the new run)")
+    p.add_argument("--fail-on-regression", action="store_true",
+                   help="exit 1 if any survival rate got significantly worse")
+    p.add_argument("--test", dest="method", choices=("z", "wilson"), default="z",
+                   help="significance: z = two-proportion z-test (default), "
+                        "wilson = non-overlapping 95%% Wilson intervals (stricter)")
+    p.add_argument("--alpha", type=float, default=0.05, help="significance level of the z-test (default 0.05)")
+    p.set_defaults(func=run_compare)
+
+
+def run_compare(args) -> int:
+    from .report.compare import compare_reports, format_comparison
+    from .report.model import load_report
+
+    a, b = load_report(args.run_a), load_report(args.run_b)
+    comparison = compare_reports(a, b, method=args.method, alpha=args.alpha)
+    print(format_comparison(comparison))
+    if args.fail_on_regression and comparison.regressions:
+        print(f"FAIL: {len(comparison.regressions)} scenario(s) significantly worse", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _add_render(subparsers) -> None:
+    p = subparsers.add_parser("render", help="re-render report.html from report.json")
+    p.add_argument("run", metavar="RUN", help="report directory or report.json")
+    p.add_argument("-o", "--output", default=None,
+                   help="where to write the HTML (default: report.html beside report.json)")
+    p.set_defaults(func=run_render)
+
+
+def run_render(args) -> int:
+    from .report.model import load_report
+    from .report.render import write_html
+
+    report = load_report(args.run)
+    print(write_html(report, args.output))
+    return 0
+
+
+SUBCOMMANDS = [_add_compare, _add_render]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m harness", description="cloneguard harness tools")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for add in SUBCOMMANDS:
+        add(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (OSError, ValueError) as exc:
+        print(f"python -m harness {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

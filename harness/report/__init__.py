@@ -1,0 +1,15 @@
+"""Crash-resilience reports of scenario runs.
+
+    collect   the pytest plugin: the ``resilience`` fixture and the report writer
+    model     the report's data and report.json
+    stats     Wilson intervals, the z-test, latency summaries
+    render    report.html (self-contained: inline CSS and SVG)
+    charts    the SVG charts
+    compare   comparison of two runs (``python -m harness compare``)
+    env       host and git facts for the run metadata
+
+Only ``collect`` imports pytest; the rest is the standard library.
+"""
+from .model import Report, Scenario, load_report
+
+__all__ = ["Report", "Scenario", "load_report"]
