@@ -130,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         # a dead child left on it is found and repaired even when idle.
         on_tick = host.board.snapshot if opts.isolated else None
         watchdog = Watchdog(node, watchdog_s, on_tick=on_tick)
+        manager.watchdog = watchdog
     failure: list[BaseException] = []
     spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
     spinner.start()

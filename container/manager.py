@@ -8,6 +8,7 @@ a failed load answers unique_id 0 and an empty full_node_name.
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
@@ -19,6 +20,9 @@ from .options import LoadError
 
 
 class ComponentManager:
+    # How long a LoadNode may block the executor while a node is built.
+    LOAD_ALLOWANCE_S = 70.0
+
     def __init__(self, node, host, *, logger=None):
         self._node = node
         self._host = host
@@ -29,6 +33,7 @@ class ComponentManager:
         self._loaded: dict[int, tuple[Hosted, registry.ComponentSpec]] = {}
         self._starting: set[int] = set()    # ids whose host.start() is running
         self._early_deaths: dict[int, object] = {}   # deaths seen while starting
+        self.watchdog = None                # set by the command line when it runs one
         node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
         node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
         node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
@@ -44,7 +49,8 @@ class ComponentManager:
             return self._load_failed(request, response, str(exc))
         unique_id = self._take_id()
         try:
-            hosted = self._host.start(unique_id, cls, args)
+            with self.watchdog.allow(self.LOAD_ALLOWANCE_S) if self.watchdog else contextlib.nullcontext():
+                hosted = self._host.start(unique_id, cls, args)
         except LoadError as exc:
             with self._lock:
                 self._starting.discard(unique_id)

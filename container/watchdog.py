@@ -10,6 +10,7 @@ a child that died holding a lock the container then waits for.
 """
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import sys
 
@@ -30,8 +31,18 @@ class Watchdog:
             "the stacks of all threads are printed and the container exits with status 1"
         )
 
-    def _arm(self) -> None:
-        faulthandler.dump_traceback_later(self.timeout_s, repeat=False, file=sys.stderr, exit=True)
+    def _arm(self, timeout_s: float | None = None) -> None:
+        faulthandler.dump_traceback_later(timeout_s or self.timeout_s, repeat=False, file=sys.stderr, exit=True)
+
+    @contextlib.contextmanager
+    def allow(self, seconds: float):
+        """A callback that may legitimately block the executor for up to
+        ``seconds`` (a LoadNode waiting for a slow constructor)."""
+        self._arm(seconds + self.timeout_s)
+        try:
+            yield
+        finally:
+            self._arm()
 
     def _tick(self) -> None:
         self._arm()

@@ -63,8 +63,8 @@ class _FaultNode(Node):
 class SegfaultInCallback(_FaultNode):
     """SIGSEGV from a NULL read in a timer callback.
 
-    ``mode`` "gil-held": through ctypes.string_at, which calls into C without
-    releasing the GIL, so the process dies holding it. "gil-released": through
+    ``mode`` "gil-held": through ctypes.string_at(0), which runs strlen(NULL)
+    without releasing the GIL, so the process dies holding it. "gil-released": through
     libc memcpy called via ctypes.CDLL, which releases the GIL first.
     """
 
@@ -79,7 +79,7 @@ class SegfaultInCallback(_FaultNode):
 
     def fire(self):
         if self.mode == "gil-held":
-            ctypes.string_at(0, 1)
+            ctypes.string_at(0)   # strlen(NULL); string_at(0, n) would not read at all
         else:
             libc = ctypes.CDLL(None)
             buf = ctypes.create_string_buffer(1)

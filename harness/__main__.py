@@ -2,6 +2,7 @@
 
     compare RUN_A RUN_B [--fail-on-regression] [--test z|wilson] [--alpha A]
     render RUN [-o OUT.html]
+    reproduce FAULT [--profile P] [--allocator A] [--seed S] [--trials N]
 
 RUN is a report directory, its report.json, or reports/latest.
 
@@ -62,7 +63,13 @@ def run_render(args) -> int:
     return 0
 
 
-SUBCOMMANDS = [_add_compare, _add_render]
+def _add_reproduce(subparsers) -> None:
+    from .reproduce import add_parser
+
+    add_parser(subparsers)
+
+
+SUBCOMMANDS = [_add_compare, _add_render, _add_reproduce]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -121,11 +121,6 @@ def _classify(t: ThreadStack) -> tuple[str, str] | None:
     return None
 
 
-def _alive(tid: int) -> bool:
-    st = procfs.stat(tid)
-    return st is not None and st.state != "Z"
-
-
 def _read_int(text: str) -> int | None:
     m = re.search(r"= (-?\d+)", text)
     return int(m.group(1)) if m else None
@@ -153,6 +148,6 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
         blocked.append(BlockedOn(
             tid=t.tid, kind=kind, address=addr, owner_tid=owner,
             owner_node=nodes_by_pid.get(owner) if owner else None,
-            owner_dead=bool(owner) and (owner in dead_pids or not _alive(owner)),
+            owner_dead=bool(owner) and (owner in dead_pids or not procfs.alive(owner)),
         ))
     return Diagnosis(pid, text, threads, blocked)

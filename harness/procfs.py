@@ -105,3 +105,9 @@ def cgroup_dirs_named(name: str) -> list:
                 if d.is_dir():
                     found.append(d)
     return found
+
+
+def alive(pid: int) -> bool:
+    """The task exists and is not a zombie."""
+    st = stat(pid)
+    return st is not None and st.state != "Z"

@@ -22,10 +22,8 @@ import os
 import pytest
 
 from . import domains, procfs, shm
-from .client import ContainerClient
-from .process import NO_SHM_PROFILE, ContainerProcess, ros_environment
-
-READY_TIMEOUT_S = 20.0
+from .factory import ContainerFactory, log_tail
+from .process import ros_environment
 
 
 def pytest_addoption(parser):
@@ -62,55 +60,14 @@ def container_env() -> dict[str, str]:
     return {}
 
 
-class ContainerFactory:
-    def __init__(self, request, domain_id: int, log_dir):
-        self._request = request
-        self.domain_id = domain_id
-        self._log_dir = log_dir
-        self.started: list[ContainerProcess] = []
-        self.clients: list[ContainerClient] = []
-
-    def start(
-        self,
-        args: list[str] = (),
-        *,
-        node_name: str = "ComponentManager",
-        fastdds_profile=NO_SHM_PROFILE,
-        extra_env: dict[str, str] | None = None,
-    ) -> ContainerProcess:
-        proc = ContainerProcess(
-            list(args),
-            domain_id=self.domain_id,
-            log_path=self._log_dir / f"container-{len(self.started)}.log",
-            exe=self._request.config.getoption("--container-exe"),
-            node_name=node_name,
-            fastdds_profile=fastdds_profile,
-            extra_env=extra_env,
-        )
-        self.started.append(proc)
-        return proc
-
-    def connect(self, proc: ContainerProcess, fqn: str | None = None) -> ContainerClient:
-        """A client of ``proc``, returned once the container answers; closed after the test."""
-        cli = ContainerClient(proc.domain_id, fqn or proc.fqn)
-        self.clients.append(cli)
-        wait_ready(cli, proc)
-        return cli
-
-    def stop_all(self):
-        for cli in self.clients:
-            cli.close()
-        return [proc.stop() for proc in self.started]
-
-
 @pytest.fixture
 def container_factory(request, domain_id, tmp_path, _leftovers):
-    factory = ContainerFactory(request, domain_id, tmp_path)
+    factory = ContainerFactory(domain_id, tmp_path, exe=request.config.getoption("--container-exe"))
     _leftovers.factories.append(factory)
     yield factory
     factory.stop_all()
     for i, proc in enumerate(factory.started):
-        request.node.add_report_section("teardown", f"container-{i} log", _tail(proc.log_text()))
+        request.node.add_report_section("teardown", f"container-{i} log", log_tail(proc.log_text()))
 
 
 @pytest.fixture
@@ -121,19 +78,6 @@ def container(container_factory, container_args, container_env):
 @pytest.fixture
 def client(container_factory, container):
     return container_factory.connect(container)
-
-
-def wait_ready(cli: ContainerClient, proc: ContainerProcess, timeout: float = READY_TIMEOUT_S) -> None:
-    """Wait until the container answers ListNodes (its services are up)."""
-    try:
-        cli.list(timeout=timeout)
-    except AssertionError as exc:
-        state = "running" if proc.alive() else f"exited with {proc.wait(0)}"
-        raise AssertionError(f"container not ready ({state}): {exc}\n--- log ---\n{_tail(proc.log_text())}") from None
-
-
-def _tail(text: str, lines: int = 60) -> str:
-    return "\n".join(text.splitlines()[-lines:])
 
 
 class _Leftovers:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
-from . import diagnose
+from . import diagnose, procfs
 from .client import ContainerClient, HarnessTimeout
 from .process import ContainerProcess
 
@@ -131,6 +131,8 @@ class Rig:
         try:
             ev = self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=unique_id, timeout=timeout)
         except HarnessTimeout:
+            if procfs.alive(pid) and self.goes_on() is None:
+                return Outcome("failed", details={"pid": pid, "why": f"the fault did not kill pid {pid}"})
             return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
         out = Outcome("survived", details={"pid": pid, "exit_signal": ev.exit_signal, "exit_code": ev.exit_code})
         event_ns = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec

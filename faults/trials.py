@@ -1,0 +1,102 @@
+"""One trial of each fault: inject it into a rig's container and judge it.
+
+Scenarios run these N times and record the outcomes; ``python -m harness
+reproduce`` runs one of them until it does not survive. Every random
+choice of a trial comes from its ``seed``, so any trial can be replayed.
+"""
+from __future__ import annotations
+
+import random
+import re
+import signal
+
+from std_msgs.msg import UInt64
+
+from harness.rig import Outcome, Rig
+
+from .outside import kill_at
+
+# fault id -> (plugin, parameters, the signal the node dies of)
+CALLBACK_FAULTS = {
+    "segfault-gil-released": ("faults::SegfaultInCallback", {"mode": "gil-released"}, signal.SIGSEGV),
+    "segfault-gil-held": ("faults::SegfaultInCallback", {"mode": "gil-held"}, signal.SIGSEGV),
+    "abort": ("faults::AbortInCallback", {}, signal.SIGABRT),
+}
+
+_REPAIRED = re.compile(r"repaired (\d+) half-written slot\(s\) of unique_id\(s\) \[([0-9, ]*)\]")
+
+
+def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
+    """A node whose timer callback faults 0.1-0.3 s after it starts."""
+    plugin, params, sig = CALLBACK_FAULTS[fault]
+    resp = rig.client.load_ok("cloneguard", plugin, node_name=f"victim{index}",
+                              parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed})
+    pid = rig.loaded_pid(resp.unique_id)
+    return rig.judge_death(resp.unique_id, pid, signal_expected=sig, fault_ns=None)
+
+
+def outside_sigkill(rig: Rig, seed: int, index: int) -> Outcome:
+    """A node publishing at 500 Hz, SIGKILLed 0-50 ms after it is loaded."""
+    rng = random.Random(seed)
+    resp = rig.client.load_ok("cloneguard", "cloneguard::Talker", node_name=f"busy{index}",
+                              parameters={"period": 0.002})
+    pid = rig.loaded_pid(resp.unique_id)
+    sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.05))
+    return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+
+
+def _repairs_of(log: str, unique_id: int) -> int:
+    return sum(1 for m in _REPAIRED.finditer(log) if str(unique_id) in m.group(2).split(", "))
+
+
+def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
+    """A node that dies holding the container's progress-board lock, its
+    slot half-written; survived means exactly one EOWNERDEAD repair of it."""
+    resp = rig.client.load_ok("cloneguard", "faults::DieHoldingContainerLock", node_name=f"holder{index}",
+                              parameters={"delay": 0.05, "jitter": 0.1, "seed": seed})
+    pid = rig.loaded_pid(resp.unique_id)
+    out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
+    if out.outcome == "survived":
+        # The survivor has beaten since the death and takes this lock after
+        # every callback, so the repair has been logged by now.
+        repairs = _repairs_of(rig.proc.log_text(), resp.unique_id)
+        out.details["repairs"] = repairs
+        if repairs != 1:
+            out.outcome, out.details["why"] = "failed", f"{repairs} EOWNERDEAD repairs logged, expected 1"
+    return out
+
+
+class MallocKill:
+    """A drain node that frees what hammers hand it; each trial loads a
+    hammer and SIGKILLs it 0-20 ms after it starts allocating."""
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self._start_drain()
+
+    def _start_drain(self) -> None:
+        self.rig.client.load_ok("cloneguard", "faults::MallocDrain")
+        self.freed = self.rig.client.subscribe(UInt64, "/malloc_drain/freed")
+        self.freed.wait_count(3, timeout=10)
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig, rng = self.rig, random.Random(seed)
+        resp = rig.client.load_ok("cloneguard", "faults::MallocHammer", node_name=f"hammer{index}",
+                                  parameters={"delay": 0.0, "seed": seed})
+        pid = rig.loaded_pid(resp.unique_id)
+        rig.wait_firing(pid)
+        sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.02))
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+        if out.outcome == "survived":
+            seen = len(self.freed)
+            try:
+                self.freed.wait_count(seen + 3, timeout=5)
+            except AssertionError as exc:
+                out = rig.not_survived(f"the drain sibling stopped freeing: {exc}", out)
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if out.outcome != "survived":
+            self.rig.restart()
+            self._start_drain()
+

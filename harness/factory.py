@@ -1,0 +1,68 @@
+"""Containers and clients started together, stopped together.
+
+Used by the pytest fixtures (one factory per test) and by the standalone
+commands (``python -m harness reproduce``): every container it starts and
+every client it connects is closed by :meth:`stop_all`, and only those.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .client import ContainerClient
+from .process import NO_SHM_PROFILE, ContainerProcess
+
+READY_TIMEOUT_S = 20.0
+
+
+def log_tail(text: str, lines: int = 60) -> str:
+    return "\n".join(text.splitlines()[-lines:])
+
+
+def wait_ready(cli: ContainerClient, proc: ContainerProcess, timeout: float = READY_TIMEOUT_S) -> None:
+    """Wait until the container answers ListNodes (its services are up)."""
+    try:
+        cli.list(timeout=timeout)
+    except AssertionError as exc:
+        state = "running" if proc.alive() else f"exited with {proc.wait(0)}"
+        raise AssertionError(f"container not ready ({state}): {exc}\n--- log ---\n{log_tail(proc.log_text())}") from None
+
+
+class ContainerFactory:
+    def __init__(self, domain_id: int, log_dir: Path, *, exe: str | None = None):
+        self.domain_id = domain_id
+        self._log_dir = Path(log_dir)
+        self._exe = exe
+        self.started: list[ContainerProcess] = []
+        self.clients: list[ContainerClient] = []
+
+    def start(
+        self,
+        args: list[str] = (),
+        *,
+        node_name: str = "ComponentManager",
+        fastdds_profile=NO_SHM_PROFILE,
+        extra_env: dict[str, str] | None = None,
+    ) -> ContainerProcess:
+        proc = ContainerProcess(
+            list(args),
+            domain_id=self.domain_id,
+            log_path=self._log_dir / f"container-{len(self.started)}.log",
+            exe=self._exe,
+            node_name=node_name,
+            fastdds_profile=fastdds_profile,
+            extra_env=extra_env,
+        )
+        self.started.append(proc)
+        return proc
+
+    def connect(self, proc: ContainerProcess, fqn: str | None = None) -> ContainerClient:
+        """A client of ``proc``, returned once the container answers."""
+        cli = ContainerClient(proc.domain_id, fqn or proc.fqn)
+        self.clients.append(cli)
+        wait_ready(cli, proc)
+        return cli
+
+    def stop_all(self):
+        for cli in self.clients:
+            cli.close()
+        return [proc.stop() for proc in self.started]

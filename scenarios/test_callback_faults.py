@@ -1,0 +1,48 @@
+"""A node's callback faults: does the rest of the container go on?
+
+In thread mode there is one process: a fatal signal in any callback ends
+the container (the baseline the isolated profiles are measured against).
+In isolated mode the node's own process dies, the death is reported with
+its signal, and everything else goes on.
+"""
+import pytest
+
+from faults.trials import CALLBACK_FAULTS, callback_fault
+from harness.rig import Outcome
+
+
+@pytest.mark.parametrize("profile", ["per-node", "shared"])
+@pytest.mark.parametrize("fault", list(CALLBACK_FAULTS))
+def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, record_trial, trials, rng):
+    sig = CALLBACK_FAULTS[fault][2]
+    resilience.describe(
+        fault=fault, profile=profile, mitigations={},
+        claim=f"{fault} in one node's callback kills only that node: CRASHED with "
+              f"{sig.name}, the other nodes and the container go on",
+    )
+    rig = rig_factory(profile)
+    for i in range(trials(3, 200)):
+        seed = rng.getrandbits(31)
+        out = callback_fault(rig, fault, seed, i)
+        record_trial(i, seed, out)
+        rig.settle(out)
+    resilience.expect_rate("survived", at_least=1.0)
+
+
+@pytest.mark.parametrize("fault", list(CALLBACK_FAULTS))
+def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, record_trial, trials, rng):
+    """The baseline: the same fault in thread mode takes the container down."""
+    plugin, params, sig = CALLBACK_FAULTS[fault]
+    resilience.describe(
+        fault=fault, profile="threads", mitigations={},
+        claim=f"baseline: {fault} in one node's callback ends the whole thread-mode container",
+    )
+    rig = rig_factory("threads")
+    for i in range(trials(2, 20)):
+        seed = rng.getrandbits(31)
+        rig.client.load_ok("cloneguard", plugin, parameters={**params, "delay": 0.1, "seed": seed})
+        code = rig.proc.wait(timeout=10)
+        out = Outcome("crashed" if code == -sig else "failed", details={"exit_code": code})
+        record_trial(i, seed, out)
+        rig.restart()
+    resilience.expect_rate("crashed", at_least=1.0)

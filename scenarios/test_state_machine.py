@@ -1,0 +1,105 @@
+"""Random sequences of load / unload / crash against a model of the container.
+
+A hypothesis rule-based state machine drives a real isolated container.
+Invariants after every step: ListNodes equals the model; every node that
+died was reported CRASHED exactly once; the container is alive.
+"""
+import collections
+import os
+import signal
+
+import pytest
+from cloneguard_interfaces.msg import ComponentEvent
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import Bundle, RuleBasedStateMachine, consumes, invariant, rule, run_state_machine_as_test
+
+from harness.rig import Outcome
+
+PLUGINS = ["cloneguard::Talker", "cloneguard::Listener", "cloneguard::Heartbeat", "cloneguard::EchoService"]
+
+
+def make_machine(start_rig, on_example_end):
+    class ContainerMachine(RuleBasedStateMachine):
+        nodes = Bundle("nodes")
+
+        def __init__(self):
+            super().__init__()
+            self.rig = start_rig()
+            self.cli = self.rig.client
+            self.model = {self.rig.survivor_id: "/survivor"}
+            self.crashed = set()
+            self.counter = 0
+
+        @rule(target=nodes, plugin=st.sampled_from(PLUGINS))
+        def load(self, plugin):
+            self.counter += 1
+            name = f"n{self.counter}"
+            resp = self.cli.load_ok("cloneguard", plugin, node_name=name)
+            self.model[resp.unique_id] = f"/{name}"
+            return resp.unique_id
+
+        @rule(uid=consumes(nodes))
+        def unload(self, uid):
+            resp = self.cli.unload(uid)
+            assert resp.success, resp.error_message
+            del self.model[uid]
+
+        @rule(uid=consumes(nodes), sig=st.sampled_from([signal.SIGKILL, signal.SIGSEGV, signal.SIGABRT]))
+        def crash(self, uid, sig):
+            pid = self.rig.loaded_pid(uid)
+            os.kill(pid, sig)
+            ev = self.cli.wait_for_event(ComponentEvent.CRASHED, unique_id=uid, timeout=10)
+            assert ev.exit_signal == sig
+            del self.model[uid]
+            self.crashed.add(uid)
+
+        @rule(missing=st.integers(min_value=10_000, max_value=20_000))
+        def unload_missing(self, missing):
+            resp = self.cli.unload(missing)
+            assert not resp.success and resp.error_message == f"No node found with unique_id: {missing}"
+
+        @invariant()
+        def listnodes_equals_model(self):
+            assert self.rig.proc.alive(), "the container died"
+            assert dict(self.cli.list()) == self.model
+
+        @invariant()
+        def every_death_reported_once(self):
+            counts = collections.Counter(
+                e.unique_id for e in self.cli.events.messages() if e.event_type == ComponentEvent.CRASHED)
+            assert set(counts) == self.crashed and all(n == 1 for n in counts.values()), counts
+
+        def teardown(self):
+            on_example_end(self)
+
+    return ContainerMachine
+
+
+@pytest.mark.parametrize("profile", ["per-node", "shared"])
+def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, resilience, record_trial, trials):
+    resilience.describe(
+        fault="random load/unload/crash sequences", profile=profile, mitigations={},
+        claim="any sequence of load, unload, unload of a missing id and crash (SIGKILL, "
+              "SIGSEGV, SIGABRT from outside) keeps ListNodes equal to the model and "
+              "reports every death exactly once",
+    )
+    rigs = []
+
+    def start():
+        rig = rig_factory(profile)
+        rigs.append(rig)
+        return rig
+
+    def end(machine):
+        record_trial(len(rigs) - 1, 0, Outcome("survived", details={"steps_model_size": len(machine.model)}))
+        machine.rig.client.close()
+        machine.rig.proc.stop()
+
+    examples = trials(3, 50)
+    run_state_machine_as_test(
+        make_machine(start, end),
+        settings=settings(max_examples=examples, stateful_step_count=8, deadline=None,
+                          suppress_health_check=list(HealthCheck), database=None),
+    )
+    resilience.expect_rate("survived", at_least=1.0)
