@@ -181,11 +181,16 @@ class IsolatedHost:
             proc.node, proc.executor, proc.context = node, executor, ctx
             proc.full_name = node.get_fully_qualified_name()
             proc.handoff.post(b"ready")
-            self._spin_until_stopped(proc)
-            executor.shutdown()
-            node.destroy_node()
-            ctx.try_shutdown()
-            ctx.destroy()       # its participant, and any SHM segments, go now
+            try:
+                self._spin_until_stopped(proc)
+            finally:
+                # Also after a callback raised: the participant's threads
+                # must end (else this process outlives its node) and its
+                # SHM segments be unlinked; then the exception ends us (1).
+                executor.shutdown()
+                node.destroy_node()
+                ctx.try_shutdown()
+                ctx.destroy()
         return run
 
     # -- parent side --------------------------------------------------------------
