@@ -26,6 +26,7 @@ from . import allocator
 from .hosting import ThreadHost
 from .isolated import profiles
 from .manager import ComponentManager
+from .restart import POLICIES, RestartPolicy
 from .stop_signals import StopSignals
 from .watchdog import Watchdog
 
@@ -62,6 +63,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "CLONE_INTO_CGROUP); LoadNode extra argument 'cloneguard.cpu_quota' (CPUs) sets a CPU quota",
     )
     parser.add_argument(
+        "--restart-policy", choices=POLICIES, default="never",
+        help="isolated mode: 'on-crash' loads a node whose process died again, after "
+        "0.5 s doubling to 30 s (reset once it stayed up 60 s) (default: %(default)s)",
+    )
+    parser.add_argument(
         "--watchdog", type=float, default=None, metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
@@ -77,8 +83,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def _make_host(opts, executor, context, logger):
     if not opts.isolated:
-        if opts.cgroups:
-            raise SystemExit("component_container: --cgroups needs --isolated")
+        for flag, given in (("--cgroups", opts.cgroups), ("--restart-policy", opts.restart_policy != "never")):
+            if given:
+                raise SystemExit(f"component_container: {flag} needs --isolated")
         return ThreadHost(executor, context)
     # Imported here: thread mode must work where the C core cannot.
     from .isolated.assumptions import IsolationUnavailable
@@ -122,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     manager = ComponentManager(node, host)
     if opts.isolated:
         host.on_death = manager.on_death
+        if opts.restart_policy == "on-crash":
+            manager.restart_policy = RestartPolicy(node, manager.reload)
     executor.add_node(node)
     watchdog_s = opts.watchdog if opts.watchdog is not None else (10.0 if opts.isolated else 0.0)
     watchdog = None

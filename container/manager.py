@@ -5,11 +5,16 @@ request, asks the host to start or stop a node, and publishes what happened.
 Its behaviour follows rclcpp_components' ComponentManager: ids start at 1 and
 are never reused (a load that fails after an id was taken still uses it up),
 a failed load answers unique_id 0 and an empty full_node_name.
+
+Deaths come from the host (isolated mode), on its monitor's thread: the node
+leaves the table, a CRASHED event goes out, and with a restart policy the
+same request is loaded again after a backoff.
 """
 from __future__ import annotations
 
 import contextlib
 import threading
+from dataclasses import dataclass
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 
@@ -17,6 +22,15 @@ from . import events, options, registry
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
+from .restart import Lineage, uptime
+
+
+@dataclass
+class _Entry:
+    hosted: Hosted
+    spec: registry.ComponentSpec
+    request: LoadNode.Request
+    lineage: Lineage
 
 
 class ComponentManager:
@@ -30,10 +44,11 @@ class ComponentManager:
         self._events = EventPublisher(node)
         self._lock = threading.Lock()       # guards the fields below
         self._next_id = 1
-        self._loaded: dict[int, tuple[Hosted, registry.ComponentSpec]] = {}
+        self._loaded: dict[int, _Entry] = {}
         self._starting: set[int] = set()    # ids whose host.start() is running
         self._early_deaths: dict[int, object] = {}   # deaths seen while starting
         self.watchdog = None                # set by the command line when it runs one
+        self.restart_policy = None          # likewise (container.restart.RestartPolicy)
         node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
         node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
         node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
@@ -41,6 +56,9 @@ class ComponentManager:
     # -- services -------------------------------------------------------------
 
     def _on_load_node(self, request, response):
+        return self._load(request, response, None)
+
+    def _load(self, request, response, lineage: Lineage | None):
         try:
             spec = registry.find(request.package_name, request.plugin_name)
             args = options.from_request(request)
@@ -55,21 +73,24 @@ class ComponentManager:
             with self._lock:
                 self._starting.discard(unique_id)
             return self._load_failed(request, response, str(exc))
+        entry = _Entry(hosted, spec, request, lineage or Lineage(hosted.full_node_name))
         with self._lock:
             self._starting.discard(unique_id)
             early_death = self._early_deaths.pop(unique_id, None)
             if early_death is None:
-                self._loaded[unique_id] = (hosted, spec)
+                self._loaded[unique_id] = entry
         self._log.info(
             f"Loaded {spec.plugin_name} as {hosted.full_node_name} "
             f"(unique_id {unique_id}, pid {hosted.pid})"
         )
         if args.drop_loaded_event:
-            self._log.warning(f"not publishing LOADED for unique_id {unique_id} (fault injection: {options.DROP_LOADED_EVENT})")
+            self._log.warning(
+                f"not publishing LOADED for unique_id {unique_id} "
+                f"(fault injection: {options.DROP_LOADED_EVENT})")
         else:
-            self._publish(events.LOADED, hosted, spec)
+            self._publish(events.LOADED, entry)
         if early_death is not None:
-            self._report_crash(hosted, spec, early_death)
+            self._report_crash(entry, early_death)
         response.success = True
         response.full_node_name = hosted.full_node_name
         response.unique_id = unique_id
@@ -83,10 +104,9 @@ class ComponentManager:
             response.error_message = f"No node found with unique_id: {request.unique_id}"
             self._log.warning(response.error_message)
             return response
-        hosted, spec = entry
-        self._host.stop(hosted)
-        self._log.info(f"Unloaded {hosted.full_node_name} (unique_id {hosted.unique_id})")
-        self._publish(events.UNLOADED, hosted, spec)
+        self._host.stop(entry.hosted)
+        self._log.info(f"Unloaded {entry.hosted.full_node_name} (unique_id {entry.hosted.unique_id})")
+        self._publish(events.UNLOADED, entry)
         response.success = True
         return response
 
@@ -94,7 +114,7 @@ class ComponentManager:
         with self._lock:
             entries = sorted(self._loaded.items())
         response.unique_ids = [uid for uid, _ in entries]
-        response.full_node_names = [hosted.full_node_name for _, (hosted, _s) in entries]
+        response.full_node_names = [e.hosted.full_node_name for _, e in entries]
         return response
 
     # -- deaths (called by the host, from its monitor's thread) -----------------
@@ -107,27 +127,42 @@ class ComponentManager:
                 return
             entry = self._loaded.pop(unique_id, None)
         if entry is not None:   # None: an unload got there first
-            self._report_crash(*entry, death)
+            self._report_crash(entry, death)
 
-    def _report_crash(self, hosted: Hosted, spec, death) -> None:
+    def _report_crash(self, entry: _Entry, death) -> None:
+        hosted = entry.hosted
         self._log.error(
             f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "
             f"died: {death.reason}"
         )
         self._publish(
-            events.CRASHED, hosted, spec,
+            events.CRASHED, entry,
             error_message=death.reason,
             exit_signal=death.exit_signal,
             exit_code=death.exit_code,
         )
+        if self.restart_policy is not None and self._node.context.ok():
+            delay = self.restart_policy.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))
+            self._log.warning(
+                f"restarting {entry.lineage.name} in {delay:g} s "
+                f"(restart {entry.lineage.restarts})"
+            )
+
+    def reload(self, request, lineage: Lineage) -> None:
+        """The restart policy's callback: load ``request`` again."""
+        resp = self._load(request, LoadNode.Response(), lineage)
+        if not resp.success:
+            self._log.error(f"restart of {lineage.name} failed: {resp.error_message}")
 
     # -- life cycle -----------------------------------------------------------
 
     def close(self) -> None:
         """Stop every node (container shutdown); no events, the context is gone."""
+        if self.restart_policy is not None:
+            self.restart_policy.cancel_all()
         with self._lock:
             entries, self._loaded = list(self._loaded.values()), {}
-        self._host.close([hosted for hosted, _spec in entries])
+        self._host.close([e.hosted for e in entries])
 
     # -- helpers --------------------------------------------------------------
 
@@ -151,13 +186,14 @@ class ComponentManager:
         response.unique_id = 0
         return response
 
-    def _publish(self, event_type, hosted: Hosted, spec, **extra) -> None:
+    def _publish(self, event_type, entry: _Entry, **extra) -> None:
+        hosted = entry.hosted
         self._events.publish(
             event_type,
             unique_id=hosted.unique_id,
             full_node_name=hosted.full_node_name,
-            package_name=spec.package_name,
-            plugin_name=spec.plugin_name,
+            package_name=entry.spec.package_name,
+            plugin_name=entry.spec.plugin_name,
             pid=hosted.pid,
             start_time_ns=hosted.start_time_ns,
             **extra,

@@ -131,3 +131,31 @@ def test_a_child_dying_with_a_container_lock_leaves_it_recoverable(client, conta
     beats.wait_count(seen + 5, timeout=10)
     again = client.load_ok(PKG, "cloneguard::Talker")
     assert client.list() == [(survivor.unique_id, "/survivor"), (again.unique_id, "/talker")]
+
+
+@pytest.mark.parametrize("container_args", [["--isolated", "--restart-policy", "on-crash"]])
+def test_restart_policy_reloads_a_crashed_node_with_backoff(client):
+    first = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="phoenix")
+    pid = _loaded_pid(client, first.unique_id)
+    os.kill(pid, signal.SIGKILL)
+    client.wait_for_event(ComponentEvent.CRASHED, unique_id=first.unique_id)
+    again = client.events.wait_for(
+        lambda e: e.event_type == ComponentEvent.LOADED and e.full_node_name == "/phoenix"
+        and e.unique_id != first.unique_id, timeout=10, what="LOADED of the restarted node")
+    assert again.unique_id > first.unique_id and again.pid != pid
+    assert client.list() == [(again.unique_id, "/phoenix")]
+    client.subscribe(UInt64, "/phoenix/heartbeat").wait_count(3, timeout=10)
+    # Killed again at once: the second delay doubles (0.5 s -> 1 s).
+    os.kill(again.pid, signal.SIGKILL)
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=again.unique_id)
+    third = client.events.wait_for(
+        lambda e: e.event_type == ComponentEvent.LOADED and e.unique_id > again.unique_id,
+        timeout=10, what="second restart")
+    gap_s = ((third.stamp.sec - crashed.stamp.sec) * 1e9 + third.stamp.nanosec - crashed.stamp.nanosec) / 1e9
+    assert 0.9 <= gap_s < 5, gap_s
+
+
+def test_restart_policy_needs_isolated_mode(container_factory):
+    proc = container_factory.start(["--restart-policy", "on-crash"])
+    assert proc.wait(timeout=20) != 0
+    assert "--restart-policy needs --isolated" in proc.log_text()
