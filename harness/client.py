@@ -84,33 +84,31 @@ class Recorder:
 
     def wait_for(self, predicate, timeout: float, what: str = ""):
         """Wait until ``predicate(msg)`` holds for some message; return it."""
-        deadline = time.monotonic() + timeout
-        seen = 0
+        scanned = 0
+
+        def first_match():
+            nonlocal scanned
+            for item in self._items[scanned:]:
+                if predicate(item.msg):
+                    return item
+            scanned = len(self._items)
+            return None
+
         with self._cond:
-            while True:
-                for item in self._items[seen:]:
-                    if predicate(item.msg):
-                        return item.msg
-                seen = len(self._items)
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise HarnessTimeout(
-                        f"no {what or 'matching message'} on {self.description} "
-                        f"within {timeout:.1f} s ({seen} messages seen)"
-                    )
-                self._cond.wait(left)
+            item = self._cond.wait_for(first_match, timeout)
+            if item is None:
+                raise HarnessTimeout(
+                    f"no {what or 'matching message'} on {self.description} "
+                    f"within {timeout:.1f} s ({len(self._items)} messages seen)"
+                )
+            return item.msg
 
     def wait_count(self, count: int, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
         with self._cond:
-            while len(self._items) < count:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise HarnessTimeout(
-                        f"{self.description}: {len(self._items)} of {count} messages "
-                        f"within {timeout:.1f} s"
-                    )
-                self._cond.wait(left)
+            if not self._cond.wait_for(lambda: len(self._items) >= count, timeout):
+                raise HarnessTimeout(
+                    f"{self.description}: {len(self._items)} of {count} messages within {timeout:.1f} s"
+                )
 
 
 def to_parameter_msgs(values: dict[str, object]) -> list[ParameterMsg]:

@@ -102,16 +102,12 @@ class NodeTracker:
 
     def wait_state(self, node: TrackedNode, states, timeout: float) -> State:
         wanted = {states} if isinstance(states, State) else set(states)
-        deadline = time.monotonic() + timeout
         with self._cond:
-            while node.state not in wanted:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise HarnessTimeout(
-                        f"{node.full_node_name or node.requested_name or node.plugin_name} is "
-                        f"{node.state.value}, not {'/'.join(s.value for s in wanted)}, after {timeout:.1f} s"
-                    )
-                self._cond.wait(left)
+            if not self._cond.wait_for(lambda: node.state in wanted, timeout):
+                raise HarnessTimeout(
+                    f"{node.full_node_name or node.requested_name or node.plugin_name} is "
+                    f"{node.state.value}, not {'/'.join(s.value for s in wanted)}, after {timeout:.1f} s"
+                )
             return node.state
 
     def close(self) -> None:

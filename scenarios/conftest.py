@@ -63,3 +63,17 @@ def record_trial(resilience):
                 owner_node=first.owner_node if first else None,
             )
     return record
+
+
+@pytest.fixture
+def run_trials(record_trial, trials, rng):
+    """run_trials(trial, settle, quick, deep): the trial loop every rate
+    scenario shares: a seed per trial, ``trial(seed, index) -> Outcome``,
+    recorded, then ``settle(outcome)`` (which replaces a broken container)."""
+    def run(trial, settle, quick: int, deep: int) -> None:
+        for i in range(trials(quick, deep)):
+            seed = rng.getrandbits(31)
+            out = trial(seed, i)
+            record_trial(i, seed, out)
+            settle(out)
+    return run

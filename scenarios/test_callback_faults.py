@@ -13,7 +13,7 @@ from harness.rig import Outcome
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
 @pytest.mark.parametrize("fault", list(CALLBACK_FAULTS))
-def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, record_trial, trials, rng):
+def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, run_trials):
     sig = CALLBACK_FAULTS[fault][2]
     resilience.describe(
         fault=fault, profile=profile, mitigations={},
@@ -21,11 +21,7 @@ def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, recor
               f"{sig.name}, the other nodes and the container go on",
     )
     rig = rig_factory(profile)
-    for i in range(trials(3, 200)):
-        seed = rng.getrandbits(31)
-        out = callback_fault(rig, fault, seed, i)
-        record_trial(i, seed, out)
-        rig.settle(out)
+    run_trials(lambda seed, i: callback_fault(rig, fault, seed, i), rig.settle, quick=3, deep=200)
     resilience.expect_rate("survived", at_least=1.0)
 
 

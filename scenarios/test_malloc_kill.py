@@ -28,7 +28,7 @@ FLOORS = {"glibc": 0.0, "jemalloc-auto": 0.0, "jemalloc-own": 0.0}
 
 
 @pytest.mark.parametrize("allocator", list(ALLOCATORS))
-def test_sigkill_during_malloc(allocator, rig_factory, resilience, record_trial, trials, rng):
+def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
     resilience.describe(
         fault="sigkill-during-malloc", profile=f"per-node/{allocator}",
         mitigations={"allocator": allocator},
@@ -36,9 +36,5 @@ def test_sigkill_during_malloc(allocator, rig_factory, resilience, record_trial,
               "are freed by a sibling; does the container, the sibling and new nodes go on?",
     )
     fault = MallocKill(rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
-    for i in range(trials(5, 300)):
-        seed = rng.getrandbits(31)
-        out = fault.trial(seed, i)
-        record_trial(i, seed, out)
-        fault.settle(out)
+    run_trials(fault.trial, fault.settle, quick=5, deep=300)
     resilience.expect_rate("survived", at_least=FLOORS[allocator])

@@ -5,7 +5,7 @@ from faults.trials import die_holding_lock
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resilience, record_trial, trials, rng):
+def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resilience, run_trials):
     resilience.describe(
         fault="die-holding-robust-mutex", profile=profile, mitigations={"robust_mutex": True},
         claim="a node that dies holding the container's progress-board lock, its slot "
@@ -13,9 +13,5 @@ def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resili
               "everyone goes on",
     )
     rig = rig_factory(profile)
-    for i in range(trials(3, 200)):
-        seed = rng.getrandbits(31)
-        out = die_holding_lock(rig, seed, i)
-        record_trial(i, seed, out)
-        rig.settle(out)
+    run_trials(lambda seed, i: die_holding_lock(rig, seed, i), rig.settle, quick=3, deep=200)
     resilience.expect_rate("survived", at_least=1.0)
