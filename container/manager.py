@@ -131,15 +131,16 @@ class ComponentManager:
 
     def _report_crash(self, entry: _Entry, death) -> None:
         hosted = entry.hosted
-        self._log.error(
-            f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "
-            f"died: {death.reason}"
-        )
+        # The event first: logging goes to /rosout too, a DDS publish of its own.
         self._publish(
             events.CRASHED, entry,
             error_message=death.reason,
             exit_signal=death.exit_signal,
             exit_code=death.exit_code,
+        )
+        self._log.error(
+            f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "
+            f"died: {death.reason}"
         )
         if self.restart_policy is not None and self._node.context.ok():
             delay = self.restart_policy.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))

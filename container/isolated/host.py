@@ -288,7 +288,8 @@ class IsolatedHost:
         )
 
     def _crashed(self, proc: _NodeProcess, death: Death) -> None:
-        self._forget(proc, leak=True)
+        # Tell the manager first (it publishes CRASHED); the bookkeeping and
+        # its log lines can wait the few hundred microseconds.
         if self.on_death is not None:
             self.on_death(proc.unique_id, NodeDeath(
                 pid=death.pid,
@@ -296,6 +297,7 @@ class IsolatedHost:
                 exit_code=death.exit_code or 0,
                 reason=_describe(death),
             ))
+        self._forget(proc, leak=True)
 
 
 def _wake(proc: _NodeProcess) -> None:
