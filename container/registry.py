@@ -54,19 +54,31 @@ class ComponentSpec:
         return cls
 
 
+def _scan() -> dict[str, dict[str, EntryPoint]]:
+    """Every installed component: {normalized distribution: {plugin: entry point}}.
+    Reading every distribution's metadata takes milliseconds, so it is done
+    once and again only when a request names something not seen yet."""
+    index: dict[str, dict[str, EntryPoint]] = {}
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.dist is not None:
+            index.setdefault(_normalize(ep.dist.name), {})[ep.name] = ep
+    return index
+
+
+_index: dict[str, dict[str, EntryPoint]] | None = None
+
+
 def components_of(package_name: str) -> dict[str, EntryPoint]:
     """The entry points a distribution registers, by plugin name."""
-    wanted = _normalize(package_name)
-    found = {}
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.dist is not None and _normalize(ep.dist.name) == wanted:
-            found[ep.name] = ep
-    return found
+    return (_index or {}).get(_normalize(package_name), {})
 
 
 def find(package_name: str, plugin_name: str) -> ComponentSpec:
+    global _index
     if not package_name:
         raise LoadError(UNKNOWN_PACKAGE)
+    if _index is None or plugin_name not in components_of(package_name):
+        _index = _scan()      # first use, or installed since the last scan?
     plugins = components_of(package_name)
     if not plugins:
         raise LoadError(UNKNOWN_PACKAGE)

@@ -159,3 +159,14 @@ def test_restart_policy_needs_isolated_mode(container_factory):
     proc = container_factory.start(["--restart-policy", "on-crash"])
     assert proc.wait(timeout=20) != 0
     assert "--restart-policy needs --isolated" in proc.log_text()
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_an_idle_node_stops_gracefully_without_sigkill(client, container):
+    # A listener with nothing to listen to has no callback to wake it: the
+    # stop has to wake its executor by itself.
+    uid = client.load_ok(PKG, "cloneguard::Listener", remap_rules=["chatter:=nobody_talks_here"]).unique_id
+    assert client.unload(uid).success
+    client.wait_for_event(ComponentEvent.UNLOADED, unique_id=uid)
+    assert "did not stop within" not in container.log_text()
+    assert "left in memory" not in container.log_text()

@@ -84,6 +84,7 @@ class _NodeProcess:
     context: object = None             # the child's own Context (per-node)
     full_name: str = ""
     slot: int = -1                     # this node's slot on the progress board
+    stop_guard: object = None          # triggered to wake the child's spin loop
     cgroup: object = None              # NodeCgroup, with --cgroups
     error: str = ""                    # why construction failed in the child
     death: Death | None = None
@@ -118,6 +119,7 @@ class IsolatedHost:
             proc.full_name = proc.node.get_fully_qualified_name()
             proc.executor = SingleThreadedExecutor(context=self._context)
             proc.executor.add_node(proc.node)
+            proc.stop_guard = proc.node.create_guard_condition(_stopping)
             target = self._spin_target(proc)
         else:
             target = self._build_and_spin_target(proc, cls, args)
@@ -178,6 +180,7 @@ class IsolatedHost:
                 return
             executor = SingleThreadedExecutor(context=ctx)
             executor.add_node(node)
+            proc.stop_guard = node.create_guard_condition(_stopping)
             proc.node, proc.executor, proc.context = node, executor, ctx
             proc.full_name = node.get_fully_qualified_name()
             proc.handoff.post(b"ready")
@@ -300,11 +303,16 @@ class IsolatedHost:
         self._forget(proc, leak=True)
 
 
+def _stopping() -> None:
+    """The stop guard's callback: running it is what makes spin_once return
+    (a bare Executor.wake() does not: rclpy goes back to waiting)."""
+
+
 def _wake(proc: _NodeProcess) -> None:
     """Wake the node's executor so its spin loop sees the stop flag."""
     try:
-        proc.executor.wake()
-    except Exception:   # the child is tearing the executor down itself
+        proc.stop_guard.trigger()
+    except Exception:   # not built yet, or the child is tearing it down itself
         pass
 
 

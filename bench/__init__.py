@@ -1,0 +1,16 @@
+"""Benchmarks of the container, run by hand from the repository root.
+
+    python -m bench                    # all of them, small counts, + summary.md
+    python -m bench.child_start        # time to start a node
+    python -m bench.memory             # marginal memory per node
+    python -m bench.crash_latency      # fault -> CRASHED latency
+    python -m bench.load_latency       # LoadNode -> LOADED latency
+    python -m bench.shutdown           # SIGTERM -> exit
+
+Each writes ``reports/bench/<name>.md`` and ``<name>.json`` (``--out DIR``
+elsewhere) and prints its table. ``bench.process_per_node`` is the
+process-per-node baseline runner the benchmarks compare against.
+
+This file stays empty of imports: the baseline runner is started as
+``python -m bench.process_per_node`` and its start-up is measured.
+"""

@@ -1,0 +1,108 @@
+"""Run every benchmark with small counts, then write reports/bench/summary.md.
+
+    python -m bench                              # a few minutes
+    python -m bench --only load_latency crash_latency
+    python -m bench --preset tiny --out /tmp/b   # a smoke run (seconds per benchmark)
+
+Each benchmark writes its own <name>.md / <name>.json beside summary.md; the
+summary's table (one row per measure and mode, with the goal and whether it
+was met) is meant to be pasted into the README.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import traceback
+from pathlib import Path
+
+from . import child_start, common, crash_latency, load_latency, memory, shutdown
+
+BENCHMARKS = {
+    "child_start": child_start,
+    "memory": memory,
+    "crash_latency": crash_latency,
+    "load_latency": load_latency,
+    "shutdown": shutdown,
+}
+PRESETS = {
+    "default": {
+        "child_start": {"n": 10, "n_raw": 100},
+        "memory": {"nodes": 20, "settle": 1.0},
+        "crash_latency": {"n": 20, "n_monitor": 30},
+        "load_latency": {"n": 15},
+        "shutdown": {"reps": 2, "counts": [1, 5, 20]},
+    },
+    "tiny": {
+        "child_start": {"n": 2, "n_raw": 2},
+        "memory": {"nodes": 2, "settle": 0.2, "modes": ["isolated-per-node", "thread", "process-per-node"]},
+        "crash_latency": {"n": 2, "n_monitor": 2, "settle": 0.02},
+        "load_latency": {"n": 2, "modes": ["isolated-per-node", "thread"]},
+        "shutdown": {"reps": 1, "counts": [1, 2], "settle": 0.1, "modes": ["isolated-per-node", "thread"]},
+    },
+}
+
+
+def summary_markdown(results: dict, failures: dict, command: str) -> str:
+    table = common.Table("Benchmarks", common.SUMMARY_COLUMNS)
+    for name in BENCHMARKS:
+        if name in results:
+            for row in results[name].summary:
+                table.add(*(row[c] for c in common.SUMMARY_COLUMNS))
+    host = next(iter(results.values())).host if results else common.host()
+    out = ["# Benchmarks: summary", "",
+           f"Command (from the repository root, venv active): `{command}`", "",
+           f"Host: {common.host_line(host)}", "",
+           "Medians and p90 measured side by side in one run on this host; ratios are of medians. "
+           "Details, methods and the exact command of each: the `<benchmark>.md` files beside this one.", "",
+           table.markdown(), ""]
+    if failures:
+        out += ["Failed: " + "; ".join(f"{name}: {err}" for name, err in failures.items()), ""]
+    dirty = [f"{name}: {'; '.join(r.cleanup)}" for name, r in results.items() if r.cleanup]
+    out += ["Clean-up: " + ("every benchmark stopped all it started; no process or /dev/shm segment left."
+                            if not dirty else "PROBLEMS: " + " | ".join(dirty)), ""]
+    return "\n".join(out)
+
+
+def run_all(*, preset: str = "default", only: list[str] | None = None, out=common.DEFAULT_OUT,
+            keep_logs: bool = False, quiet: bool = False, command: str | None = None):
+    """Run the benchmarks; return (results by name, failures by name, summary path)."""
+    out = Path(out)
+    results, failures = {}, {}
+    for name, module in BENCHMARKS.items():
+        if only and name not in only:
+            continue
+        params = dict(PRESETS[preset][name])
+        if not quiet:
+            print(f"\n=== {name}: {common.command_line(name, params)}\n", flush=True)
+        try:
+            results[name] = module.run(out=out, keep_logs=keep_logs, quiet=quiet, **params)
+        except Exception as exc:    # the others still run; the summary says what failed
+            traceback.print_exc()
+            failures[name] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    command = command or shlex.join(["python", "-m", "bench", "--preset", preset]
+                                    + (["--only", *only] if only else []))
+    text = summary_markdown(results, failures, command)
+    path = out / "summary.md"
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    if not quiet:
+        print("\n" + text)
+        print(f"wrote {path}")
+    return results, failures, path
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
+    parser.add_argument("--preset", choices=list(PRESETS), default="default",
+                        help="counts to run with (default: %(default)s)")
+    parser.add_argument("--only", nargs="+", choices=list(BENCHMARKS), default=None)
+    parser.add_argument("--out", type=Path, default=common.DEFAULT_OUT)
+    parser.add_argument("--keep-logs", action="store_true")
+    opts = parser.parse_args(argv)
+    results, failures, _ = run_all(preset=opts.preset, only=opts.only, out=opts.out, keep_logs=opts.keep_logs)
+    return 1 if failures or any(r.cleanup for r in results.values()) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""The benchmarks (bench/) run end to end with tiny counts and write their
+tables. Structure only: no figure here is compared with anything."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from harness.process import REPO_ROOT
+
+if str(REPO_ROOT) not in sys.path:      # bench/ is run from the repository root, not installed
+    sys.path.insert(0, str(REPO_ROOT))
+
+from bench import __main__ as bench_all  # noqa: E402
+from bench import common  # noqa: E402
+
+# The tables each benchmark writes, with the "tiny" preset's parameters.
+EXPECTED_TABLES = {
+    "child_start": [
+        ["measure", "n", "median", "p90", "max", "÷ clone child (medians)"],
+        ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"],
+    ],
+    "memory": [
+        ["mode", "processes @2", "address spaces @2", "PSS @1 (MiB)", "PSS @2 (MiB)", "marginal PSS / node (MiB)",
+         "marginal USS / node (MiB)", "marginal page tables / node (KiB)", "process-per-node ÷ this (marginal PSS)"],
+        ["mode", "@1", "@2"],
+    ],
+    "crash_latency": [
+        ["profile", "signal", "n", "lost (no CRASHED in 10 s)",
+         "container stuck afterwards (next LoadNode unanswered)", "→ CRASHED stamp: median", "stamp: p90",
+         "stamp: max", "→ CRASHED at client: median", "at client: p90", "median vs goal 1 ms"],
+        ["profile", "signal", "n", "CRASHED stamped (published)", "'died' error logged (manager)",
+         "'left in memory' warning logged (host)"],
+        ["signal", "n", "monitor detected: median", "detected: p90", "detected: max", "on_event called: median",
+         "on_event: p90"],
+    ],
+    "load_latency": [
+        ["mode", "n", "→ LOADED at client: median", "→ LOADED: p90", "LoadNode round trip: median",
+         "round trip: p90", "→ LOADED published (container clock): median", "cold first load → LOADED",
+         "UnloadNode round trip: median", "LOADED median vs goal 20 ms"],
+    ],
+    "shutdown": [
+        ["mode", "nodes", "processes before", "n", "→ container exited: median", "exited: p90", "exited: max",
+         "→ process group empty: median", "exit codes", "timed out / forced", "children SIGKILLed after 500 ms",
+         "vs goal (≤ 1 s with 20 isolated nodes)"],
+    ],
+}
+# Rows of the first table: one per mode (or profile × signal, or measure).
+EXPECTED_ROWS = {"child_start": 8, "memory": 3, "crash_latency": 4, "load_latency": 2, "shutdown": 5}
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    results, failures, summary = bench_all.run_all(preset="tiny", out=out, quiet=True)
+    return out, results, failures, summary
+
+
+def test_every_benchmark_ran_and_cleaned_up(tiny_run):
+    _, results, failures, _ = tiny_run
+    assert failures == {}
+    assert sorted(results) == sorted(bench_all.BENCHMARKS)
+    assert {name: r.cleanup for name, r in results.items()} == {name: [] for name in results}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED_TABLES))
+def test_report_files_hold_the_expected_tables(tiny_run, name):
+    out, _, _, _ = tiny_run
+    data = json.loads((out / f"{name}.json").read_text())
+    md = (out / f"{name}.md").read_text()
+    assert data["name"] == name
+    assert data["command"].startswith(f"python -m bench.{name} ")
+    for key in ("kernel", "cpu_model", "glibc", "date"):
+        assert data["host"][key], key
+    assert f"`{data['command']}`" in md and "Host: kernel " in md
+    assert [t["columns"] for t in data["tables"]] == EXPECTED_TABLES[name]
+    assert len(data["tables"][0]["rows"]) == EXPECTED_ROWS[name]
+    for table in data["tables"]:
+        assert table["rows"], table["title"]
+        assert "| " + " | ".join(table["columns"]) + " |" in md
+        for row in table["rows"]:
+            assert list(row) == table["columns"]
+    for goal in data["goals"]:
+        assert goal["verdict"] and goal["goal"]
+    assert data["summary"] and all(list(r) == common.SUMMARY_COLUMNS for r in data["summary"])
+    assert data["cleanup"] == []
+
+
+def test_summary_has_a_row_per_measure(tiny_run):
+    _, results, _, summary = tiny_run
+    text = summary.read_text()
+    assert "| " + " | ".join(common.SUMMARY_COLUMNS) + " |" in text
+    for r in results.values():
+        for row in r.summary:
+            assert f"| {row['benchmark']} | {row['measure']} | {row['mode']} |" in text
+
+
+def test_a_benchmark_runs_as_its_documented_command(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.load_latency", "--n", "1", "--modes", "thread", "--out", str(tmp_path)],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=60,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "| mode | n | → LOADED at client: median |" in done.stdout
+    assert (tmp_path / "load_latency.md").exists() and (tmp_path / "load_latency.json").exists()
