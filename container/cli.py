@@ -58,6 +58,19 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "of its own, 'auto' leaves the choice to jemalloc (default: %(default)s)",
     )
     parser.add_argument(
+        "--no-gil-repair", action="store_true",
+        help="isolated mode, for measurement: do not release the GIL a dead child held",
+    )
+    parser.add_argument(
+        "--no-condvar-repair", action="store_true",
+        help="isolated mode, for measurement: do not repair the GIL's condition "
+        "variables after a child died waiting on them",
+    )
+    parser.add_argument(
+        "--no-crash-report", action="store_true",
+        help="isolated mode: no native/Python stack report from a child that crashes",
+    )
+    parser.add_argument(
         "--cgroups", action="store_true",
         help="isolated mode: each node's process in a cgroup of its own (cgroup2, "
         "CLONE_INTO_CGROUP); LoadNode extra argument 'cloneguard.cpu_quota' (CPUs) sets a CPU quota",
@@ -90,13 +103,21 @@ def _make_host(opts, executor, context, logger):
     # Imported here: thread mode must work where the C core cannot.
     from .isolated.assumptions import IsolationUnavailable
     from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
+    from .isolated.core import Mitigations
     from .isolated.host import IsolatedHost
+    mitigations = Mitigations(
+        gil_repair=not opts.no_gil_repair,
+        condvar_repair=not opts.no_condvar_repair,
+        crash_report=not opts.no_crash_report,
+        jemalloc_arena=opts.jemalloc_arenas,
+    )
     try:
         cgroups = NodeCgroups() if opts.cgroups else None
     except CgroupsUnavailable as exc:
         raise SystemExit(f"component_container: --cgroups is unavailable here: {exc}") from None
     try:
-        return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups)
+        return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups,
+                            mitigations=mitigations)
     except IsolationUnavailable as exc:
         if cgroups is not None:
             cgroups.close()

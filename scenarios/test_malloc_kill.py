@@ -22,9 +22,17 @@ ALLOCATORS = {
     "jemalloc-auto": ["--jemalloc", "--jemalloc-arenas", "auto"],
     "jemalloc-own": ["--jemalloc", "--jemalloc-arenas", "own"],
 }
-# What each allocator has been measured to survive (see the closing notes
-# and reports/): a floor well under the measured rate, to catch regressions.
-FLOORS = {"glibc": 0.0, "jemalloc-auto": 0.0, "jemalloc-own": 0.0}
+# What each allocator has been measured to do (see the issue notes and the
+# reports). jemalloc: a floor well under the measured rate, to catch
+# regressions without flaking on 5 trials. glibc: a ceiling, because glibc
+# malloc is known not to survive this (the dead task keeps its arena lock and
+# the next free() of its blocks blocks for ever); if it ever starts to
+# survive, this expectation is stale and should be revisited.
+EXPECT = {
+    "glibc": {"at_most": 0.8},
+    "jemalloc-auto": {"at_least": 0.2},
+    "jemalloc-own": {"at_least": 0.2},
+}
 
 
 @pytest.mark.parametrize("allocator", list(ALLOCATORS))
@@ -37,4 +45,4 @@ def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
     )
     fault = MallocKill(rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
     run_trials(fault.trial, fault.settle, quick=5, deep=300)
-    resilience.expect_rate("survived", at_least=FLOORS[allocator])
+    resilience.expect_rate("survived", **EXPECT[allocator])

@@ -3,7 +3,7 @@ after a graceful stop, and after a SIGKILL only the orphans are removed."""
 import signal
 
 from faults.outside import sigkill_container
-from harness import shm
+from harness import procfs, shm
 from harness.process import SHM_PROFILE
 from harness.rig import Outcome
 
@@ -41,22 +41,24 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(rig_facto
     resilience.describe(fault="sigkill-container", profile="per-node", mitigations={"fastdds_profile": "shm"},
                         claim="a SIGKILLed container leaves orphaned SHM segments; the harness finds "
                               "them the way Fast DDS does (their lock files can be locked) and removes "
-                              "only those, leaving segments in use alone")
+                              "only those, leaving the segments of a live container alone")
     before = shm.segments()
-    bystander = rig_factory("per-node", fastdds_profile=SHM_PROFILE)   # stays alive
-    in_use = shm.segments() - before
+    bystander = rig_factory("per-node", fastdds_profile=SHM_PROFILE)   # stays alive throughout
     victim = rig_factory("per-node", fastdds_profile=SHM_PROFILE)
     victim.client.load_ok("cloneguard", "cloneguard::Talker")
-    victims_files = shm.segments() - before - in_use
     victim.client.close()
     sigkill_container(victim.proc)
     victim.proc.wait(timeout=10)
+    # Its node processes die of PR_SET_PDEATHSIG right after it.
+    procfs.wait_group_empty(victim.proc.pgid, timeout=10)
     candidates = shm.segments() - before
+    in_use = {f for seg in shm.classify(candidates) if not seg.orphan for f in seg.files}
     removed = shm.remove_orphans(candidates)
-    removed_files = {f for seg in removed for f in seg.files}
-    ok = (removed and removed_files <= victims_files and in_use <= shm.segments()
+    left_orphans = [seg.name for seg in shm.classify(shm.segments() - before) if seg.orphan]
+    ok = (removed and in_use <= shm.segments() and not left_orphans
           and bystander.goes_on() is None)
     record_trial(0, 0, Outcome("survived" if ok else "failed", details={
-        "orphans_removed": [s.name for s in removed], "bystander_segments": len(in_use)}))
-    resilience.note(f"{len(removed)} orphaned segment(s) removed, {len(in_use)} files of a live container kept")
+        "orphans_removed": [s.name for s in removed], "in_use_kept": len(in_use), "orphans_left": left_orphans}))
+    resilience.note(f"{len(removed)} orphaned segment(s) removed; {len(in_use)} files in use by the "
+                    "live container kept")
     resilience.expect_rate("survived", at_least=1.0)

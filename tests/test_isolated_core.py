@@ -1,11 +1,10 @@
 """The clone3(CLONE_VM) core: real children, real signals, real robust mutexes.
 
-A child that dies while holding the GIL freezes the whole process (repairing
-that is later work), so every death here happens with the GIL released: a
-blocking syscall (time.sleep, checked through /proc/<pid>/syscall) or a libc
-call through ctypes.CDLL, which drops the GIL.  os.kill(os.getpid(), ...),
-os.abort(), os._exit() and ctypes.string_at(0) all keep the GIL and must not
-be used to kill a child.
+Every death here happens with the GIL released: a blocking syscall
+(time.sleep, checked through /proc/<pid>/syscall) or a libc call through
+ctypes.CDLL, which drops the GIL.  Deaths with the GIL held (os.abort(),
+ctypes.string_at(0), os.kill(os.getpid(), ...)) need the monitor's GIL
+repair: tests/test_isolated_gil.py.
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ from container.isolated.core import (CloneCore, Death, StopRequested, in_child,
 from container.isolated.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)
-SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 0
+SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 1   # KCMP_VM is 1 (0 is KCMP_FILE)
 NR_CLOCK_NANOSLEEP = 230          # what time.sleep blocks in (3.11, x86_64)
 
 
@@ -482,7 +481,10 @@ def test_robust_mutex_relock_by_owner_is_an_error():
 # --------------------------------------------------------------------------
 # graceful stop
 
-def test_sigterm_sets_the_stop_flag_and_the_child_ends_cleanly(core, rec):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=lambda s: s.name)
+def test_stop_signal_sets_the_stop_flag_and_the_child_ends_cleanly(core, rec, sig):
+    """SIGINT as SIGTERM: Ctrl-C in a terminal signals the whole foreground
+    process group, the children included."""
     looping = threading.Event()
 
     def child():
@@ -492,13 +494,56 @@ def test_sigterm_sets_the_stop_flag_and_the_child_ends_cleanly(core, rec):
 
     c = core.spawn(child)
     assert looping.wait(10)
-    core.kill(c, signal.SIGTERM)
+    core.kill(c, sig)
     death = core.wait(c, 10)
     assert death.exit_code == 0
     rec.wait_for(lambda: death in rec.events)
     events = rec.of(c)
     assert [type(e) for e in events] == [StopRequested, Death]
     assert events[0].by_signal and events[0].pid == c.pid
+    assert events[0].signal == sig
+    core.release(c)
+
+
+def test_a_stop_signal_landing_on_a_thread_the_child_created_reaches_the_child(core, rec):
+    """A process-directed signal may be delivered to any thread of the child.
+    Here only a thread the child created can take SIGINT; its handler (no
+    cg_self there) passes it on to the child's main task, which sees it once
+    it unblocks SIGINT."""
+    state = {}
+    armed = threading.Event()
+
+    def child():
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        quit_helper = threading.Event()
+
+        def helper():
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+            quit_helper.wait(30)
+
+        t = threading.Thread(target=helper)
+        t.start()
+        armed.set()
+        deadline = time.monotonic() + 10
+        while signal.SIGINT not in signal.sigpending() and time.monotonic() < deadline:
+            time.sleep(0.001)
+        state["pending_on_main"] = signal.SIGINT in signal.sigpending()
+        state["before_unblock"] = stop_requested()
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        state["after_unblock"] = stop_requested()
+        quit_helper.set()
+        t.join()
+
+    c = core.spawn(child)
+    assert armed.wait(10)
+    time.sleep(0.05)                     # the helper has unblocked SIGINT
+    core.kill(c, signal.SIGINT)
+    death = core.wait(c, 20)
+    assert death.exit_code == 0, death
+    assert state == {"pending_on_main": True, "before_unblock": False,
+                     "after_unblock": True}
+    rec.wait_for(lambda: death in rec.events)
+    assert rec.of(c)[0].signal == signal.SIGINT
     core.release(c)
 
 
@@ -519,7 +564,7 @@ def test_parent_request_stop(core, rec):
     assert death.exit_code == 5
     rec.wait_for(lambda: death in rec.events)
     assert [type(e) for e in rec.of(c)] == [StopRequested, Death]
-    assert rec.of(c)[0].by_signal is False
+    assert rec.of(c)[0].by_signal is False and rec.of(c)[0].signal is None
     core.release(c)
 
 
@@ -646,6 +691,21 @@ def test_api_contracts(core):
         core.release(c)
     with pytest.raises(ValueError):
         core.kill(c)
+
+
+def test_mitigations_are_chosen_per_core():
+    from container.isolated.core import Mitigations
+    with pytest.raises(TypeError, match="unknown mitigation"):
+        CloneCore(gil_repairs=False)
+    with pytest.raises(ValueError, match="jemalloc_arena"):
+        CloneCore(jemalloc_arena="mine")
+    base = Mitigations(crash_report=False)
+    core = CloneCore(mitigations=base, condvar_repair=False)
+    try:
+        assert core.mitigations == Mitigations(crash_report=False, condvar_repair=False)
+        assert Mitigations() == Mitigations(True, True, True, "own", True)
+    finally:
+        core.close()
 
 
 def test_close_kills_and_reaps_live_children(rec):

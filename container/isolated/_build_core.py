@@ -1,8 +1,10 @@
 """cffi (API mode) builder for container.isolated._clonecore.
 
-The C lives in clonecore.c next to this file; the generated module just
-#includes it, so compiler messages point at clonecore.c lines.  The cdef below
-mirrors the public part of clonecore.c: keep the two in step (a mismatch is a
+The C lives next to this file: clonecore.c (the generated module just
+#includes it, so compiler messages point at clonecore.c lines) and
+gilrepair.c (compiled on its own with Py_BUILD_CORE: it reads CPython's
+internal GIL state; see there).  clonecore.h is what the two share.  The cdef
+below mirrors the public part of both: keep them in step (a mismatch is a
 compile error in the generated module).
 
 Built by setup.py (``cffi_modules``); ``python container/isolated/_build_core.py``
@@ -22,6 +24,16 @@ struct cg_layout {
     long rseq_cpu_id;
     long resp_tls;
     long robust_futex_offset;
+    long cleanup;
+    long cond_cleanup;
+};
+
+struct cg_config {
+    int gil_repair;
+    int condvar_repair;
+    int crash_report;
+    int jemalloc_own_arena;
+    int jemalloc_tcache;
 };
 
 struct cg_event {
@@ -31,6 +43,30 @@ struct cg_event {
     int32_t code;
     uint64_t serial;
     int64_t t_ns;
+    uint32_t repairs;
+    uint32_t reserved;
+};
+
+struct cg_condwait_probe {
+    uintptr_t routine;
+    int found;
+    int buf_on_stack;
+    int cbuf_matches;
+    int wseq_matches;
+    int holds_ref;
+    int routine_in_libc;
+    int cleared_after;
+};
+
+struct cg_gil_probe {
+    unsigned long compiled_hex, running_hex;
+    long runtime_size_compiled, runtime_size_elf;
+    int locked;
+    int last_holder_is_me, tstate_current_is_me;
+    int native_id_ok, thread_id_ok;
+    int mutex_kind, switch_mutex_kind;
+    int cond_wrefs_flags, switch_cond_wrefs_flags;
+    long gil_offset, mutex_offset, cond_offset;
 };
 
 struct cg_child {
@@ -41,6 +77,8 @@ struct cg_child {
     int state;
     int stop_requested;
     int py_phase;
+    int stop_signal;
+    int arena;
     ...;
 };
 
@@ -51,9 +89,16 @@ long cg_gettid(void);
 void *cg_lookup(const char *name, const char *version);
 long cg_mutex_futex_offset(void);
 int cg_probe_clone3(void);
+int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
+int cg_gil_probe(struct cg_gil_probe *out);
+int cg_allocator(char *buf, size_t len);
+int cg_jemalloc_thread_arena(void);
+int cg_jemalloc_thread_tcache(void);
+int cg_test_die_in_gil(int where);
 
 /* monitor and children */
-int cg_start(const struct cg_layout *layout, int *event_fd);
+int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
+             int *event_fd);
 int cg_stop(void);
 int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out);
@@ -77,6 +122,17 @@ int cg_rmutex_unlock(pthread_mutex_t *m);
 #define CG_STOP_SIGNAL ...
 #define CG_REAPED ...
 #define CG_FLAG_ALLOW_CORE ...
+#define CG_REPAIR_GIL_RELEASED ...
+#define CG_REPAIR_GIL_MUTEX ...
+#define CG_REPAIR_SWITCH_MUTEX ...
+#define CG_REPAIR_COND_WAITER ...
+#define CG_REPAIR_SWITCH_WAITER ...
+#define CG_REPAIR_COND_LOCK ...
+#define CG_REPAIR_GIL_TIMEOUT ...
+#define CG_TEST_DROP_GIL_LOCKED ...
+#define CG_TEST_TAKE_GIL_HANDOVER ...
+#define CG_TEST_TAKE_GIL_CHECKING ...
+#define CG_TEST_SWITCH_MUTEX ...
 """
 
 ffibuilder = FFI()
@@ -84,12 +140,17 @@ ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "container.isolated._clonecore",
     '#include "clonecore.c"\n',
+    # setuptools wants sources relative to the repo root (where setup.py and
+    # the __main__ build below run).
+    sources=["container/isolated/gilrepair.c"],
     include_dirs=[str(HERE)],
-    depends=[str(HERE / "clonecore.c")],
+    depends=[f"container/isolated/{n}" for n in ("clonecore.c", "clonecore.h", "gilrepair.c")],
     libraries=["dl", "pthread"],
     extra_compile_args=["-std=gnu11", "-Wall", "-Wno-unused-function"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would
-    # otherwise define Py_LIMITED_API.
+    # otherwise define Py_LIMITED_API (the macro covers ffibuilder.compile(),
+    # the keyword a setuptools build).
+    define_macros=[("_CFFI_NO_LIMITED_API", None)],
     py_limited_api=False,
 )
 

@@ -33,11 +33,39 @@ Where each value comes from and how it is checked:
                      TCB+specific[0] must point at TCB+specific_1stblock
     rseq_cpu_id      __rseq_offset + 4 (struct rseq.cpu_id); inside struct
                      pthread; the calling thread's cpu_id >= 0 if registered
+    cleanup          _thread_db_pthread_cancelhandling - 16 (the cleanup and
+                     cleanup_jmp_buf pointers precede cancelhandling); must be
+                     robust_head + 24 (right after struct robust_list_head)
   libc TLS:
     resp_tls         dlvsym("__resp", GLIBC_PRIVATE) - TCB; initial-exec, so
                      below the TCB; main thread: holds &_res; other threads:
                      points into their own struct pthread (start_thread)
   Needed symbols: _dl_allocate_tls, _dl_deallocate_tls (GLIBC_PRIVATE).
+
+  glibc 2.36 condvars (nptl/pthread_cond_wait.c; what condvar repair rests
+  on), probed on a live pthread blocked in pthread_cond_wait
+  (cg_probe_condwait):
+    cond_cleanup     while blocked, TCB+cleanup points at a cleanup record on
+                     the waiter's stack; its routine (this address, inside
+                     libc.so) is glibc's cancellation cleanup for condvar
+                     waiters, its argument {wseq, cond, mutex, private}
+                     (clonecore.h struct cg_cond_cbuf) names our condvar and
+                     mutex, wseq + 2 == cond.__wseq, and the waiter holds one
+                     reference on its group (cond.__g_refs[wseq & 1] == 2);
+                     once the wait returns TCB+cleanup is what it was before.
+  CPython 3.11 GIL (Include/internal/pycore_gil.h, Python/ceval_gil.h; what
+  GIL repair rests on).  gilrepair.c is compiled against the internal
+  headers; cg_gil_probe checks them against the running interpreter:
+    the interpreter is the exact release the headers are (PY_VERSION_HEX ==
+    Py_Version) and sizeof(_PyRuntimeState) equals the ELF size of the
+    _PyRuntime symbol; holding the GIL, gil.locked == 1 and gil.last_holder
+    and gilstate.tstate_current are our thread state, whose native_thread_id
+    is gettid() and thread_id pthread_self(); gil.mutex and gil.switch_mutex
+    are default-kind glibc mutexes (kind 0: owner recorded, unlock checks no
+    owner), both condvars process-private.  A child's thread state is made
+    by _PyThreadState_Prealloc in the parent and bound in the child by
+    setting thread_id/native_thread_id and _PyThreadState_SetCurrent (3.11's
+    PyGILState TSS note): the same fields the probe checks.
   Kernel: clone3 + CLONE_CLEAR_SIGHAND (5.5), CLONE_INTO_CGROUP (5.7),
   waitid(P_PIDFD) (5.4), pidfd_send_signal (5.1); probed as well.
 """
@@ -89,6 +117,8 @@ class Layout:
     rseq_cpu_id: int
     resp_tls: int
     robust_futex_offset: int
+    cleanup: int
+    cond_cleanup: int
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -228,6 +258,62 @@ def check_multithreaded() -> None:
             f"(multiple_threads={mt}) after the monitor thread started")
 
 
+def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layout:
+    """A live pthread blocked in pthread_cond_wait, read from outside."""
+    p = ffi.new("struct cg_condwait_probe *")
+    if lib.cg_probe_condwait(L.cleanup, p) != 0:
+        ck.failed.append("condvar probe: could not start its thread")
+        return L
+    where = f"offset cleanup={L.cleanup}"
+    ok = ck.check(bool(p.found), f"cleanup @{L.cleanup} set while blocked in pthread_cond_wait",
+                  f"{where} does not hold: a thread blocked in pthread_cond_wait "
+                  "left it NULL")
+    if ok:
+        ck.check(bool(p.buf_on_stack), "condvar cleanup record on the waiter's stack",
+                 f"{where} does not hold: it does not point at the waiter's stack")
+        ck.check(bool(p.cbuf_matches and p.wseq_matches),
+                 "condvar cleanup argument = {wseq, cond, mutex, private}",
+                 "glibc condvar waiter record is not {wseq, cond, mutex, private} "
+                 "naming the waiter's condvar and position")
+        ck.check(bool(p.holds_ref), "a blocked condvar waiter holds one group reference",
+                 "glibc condvar: a blocked waiter does not hold a __g_refs reference "
+                 "(not the 2.36 algorithm)")
+        ck.check(bool(p.routine_in_libc), f"condvar cleanup routine {p.routine:#x} in libc",
+                 f"condvar cleanup routine {p.routine:#x} is not inside libc.so")
+        ck.check(bool(p.cleared_after), "cleanup restored once the wait returns",
+                 f"{where}: still set after pthread_cond_wait returned")
+    routine = overrides.get("cond_cleanup", int(p.routine) if ok else 0)
+    return Layout(**{**L.as_dict(), "cond_cleanup": routine})
+
+
+def _probe_gil(ck: _Checker, ffi, lib) -> None:
+    """gilrepair.c's compiled view of the GIL against the running one."""
+    g = ffi.new("struct cg_gil_probe *")
+    lib.cg_gil_probe(g)
+    ck.check(g.compiled_hex == g.running_hex,
+             f"CPython internals built for the running {g.running_hex:#x}",
+             f"gilrepair.c was built for CPython {g.compiled_hex:#x}, running "
+             f"{g.running_hex:#x}: rebuild the core")
+    ck.check(g.runtime_size_compiled == g.runtime_size_elf,
+             f"sizeof(_PyRuntimeState) {g.runtime_size_compiled} == ELF size of _PyRuntime",
+             f"_PyRuntimeState is {g.runtime_size_compiled} bytes in the headers, "
+             f"{g.runtime_size_elf} in the interpreter")
+    held = bool(g.locked == 1 and g.last_holder_is_me and g.tstate_current_is_me)
+    ck.check(held, "GIL held: locked == 1, last_holder and tstate_current are ours",
+             f"CPython GIL layout does not hold: with the GIL held, locked={g.locked}, "
+             f"last_holder ours={bool(g.last_holder_is_me)}, tstate_current ours="
+             f"{bool(g.tstate_current_is_me)}")
+    ck.check(bool(g.native_id_ok and g.thread_id_ok),
+             "PyThreadState native_thread_id/thread_id = gettid()/pthread_self()",
+             "PyThreadState.native_thread_id/thread_id do not hold gettid()/pthread_self()")
+    ck.check(g.mutex_kind == 0 and g.switch_mutex_kind == 0,
+             "GIL mutexes are default-kind glibc mutexes",
+             f"GIL mutex kinds {g.mutex_kind}/{g.switch_mutex_kind}, expected 0/0")
+    ck.check((g.cond_wrefs_flags & 1) == 0 and (g.switch_cond_wrefs_flags & 1) == 0,
+             "GIL condvars are process-private",
+             "a GIL condvar is process-shared")
+
+
 def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
     def u64(addr: int) -> int:
         return int(ffi.cast("uint64_t *", addr)[0])
@@ -290,6 +376,9 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
     resp = sym("__resp", "GLIBC_PRIVATE")
     found["resp_tls"] = resp - tp if resp else 0
     found["robust_futex_offset"] = int(lib.cg_mutex_futex_offset())
+    bits, n, cancel = desc("_thread_db_pthread_cancelhandling")
+    found["cleanup"] = cancel - 16
+    found["cond_cleanup"] = 0          # filled in by the probe below
     found.update(overrides)
     L = Layout(**{f.name: found[f.name] for f in fields(Layout)})
 
@@ -367,6 +456,11 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
             ck.notes.append("rseq not registered by glibc (tunable?)")
             ck.check(cpu in (-1, -2), f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
                      f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}")
+    if inside("cleanup", L.cleanup, 8):
+        ck.check(L.cleanup == L.robust_head + 24, f"cleanup @{L.cleanup} == robust_head + 24",
+                 f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})")
+        L = _probe_condwait(ck, ffi, lib, L, overrides)
+    _probe_gil(ck, ffi, lib)
     ck.check(-65536 < L.resp_tls < 0, f"__resp in static TLS ({L.resp_tls})",
              f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB")
     if -65536 < L.resp_tls < 0:

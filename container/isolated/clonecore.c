@@ -20,6 +20,10 @@
  *     releases the GIL around each call.
  *   - A child runs child_main on its own stack and TLS, then the Python
  *     callable under PyGILState_Ensure, then leaves with a raw SYS_exit.
+ *
+ * After a death, before reaping, the monitor calls gilrepair.c to undo what
+ * the dead task left in CPython's GIL (see there).  Crash reports come from
+ * the child itself (on_crash, on its own sigaltstack).
  */
 #ifndef _GNU_SOURCE
 #define _GNU_SOURCE
@@ -27,8 +31,11 @@
 #include <Python.h>
 #include <asm/prctl.h>
 #include <dlfcn.h>
+#include <execinfo.h>
 #include <errno.h>
 #include <fcntl.h>
+#include <sched.h>
+#include <stdio.h>
 #include <linux/futex.h>
 #include <linux/sched.h> /* struct clone_args, CLONE_INTO_CGROUP, ... */
 #include <locale.h>
@@ -50,6 +57,8 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "clonecore.h"
+
 #if !defined(__x86_64__)
 #error "clonecore.c: x86_64 only (clone3 trampoline and TLS layout)"
 #endif
@@ -63,17 +72,31 @@ struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long rseq_cpu_id;        /* __rseq_offset + offsetof(struct rseq, cpu_id) */
     long resp_tls;           /* &__resp (initial-exec TLS in libc) - tp */
     long robust_futex_offset;/* robust_list_head.futex_offset glibc uses */
+    long cleanup;            /* struct pthread.cleanup (pthread_cleanup_push) */
+    long cond_cleanup;       /* address of glibc's condvar-wait cleanup
+                                routine (cg_probe_condwait), 0: unknown */
+};
+
+struct cg_config {           /* per CloneCore; see core.Mitigations */
+    int gil_repair;
+    int condvar_repair;
+    int crash_report;
+    int jemalloc_own_arena;
+    int jemalloc_tcache;
 };
 
 enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3 };
-struct cg_event {            /* one record on the event pipe: 32 bytes */
+struct cg_event {            /* one record on the event pipe: 40 bytes */
     uint32_t kind;
     int32_t pid;
     int32_t status;          /* death: si_status; stop: CG_STOP_* */
     int32_t code;            /* death: si_code (CLD_EXITED/KILLED/DUMPED),
-                                0 if someone else reaped the child */
+                                0 if someone else reaped the child;
+                                stop: the signal (0: asked by the parent) */
     uint64_t serial;
     int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
+    uint32_t repairs;        /* death: CG_REPAIR_* (clonecore.h) */
+    uint32_t reserved;
 };
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
@@ -90,16 +113,23 @@ struct cg_child {            /* control block, lives in container memory */
     int state;               /* CG_RUNNING / CG_REAPED (atomic) */
     int stop_requested;      /* CG_STOP_* (atomic; child, parent, monitor) */
     int py_phase;            /* CG_PY_* (atomic; written by the child) */
+    int stop_signal;         /* the signal that asked (atomic), 0: parent */
+    int arena;               /* jemalloc arena the child bound to, -1: none */
     /* set up before the clone */
     PyObject *target;        /* borrowed: Python keeps it alive until reaped */
+    PyThreadState *tstate;   /* made by cg_spawn, deleted by cg_release */
     int flags;
     int cgroup_fd;           /* -1: stay in the container's cgroup */
     int parent_tgid;
     char *map;               /* guard page + stack */
     size_t map_len, stack_size;
+    char *alt;               /* guard page + signal stack (crash reports) */
+    size_t alt_len;
     char *tcb;               /* from _dl_allocate_tls */
     /* monitor-only */
     int stop_reported;
+    int repair_done;         /* gilrepair has looked at this dead child */
+    uint32_t repairs;        /* what it repaired for it */
     struct cg_child *next;
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
@@ -109,6 +139,7 @@ struct cg_child {            /* control block, lives in container memory */
 /* Globals                                                                 */
 
 static struct cg_layout L;
+static struct cg_config C;
 static void *(*dl_allocate_tls)(void *);
 static void (*dl_deallocate_tls)(void *, bool);
 
@@ -121,6 +152,12 @@ static struct cg_child *g_children;   /* monitor-only */
    reads it with a plain %fs-relative load (no __tls_get_addr, no malloc);
    the static TLS block is part of every _dl_allocate_tls. */
 static __thread struct cg_child *cg_self __attribute__((tls_model("initial-exec")));
+/* The signal a crash report is about (for its watchdog, on the same thread). */
+static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));
+
+/* jemalloc's mallctl when jemalloc is the process's malloc, else NULL. */
+typedef int (*mallctl_fn)(const char *, void *, size_t *, void *, size_t);
+static mallctl_fn g_mallctl;
 
 static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
 
@@ -171,6 +208,145 @@ int cg_probe_clone3(void)   /* 0 if the kernel has clone3, else errno */
     /* A size of 0 is below CLONE_ARGS_SIZE_VER0: EINVAL if clone3 exists. */
     long r = syscall(SYS_clone3, NULL, (size_t)0);
     return (r < 0 && errno == EINVAL) ? 0 : (r < 0 ? errno : EEXIST);
+}
+
+/* A pthread_cond_wait that is blocked, seen from outside: glibc 2.36 pushes
+   a cleanup record (struct pthread.cleanup) whose argument says which
+   condvar, which mutex and which position it waits at, and it holds a
+   reference on its condvar group meanwhile.  gilrepair.c relies on all of
+   that for dead waiters; this probes it on a live pthread at start-up. */
+struct cg_condwait_probe {
+    uintptr_t routine;       /* the cleanup routine the waiter pushed */
+    int found;               /* TCB+cleanup became non-NULL while it waited */
+    int buf_on_stack;        /* the record lies on the waiter's stack */
+    int cbuf_matches;        /* its argument names our cond and mutex */
+    int wseq_matches;        /* argument.wseq + 2 == cond.__wseq (1 waiter) */
+    int holds_ref;           /* cond.__g_refs[group] == 2 while it waits */
+    int routine_in_libc;
+    int cleared_after;       /* TCB+cleanup is back to what it was before */
+};
+
+struct probe_arg {
+    pthread_mutex_t m;
+    pthread_cond_t cv;
+    int go, ready;
+    long cleanup_off;
+    char *sp;
+    char *volatile tcb;
+    void *before, *after;    /* its .cleanup before / after the wait */
+};
+
+static void *probe_waiter(void *p)
+{
+    struct probe_arg *a = p;
+    char here;
+    a->sp = &here;
+    pthread_mutex_lock(&a->m);
+    a->tcb = (char *)cg_thread_pointer();
+    a->before = *(void **)(a->tcb + a->cleanup_off);
+    __atomic_store_n(&a->ready, 1, __ATOMIC_RELEASE);
+    while (!a->go)
+        pthread_cond_wait(&a->cv, &a->m);
+    a->after = *(void **)(a->tcb + a->cleanup_off);
+    pthread_mutex_unlock(&a->m);
+    return NULL;
+}
+
+int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out)
+{
+    memset(out, 0, sizeof *out);
+    struct probe_arg a;
+    memset(&a, 0, sizeof a);
+    a.cleanup_off = cleanup_off;
+    pthread_mutex_init(&a.m, NULL);
+    pthread_cond_init(&a.cv, NULL);
+    pthread_t t;
+    if (pthread_create(&t, NULL, probe_waiter, &a) != 0)
+        return -EAGAIN;
+    while (!__atomic_load_n(&a.ready, __ATOMIC_ACQUIRE))
+        sched_yield();
+    struct _pthread_cleanup_buffer *buf = NULL;
+    for (int i = 0; i < 2000 && (!buf || buf == a.before); i++) {   /* ~2 s */
+        buf = __atomic_load_n((struct _pthread_cleanup_buffer **)(a.tcb + cleanup_off),
+                              __ATOMIC_ACQUIRE);
+        if (!buf || buf == a.before)
+            usleep(1000);
+    }
+    if (buf == a.before)
+        buf = NULL;
+    if (buf) {
+        out->found = 1;
+        char *lo = a.sp - 65536, *hi = a.sp + 65536;
+        struct cg_cond_cbuf *cb = buf->__arg;
+        out->buf_on_stack = (char *)buf > lo && (char *)buf < hi &&
+                            (char *)cb > lo && (char *)cb < hi;
+        if (out->buf_on_stack) {
+            out->routine = (uintptr_t)buf->__routine;
+            out->cbuf_matches = cb->cond == &a.cv && cb->mutex == &a.m;
+            out->wseq_matches = cb->wseq + 2 == a.cv.__data.__wseq.__value64;
+            out->holds_ref = a.cv.__data.__g_refs[cb->wseq & 1] == 2;
+            Dl_info info;
+            out->routine_in_libc = dladdr((void *)out->routine, &info) &&
+                                   info.dli_fname && strstr(info.dli_fname, "libc.so");
+        }
+    }
+    pthread_mutex_lock(&a.m);
+    a.go = 1;
+    pthread_cond_signal(&a.cv);
+    pthread_mutex_unlock(&a.m);
+    pthread_join(t, NULL);
+    out->cleared_after = out->found && a.after == a.before;
+    pthread_cond_destroy(&a.cv);
+    pthread_mutex_destroy(&a.m);
+    return 0;
+}
+
+/* "glibc" or "jemalloc <version>": which malloc the process runs on. */
+static mallctl_fn find_mallctl(void)
+{
+    mallctl_fn f = (mallctl_fn)dlsym(RTLD_DEFAULT, "mallctl");
+    Dl_info a, b;
+    /* jemalloc must be the malloc in use, not merely loaded. */
+    if (!f || !dladdr((void *)f, &a) ||
+        !dladdr(dlsym(RTLD_DEFAULT, "malloc"), &b) || a.dli_fbase != b.dli_fbase)
+        return NULL;
+    return f;
+}
+
+int cg_allocator(char *buf, size_t len)
+{
+    mallctl_fn f = find_mallctl();
+    const char *v = NULL;
+    size_t sz = sizeof v;
+    if (f && f("version", &v, &sz, NULL, 0) == 0 && v)
+        snprintf(buf, len, "jemalloc %s", v);
+    else
+        snprintf(buf, len, "glibc");
+    return f != NULL;
+}
+
+/* Whether the calling thread has a jemalloc thread cache: 1/0; -1 without
+   jemalloc. */
+int cg_jemalloc_thread_tcache(void)
+{
+    mallctl_fn f = find_mallctl();
+    bool on;
+    size_t sz = sizeof on;
+    if (!f || f("thread.tcache.enabled", &on, &sz, NULL, 0) != 0)
+        return -1;
+    return on;
+}
+
+/* The jemalloc arena the calling thread allocates from; -1 without
+   jemalloc. */
+int cg_jemalloc_thread_arena(void)
+{
+    mallctl_fn f = find_mallctl();
+    unsigned a;
+    size_t sz = sizeof a;
+    if (!f || f("thread.arena", &a, &sz, NULL, 0) != 0)
+        return -1;
+    return (int)a;
 }
 
 /* ---------------------------------------------------------------------- */
@@ -248,19 +424,191 @@ static char *tls_new(void)
 /* ---------------------------------------------------------------------- */
 /* The child.                                                              */
 
-static void on_sigterm(int sig)
+/* SIGTERM and SIGINT (Ctrl-C signals the whole foreground process group,
+   children included): set the stop flag once, remember which signal, wake
+   the monitor.  A process-directed signal can land on any thread of the
+   child, including threads it created, whose cg_self is NULL: those pass it
+   on to the child's main task (tid == pid). */
+static void on_stop_signal(int sig)
 {
-    (void)sig;
     int saved = errno;
     struct cg_child *c = cg_self;
-    int none = CG_STOP_NONE;
-    if (c && __atomic_compare_exchange_n(&c->stop_requested, &none,
-                                         CG_STOP_SIGNAL, false,
-                                         __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST)) {
-        uint64_t one = 1;   /* eventfd write: async-signal-safe */
-        if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */ }
+    if (!c) {
+        syscall(SYS_tgkill, getpid(), getpid(), sig);
+    } else {
+        int zero = 0, none = CG_STOP_NONE;
+        __atomic_compare_exchange_n(&c->stop_signal, &zero, sig, false,
+                                    __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
+        if (__atomic_compare_exchange_n(&c->stop_requested, &none,
+                                        CG_STOP_SIGNAL, false,
+                                        __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST)) {
+            uint64_t one = 1;   /* eventfd write: async-signal-safe */
+            if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */ }
+        }
     }
     errno = saved;
+}
+
+/* ---- crash reports --------------------------------------------------- */
+
+static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
+
+struct out { char b[256]; size_t n; };
+
+static void out_s(struct out *o, const char *s)
+{
+    while (*s && o->n < sizeof o->b)
+        o->b[o->n++] = *s++;
+}
+
+static void out_u(struct out *o, unsigned long v, unsigned base)
+{
+    char tmp[24];
+    int i = 0;
+    if (base == 16)
+        out_s(o, "0x");
+    do
+        tmp[i++] = "0123456789abcdef"[v % base];
+    while ((v /= base) && i < (int)sizeof tmp);
+    while (i && o->n < sizeof o->b)
+        o->b[o->n++] = tmp[--i];
+}
+
+static void out_flush(struct out *o)
+{
+    size_t done = 0;
+    while (done < o->n) {
+        ssize_t w = write(2, o->b + done, o->n - done);
+        if (w <= 0 && errno != EINTR)
+            break;
+        if (w > 0)
+            done += (size_t)w;
+    }
+    o->n = 0;
+}
+
+/* The report did not finish within 2 s (the symboliser waits for the
+   dynamic linker's lock, say): die of the signal we were reporting.  It is
+   SIG_DFL again (SA_RESETHAND) and blocked while its handler runs. */
+static void on_crash_timeout(int unused)
+{
+    (void)unused;
+    int sig = cg_crash_sig;
+    sigset_t s;
+    sigemptyset(&s);
+    sigaddset(&s, sig);
+    syscall(SYS_tgkill, getpid(), syscall(SYS_gettid), sig);
+    sigprocmask(SIG_UNBLOCK, &s, NULL);
+}
+
+/* One report on fd 2, then the same death as without us: the handler was
+   installed SA_RESETHAND, so the disposition is SIG_DFL again, and the
+   signal is re-sent to this thread; it is delivered (and kills the child)
+   as the handler returns.  A fault inside here kills at once (SIG_DFL).
+   Everything used is async-signal-safe, except backtrace (its unwinder was
+   loaded by cg_start; on glibc 2.35+ it finds FDEs without locks) and
+   backtrace_symbols_fd (dladdr, which takes the loader's lock: hence the
+   watchdog timer). */
+static void on_crash(int sig, siginfo_t *si, void *uc_)
+{
+    ucontext_t *uc = uc_;
+    int saved = errno;
+    cg_crash_sig = sig;
+    pid_t pid = getpid(), tid = (pid_t)syscall(SYS_gettid);
+
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_crash_timeout;
+    sigaction(SIGALRM, &sa, NULL);
+    struct sigevent sev;
+    memset(&sev, 0, sizeof sev);
+    sev.sigev_notify = SIGEV_THREAD_ID;
+    sev.sigev_signo = SIGALRM;
+    sev._sigev_un._tid = tid;   /* sigev_notify_thread_id */
+    int timer;
+    if (syscall(SYS_timer_create, CLOCK_MONOTONIC, &sev, &timer) == 0) {
+        struct itimerspec its = {{0, 0}, {2, 0}};
+        syscall(SYS_timer_settime, timer, 0, &its, NULL);
+    }
+
+    struct out o = {.n = 0};
+    const char *abbrev = sigabbrev_np(sig);
+    out_s(&o, "cloneguard: pid ");
+    out_u(&o, (unsigned long)pid, 10);
+    out_s(&o, " caught SIG");
+    out_s(&o, abbrev ? abbrev : "?");
+    out_s(&o, " at ");
+    if (si->si_code > 0)                 /* raised by a fault */
+        out_u(&o, (uintptr_t)si->si_addr, 16);
+    else                                 /* sent: there is no address */
+        out_s(&o, "-");
+    out_s(&o, " (pc ");
+    out_u(&o, (unsigned long)uc->uc_mcontext.gregs[REG_RIP], 16);
+    out_s(&o, ")\ncloneguard: si_code ");
+    if (si->si_code < 0) {
+        out_s(&o, "-");
+        out_u(&o, (unsigned long)-si->si_code, 10);
+    } else {
+        out_u(&o, (unsigned long)si->si_code, 10);
+    }
+    if (si->si_code <= 0) {
+        out_s(&o, " (sent by pid ");
+        out_u(&o, (unsigned long)si->si_pid, 10);
+        out_s(&o, ")");
+    }
+    if (tid != pid) {
+        out_s(&o, ", thread ");
+        out_u(&o, (unsigned long)tid, 10);
+    }
+    out_s(&o, "\ncloneguard: native stack:\n");
+    out_flush(&o);
+    void *frames[64];
+    int n = backtrace(frames, 64);
+    backtrace_symbols_fd(frames, n, 2);
+    out_s(&o, "cloneguard: Python ");
+    out_flush(&o);
+    cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
+
+    syscall(SYS_tgkill, pid, tid, sig);
+    errno = saved;
+}
+
+static void install_crash_handlers(struct cg_child *c)
+{
+    stack_t ss = {.ss_sp = c->alt + (size_t)sysconf(_SC_PAGESIZE),
+                  .ss_size = c->alt_len - (size_t)sysconf(_SC_PAGESIZE),
+                  .ss_flags = 0};
+    if (sigaltstack(&ss, NULL) < 0)
+        return;
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_sigaction = on_crash;
+    sa.sa_flags = SA_SIGINFO | SA_ONSTACK | SA_RESETHAND;
+    sigemptyset(&sa.sa_mask);
+    for (size_t i = 0; i < sizeof crash_signals / sizeof crash_signals[0]; i++)
+        sigaction(crash_signals[i], &sa, NULL);
+}
+
+/* jemalloc: an arena of its own for this child (a lock it dies holding in
+   malloc then stops only those who free its blocks, not everyone who
+   allocates), optionally no thread cache (no blocks sit cached in a dead
+   child). */
+static void jemalloc_setup(struct cg_child *c)
+{
+    c->arena = -1;
+    if (!g_mallctl)
+        return;
+    if (C.jemalloc_own_arena) {
+        unsigned a;
+        size_t sz = sizeof a;
+        if (g_mallctl("arenas.create", &a, &sz, NULL, 0) == 0 &&
+            g_mallctl("thread.arena", NULL, NULL, &a, sizeof a) == 0)
+            c->arena = (int)a;
+    }
+    if (!C.jemalloc_tcache) {
+        bool off = false;
+        g_mallctl("thread.tcache.enabled", NULL, NULL, &off, sizeof off);
+    }
 }
 
 static int exit_code_of_current_exception(void)   /* GIL held */
@@ -317,30 +665,39 @@ static int child_main(void *arg)
     prctl(PR_SET_PDEATHSIG, SIGKILL);
     if (getppid() != c->parent_tgid)
         return 127;
-    /* 5. Graceful stop: our own SIGTERM handler (CLONE_CLEAR_SIGHAND left
-       every handler at SIG_DFL), then unblock what the monitor blocked. */
+    /* 5. Graceful stop: our own SIGTERM/SIGINT handler (CLONE_CLEAR_SIGHAND
+       left every handler at SIG_DFL); crash reports on a stack of our own;
+       the allocator; then unblock what the monitor blocked. */
     cg_self = c;
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
-    sa.sa_handler = on_sigterm;
+    sa.sa_handler = on_stop_signal;
     sa.sa_flags = SA_RESTART;
     sigemptyset(&sa.sa_mask);
     sigaction(SIGTERM, &sa, NULL);
+    sigaction(SIGINT, &sa, NULL);
+    if (C.crash_report)
+        install_crash_handlers(c);
+    jemalloc_setup(c);
     sigset_t none;
     sigemptyset(&none);
     sigprocmask(SIG_SETMASK, &none, NULL);
 
-    /* 6. Python.  Our TLS has no thread state, so PyGILState_Ensure makes
-       one; Release deletes it. */
+    /* 6. Python, in the thread state the parent made for us (so we never
+       take the runtime's HEAD_LOCK, which has no owner to repair): bind it
+       to this task, take the GIL, run, clear it and drop the GIL.  release()
+       deletes it. */
     __atomic_store_n(&c->py_phase, CG_PY_INSIDE, __ATOMIC_RELEASE);
-    PyGILState_STATE g = PyGILState_Ensure();
+    cg_tstate_bind(c->tstate);
+    PyEval_RestoreThread(c->tstate);
     PyObject *r = PyObject_CallNoArgs(c->target);
     int code = 0;
     if (r)
         Py_DECREF(r);
     else
         code = exit_code_of_current_exception();
-    PyGILState_Release(g);
+    PyThreadState_Clear(c->tstate);
+    PyEval_SaveThread();
     __atomic_store_n(&c->py_phase, CG_PY_LEFT, __ATOMIC_RELEASE);
     return code;                         /* trampoline: SYS_exit(code) */
 }
@@ -386,10 +743,10 @@ static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
 }
 
 static void emit(uint32_t kind, const struct cg_child *c, int status,
-                 int code, int64_t t)
+                 int code, int64_t t, uint32_t repairs)
 {
     struct cg_event ev = {kind, c ? c->pid : 0, status, code,
-                          c ? c->serial : 0, t};
+                          c ? c->serial : 0, t, repairs, 0};
     const char *p = (const char *)&ev;
     size_t left = sizeof ev;
     while (left) {   /* blocks if Python lags >2048 records behind */
@@ -407,7 +764,8 @@ static void report_stop(struct cg_child *c, int64_t t)
     int s = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
     if (s != CG_STOP_NONE && !c->stop_reported) {
         c->stop_reported = 1;
-        emit(CG_EV_STOP, c, s, 0, t);
+        emit(CG_EV_STOP, c, s, __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE),
+             t, 0);
     }
 }
 
@@ -449,12 +807,50 @@ static int do_spawn(struct cg_child *c)
     return 0;
 }
 
+/* Dead but not yet reaped (or reaped by someone else): its tid cannot have
+   been reused. */
+static bool child_is_dead(struct cg_child *c)
+{
+    siginfo_t si;
+    memset(&si, 0, sizeof si);
+    if (waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
+               WEXITED | __WALL | WNOHANG | WNOWAIT) < 0)
+        return errno == ECHILD;
+    return si.si_pid != 0;
+}
+
+/* Undo what dead children left in the GIL (gilrepair.c): every dead child
+   not looked at yet, so that one repair never waits for a lock or a
+   condvar reference another dead child holds. */
+static void repair_after_death(struct cg_child *reaped)
+{
+    if (!C.gil_repair && !C.condvar_repair)
+        return;
+    struct cg_dead d[32];
+    struct cg_child *who[32];
+    int n = 0;
+    for (struct cg_child *c = g_children; c && n < 32; c = c->next)
+        if (!c->repair_done && (c == reaped || child_is_dead(c))) {
+            d[n] = (struct cg_dead){c->pid, c->tcb, c->map, c->map + c->map_len, 0};
+            who[n++] = c;
+        }
+    struct cg_repair_cfg cfg = {C.gil_repair, C.condvar_repair, L.cleanup,
+                                (uintptr_t)L.cond_cleanup};
+    uint32_t misc = cg_gil_repair(d, n, &cfg);
+    for (int i = 0; i < n; i++) {
+        who[i]->repairs |= d[i].repairs;
+        who[i]->repair_done = 1;
+    }
+    reaped->repairs |= misc;
+}
+
 static void reap(struct cg_child *c, int64_t t)
 {
     siginfo_t si;
     memset(&si, 0, sizeof si);
+    /* WNOWAIT: look, repair, and only then reap (the pid stays ours). */
     int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
-                   WEXITED | __WALL | WNOHANG);
+                   WEXITED | __WALL | WNOHANG | WNOWAIT);
     if (r == 0 && si.si_pid == 0)
         return;                  /* readable but not yet waitable */
     if (r < 0 && errno != ECHILD)
@@ -464,6 +860,12 @@ static void reap(struct cg_child *c, int64_t t)
     int status = r == 0 ? si.si_status : -1;
     int code = r == 0 ? si.si_code : 0;
 
+    repair_after_death(c);
+    if (r == 0) {
+        siginfo_t gone;
+        memset(&gone, 0, sizeof gone);
+        waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &gone, WEXITED | __WALL | WNOHANG);
+    }
     report_stop(c, t);           /* never after the death record */
     epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
     for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
@@ -472,7 +874,7 @@ static void reap(struct cg_child *c, int64_t t)
             break;
         }
     __atomic_store_n(&c->state, CG_REAPED, __ATOMIC_RELEASE);
-    emit(CG_EV_DEATH, c, status, code, t);
+    emit(CG_EV_DEATH, c, status, code, t, c->repairs);
 }
 
 static void *monitor_main(void *unused)
@@ -502,7 +904,7 @@ static void *monitor_main(void *unused)
                     if (g_children) {
                         cmd_finish(cmd, -EBUSY);
                     } else {
-                        emit(CG_EV_CLOSED, NULL, 0, 0, t);
+                        emit(CG_EV_CLOSED, NULL, 0, 0, t, 0);
                         cmd_finish(cmd, 0);
                         return NULL;
                     }
@@ -525,10 +927,18 @@ static void close_fds(void)
 
 /* Start the monitor.  *event_fd receives the read end of the event pipe,
    which Python owns (and closes after cg_stop). */
-int cg_start(const struct cg_layout *layout, int *event_fd)
+int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
+             int *event_fd)
 {
     if (g_started)
         return -EALREADY;
+    C = *cfg;
+    g_mallctl = find_mallctl();
+    if (C.crash_report) {
+        /* The first backtrace() dlopens libgcc_s: never in a handler. */
+        void *warm[4];
+        backtrace(warm, 4);
+    }
     dl_allocate_tls = (void *(*)(void *))dlvsym(RTLD_DEFAULT,
                                  "_dl_allocate_tls", "GLIBC_PRIVATE");
     dl_deallocate_tls = (void (*)(void *, bool))dlvsym(RTLD_DEFAULT,
@@ -587,6 +997,8 @@ int cg_stop(void)
 /* ---------------------------------------------------------------------- */
 /* Children, from Python.                                                  */
 
+static void forget_thread_state(PyThreadState *t);
+
 int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out)
 {
@@ -615,8 +1027,22 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
         return -ENOMEM;
     }
     mprotect(c->map, page, PROT_NONE);
+    c->alt_len = 64 * 1024 + page;       /* + a guard page below */
+    c->alt = mmap(NULL, c->alt_len, PROT_READ | PROT_WRITE,
+                  MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE | MAP_STACK, -1, 0);
+    if (c->alt == MAP_FAILED) {
+        munmap(c->map, c->map_len);
+        free(c);
+        return -ENOMEM;
+    }
+    mprotect(c->alt, page, PROT_NONE);
+    c->arena = -1;
     c->tcb = tls_new();
-    if (!c->tcb) {
+    c->tstate = c->tcb ? cg_tstate_new() : NULL;
+    if (!c->tstate) {
+        if (c->tcb)
+            dl_deallocate_tls(c->tcb, true);
+        munmap(c->alt, c->alt_len);
         munmap(c->map, c->map_len);
         free(c);
         return -ENOMEM;
@@ -624,7 +1050,9 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
     struct cg_cmd cmd = {CMD_SPAWN, c, 0, 0};
     int r = submit(&cmd);
     if (r < 0) {
+        forget_thread_state(c->tstate);
         dl_deallocate_tls(c->tcb, true);
+        munmap(c->alt, c->alt_len);
         munmap(c->map, c->map_len);
         free(c);
         return r;
@@ -645,22 +1073,17 @@ int cg_request_stop(struct cg_child *c)
     return 1;
 }
 
-/* A child killed inside Python leaves its PyThreadState linked into the
-   interpreter, with tstate->cframe pointing into the child's stack; once
-   that stack is unmapped, sys._current_frames() would crash.  Unlink it.
-   (Objects its frames referenced leak.  If the child died holding the GIL
-   this blocks forever: GIL repair is not done here.) */
-static void forget_thread_state(unsigned long ident)
+/* Unlink and free a reaped child's PyThreadState (it was never current
+   anywhere else).  A child killed inside Python leaves its tstate->cframe
+   pointing into its stack: once that stack is unmapped, sys._current_frames()
+   would crash, so this comes first.  Objects its frames referenced leak.  If
+   the child died holding the GIL, the monitor released it before the death
+   was reported: with gil_repair off this blocks forever. */
+static void forget_thread_state(PyThreadState *t)
 {
     PyGILState_STATE g = PyGILState_Ensure();
-    PyThreadState *me = PyThreadState_Get();
-    for (PyThreadState *t = PyInterpreterState_ThreadHead(me->interp); t;
-         t = PyThreadState_Next(t))
-        if (t != me && t->thread_id == ident) {
-            PyThreadState_Clear(t);
-            PyThreadState_Delete(t);
-            break;
-        }
+    PyThreadState_Clear(t);
+    PyThreadState_Delete(t);
     PyGILState_Release(g);
 }
 
@@ -669,9 +1092,9 @@ int cg_release(struct cg_child *c)
 {
     if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
         return -EBUSY;
-    if (__atomic_load_n(&c->py_phase, __ATOMIC_ACQUIRE) == CG_PY_INSIDE)
-        forget_thread_state((unsigned long)c->tcb);  /* = its pthread_self */
+    forget_thread_state(c->tstate);
     munmap(c->map, c->map_len);
+    munmap(c->alt, c->alt_len);
     dl_deallocate_tls(c->tcb, true);
     close(c->pidfd);
     free(c);

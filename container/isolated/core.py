@@ -14,6 +14,12 @@ os.read with the GIL released.
     core.close()
 
 Inside a child, ``stop_requested()`` tells whether it was asked to stop.
+
+What the core does about a child's death is switchable (``Mitigations``), so
+the harness can measure what each measure buys:
+
+    core = CloneCore(on_event=print, gil_repair=False)
+    core = CloneCore(mitigations=Mitigations(jemalloc_arena="auto"))
 """
 
 from __future__ import annotations
@@ -25,18 +31,65 @@ import signal
 import sys
 import threading
 import traceback
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Callable, Literal
 
 from container.isolated import assumptions
 from container.isolated.assumptions import IsolationUnavailable
 from container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD,
-                                       CoreEvent, Death, StopRequested, decode)
+                                       CoreEvent, Death, Repair, StopRequested,
+                                       decode)
 
 __all__ = ["CloneCore", "Child", "Death", "StopRequested", "CoreEvent",
-           "IsolationUnavailable", "stop_requested", "in_child"]
+           "Repair", "Mitigations", "IsolationUnavailable", "stop_requested",
+           "in_child", "allocator", "thread_arena", "thread_tcache"]
 
 DEFAULT_STACK = 8 << 20
+
+
+@dataclass(frozen=True)
+class Mitigations:
+    """What the core does for the survivors of a child's death, and in it.
+
+    gil_repair
+        After a death, before it is reported, the monitor releases the GIL
+        (and gil->mutex / gil->switch_mutex) if the dead task held it
+        (gilrepair.c).  Off: a child dying with the GIL freezes the process.
+    condvar_repair
+        ... and cancels the dead task's wait on the GIL's condition
+        variables (glibc's own cancellation cleanup), clearing a condvar
+        lock it died holding.  Off: a child killed while waiting for the GIL
+        can hang the next thread that signals the GIL condvar.
+    crash_report
+        A child that gets SIGSEGV/SIGBUS/SIGILL/SIGFPE/SIGABRT writes one
+        report (signal, fault address, pc, native and Python stacks) to
+        fd 2 from its own signal stack, then dies of that signal as before.
+    jemalloc_arena
+        With jemalloc as the malloc (LD_PRELOAD): "own" gives each child an
+        arena of its own (arenas.create + thread.arena), "auto" leaves
+        jemalloc's choice.  No effect on glibc malloc.
+    jemalloc_tcache
+        False turns the child's jemalloc thread cache off.
+    """
+
+    gil_repair: bool = True
+    condvar_repair: bool = True
+    crash_report: bool = True
+    jemalloc_arena: Literal["own", "auto"] = "own"
+    jemalloc_tcache: bool = True
+
+    def __post_init__(self) -> None:
+        if self.jemalloc_arena not in ("own", "auto"):
+            raise ValueError(f"jemalloc_arena must be 'own' or 'auto', not "
+                             f"{self.jemalloc_arena!r}")
+
+    def as_config(self) -> dict[str, int]:
+        """struct cg_config."""
+        return {"gil_repair": int(self.gil_repair),
+                "condvar_repair": int(self.condvar_repair),
+                "crash_report": int(self.crash_report),
+                "jemalloc_own_arena": int(self.jemalloc_arena == "own"),
+                "jemalloc_tcache": int(self.jemalloc_tcache)}
 
 
 @dataclass(frozen=True)
@@ -82,6 +135,31 @@ def in_child() -> bool:
     return lib.cg_self_stop_requested() >= 0
 
 
+def allocator() -> str:
+    """The process's malloc: "glibc" or "jemalloc <version>"."""
+    ffi, lib = _lib()
+    buf = ffi.new("char[128]")
+    lib.cg_allocator(buf, 128)
+    name = ffi.string(buf).decode()
+    return name.split("-", 1)[0] if name.startswith("jemalloc") else name
+
+
+def thread_arena() -> int | None:
+    """The jemalloc arena the calling thread allocates from (None without
+    jemalloc).  In a child with jemalloc_arena="own", one of its own."""
+    _, lib = _lib()
+    a = lib.cg_jemalloc_thread_arena()
+    return None if a < 0 else a
+
+
+def thread_tcache() -> bool | None:
+    """Whether the calling thread has a jemalloc thread cache (None without
+    jemalloc)."""
+    _, lib = _lib()
+    t = lib.cg_jemalloc_thread_tcache()
+    return None if t < 0 else bool(t)
+
+
 class CloneCore:
     """The process's one clone3 spawner and monitor.
 
@@ -94,12 +172,22 @@ class CloneCore:
 
     Only one may be open per process (there is one C monitor).  An open core
     is kept alive by the class until close(); atexit closes it.
+
+    ``mitigations`` (default: all on, own jemalloc arenas) and keyword
+    overrides of its fields, e.g. ``CloneCore(gil_repair=False)``, fix what
+    the core does for this core's lifetime (``self.mitigations``).
     """
 
     _instance_lock = threading.Lock()
     _open: "CloneCore | None" = None
 
-    def __init__(self, on_event: Callable[[CoreEvent], None] | None = None) -> None:
+    def __init__(self, on_event: Callable[[CoreEvent], None] | None = None,
+                 mitigations: Mitigations | None = None, **overrides: Any) -> None:
+        names = {f.name for f in fields(Mitigations)}
+        unknown = set(overrides) - names
+        if unknown:
+            raise TypeError(f"unknown mitigation(s): {sorted(unknown)}; known: {sorted(names)}")
+        self.mitigations = replace(mitigations or Mitigations(), **overrides)
         self.report = assumptions.self_check()
         ffi, lib = _lib()
         with CloneCore._instance_lock:
@@ -107,7 +195,8 @@ class CloneCore:
                 raise RuntimeError("only one CloneCore may be open per process")
             fd = ffi.new("int *")
             layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
-            rc = lib.cg_start(layout, fd)
+            config = ffi.new("struct cg_config *", self.mitigations.as_config())
+            rc = lib.cg_start(layout, config, fd)
             if rc < 0:
                 raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
             CloneCore._open = self
@@ -200,10 +289,12 @@ class CloneCore:
         return entry.death
 
     def release(self, child: Child) -> None:
-        """Free a reaped child's stack, TLS and pidfd (once).
+        """Free a reaped child's thread state, stacks, TLS and pidfd (once).
 
-        A child killed inside Python also leaves its thread state behind;
-        release unlinks it from the interpreter first.
+        The thread state (made by spawn, so that the child never takes the
+        interpreter's HEAD_LOCK) is unlinked before the stack is unmapped: a
+        child killed inside Python leaves frames pointing into it.  Takes the
+        GIL (given back by the monitor if the child died holding it).
         """
         _, lib = _lib()
         with self._lock:
@@ -214,6 +305,8 @@ class CloneCore:
             rc = lib.cg_release(child._block)
         if rc < 0:   # cannot happen once the death record was seen
             raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
+
+    allocator = staticmethod(allocator)
 
     def children(self) -> list[Child]:
         """Children spawned and not yet released."""

@@ -37,7 +37,7 @@ from .. import factory
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from .board import ProgressBoard
-from .core import CloneCore, Death, StopRequested, stop_requested
+from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
 
 STOP_TIMEOUT_S = 0.5
@@ -92,7 +92,8 @@ class _NodeProcess:
 
 
 class IsolatedHost:
-    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger, cgroups=None):
+    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger, cgroups=None,
+                 mitigations: Mitigations | None = None):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
@@ -104,7 +105,8 @@ class IsolatedHost:
         self.leaked: list[_NodeProcess] = []
         self.board = ProgressBoard(on_repair=self._board_repaired)
         self.cgroups = cgroups          # NodeCgroups, or None: no per-node cgroups
-        self._core = CloneCore(on_event=self._on_core_event)
+        self.mitigations = mitigations or Mitigations()
+        self._core = CloneCore(on_event=self._on_core_event, mitigations=self.mitigations)
 
     # -- host interface ---------------------------------------------------------
 
@@ -320,7 +322,12 @@ def _describe(death: Death | None) -> str:
     if death is None:
         return "unknown"
     if death.exit_signal:
-        return f"killed by {signal.Signals(death.exit_signal).name}"
-    if death.status_lost:
-        return "exited, status unknown"
-    return f"exited with code {death.exit_code}"
+        what = f"killed by {signal.Signals(death.exit_signal).name}"
+    elif death.status_lost:
+        what = "exited, status unknown"
+    else:
+        what = f"exited with code {death.exit_code}"
+    if death.repaired:
+        # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED" -- the harness counts these
+        what += "; repaired: " + ", ".join(death.repairs.names())
+    return what

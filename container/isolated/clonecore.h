@@ -1,0 +1,89 @@
+/*
+ * clonecore.h - what clonecore.c (the clone3 core) and gilrepair.c (CPython
+ * GIL internals, built with Py_BUILD_CORE) share.  Shapes that Python sees
+ * are mirrored in _build_core.py's cdef.
+ */
+#ifndef CLONEGUARD_CLONECORE_H
+#define CLONEGUARD_CLONECORE_H
+
+#include <stdint.h>
+#include <sys/types.h>
+
+/* What the monitor repaired after a death (struct cg_event.repairs).
+   Mirrored by events.Repair. */
+enum {
+    CG_REPAIR_GIL_RELEASED = 1 << 0,   /* the dead task held the GIL */
+    CG_REPAIR_GIL_MUTEX = 1 << 1,      /* ... or gil->mutex */
+    CG_REPAIR_SWITCH_MUTEX = 1 << 2,   /* ... or gil->switch_mutex */
+    CG_REPAIR_COND_WAITER = 1 << 3,    /* it was blocked on gil->cond */
+    CG_REPAIR_SWITCH_WAITER = 1 << 4,  /* it was blocked on gil->switch_cond */
+    CG_REPAIR_COND_LOCK = 1 << 5,      /* a condvar's internal lock stayed
+                                          taken: cleared */
+    CG_REPAIR_GIL_TIMEOUT = 1 << 6,    /* gil->mutex could not be taken to
+                                          check the GIL: nothing checked */
+};
+
+/* One dead task the repair looks at: a child whose thread group is gone
+   (a zombie, or already reaped). */
+struct cg_dead {
+    pid_t pid;              /* its tid (= pid) */
+    char *tcb;              /* its struct pthread */
+    char *stack_lo, *stack_hi;   /* its stack mapping */
+    uint32_t repairs;       /* out: CG_REPAIR_* attributed to it */
+};
+
+struct cg_repair_cfg {
+    int gil;                /* force-release the GIL / its mutexes */
+    int condvar;            /* cancel dead waiters of the GIL's condvars */
+    long cleanup_off;       /* struct pthread.cleanup (from the layout) */
+    uintptr_t cond_cleanup; /* glibc's condvar-wait cleanup routine */
+};
+
+/* glibc 2.36's private record of a thread blocked in pthread_cond_wait
+   (nptl/pthread_cond_wait.c, struct _condvar_cleanup_buffer): the argument
+   of the cleanup routine the waiter pushes (struct pthread.cleanup) while it
+   holds a reference on its condvar group.  cg_probe_condwait() checks this
+   shape on a live waiter at start-up. */
+struct cg_cond_cbuf {
+    uint64_t wseq;          /* its position << 1 | group index */
+    void *cond;             /* pthread_cond_t * */
+    void *mutex;            /* pthread_mutex_t * */
+    int private_;
+};
+
+/* gilrepair.c.  Runs on the monitor thread, never takes the GIL.  Returns
+   repairs that belong to no particular dead task. */
+uint32_t cg_gil_repair(struct cg_dead *dead, int n, const struct cg_repair_cfg *cfg);
+
+/* The child's PyThreadState: made by the parent, bound by the child. */
+struct _ts;
+struct _ts *cg_tstate_new(void);
+void cg_tstate_bind(struct _ts *ts);
+
+/* Facts for assumptions.py (takes the GIL itself). */
+struct cg_gil_probe {
+    unsigned long compiled_hex, running_hex;
+    long runtime_size_compiled, runtime_size_elf;
+    int locked;              /* with the GIL held by the probe */
+    int last_holder_is_me, tstate_current_is_me;
+    int native_id_ok, thread_id_ok;
+    int mutex_kind, switch_mutex_kind;
+    int cond_wrefs_flags, switch_cond_wrefs_flags;
+    long gil_offset, mutex_offset, cond_offset;   /* for the report */
+};
+int cg_gil_probe(struct cg_gil_probe *out);
+
+/* Tests only (gilrepair.c): die inside the GIL's machinery. */
+enum {
+    CG_TEST_DROP_GIL_LOCKED = 1,
+    CG_TEST_TAKE_GIL_HANDOVER = 2,
+    CG_TEST_TAKE_GIL_CHECKING = 3,
+    CG_TEST_SWITCH_MUTEX = 4,
+};
+int cg_test_die_in_gil(int where);
+
+/* Async-signal-safe-ish: the Python stack of the calling thread, as
+   faulthandler writes it. */
+void cg_dump_py_stack(int fd);
+
+#endif

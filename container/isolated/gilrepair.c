@@ -1,0 +1,435 @@
+/*
+ * gilrepair.c - put CPython's GIL back in order after a child died in it.
+ *
+ * Built with Py_BUILD_CORE against the internal headers of the interpreter
+ * the extension is compiled for (3.11.7 here): _PyRuntime.ceval.gil and
+ * _PyRuntime.gilstate are read and written by name.  assumptions.py checks
+ * at start-up that the running interpreter is that one (cg_gil_probe).
+ *
+ * CPython 3.11's GIL (Python/ceval_gil.h) is `locked` + `last_holder`
+ * guarded by `mutex`, waiters on `cond` (timed waits, 5 ms), and a hand-over
+ * pair `switch_mutex`/`switch_cond` (the dropping thread waits until someone
+ * else took it; an untimed wait).  take_gil: lock mutex; while locked: timed
+ * wait on cond; then lock switch_mutex, locked = 1, last_holder = me,
+ * signal switch_cond, unlock switch_mutex; unlock mutex.  drop_gil:
+ * last_holder = me; lock mutex, locked = 0, signal cond, unlock mutex; then
+ * maybe lock switch_mutex and wait on switch_cond.  Both mutexes are
+ * default-kind (non-robust) glibc mutexes; both condvars are glibc 2.36
+ * condvars.
+ *
+ * A child killed anywhere in there leaves one of:
+ *   1. the GIL locked with last_holder = its thread state   -> release it
+ *   2. mutex or switch_mutex owned by its tid               -> take over,
+ *      decide the GIL state under it, unlock
+ *   3. a waiter registration in cond or switch_cond holding a reference on
+ *      its condvar group: the next signaller that has to close that group
+ *      waits for the reference to go, forever (glibc 2.36's group switch)
+ *                                                           -> cancel it
+ *      the way pthread_cancel would: glibc's own cleanup routine, which the
+ *      waiter registered in its struct pthread (.cleanup) before blocking
+ *   4. a condvar's internal lock taken (it died signalling) -> clear it if it
+ *      stays taken
+ * This file is called by the monitor after a death, before the child is
+ * reaped (so its tid cannot be reused meanwhile).  It never takes the GIL.
+ */
+#define Py_BUILD_CORE 1
+#include <Python.h>
+#include "internal/pycore_runtime.h"   /* _PyRuntime, _gil_runtime_state */
+#include "internal/pycore_pystate.h"   /* _PyThreadState_SetCurrent */
+#include "internal/pycore_traceback.h" /* _Py_DumpTraceback */
+
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE
+#endif
+#include <dlfcn.h>
+#include <errno.h>
+#include <limits.h>
+#include <link.h>
+#include <linux/futex.h>
+#include <pthread.h>
+#include <signal.h>
+#include <stdbool.h>
+#include <string.h>
+#include <sys/syscall.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "clonecore.h"
+
+#define GIL (&_PyRuntime.ceval.gil)
+#define ANON ((struct cg_dead *)-1)   /* a dead owner we cannot name */
+
+static void sleep_us(long us)
+{
+    struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
+    while (nanosleep(&ts, &ts) < 0 && errno == EINTR) {}
+}
+
+static void futex_wake(void *addr, int n, int private_)
+{
+    syscall(SYS_futex, addr, FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0),
+            n, NULL, NULL, 0);
+}
+
+/* Is task `tid` dead?  One of the dead we were given, gone altogether, or
+   a zombie child of ours (a death the monitor has not handled yet).  A
+   zombie still answers kill(pid, 0); a dead non-leader thread does not. */
+static bool is_dead(pid_t tid, struct cg_dead *d, int n, struct cg_dead **who)
+{
+    *who = NULL;
+    if (tid <= 0)
+        return false;
+    for (int i = 0; i < n; i++)
+        if (d[i].pid == tid) {
+            *who = &d[i];
+            return true;
+        }
+    if (kill(tid, 0) < 0 && errno == ESRCH)
+        return true;
+    siginfo_t si;
+    memset(&si, 0, sizeof si);
+    return waitid(P_PID, (id_t)tid, &si, WEXITED | WNOHANG | WNOWAIT | __WALL) == 0 &&
+           si.si_pid == tid;
+}
+
+static void credit(struct cg_dead *who, uint32_t bit, uint32_t *misc)
+{
+    if (who && who != ANON)
+        who->repairs |= bit;
+    else
+        *misc |= bit;
+}
+
+/* If m is locked by a dead task, make the calling thread its owner (the
+   dead cannot unlock it and nobody else can lock it, so nothing races with
+   this) and return the dead task (ANON if unnamed); else NULL.
+   glibc (default kind) writes __owner right after taking the lock word and
+   clears it right before releasing it: a lock word with owner 0 is a thread
+   inside that window, which a live thread leaves within microseconds. */
+static struct cg_dead *take_over(pthread_mutex_t *m, struct cg_dead *d, int n)
+{
+    for (int waited_ms = 0;; waited_ms++) {
+        int lock = __atomic_load_n(&m->__data.__lock, __ATOMIC_ACQUIRE);
+        pid_t owner = __atomic_load_n(&m->__data.__owner, __ATOMIC_ACQUIRE);
+        if (lock == 0)
+            return NULL;
+        struct cg_dead *who = NULL;
+        if (owner != 0) {
+            if (!is_dead(owner, d, n, &who))
+                return NULL;
+            if (!who)
+                who = ANON;
+        } else if (waited_ms < 200) {
+            sleep_us(1000);
+            continue;
+        } else {
+            who = ANON;   /* died between lock word and owner store */
+        }
+        __atomic_store_n(&m->__data.__owner, (int)syscall(SYS_gettid),
+                         __ATOMIC_RELEASE);
+        return who;
+    }
+}
+
+/* Lock gil->mutex, taking it over if a dead task turns out to hold it.
+   false after ~2 s of a live holder (then the GIL is not checked). */
+static bool lock_gil_mutex(struct cg_dead *d, int n, uint32_t *misc)
+{
+    pthread_mutex_t *m = &GIL->mutex;
+    for (int i = 0; i < 40; i++) {
+        struct timespec ts;
+        clock_gettime(CLOCK_MONOTONIC, &ts);
+        ts.tv_nsec += 50 * 1000000;
+        if (ts.tv_nsec >= 1000000000)
+            ts.tv_sec++, ts.tv_nsec -= 1000000000;
+        if (pthread_mutex_clocklock(m, CLOCK_MONOTONIC, &ts) == 0)
+            return true;
+        struct cg_dead *who = take_over(m, d, n);
+        if (who) {
+            credit(who, CG_REPAIR_GIL_MUTEX, misc);
+            return true;
+        }
+    }
+    *misc |= CG_REPAIR_GIL_TIMEOUT;
+    return false;
+}
+
+/* With gil->mutex held: nobody is inside take_gil's hand-over, so if the
+   GIL is locked, last_holder is the live thread state of its holder.  If
+   that holder's thread is dead, release the GIL in its name. */
+static void release_if_held_by_dead(struct cg_dead *d, int n, uint32_t *misc)
+{
+    struct _gil_runtime_state *gil = GIL;
+    if (!_Py_atomic_load_relaxed(&gil->locked))
+        return;
+    PyThreadState *h = (PyThreadState *)_Py_atomic_load_relaxed(&gil->last_holder);
+    struct cg_dead *who;
+    if (!h || !is_dead((pid_t)h->native_thread_id, d, n, &who))
+        return;
+    /* It may have swapped itself out already (drop_gil's first step). */
+    uintptr_t expected = (uintptr_t)h;
+    __atomic_compare_exchange_n(&_PyRuntime.gilstate.tstate_current._value,
+                                &expected, 0, false, __ATOMIC_SEQ_CST,
+                                __ATOMIC_SEQ_CST);
+    _Py_atomic_store(&gil->locked, 0);
+    credit(who, CG_REPAIR_GIL_RELEASED, misc);
+}
+
+/* A condvar's internal lock (low 2 bits of __g1_orig_size; no owner is
+   recorded) is held only for a few instructions by signal/broadcast and by
+   a waiter giving up after a timeout, or while a signaller waits for the
+   waiters of a group it closes (live ones leave at once).  Called only
+   after the dead tasks' own references were dropped: if it stays taken for
+   200 ms, a dead task was inside; clear it and wake one lock waiter. */
+static void unstick_cond_lock(pthread_cond_t *c, uint32_t *misc)
+{
+    unsigned *w = &c->__data.__g1_orig_size;
+    for (int i = 0; i < 200; i++) {
+        if ((__atomic_load_n(w, __ATOMIC_ACQUIRE) & 3) == 0)
+            return;
+        sleep_us(1000);
+    }
+    unsigned old = __atomic_fetch_and(w, ~3u, __ATOMIC_RELEASE);
+    if ((old & 3) == 2)
+        futex_wake(w, 1, (c->__data.__wrefs & 1) == 0);
+    *misc |= CG_REPAIR_COND_LOCK;
+}
+
+/* A dead task blocked in pthread_cond_wait on one of the GIL's condvars. */
+struct waiter {
+    struct cg_dead *who;
+    struct _pthread_cleanup_buffer *buf;
+    struct cg_cond_cbuf *cb;
+    pthread_cond_t *cond;
+    pthread_mutex_t *mutex;
+    uint32_t bit;
+};
+
+static bool inside(const void *p, size_t len, const struct cg_dead *d)
+{
+    return (const char *)p >= d->stack_lo && (const char *)p + len <= d->stack_hi;
+}
+
+static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
+                        struct waiter *w)
+{
+    struct _gil_runtime_state *gil = GIL;
+    struct _pthread_cleanup_buffer *buf =
+        *(struct _pthread_cleanup_buffer **)(d->tcb + cfg->cleanup_off);
+    if (!buf || !inside(buf, sizeof *buf, d) ||
+        (uintptr_t)buf->__routine != cfg->cond_cleanup)
+        return false;
+    struct cg_cond_cbuf *cb = buf->__arg;
+    if (!inside(cb, sizeof *cb, d))
+        return false;
+    if (cb->cond == &gil->cond && cb->mutex == &gil->mutex)
+        w->bit = CG_REPAIR_COND_WAITER;
+    else if (cb->cond == &gil->switch_cond && cb->mutex == &gil->switch_mutex)
+        w->bit = CG_REPAIR_SWITCH_WAITER;
+    else
+        return false;   /* some other condvar: not ours to touch */
+    w->who = d, w->buf = buf, w->cb = cb;
+    w->cond = cb->cond, w->mutex = cb->mutex;
+    return true;
+}
+
+/* The group reference a blocked waiter holds (__g_refs[g] counts 2 per
+   reference, bit 0 asks the last one out to wake the closing signaller). */
+static void drop_group_ref(struct waiter *w)
+{
+    unsigned *r = &w->cond->__data.__g_refs[w->cb->wseq & 1];
+    if (__atomic_fetch_sub(r, 2, __ATOMIC_RELEASE) == 3) {
+        __atomic_fetch_and(r, ~1u, __ATOMIC_RELAXED);
+        /* __wrefs bit 0: process-shared (the GIL's are private) */
+        futex_wake(r, INT_MAX, (w->cond->__data.__wrefs & 1) == 0);
+    }
+}
+
+static void take_group_ref(struct waiter *w)
+{
+    __atomic_fetch_add(&w->cond->__data.__g_refs[w->cb->wseq & 1], 2,
+                       __ATOMIC_ACQUIRE);
+}
+
+uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg)
+{
+    struct _gil_runtime_state *gil = GIL;
+    uint32_t misc = 0;
+    bool checked = false, wake_switch = false;
+
+    /* 1. Mutexes a dead task owns.  If it owned both, it was in take_gil's
+       hand-over, entered only with the GIL free: whatever `locked` and
+       `last_holder` say, nobody alive holds the GIL. */
+    if (cfg->gil) {
+        struct cg_dead *wm = take_over(&gil->mutex, d, n);
+        struct cg_dead *ws = take_over(&gil->switch_mutex, d, n);
+        if (wm)
+            credit(wm, CG_REPAIR_GIL_MUTEX, &misc);
+        if (ws)
+            credit(ws, CG_REPAIR_SWITCH_MUTEX, &misc), wake_switch = true;
+        if (wm) {
+            if (ws && (wm == ws || wm == ANON || ws == ANON)) {
+                if (_Py_atomic_load_relaxed(&gil->locked)) {
+                    _Py_atomic_store(&gil->locked, 0);
+                    credit(wm, CG_REPAIR_GIL_RELEASED, &misc);
+                }
+            } else {
+                release_if_held_by_dead(d, n, &misc);
+            }
+            checked = true;
+            pthread_mutex_unlock(&gil->mutex);
+        }
+        if (ws)
+            pthread_mutex_unlock(&gil->switch_mutex);
+    }
+
+    /* 2. Dead waiters of cond / switch_cond.  glibc's cleanup routine
+       cancels a waiter exactly as pthread_cancel would: drops its group
+       reference, takes it out of its group (sending a replacement signal
+       if it had consumed one), and re-locks the mutex, which we unlock.
+       With several dead waiters one cleanup could wait for another's
+       reference (closing a group), so all references go first and each is
+       taken back just before its own cleanup drops it. */
+    if (cfg->condvar && cfg->cond_cleanup) {
+        struct waiter w[16];
+        int nw = 0;
+        for (int i = 0; i < n && nw < 16; i++)
+            if (find_waiter(&d[i], cfg, &w[nw]))
+                nw++;
+        for (int i = 0; i < nw; i++)
+            drop_group_ref(&w[i]);
+        for (int i = 0; i < nw; i++) {
+            unstick_cond_lock(w[i].cond, &misc);
+            take_group_ref(&w[i]);
+            w[i].buf->__routine(w[i].cb);        /* returns holding mutex */
+            *(void **)(w[i].who->tcb + cfg->cleanup_off) = w[i].buf->__prev;
+            if (w[i].mutex == &gil->mutex && cfg->gil && !checked) {
+                release_if_held_by_dead(d, n, &misc);
+                checked = true;
+            }
+            pthread_mutex_unlock(w[i].mutex);
+            credit(w[i].who, w[i].bit, &misc);
+            wake_switch = true;
+        }
+    }
+
+    /* 3. The GIL itself, if step 1 did not look at it. */
+    if (cfg->gil && !checked && lock_gil_mutex(d, n, &misc)) {
+        release_if_held_by_dead(d, n, &misc);
+        pthread_mutex_unlock(&gil->mutex);
+    }
+
+    /* 4. A thread that dropped the GIL for the dead one may be waiting
+       (untimed) on switch_cond for a hand-over that will not come.  Waiters
+       on cond need nothing: their waits time out every 5 ms. */
+    bool released = misc & CG_REPAIR_GIL_RELEASED;
+    for (int i = 0; i < n; i++)
+        released |= (d[i].repairs & CG_REPAIR_GIL_RELEASED) != 0;
+    if (cfg->gil && (wake_switch || released)) {
+        if (cfg->condvar)
+            unstick_cond_lock(&gil->switch_cond, &misc);
+        pthread_cond_broadcast(&gil->switch_cond);
+    }
+    return misc;
+}
+
+/* ---------------------------------------------------------------------- */
+/* A child's thread state.  Creating and deleting one takes the runtime's
+   HEAD_LOCK (a semaphore: no owner, so no repair if its holder dies), so the
+   child does neither: the parent creates it before the clone, the child
+   binds it to itself, and release() deletes it after the child is reaped. */
+
+PyThreadState *cg_tstate_new(void)            /* parent; any thread, no GIL */
+{
+    return _PyThreadState_Prealloc(PyInterpreterState_Main());
+}
+
+void cg_tstate_bind(PyThreadState *ts)        /* child, before it runs Python */
+{
+    ts->thread_id = PyThread_get_thread_ident();          /* pthread_self() */
+    ts->native_thread_id = (unsigned long)syscall(SYS_gettid);
+    _PyThreadState_SetCurrent(ts);   /* PyGILState's TSS slot (our TLS) */
+}
+
+/* ---------------------------------------------------------------------- */
+
+int cg_gil_probe(struct cg_gil_probe *out)
+{
+    struct _gil_runtime_state *gil = GIL;
+    memset(out, 0, sizeof *out);
+    out->compiled_hex = PY_VERSION_HEX;
+    out->running_hex = Py_Version;
+    out->runtime_size_compiled = (long)sizeof(_PyRuntimeState);
+    Dl_info info;
+    const ElfW(Sym) *sym = NULL;
+    if (dladdr1(&_PyRuntime, &info, (void **)&sym, RTLD_DL_SYMENT) && sym)
+        out->runtime_size_elf = (long)sym->st_size;
+    out->gil_offset = (long)((char *)gil - (char *)&_PyRuntime);
+    out->mutex_offset = (long)((char *)&gil->mutex - (char *)gil);
+    out->cond_offset = (long)((char *)&gil->cond - (char *)gil);
+
+    PyGILState_STATE g = PyGILState_Ensure();
+    PyThreadState *me = PyThreadState_Get();
+    out->locked = _Py_atomic_load_relaxed(&gil->locked);
+    out->last_holder_is_me = (PyThreadState *)_Py_atomic_load_relaxed(&gil->last_holder) == me;
+    out->tstate_current_is_me =
+        (PyThreadState *)_Py_atomic_load_relaxed(&_PyRuntime.gilstate.tstate_current) == me;
+    out->native_id_ok = me->native_thread_id == (unsigned long)syscall(SYS_gettid);
+    out->thread_id_ok = me->thread_id == (unsigned long)pthread_self();
+    out->mutex_kind = gil->mutex.__data.__kind;
+    out->switch_mutex_kind = gil->switch_mutex.__data.__kind;
+    out->cond_wrefs_flags = (int)(gil->cond.__data.__wrefs & 7);
+    out->switch_cond_wrefs_flags = (int)(gil->switch_cond.__data.__wrefs & 7);
+    PyGILState_Release(g);
+    return 0;
+}
+
+void cg_dump_py_stack(int fd)
+{
+    PyThreadState *t = PyGILState_GetThisThreadState();
+    if (t)
+        _Py_DumpTraceback(fd, t);
+}
+
+/* ---------------------------------------------------------------------- */
+/* Tests only: make the calling child die (SIGKILL to itself) at a chosen
+   point inside the GIL's machinery, as a child killed there would.  Called
+   through cffi, which has released the GIL around the call. */
+int cg_test_die_in_gil(int where)
+{
+    struct _gil_runtime_state *gil = GIL;
+    PyGILState_STATE g = PyGILState_Ensure();
+    (void)g;
+    switch (where) {
+    case CG_TEST_DROP_GIL_LOCKED:     /* drop_gil: mutex taken, GIL ours */
+        pthread_mutex_lock(&gil->mutex);
+        break;
+    case CG_TEST_TAKE_GIL_HANDOVER:   /* take_gil's hand-over: both mutexes,
+                                         locked = 1, last_holder not yet us */
+        PyEval_SaveThread();
+        for (;;) {
+            pthread_mutex_lock(&gil->mutex);
+            if (!_Py_atomic_load_relaxed(&gil->locked))
+                break;
+            pthread_mutex_unlock(&gil->mutex);
+            sleep_us(1000);
+        }
+        pthread_mutex_lock(&gil->switch_mutex);
+        _Py_atomic_store_relaxed(&gil->locked, 1);
+        break;
+    case CG_TEST_TAKE_GIL_CHECKING:   /* take_gil: mutex taken, GIL not ours */
+        PyEval_SaveThread();
+        pthread_mutex_lock(&gil->mutex);
+        break;
+    case CG_TEST_SWITCH_MUTEX:        /* drop_gil: switch_mutex taken */
+        PyEval_SaveThread();
+        pthread_mutex_lock(&gil->switch_mutex);
+        break;
+    default:
+        return -EINVAL;
+    }
+    kill(getpid(), SIGKILL);
+    for (;;)
+        pause();
+}

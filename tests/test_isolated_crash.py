@@ -1,0 +1,126 @@
+"""Crash reports: a child that faults says where, then dies of that signal.
+
+The report goes to fd 2, which the children share with the container (and
+capfd captures).  Deaths with the GIL held rely on GIL repair (on by default).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import mmap
+import os
+import re
+import signal
+import tempfile
+import threading
+
+import pytest
+
+from container.isolated.core import CloneCore
+
+libc = ctypes.CDLL(None, use_errno=True)
+
+
+def _segv_gil_released():
+    libc.strlen(ctypes.c_void_p(0))
+
+
+def _segv_gil_held():
+    ctypes.string_at(0)
+
+
+def _abort():
+    os.abort()
+
+
+def _bus():
+    """A real SIGBUS: touch a page of a file mapping beyond the file's end."""
+    with tempfile.TemporaryFile() as f:
+        f.truncate(8192)
+        m = mmap.mmap(f.fileno(), 8192)
+        f.truncate(0)
+        m[4096]
+
+
+def _sent(sig):
+    def target():
+        os.kill(os.getpid(), sig)
+    return target
+
+
+@pytest.fixture
+def core():
+    c = CloneCore()
+    yield c
+    c.close()
+
+
+@pytest.mark.parametrize("target, sig, fault", [
+    (_segv_gil_released, signal.SIGSEGV, True),
+    (_segv_gil_held, signal.SIGSEGV, True),
+    (_bus, signal.SIGBUS, True),
+    (_abort, signal.SIGABRT, False),
+    (_sent(signal.SIGFPE), signal.SIGFPE, False),
+    (_sent(signal.SIGILL), signal.SIGILL, False),
+], ids=["segv", "segv-gil-held", "bus", "abort", "fpe-sent", "ill-sent"])
+def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, target, sig, fault):
+    c = core.spawn(target)
+    death = core.wait(c, 10)
+    assert death is not None
+    assert (death.exit_signal, death.si_code) == (sig, os.CLD_KILLED)
+    err = capfd.readouterr().err
+    name = signal.Signals(sig).name
+    where = r"0x[0-9a-f]+" if fault else "-"
+    head = rf"cloneguard: pid {c.pid} caught {name} at {where} \(pc 0x[0-9a-f]+\)\n"
+    assert re.search(head, err), err
+    if sig == signal.SIGSEGV:
+        assert f"caught {name} at 0x0 " in err
+    assert "cloneguard: native stack:\n" in err
+    assert "libc.so.6" in err and "_clonecore" in err      # frames, symbolized
+    assert "cloneguard: Python Stack (most recent call first):" in err
+    assert f"line " in err and target.__name__ in err      # the Python frame
+    assert err.count("cloneguard: pid") == 1
+    core.release(c)
+
+
+def test_a_crash_in_a_thread_the_child_created_is_reported_too(core, capfd):
+    def child():
+        t = threading.Thread(target=_segv_gil_released)
+        t.start()
+        t.join()
+
+    c = core.spawn(child)
+    death = core.wait(c, 10)
+    assert death.exit_signal == signal.SIGSEGV
+    err = capfd.readouterr().err
+    m = re.search(rf"cloneguard: pid {c.pid} caught SIGSEGV at 0x0 \(pc 0x[0-9a-f]+\)\n"
+                  r"cloneguard: si_code \d+, thread (\d+)\n", err)
+    assert m and int(m.group(1)) != c.pid, err
+    core.release(c)
+
+
+def test_crash_reports_can_be_turned_off(capfd):
+    with CloneCore(crash_report=False) as core:
+        c = core.spawn(_segv_gil_released)
+        death = core.wait(c, 10)
+        assert death.exit_signal == signal.SIGSEGV
+        core.release(c)
+    assert "cloneguard:" not in capfd.readouterr().err
+
+
+def test_a_clean_exit_and_an_outside_kill_write_no_report(core, capfd):
+    c = core.spawn(lambda: None)
+    assert core.wait(c, 10).exit_code == 0
+    core.release(c)
+    ready = threading.Event()
+
+    def sleeper():
+        ready.set()
+        libc.pause()
+
+    c = core.spawn(sleeper)
+    assert ready.wait(10)
+    core.kill(c, signal.SIGKILL)
+    assert core.wait(c, 10).exit_signal == signal.SIGKILL
+    core.release(c)
+    assert "cloneguard:" not in capfd.readouterr().err
