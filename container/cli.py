@@ -16,7 +16,12 @@ import sys
 import threading
 import traceback
 
-import rclpy
+# OpenBLAS (under numpy, under rclpy's messages) starts a process-wide thread
+# pool lazily; started from inside a node's clone child, those threads would
+# belong to that child and keep it from ever exiting. One thread: no pool.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import rclpy  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions

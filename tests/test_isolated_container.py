@@ -170,3 +170,15 @@ def test_an_idle_node_stops_gracefully_without_sigkill(client, container):
     client.wait_for_event(ComponentEvent.UNLOADED, unique_id=uid)
     assert "did not stop within" not in container.log_text()
     assert "left in memory" not in container.log_text()
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_an_outside_sigterm_stops_a_node_cleanly(client, container):
+    uid = client.load_ok(PKG, "cloneguard::Heartbeat").unique_id
+    pid = _loaded_pid(client, uid)
+    os.kill(pid, signal.SIGTERM)
+    ev = client.wait_for_event(ComponentEvent.CRASHED, unique_id=uid)
+    assert (ev.exit_signal, ev.exit_code) == (0, 0)
+    assert "after an outside SIGTERM" in ev.error_message
+    assert "left in memory" not in container.log_text()   # released, not leaked
+    assert client.list() == []

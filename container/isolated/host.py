@@ -85,6 +85,7 @@ class _NodeProcess:
     full_name: str = ""
     slot: int = -1                     # this node's slot on the progress board
     stop_guard: object = None          # triggered to wake the child's spin loop
+    stopped_by: object = None          # the outside signal that asked it to stop
     cgroup: object = None              # NodeCgroup, with --cgroups
     error: str = ""                    # why construction failed in the child
     death: Death | None = None
@@ -270,8 +271,9 @@ class IsolatedHost:
         if proc is None:
             return
         if isinstance(event, StopRequested):
-            # Someone sent the child SIGTERM: let its executor see the flag.
+            # Someone sent the child SIGTERM/SIGINT: let its executor see the flag.
             if event.by_signal:
+                proc.stopped_by = event.signal
                 _wake(proc)
             return
         assert isinstance(event, Death)
@@ -293,6 +295,12 @@ class IsolatedHost:
         )
 
     def _crashed(self, proc: _NodeProcess, death: Death) -> None:
+        """A node's process ended without being unloaded: a crash, or a clean
+        exit after an outside SIGTERM/SIGINT (the container's own process
+        group being stopped, say)."""
+        reason = _describe(death)
+        if proc.stopped_by is not None:
+            reason += f" after an outside {proc.stopped_by.name}"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
         if self.on_death is not None:
@@ -300,9 +308,13 @@ class IsolatedHost:
                 pid=death.pid,
                 exit_signal=death.exit_signal or 0,
                 exit_code=death.exit_code or 0,
-                reason=_describe(death),
+                reason=reason,
             ))
-        self._forget(proc, leak=True)
+        clean = death.exit_code == 0 and not death.repaired
+        if clean and proc.profile == SHARED:
+            proc.executor.shutdown()
+            proc.node.destroy_node()
+        self._forget(proc, leak=not clean)
 
 
 def _stopping() -> None:
