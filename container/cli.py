@@ -37,6 +37,14 @@ from .watchdog import Watchdog
 
 DEFAULT_NODE_NAME = "ComponentManager"
 
+# Mitigations that can be switched off, to measure what each one buys.
+MITIGATION_SWITCHES = {
+    "--no-gil-repair": "for measurement, do not release the GIL a dead child held",
+    "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
+                           "after a child died waiting on them",
+    "--no-crash-report": "no native/Python stack report from a child that crashes",
+}
+
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
@@ -62,19 +70,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="isolated mode under jemalloc: 'own' binds each node's process to an arena "
         "of its own, 'auto' leaves the choice to jemalloc (default: %(default)s)",
     )
-    parser.add_argument(
-        "--no-gil-repair", action="store_true",
-        help="isolated mode, for measurement: do not release the GIL a dead child held",
-    )
-    parser.add_argument(
-        "--no-condvar-repair", action="store_true",
-        help="isolated mode, for measurement: do not repair the GIL's condition "
-        "variables after a child died waiting on them",
-    )
-    parser.add_argument(
-        "--no-crash-report", action="store_true",
-        help="isolated mode: no native/Python stack report from a child that crashes",
-    )
+    for flag, what in MITIGATION_SWITCHES.items():
+        parser.add_argument(flag, action="store_true", help=f"isolated mode: {what}")
     parser.add_argument(
         "--cgroups", action="store_true",
         help="isolated mode: each node's process in a cgroup of its own (cgroup2, "

@@ -42,3 +42,20 @@ def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, r
         record_trial(i, seed, out)
         rig.restart()
     resilience.expect_rate("crashed", at_least=1.0)
+
+
+def test_without_gil_repair_a_death_holding_the_gil_freezes_the_container(rig_factory, resilience, record_trial, rng):
+    """What the GIL repair buys: the same fault with it switched off."""
+    resilience.describe(
+        fault="segfault-gil-held", profile="per-node", mitigations={"gil_repair": False},
+        claim="with --no-gil-repair, a node that dies holding the GIL freezes the whole "
+              "container (the hang is diagnosed: every thread waits on a GIL owned by the dead node)",
+    )
+    rig = rig_factory("per-node", extra_args=["--no-gil-repair"])
+    seed = rng.getrandbits(31)
+    out = callback_fault(rig, "segfault-gil-held", seed, 0)
+    record_trial(0, seed, out)
+    resilience.expect_rate("survived", at_most=0.0)
+    assert out.outcome == "hung", out.details
+    if out.diagnosis is not None:   # gdb is installed by setup; name the GIL owner
+        assert any(b.kind == "GIL" and b.owner_dead for b in out.diagnosis.blocked), out.diagnosis.summary()
