@@ -6,7 +6,6 @@ trial can be replayed exactly.
 from __future__ import annotations
 
 import os
-import random
 import signal
 import time
 
@@ -20,10 +19,6 @@ def kill_at(pid: int, sig: int, delay_s: float) -> int:
     except ProcessLookupError:
         pass
     return sent
-
-
-def random_delay(rng: random.Random, low_s: float, high_s: float) -> float:
-    return rng.uniform(low_s, high_s)
 
 
 def sigkill_container(proc) -> int:

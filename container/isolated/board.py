@@ -122,9 +122,6 @@ class ProgressBoard:
         self.mutex.lock()
         self._slots[slot].seq += 1
 
-    def slot_of(self, unique_id: int) -> int:
-        return self._index[unique_id]
-
     def slot_of_pid(self, pid: int) -> int | None:
         """The slot a process writes (for code running inside a child)."""
         with self.mutex:
