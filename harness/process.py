@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import procfs
+from . import procfs, shm
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NO_SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_no_shm.xml"
@@ -96,6 +96,7 @@ class ContainerProcess:
         self.pid = self._popen.pid
         self.pgid = self.pid   # start_new_session: the leader of its own group
         self.exit_status: ExitStatus | None = None
+        self.shm_seen: set[str] = set()   # Fast DDS segments it was seen to map
 
     @property
     def fqn(self) -> str:
@@ -125,10 +126,19 @@ class ContainerProcess:
         except subprocess.TimeoutExpired:
             return None
 
+    def record_shm(self) -> set[str]:
+        """Note the Fast DDS segments the container maps now (its node
+        processes share its memory map, so theirs are included). Only these
+        can later be called the container's orphans."""
+        self.shm_seen |= shm.mapped_by(self.pid)
+        return self.shm_seen
+
     def stop(self, grace: float = STOP_GRACE_S) -> ExitStatus:
         """SIGTERM the group, wait ``grace`` s, then SIGKILL what is left."""
         if self.exit_status is not None:
             return self.exit_status
+        if self.alive():
+            self.record_shm()
         t0 = time.monotonic()
         forced = False
         if self.alive():

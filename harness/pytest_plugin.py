@@ -98,13 +98,14 @@ class _Leftovers:
         zombies = procfs.zombies_of(os.getpid())
         if zombies:
             found.append(f"zombie children of the harness: {zombies}")
-        # A segment that appeared during the test and whose owner is gone
-        # (its lock file can be locked) was left by a process the test
-        # stopped. Those are reported and removed; segments still in use
-        # belong to live processes (maybe not ours) and are left alone.
+        # A segment that appeared during the test, that one of our containers
+        # was seen to map, and whose owner is gone (its lock file can be
+        # locked) was left by a process the test stopped: reported and
+        # removed. Anything else (in use, or never ours) is left alone.
         new_segments = shm.segments() - self.shm_before
-        if new_segments and self.factories:
-            orphans = shm.remove_orphans(new_segments)
+        ours = set().union(*(p.shm_seen for f in self.factories for p in f.started))
+        if new_segments and ours:
+            orphans = shm.remove_orphans_of(new_segments, ours)
             if orphans:
                 found.append(f"orphaned /dev/shm segments (now removed): {[seg.name for seg in orphans]}")
         return found

@@ -96,3 +96,26 @@ def remove_orphans(names: set[str]) -> list[Segment]:
             os.close(fd)
         removed.append(seg)
     return removed
+
+
+def mapped_by(pid: int) -> set[str]:
+    """Names of the Fast DDS segments process ``pid`` has mapped."""
+    try:
+        with open(f"/proc/{pid}/maps") as f:
+            maps = f.read()
+    except (FileNotFoundError, ProcessLookupError):
+        return set()
+    return set(re.findall(r"/dev/shm/(fastrtps_[0-9a-z]+)", maps))
+
+
+def remove_orphans_of(names: set[str], owners: set[str]) -> list[Segment]:
+    """Like :func:`remove_orphans`, limited to segments in ``owners`` (segment
+    names a process of ours was seen to map): never anyone else's orphans."""
+    return remove_orphans({n for n in names if _base(n) in owners})
+
+
+def _base(name: str) -> str:
+    m = _LOCK.match(name)
+    if m:
+        return m.group(1)
+    return re.sub(r"^sem\.|_mutex$", "", name)

@@ -47,14 +47,16 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(rig_facto
     victim = rig_factory("per-node", fastdds_profile=SHM_PROFILE)
     victim.client.load_ok("cloneguard", "cloneguard::Talker")
     victim.client.close()
+    ours = victim.proc.record_shm()          # what it maps: the only candidates
     sigkill_container(victim.proc)
     victim.proc.wait(timeout=10)
     # Its node processes die of PR_SET_PDEATHSIG right after it.
     procfs.wait_group_empty(victim.proc.pgid, timeout=10)
     candidates = shm.segments() - before
     in_use = {f for seg in shm.classify(candidates) if not seg.orphan for f in seg.files}
-    removed = shm.remove_orphans(candidates)
-    left_orphans = [seg.name for seg in shm.classify(shm.segments() - before) if seg.orphan]
+    removed = shm.remove_orphans_of(candidates, ours)
+    left_orphans = [seg.name for seg in shm.classify(shm.segments() - before)
+                    if seg.orphan and seg.name in ours]
     ok = (removed and in_use <= shm.segments() and not left_orphans
           and bystander.goes_on() is None)
     record_trial(0, 0, Outcome("survived" if ok else "failed", details={
