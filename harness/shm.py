@@ -60,37 +60,10 @@ def _lock_is_free(path: Path) -> bool:
     return True
 
 
-_BARE_PORT = re.compile(r"^fastrtps_port\d{1,5}$")
-
-
-def _mapped_anywhere(names: set[str]) -> bool:
-    """Does any process on the machine map one of these /dev/shm files?"""
-    wanted = {f"/dev/shm/{n}" for n in names}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/maps") as f:
-                if any(line.rstrip().split(" ")[-1] in wanted for line in f):
-                    return True
-        except OSError:
-            continue
-    return False
-
-
 def classify(names: set[str]) -> list[Segment]:
-    """Group ``names`` into segments and tell which are orphans.
-
-    Besides segments with a lock file, Fast DDS leaves port segments with no
-    lock file at all: a participant that sent to the port of one that died
-    keeps it open, and leaves it behind when it stops. Such a port is an
-    orphan once no process maps it or its semaphore."""
+    """Group ``names`` into segments and tell which are orphans."""
     found = []
     for name in sorted(names):
-        if _BARE_PORT.match(name) and not any((SHM_DIR / f"{name}_{k}").exists() for k in ("el", "sl")):
-            files = tuple(f for f in (name, f"sem.{name}_mutex") if (SHM_DIR / f).exists())
-            found.append(Segment(name, files, not _mapped_anywhere(set(files))))
-            continue
         m = _LOCK.match(name)
         if not m:
             continue
