@@ -104,7 +104,7 @@ def test_isolated_load_failures_answer_like_thread_mode(container_factory, misfi
     client = container_factory.connect(proc)
     resp = client.load("misfit-components", "misfits::Raises")
     assert not resp.success and "sensor not found" in resp.error_message
-    assert client.load(PKG, TALKER_MISSING := "cloneguard::Nope").error_message == (
+    assert client.load(PKG, "cloneguard::Nope").error_message == (
         "Failed to find class with the requested plugin name."
     )
     assert client.load_ok(PKG, "cloneguard::Talker").unique_id == 2
