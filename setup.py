@@ -6,5 +6,6 @@ setup(
     cffi_modules=[
         "container/isolated/_build_core.py:ffibuilder",
         "faults/_build_hammer.py:ffibuilder",
+        "container/intra/_build_rclglue.py:ffibuilder",
     ]
 )

@@ -1,0 +1,120 @@
+"""cffi (API mode) builder for container.intra._rclglue.
+
+The C is rclglue.c (the generated module #includes it, so compiler messages
+point at rclglue.c lines); rclglue.h is its interface, which the cdef below
+mirrors: keep them in step (a mismatch is a compile error in the generated
+module).
+
+It is compiled against the real rcl/rmw/rcutils headers of the ROS 2 Jazzy
+wheels in this venv (``<sys.prefix>/include/<pkg>/<pkg>/...``) and linked to
+the same librcl/librmw/librcutils that rclpy loads (``<sys.prefix>/lib``).
+sys.prefix is the venv of the interpreter that builds (pip runs setup.py
+with it), so a fresh clone's venv builds against its own wheels.
+
+How the libraries are found at run time: rclpy's own extension carries an
+RPATH into a ``ros_rclpy.libs`` directory that is not where the wheels put
+things; it works because the ``ros_wheels_bootstrapper`` .pth re-executes
+every interpreter of the venv with LD_LIBRARY_PATH = ``<venv>/lib`` plus the
+``site-packages/ros_*.libs`` directories (the vendored libyaml, lttng, ... of
+librcl).  We do not rely on that for our direct dependencies: the module gets
+a run path to ``<venv>/lib`` (absolute, fixed at build time: rebuild if the
+venv moves).  librcl's own dependencies still come through LD_LIBRARY_PATH,
+as for rclpy; in practice rclpy (imported first by dds_reader) has loaded
+them all already, and the loader reuses an already loaded librcl.so by its
+soname, so there is one librcl in the process, shared with rclpy.
+
+Built by setup.py (``cffi_modules``); ``python container/intra/_build_rclglue.py``
+also builds it in place for quick iteration.
+"""
+
+import sys
+from pathlib import Path
+
+from cffi import FFI
+
+HERE = Path(__file__).resolve().parent
+
+PREFIX = Path(sys.prefix)
+LIB_DIR = PREFIX / "lib"
+
+# The packages whose headers rcl/subscription.h and rcl/publisher.h pull in
+# (directly or through rcl/node.h, rcl/arguments.h, rcl/time.h, ...).  Each
+# wheel installs its headers as include/<pkg>/<pkg>/*.h, so every package is
+# one include directory.
+HEADER_PACKAGES = (
+    "rcl", "rmw", "rcutils", "rcl_yaml_param_parser",
+    "rosidl_runtime_c", "rosidl_typesupport_interface",
+    "rosidl_dynamic_typesupport", "type_description_interfaces",
+    "service_msgs", "builtin_interfaces",
+)
+
+
+def _include_dirs() -> list[str]:
+    dirs, missing = [], []
+    for pkg in HEADER_PACKAGES:
+        d = PREFIX / "include" / pkg
+        (dirs if (d / pkg).is_dir() else missing).append(str(d))
+    if missing:
+        raise RuntimeError(
+            f"ROS 2 headers not found in {PREFIX} ({', '.join(missing)}): build "
+            "container.intra._rclglue with the venv's python after "
+            "`pip install -r scripts/requirements.txt`")
+    return dirs
+
+
+CDEF = r"""
+typedef struct { ...; } rcl_publisher_t;
+typedef struct { ...; } rcl_subscription_t;
+/* rcl_serialized_message_t is rcutils_uint8_array_t; only these fields are
+   read from Python. */
+typedef struct {
+    uint8_t *buffer;
+    size_t buffer_length;
+    size_t buffer_capacity;
+    ...;
+} rcl_serialized_message_t;
+
+#define CGR_GID_SIZE ...
+#define CGR_TAKEN ...
+#define CGR_NOT_TAKEN ...
+#define CGR_ERROR ...
+#define CGR_ERR_SIZE ...
+
+int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity,
+                     char *err, size_t err_size);
+void cgr_message_fini(rcl_serialized_message_t *msg);
+int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
+                      char *err, size_t err_size);
+int cgr_take_serialized(const rcl_subscription_t *subscription,
+                        rcl_serialized_message_t *msg, uint8_t *gid_out,
+                        char *err, size_t err_size);
+"""
+
+ffibuilder = FFI()
+ffibuilder.cdef(CDEF)
+ffibuilder.set_source(
+    "container.intra._rclglue",
+    '#include "rclglue.c"\n',
+    include_dirs=[str(HERE), *_include_dirs()],
+    # setuptools wants paths relative to the repo root (where setup.py and
+    # the __main__ build below run).
+    depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h")],
+    libraries=["rcl", "rmw", "rcutils"],
+    library_dirs=[str(LIB_DIR)],
+    extra_compile_args=["-std=gnu11", "-Wall"],
+    extra_link_args=[f"-Wl,-rpath,{LIB_DIR}"],
+    # Tied to CPython 3.11 by the ROS wheels anyway. Not abi3, so that the
+    # setup.py build and the __main__ build below both produce
+    # _rclglue.cpython-311-*.so: an abi3 file would be shadowed by a stale
+    # cpython-311 one.
+    py_limited_api=False,
+)
+
+if __name__ == "__main__":
+    import os
+
+    # Run as a script, this directory is sys.path[0], and its queue.py would
+    # shadow the stdlib's queue for setuptools (imported by compile()).
+    sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
+    os.chdir(HERE.parent.parent)  # the repo root: the module lands in place
+    ffibuilder.compile(verbose=True)

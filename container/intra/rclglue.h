@@ -1,0 +1,36 @@
+/* rclglue: the two rcl calls rclpy does not give us (see rclglue.c).
+ *
+ * The cdef in _build_rclglue.py mirrors this header: keep them in step (a
+ * mismatch is a compile error in the generated module). */
+#ifndef CLONEGUARD_INTRA_RCLGLUE_H
+#define CLONEGUARD_INTRA_RCLGLUE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "rcl/publisher.h"
+#include "rcl/subscription.h"
+
+/* Bytes of a DDS endpoint's gid as rmw gives it (rmw_gid_t.data). */
+#define CGR_GID_SIZE 16
+
+/* cgr_take_serialized() results. */
+#define CGR_TAKEN 1
+#define CGR_NOT_TAKEN 0
+#define CGR_ERROR (-1)
+
+/* Room callers give for an error text: longer texts are cut. */
+#define CGR_ERR_SIZE 512
+
+int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity,
+                     char *err, size_t err_size);
+void cgr_message_fini(rcl_serialized_message_t *msg);
+
+int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
+                      char *err, size_t err_size);
+
+int cgr_take_serialized(const rcl_subscription_t *subscription,
+                        rcl_serialized_message_t *msg, uint8_t *gid_out,
+                        char *err, size_t err_size);
+
+#endif
