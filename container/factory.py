@@ -4,13 +4,17 @@ from __future__ import annotations
 from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 
+from . import intra
 from .options import LoadError, NodeArguments
 
 
-def construct(cls: type[Node], args: NodeArguments, context) -> Node:
-    """Instantiate ``cls``; any failure becomes a :class:`LoadError`."""
+def construct(cls: type[Node], args: NodeArguments, context, owner: int) -> Node:
+    """Instantiate ``cls`` for load ``owner`` (its unique_id); any failure
+    becomes a :class:`LoadError`. Intra-process endpoints the node creates
+    follow its ``use_intra_process_comms`` and belong to ``owner``."""
     try:
-        node = cls(**args.node_kwargs(context))
+        with intra.api.constructing(owner, args.use_intra_process_comms):
+            node = cls(**args.node_kwargs(context))
     except Exception as exc:
         # Same wording as rclcpp_components for a throwing constructor.
         raise LoadError(
@@ -18,6 +22,14 @@ def construct(cls: type[Node], args: NodeArguments, context) -> Node:
         ) from None
     if not isinstance(node, Node):  # a class whose __new__ returns something else
         raise LoadError(f"Component {cls.__qualname__} did not produce an rclpy Node")
+    intra.api.adopt(node, owner, args.use_intra_process_comms)
     if args.log_level:
         node.get_logger().set_level(LoggingSeverity(args.log_level))
     return node
+
+
+def destroy(node: Node) -> None:
+    """Destroy a node the container built, with its intra-process endpoints
+    (which ``Node.destroy_node`` does not know about)."""
+    intra.api.destroy_endpoints(node)
+    node.destroy_node()

@@ -50,13 +50,13 @@ class ThreadHost:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         start = time.time_ns()
-        node = factory.construct(cls, args, self._context)
+        node = factory.construct(cls, args, self._context, unique_id)
         self._executor.add_node(node)
         return Hosted(unique_id, node.get_fully_qualified_name(), os.getpid(), start, node)
 
     def stop(self, hosted: Hosted) -> None:
         self._executor.remove_node(hosted.node)
-        hosted.node.destroy_node()
+        factory.destroy(hosted.node)
 
     def close(self, hosted_nodes) -> None:
         for hosted in hosted_nodes:

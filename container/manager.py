@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 
-from . import events, options, registry
+from . import events, intra, options, registry
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
@@ -49,6 +49,8 @@ class ComponentManager:
         self._early_deaths: dict[int, object] = {}   # deaths seen while starting
         self.watchdog = None                # set by the command line when it runs one
         self.restart_policy = None          # likewise (container.restart.RestartPolicy)
+        # The intra-process bus is container-owned: made here, before any child.
+        intra.get_bus()
         node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
         node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
         node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
@@ -70,6 +72,7 @@ class ComponentManager:
             with self.watchdog.allow(self.LOAD_ALLOWANCE_S) if self.watchdog else contextlib.nullcontext():
                 hosted = self._host.start(unique_id, cls, args)
         except LoadError as exc:
+            intra.get_bus().forget(unique_id)   # what a failed constructor registered
             with self._lock:
                 self._starting.discard(unique_id)
             return self._load_failed(request, response, str(exc))
@@ -104,6 +107,7 @@ class ComponentManager:
             response.error_message = f"No node found with unique_id: {request.unique_id}"
             self._log.warning(response.error_message)
             return response
+        intra.get_bus().forget(request.unique_id)
         self._host.stop(entry.hosted)
         self._log.info(f"Unloaded {entry.hosted.full_node_name} (unique_id {entry.hosted.unique_id})")
         self._publish(events.UNLOADED, entry)
@@ -121,6 +125,9 @@ class ComponentManager:
 
     def on_death(self, unique_id: int, death) -> None:
         """A node's process died without being unloaded."""
+        # First of all: publishers stop queueing to its subscriptions and
+        # waking its (dead) executor.
+        intra.get_bus().forget(unique_id)
         with self._lock:
             if unique_id in self._starting:
                 self._early_deaths[unique_id] = death
@@ -163,6 +170,8 @@ class ComponentManager:
             self.restart_policy.cancel_all()
         with self._lock:
             entries, self._loaded = list(self._loaded.values()), {}
+        for uid in [e.hosted.unique_id for e in entries]:
+            intra.get_bus().forget(uid)
         self._host.close([e.hosted for e in entries])
 
     # -- helpers --------------------------------------------------------------

@@ -161,11 +161,13 @@ def test_restart_policy_needs_isolated_mode(container_factory):
     assert "--restart-policy needs --isolated" in proc.log_text()
 
 
+@pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra-process"])
 @pytest.mark.parametrize("container_args", PROFILES)
-def test_an_idle_node_stops_gracefully_without_sigkill(client, container):
+def test_an_idle_node_stops_gracefully_without_sigkill(client, container, intra):
     # A listener with nothing to listen to has no callback to wake it: the
     # stop has to wake its executor by itself.
-    uid = client.load_ok(PKG, "cloneguard::Listener", remap_rules=["chatter:=nobody_talks_here"]).unique_id
+    uid = client.load_ok(PKG, "cloneguard::Listener", remap_rules=["chatter:=nobody_talks_here"],
+                         extra_arguments={"use_intra_process_comms": intra}).unique_id
     assert client.unload(uid).success
     client.wait_for_event(ComponentEvent.UNLOADED, unique_id=uid)
     assert "did not stop within" not in container.log_text()

@@ -2,9 +2,15 @@
 
 The count goes out on ``~/received`` each time a message arrives, so an
 observer outside the container can tell that this node is still receiving.
+Its subscription is an intra-process one (container.intra): loaded with
+``use_intra_process_comms`` it gets the container's messages by reference and
+the rest over DDS, each message once; ``~/by_reference`` counts the
+messages that came by reference.
 """
 from rclpy.node import Node
 from std_msgs.msg import String, UInt64
+
+from container import intra
 
 
 class Listener(Node):
@@ -13,8 +19,10 @@ class Listener(Node):
         topic = self.declare_parameter("topic", "chatter").value
         self.received = 0
         self._count_pub = self.create_publisher(UInt64, "~/received", 10)
-        self._sub = self.create_subscription(String, topic, self._on_message, 10)
+        self._by_ref_pub = self.create_publisher(UInt64, "~/by_reference", 10)
+        self._sub = intra.create_subscription(self, String, topic, self._on_message, 10)
 
     def _on_message(self, msg):
         self.received += 1
         self._count_pub.publish(UInt64(data=self.received))
+        self._by_ref_pub.publish(UInt64(data=self._sub.received_intra))

@@ -1,6 +1,14 @@
-"""Demo component: publishes ``<message> <n>`` on a topic from a timer."""
+"""Demo component: publishes ``<message> <n>`` on a topic from a timer.
+
+Its publisher is an intra-process one (container.intra): loaded with
+``use_intra_process_comms`` it hands each message to the container's other
+nodes by reference, and to DDS only for subscribers outside the container.
+``limit`` > 0 stops it after that many messages.
+"""
 from rclpy.node import Node
 from std_msgs.msg import String
+
+from container import intra
 
 
 class Talker(Node):
@@ -9,12 +17,18 @@ class Talker(Node):
         topic = self.declare_parameter("topic", "chatter").value
         period = self.declare_parameter("period", 0.1).value
         self._text = self.declare_parameter("message", "hello").value
+        self._limit = self.declare_parameter("limit", 0).value
         if period <= 0:
             raise ValueError(f"parameter 'period' must be positive, got {period}")
+        if self._limit < 0:
+            raise ValueError(f"parameter 'limit' must not be negative, got {self._limit}")
         self._count = 0
-        self._pub = self.create_publisher(String, topic, 10)
+        self._pub = intra.create_publisher(self, String, topic, 10)
         self._timer = self.create_timer(period, self._tick)
 
     def _tick(self):
+        if self._limit and self._count >= self._limit:
+            self._timer.cancel()
+            return
         self._count += 1
         self._pub.publish(String(data=f"{self._text} {self._count}"))

@@ -118,7 +118,7 @@ class IsolatedHost:
         proc.slot = self.board.register(unique_id)
         start_ns = time.time_ns()
         if self.profile == SHARED:
-            proc.node = factory.construct(cls, args, self._context)
+            proc.node = factory.construct(cls, args, self._context, unique_id)
             proc.full_name = proc.node.get_fully_qualified_name()
             proc.executor = SingleThreadedExecutor(context=self._context)
             proc.executor.add_node(proc.node)
@@ -174,7 +174,7 @@ class IsolatedHost:
             ctx = Context()
             rclpy.init(args=[], context=ctx, signal_handler_options=SignalHandlerOptions.NO)
             try:
-                node = factory.construct(cls, args, ctx)
+                node = factory.construct(cls, args, ctx, proc.unique_id)
             except LoadError as exc:
                 proc.error = str(exc)
                 ctx.try_shutdown()
@@ -194,7 +194,7 @@ class IsolatedHost:
                 # must end (else this process outlives its node) and its
                 # SHM segments be unlinked; then the exception ends us (1).
                 executor.shutdown()
-                node.destroy_node()
+                factory.destroy(node)
                 ctx.try_shutdown()
                 ctx.destroy()
         return run
@@ -244,7 +244,7 @@ class IsolatedHost:
             clean = death.exit_code == 0
             if clean and proc.profile == SHARED:
                 proc.executor.shutdown()
-                proc.node.destroy_node()
+                factory.destroy(proc.node)
             self._forget(proc, leak=not clean)
 
     def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
@@ -313,7 +313,7 @@ class IsolatedHost:
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
             proc.executor.shutdown()
-            proc.node.destroy_node()
+            factory.destroy(proc.node)
         self._forget(proc, leak=not clean)
 
 

@@ -1,0 +1,140 @@
+"""The container's intra-process bus: who publishes and subscribes to what.
+
+One bus per container (per interpreter), created by the container before it
+starts any child, so it is container-owned memory every child sees. It holds
+the intra-process subscriptions by topic (with their queues and how to wake
+them) and the DDS gids of the intra-process publishers by topic (so a
+subscription can drop the DDS copy of a message it already got by reference).
+
+Readers (every publish) look entries up without locking: each topic's entry
+is an immutable tuple replaced by one dict store. Writers (create, destroy,
+a node's unload or death) take the bus's robust mutex; a writer that dies
+mid-change leaves either the old tuple or the new one.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+from rclpy.logging import get_logger
+
+from container.isolated.robust import RobustMutex
+
+from .pool import LoanPool
+from .queue import MessageQueue
+
+log = get_logger("cloneguard.intra")
+
+
+@dataclass(eq=False)
+class SubscriptionEntry:
+    owner: object                  # the load's unique_id, or None outside a container
+    node_name: str
+    topic: str
+    msg_type: type
+    reliable: bool                 # asks for RELIABLE: a BEST_EFFORT publisher does not match
+    queue: MessageQueue
+    wake: Callable[[], None]       # triggers the subscription's guard condition
+    loaned_field: str | None = None
+
+    def matches(self, pub: "PublisherEntry") -> bool:
+        return pub.msg_type is self.msg_type and not (self.reliable and pub.best_effort)
+
+
+@dataclass(eq=False)
+class PublisherEntry:
+    owner: object
+    node_name: str
+    topic: str
+    msg_type: type
+    best_effort: bool
+    gid: bytes = field(repr=False, default=b"")
+
+
+class Bus:
+    def __init__(self) -> None:
+        self._mutex = RobustMutex(self._repaired)
+        self._subs: dict[str, tuple[SubscriptionEntry, ...]] = {}
+        self._pubs: dict[str, tuple[PublisherEntry, ...]] = {}
+        self._pub_gids: dict[str, frozenset[bytes]] = {}
+        self.pool = LoanPool()
+        self.repairs = 0
+
+    # -- lock-free reads (every publish, every DDS sample) ---------------------
+
+    def subscriptions(self, topic: str) -> tuple[SubscriptionEntry, ...]:
+        return self._subs.get(topic, ())
+
+    def targets(self, pub: PublisherEntry) -> list[SubscriptionEntry]:
+        return [s for s in self._subs.get(pub.topic, ()) if s.matches(pub)]
+
+    def is_intra_publisher(self, topic: str, gid: bytes) -> bool:
+        return gid in self._pub_gids.get(topic, ())
+
+    # -- changes (robust mutex) --------------------------------------------------
+
+    def add_subscription(self, entry: SubscriptionEntry) -> None:
+        with self._mutex:
+            self._subs[entry.topic] = self._subs.get(entry.topic, ()) + (entry,)
+
+    def add_publisher(self, entry: PublisherEntry) -> None:
+        with self._mutex:
+            self._pubs[entry.topic] = self._pubs.get(entry.topic, ()) + (entry,)
+            self._pub_gids[entry.topic] = self._pub_gids.get(entry.topic, frozenset()) | {entry.gid}
+
+    def remove(self, entry: SubscriptionEntry | PublisherEntry) -> None:
+        with self._mutex:
+            self._drop(lambda e: e is entry, {entry.topic})
+
+    def forget(self, owner: object) -> int:
+        """Remove every endpoint of one loaded node (unloaded, or its process
+        died): publishers stop queueing to its subscriptions and waking them,
+        and its gids stop being filtered. Returns how many were removed."""
+        if owner is None:
+            return 0
+        with self._mutex:
+            return self._drop(lambda e: e.owner == owner, set(self._subs) | set(self._pubs))
+
+    def _drop(self, doomed: Callable[[object], bool], topics: set[str]) -> int:
+        removed = 0
+        for topic in topics:
+            subs = self._subs.get(topic, ())
+            keep = tuple(s for s in subs if not doomed(s))
+            removed += len(subs) - len(keep)
+            self._set(self._subs, topic, keep)
+            pubs = self._pubs.get(topic, ())
+            keep_p = tuple(p for p in pubs if not doomed(p))
+            if len(keep_p) != len(pubs):
+                removed += len(pubs) - len(keep_p)
+                self._set(self._pubs, topic, keep_p)
+                self._set(self._pub_gids, topic, frozenset(p.gid for p in keep_p))
+        return removed
+
+    @staticmethod
+    def _set(table: dict, topic: str, value) -> None:
+        if value:
+            table[topic] = value
+        else:
+            table.pop(topic, None)
+
+    def _repaired(self) -> None:
+        # Every change is one dict store of a whole new tuple: nothing to undo.
+        self.repairs += 1
+        log.warning("intra-process bus: the owner of its lock died holding it (EOWNERDEAD); "
+                    "state is consistent, lock recovered")
+
+
+_bus: Bus | None = None
+_bus_lock = threading.Lock()
+
+
+def get_bus() -> Bus:
+    """The container's bus, created on first use (the container calls this
+    at start, before any child exists)."""
+    global _bus
+    if _bus is None:
+        with _bus_lock:
+            if _bus is None:
+                _bus = Bus()
+    return _bus
