@@ -10,6 +10,7 @@ ffibuilder.cdef("""
     int hammer_run(int ring, uint64_t seed);
     long drain_some(int ring);
     uint64_t hammer_ops_done(int ring);
+    void hammer_burst(uint64_t seed, long pairs);
 """)
 ffibuilder.set_source(
     "faults._hammer",

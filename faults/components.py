@@ -224,3 +224,129 @@ class MallocDrain(Node):
     def _drain(self):
         self._freed += hammer.drain_some(self._ring)
         self._pub.publish(self._msg(data=self._freed))
+
+
+# -- intra-process messaging (container.intra) ------------------------------
+
+class IntraDieMidQueueOp(_FaultNode):
+    """Dies by SIGKILL inside an intra-process queue operation, holding that
+    queue's robust mutex: ``op`` "put" is a publisher on ``topic`` killed
+    after writing a slot and before publishing it; "take" is a subscription
+    on ``topic`` killed after reading its messages and before committing.
+    Until ``delay`` it is a plain (intra-process) publisher at ``period`` or
+    subscription. Load it with ``use_intra_process_comms``."""
+
+    def __init__(self, **kwargs):
+        super().__init__("queue_victim", **kwargs)
+        from std_msgs.msg import String
+
+        from container import intra
+
+        self.op = self.declare_parameter("op", "put").value
+        if self.op not in ("put", "take"):
+            raise ValueError(f"parameter 'op' must be 'put' or 'take', got {self.op!r}")
+        self.fault = f"intra-die-mid-{self.op}"
+        topic = self.declare_parameter("topic", "chatter").value
+        period = self.declare_parameter("period", 0.005).value
+        self._String = String
+        if self.op == "put":
+            self._pub = intra.create_publisher(self, String, topic, 10)
+            self._tick = self.create_timer(period, self._publish)
+        else:
+            self._sub = intra.create_subscription(self, String, topic, lambda msg: None, 10)
+
+    def _publish(self):
+        self._pub.publish(self._String(data="from the victim"))
+
+    def fire(self):
+        from container.intra import queue
+
+        me = os.getpid()
+
+        def die(q):
+            if os.getpid() == me:      # the hook is global: only this node's process
+                ctypes.CDLL(None).kill(me, signal.SIGKILL)
+        setattr(queue, f"mid_{self.op}_hook", die)
+
+
+class PayloadPublisher(Node):
+    """Publishes a ``size``-byte std_msgs/UInt8MultiArray on ``topic`` every
+    ``period`` s, and between messages runs bursts of malloc/free (so its
+    malloc arena lock is held most of the time, wherever a kill lands).
+    ``payload`` "malloc": the message's data is an ordinary array (this
+    process's malloc); "loan": a buffer loaned from the container's pool.
+    Load it with ``use_intra_process_comms``; the harness SIGKILLs it."""
+
+    def __init__(self, **kwargs):
+        super().__init__("payload_pub", **kwargs)
+        import array
+
+        from std_msgs.msg import UInt8MultiArray
+
+        from container import intra
+
+        self._payload = self.declare_parameter("payload", "malloc").value
+        if self._payload not in ("malloc", "loan"):
+            raise ValueError(f"parameter 'payload' must be 'malloc' or 'loan', got {self._payload!r}")
+        self._size = self.declare_parameter("size", 256 * 1024).value
+        period = self.declare_parameter("period", 0.002).value
+        self._burst = self.declare_parameter("burst", 20000).value
+        self._seed = self.declare_parameter("seed", 0).value or 1
+        topic = self.declare_parameter("topic", "payload").value
+        self._array, self._Msg = array.array, UInt8MultiArray
+        self._pattern = bytes(range(256)) * (self._size // 256) + bytes(self._size % 256)
+        self._pub = intra.create_publisher(self, UInt8MultiArray, topic, 10)
+        self._sent = 0
+        self._timer = self.create_timer(period, self._tick)
+
+    def _tick(self):
+        if self._payload == "malloc":
+            data = self._array("B")
+            data.frombytes(self._pattern)          # malloc'd here, in this process
+            self._pub.publish(self._Msg(data=data))
+        else:
+            loan = self._pub.loan(self._size)
+            loan.buffer[:] = self._pattern
+            self._pub.publish_loan(loan, self._Msg(), "data")
+        self._sent += 1
+        if self._sent == 1:
+            announce(f"payload-{self._payload}")
+        hammer.hammer_burst(self._seed + self._sent, self._burst)
+
+
+class PayloadHolder(Node):
+    """Holds every message from ``topic`` for ``hold`` s, then releases it
+    (the last reference: freeing it is up to this process). Publishes the
+    running count of released messages on ``~/released``: it stalls if a
+    release blocks (on a dead publisher's malloc arena lock, say)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("payload_holder", **kwargs)
+        import collections
+        import time
+
+        from std_msgs.msg import UInt8MultiArray, UInt64
+
+        from container import intra
+
+        self._hold_ns = int(self.declare_parameter("hold", 0.05).value * 1e9)
+        loaned = self.declare_parameter("loaned", False).value
+        topic = self.declare_parameter("topic", "payload").value
+        self._now = time.monotonic_ns
+        self._held = collections.deque()
+        self._released = 0
+        self._UInt64 = UInt64
+        self._sub = intra.create_subscription(self, UInt8MultiArray, topic, self._on_message, 50,
+                                              loaned_field="data" if loaned else None)
+        self._pub = self.create_publisher(UInt64, "~/released", 10)
+        self._timer = self.create_timer(0.01, self._release_old)
+
+    def _on_message(self, msg):
+        self._held.append((self._now(), msg))
+
+    def _release_old(self):
+        cutoff = self._now() - self._hold_ns
+        while self._held and self._held[0][0] <= cutoff:
+            self._held.popleft()       # the last reference: the payload is freed here
+            self._released += 1
+        self._pub.publish(self._UInt64(data=self._released))

@@ -77,6 +77,25 @@ int hammer_run(int ring, uint64_t seed)
     }
 }
 
+/* Malloc/free pairs of 2..64 KiB, for a bounded count: a publisher calls
+ * it between messages so that its arena lock is held most of the time,
+ * wherever a SIGKILL lands. The sizes are chosen for that: above glibc's
+ * per-thread cache (which frees without the lock), below its mmap
+ * threshold (which bypasses the arena). */
+void hammer_burst(uint64_t seed, long pairs)
+{
+    uint64_t s = seed ? seed : 0x9e3779b97f4a7c15ull;
+    for (long i = 0; i < pairs; i++) {
+        size_t n = 2048 + (size_t)(xorshift(&s) % (62 * 1024));
+        unsigned char *p = malloc(n);
+        if (p) {
+            p[0] = (unsigned char)n;
+            p[n - 1] = (unsigned char)(n >> 8);
+            free(p);
+        }
+    }
+}
+
 /* Free what the ring holds; returns how many blocks. */
 long drain_some(int ring)
 {

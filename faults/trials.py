@@ -100,3 +100,115 @@ class MallocKill:
             self.rig.restart()
             self._start_drain()
 
+
+
+# -- intra-process messaging -----------------------------------------------------
+
+INTRA = {"use_intra_process_comms": True}
+_QUEUE_REPAIRED = re.compile(r"intra-process queue of (\S+) for (\S+): the owner of its lock died")
+
+
+class IntraQueueDeath:
+    """A listener receiving from a steady talker by reference (both
+    intra-process, topic ``/intra_chatter``); each trial loads a third node on
+    the same topic that dies by SIGKILL inside a queue operation, holding a
+    queue's robust mutex (``op`` "put": a publisher, in the listener's queue;
+    "take": a subscription, in its own). Survived: the listener keeps
+    receiving, the container goes on, and for "put" the listener's queue was
+    repaired (EOWNERDEAD) exactly once."""
+
+    TOPIC = "/intra_chatter"
+
+    def __init__(self, rig: Rig, op: str):
+        self.rig, self.op = rig, op
+        self._start_pair()
+
+    def _start_pair(self) -> None:
+        client = self.rig.client
+        client.load_ok("cloneguard", "cloneguard::Listener", node_name="intra_listener",
+                       parameters={"topic": self.TOPIC}, extra_arguments=INTRA)
+        client.load_ok("cloneguard", "cloneguard::Talker", node_name="intra_talker",
+                       parameters={"topic": self.TOPIC, "period": 0.005}, extra_arguments=INTRA)
+        self.received = client.subscribe(UInt64, "/intra_listener/received")
+        self.received.wait_count(5, timeout=10)
+
+    def _repairs(self) -> int:
+        return sum(1 for m in _QUEUE_REPAIRED.finditer(self.rig.proc.log_text())
+                   if m.group(2) == "/intra_listener")
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig = self.rig
+        before = self._repairs()
+        resp = rig.client.load_ok("cloneguard", "faults::IntraDieMidQueueOp", node_name=f"queue_victim{index}",
+                                  parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05,
+                                              "jitter": 0.1, "seed": seed},
+                                  extra_arguments=INTRA)
+        pid = rig.loaded_pid(resp.unique_id)
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
+        if out.outcome != "survived":
+            return out
+        seen = len(self.received)
+        try:
+            self.received.wait_count(seen + 5, timeout=5)
+        except AssertionError as exc:
+            return rig.not_survived(f"the listener stopped receiving: {exc}", out)
+        repairs = self._repairs() - before
+        out.details["listener_queue_repairs"] = repairs
+        if self.op == "put" and repairs != 1:
+            out.outcome, out.details["why"] = "failed", f"{repairs} repairs of the listener's queue, expected 1"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if out.outcome != "survived":
+            self.rig.restart()
+            self._start_pair()
+
+
+class PayloadKill:
+    """A holder node keeps every message on ``/payload`` for 50 ms, then
+    drops it (the last reference); each trial loads a publisher of 256 KiB
+    messages that also churns malloc between them, and SIGKILLs it 0-20 ms
+    after its first message. ``payload`` "malloc": the bytes are the dead
+    publisher's malloc'd memory, freed by the holder; "loan": they are a
+    block of the container's pool. Survived: the holder releases what it held
+    and goes on, and so does the container."""
+
+    def __init__(self, rig: Rig, payload: str):
+        self.rig, self.payload = rig, payload
+        self._start_holder()
+
+    def _start_holder(self) -> None:
+        self.rig.client.load_ok("cloneguard", "faults::PayloadHolder",
+                                parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA)
+        self.released = self.rig.client.subscribe(UInt64, "/payload_holder/released")
+        self.released.wait_count(3, timeout=10)
+
+    def _released_total(self) -> int:
+        msgs = self.released.messages()
+        return msgs[-1].data if msgs else 0
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig, rng = self.rig, random.Random(seed)
+        before = self._released_total()
+        resp = rig.client.load_ok("cloneguard", "faults::PayloadPublisher", node_name=f"payload_pub{index}",
+                                  parameters={"payload": self.payload, "seed": seed}, extra_arguments=INTRA)
+        pid = rig.loaded_pid(resp.unique_id)
+        rig.wait_firing(pid)
+        sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.02))
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+        if out.outcome != "survived":
+            return out
+        seen = len(self.released)
+        try:
+            self.released.wait_count(seen + 3, timeout=5)
+        except AssertionError as exc:
+            return rig.not_survived(f"the holder stopped releasing: {exc}", out)
+        out.details["released"] = self._released_total() - before
+        if out.details["released"] == 0:
+            out.outcome, out.details["why"] = "failed", "the holder never got a message from the publisher"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if out.outcome != "survived":
+            self.rig.restart()
+            self._start_holder()
