@@ -112,3 +112,17 @@ def test_a_dead_subscriber_is_forgotten_and_the_publisher_goes_on(client):
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=lis_id)
     _, by_ref2 = _load_listener(client, "/intra_e", name="lis2")
     by_ref2.wait_for(lambda m: m.data >= 5, timeout=10)
+
+
+@pytest.mark.parametrize("container_args", PER_NODE)
+def test_a_dead_publisher_leaves_the_subscriber_receiving_from_the_next(client):
+    _, by_ref = _load_listener(client, "/intra_f")
+    tlk_id = _load_talker(client, "/intra_f", limit=0).unique_id
+    by_ref.wait_for(lambda m: m.data >= 5, timeout=10)
+    pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=tlk_id).pid
+    os.kill(pid, signal.SIGKILL)
+    client.wait_for_event(ComponentEvent.CRASHED, unique_id=tlk_id)
+    seen = _values(by_ref)[-1]
+    client.load_ok(PKG, "cloneguard::Talker", node_name="tlk2", parameters={"topic": "/intra_f", "period": 0.01},
+                   extra_arguments=INTRA)
+    by_ref.wait_for(lambda m: m.data >= seen + 5, timeout=10)
