@@ -100,14 +100,20 @@ class _Leftovers:
             found.append(f"zombie children of the harness: {zombies}")
         # A segment that appeared during the test, that one of our containers
         # was seen to map, and whose owner is gone (its lock file can be
-        # locked) was left by a process the test stopped: reported and
-        # removed. Anything else (in use, or never ours) is left alone.
+        # locked), or a port with no lock file that no live process maps, was
+        # left by a process the test stopped: reported and removed. Every
+        # container of the test has been stopped by now (a process left in
+        # its group is reported above), so none of ours can still be opening
+        # one. Anything else (in use, or never ours) is left alone. A test
+        # that kills a container while another lives stops that one before
+        # cleaning up after the death itself.
         new_segments = shm.segments() - self.shm_before
         ours = set().union(*(p.shm_seen for f in self.factories for p in f.started))
         if new_segments and ours:
             orphans = shm.remove_orphans_of(new_segments, ours)
             if orphans:
-                found.append(f"orphaned /dev/shm segments (now removed): {[seg.name for seg in orphans]}")
+                names = [seg.name + (" (lock-less port)" if seg.lockless else "") for seg in orphans]
+                found.append(f"orphaned /dev/shm segments (now removed): {names}")
         return found
 
 
