@@ -149,6 +149,17 @@ class Rig:
             return self.not_survived(stopped, out)
         return out
 
+    def keeps_flowing(self, rec, what: str, out: Outcome, more: int = 3, timeout: float = 5.0) -> Outcome:
+        """After a death judged ``out``: ``out`` if ``rec`` (a sibling's
+        progress topic) gets ``more`` messages within ``timeout``, else the
+        not-survived outcome saying that ``what`` stopped."""
+        seen = len(rec)
+        try:
+            rec.wait_count(seen + more, timeout=timeout)
+        except HarnessTimeout as exc:
+            return self.not_survived(f"{what} stopped: {exc}", out)
+        return out
+
     def not_survived(self, why: str, out: Outcome | None = None) -> Outcome:
         out = out or Outcome("hung")
         out.details["why"] = why
