@@ -329,8 +329,14 @@ def locked_by(pids: set[int], shm_dir: Path | str | None = None) -> set[str]:
     return found
 
 
+def belonging_to(names: set[str], owners: set[str]) -> set[str]:
+    """The files among ``names`` of the segments in ``owners`` (segment names
+    a process of ours was seen to map)."""
+    return {n for n in names if _base(n) in owners}
+
+
 def remove_orphans_of(names: set[str], owners: set[str],
                       shm_dir: Path | str | None = None) -> list[Segment]:
-    """Like :func:`remove_orphans`, limited to segments in ``owners`` (segment
-    names a process of ours was seen to map): never anyone else's orphans."""
-    return remove_orphans({n for n in names if _base(n) in owners}, shm_dir)
+    """Like :func:`remove_orphans`, limited to segments in ``owners``:
+    never anyone else's orphans."""
+    return remove_orphans(belonging_to(names, owners), shm_dir)
