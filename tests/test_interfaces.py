@@ -28,12 +28,8 @@ except ImportError as exc:  # pragma: no cover - message for a missing build
         f"{exc}: the interface packages are not installed in this venv; "
         "run `python scripts/build_interfaces.py` first") from exc
 
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.type_support import check_for_type_support
-
-from harness.domains import lease
+from ros_support import ros_nodes
 
 # Upstream ROS 2 Jazzy type hashes of composition_interfaces.  Read from the
 # generated type descriptions (share/composition_interfaces/srv/*.json,
@@ -254,22 +250,11 @@ def test_component_event_hash_consistent():
 
 # --- through rclpy and Fast DDS -------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def ros():
-    # The harness plugin has already pointed Fast DDS at the loopback-only profile.
-    held = lease()
-    context = Context()
-    rclpy.init(context=context, domain_id=held.domain_id)
-    node = rclpy.create_node("cloneguard_interfaces_test", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
+    with ros_nodes("cloneguard_interfaces_test") as ((node,), executor):
         yield node, executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-        held.release()
 
 
 def _endpoints(node, topic):

@@ -9,38 +9,22 @@ import time
 
 import pytest
 import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ros_support import ros_nodes
 from std_msgs.msg import String, UInt8MultiArray
 
 from container import intra
 from container.intra.api import LoanedMessage
-from harness.domains import lease
 
 
 @pytest.fixture
 def ros():
-    held = lease()
-    context = Context()
-    rclpy.init(context=context, domain_id=held.domain_id)
-    nodes = [rclpy.create_node(name, context=context) for name in ("pub_node", "sub_node")]
-    executor = SingleThreadedExecutor(context=context)
-    for n in nodes:
-        executor.add_node(n)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with ros_nodes("pub_node", "sub_node") as (nodes, executor):
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
         yield nodes
-    finally:
-        for n in nodes:
-            intra.api.destroy_endpoints(n)
         executor.shutdown()
         spinner.join(5)
-        for n in nodes:
-            n.destroy_node()
-        rclpy.shutdown(context=context)
-        held.release()
 
 
 class Inbox:

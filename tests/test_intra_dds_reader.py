@@ -11,17 +11,12 @@ import time
 from collections import Counter
 
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
 from container.intra.dds_reader import GID_SIZE, GidFilteredReader, publisher_gid
-from harness.domains import lease
 
 # Reliable and keeping everything: a test that counts messages must not lose
 # any to history depth.
@@ -29,25 +24,13 @@ QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.R
                  durability=DurabilityPolicy.VOLATILE)
 DEADLINE = 20.0  # seconds any single condition may take
 
+from ros_support import ros_nodes
+
 
 @pytest.fixture(scope="module")
 def ros():
-    held = lease()
-    context = Context()
-    rclpy.init(context=context, domain_id=held.domain_id)
-    pub_node = rclpy.create_node("dds_reader_test_pub", context=context)
-    sub_node = rclpy.create_node("dds_reader_test_sub", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(pub_node)
-    executor.add_node(sub_node)
-    try:
+    with ros_nodes("dds_reader_test_pub", "dds_reader_test_sub") as ((pub_node, sub_node), executor):
         yield pub_node, sub_node, executor
-    finally:
-        executor.shutdown()
-        sub_node.destroy_node()
-        pub_node.destroy_node()
-        rclpy.shutdown(context=context)
-        held.release()
 
 
 def spin_until(executor, condition, timeout=DEADLINE) -> bool:
