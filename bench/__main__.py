@@ -16,7 +16,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from . import child_start, common, crash_latency, load_latency, memory, shutdown
+from . import child_start, common, crash_latency, intra, load_latency, memory, shutdown
 
 BENCHMARKS = {
     "child_start": child_start,
@@ -24,6 +24,7 @@ BENCHMARKS = {
     "crash_latency": crash_latency,
     "load_latency": load_latency,
     "shutdown": shutdown,
+    "intra": intra,
 }
 PRESETS = {
     "default": {
@@ -32,6 +33,7 @@ PRESETS = {
         "crash_latency": {"n": 20, "n_monitor": 30},
         "load_latency": {"n": 15},
         "shutdown": {"reps": 2, "counts": [1, 5, 20]},
+        "intra": {"sizes": ["1KiB", "64KiB", "1MiB", "16MiB"], "count": 100},
     },
     "tiny": {
         "child_start": {"n": 2, "n_raw": 2},
@@ -39,6 +41,8 @@ PRESETS = {
         "crash_latency": {"n": 2, "n_monitor": 2, "settle": 0.02},
         "load_latency": {"n": 2, "modes": ["isolated-per-node", "thread"]},
         "shutdown": {"reps": 1, "counts": [1, 2], "settle": 0.1, "modes": ["isolated-per-node", "thread"]},
+        "intra": {"sizes": ["1KiB", "1MiB"], "count": 2, "warmup": 1, "burst": 5, "burst_seconds": 0.5,
+                  "settle": 0.2},
     },
 }
 

@@ -44,9 +44,17 @@ EXPECTED_TABLES = {
          "→ process group empty: median", "exit codes", "timed out / forced", "children SIGKILLed after 500 ms",
          "vs goal (≤ 1 s with 20 isolated nodes)"],
     ],
+    "intra": [
+        ["size", "transport", "n", "latency: median", "latency: p90", "latency: max", "period (ms)",
+         "latency > period", "burst: received / sent", "burst: msgs/s", "burst: MiB/s",
+         "burst: source's publish rate (msgs/s)", "lost", "KEEP_LAST dropped", "publish() call: median",
+         "build (not in latency): median", "sent over DDS (source)"],
+        ["ratio", "numerator", "denominator", "measured", "goal", "verdict"],
+    ],
 }
 # Rows of the first table: one per mode (or profile × signal, or measure).
-EXPECTED_ROWS = {"child_start": 8, "memory": 3, "crash_latency": 4, "load_latency": 2, "shutdown": 5}
+EXPECTED_ROWS = {"child_start": 8, "memory": 3, "crash_latency": 4, "load_latency": 2, "shutdown": 5,
+                 "intra": 6}
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,399 @@
+"""Intra-process delivery vs DDS: latency and throughput from 1 KiB to 16 MiB.
+
+    python -m bench.intra                               # 1 KiB, 64 KiB, 1 MiB, 16 MiB
+    python -m bench.intra --sizes 1KiB 16MiB --count 200
+    python -m bench.intra --transports intra-loan dds
+
+One isolated container (``--isolated --profile per-node``: every node in its
+own clone child, on its own DDS participant). For every size and transport a
+fresh pair of nodes is loaded into it, a bench::PayloadSink and a
+bench::PayloadSource (bench/components.py), on a topic of their own; the
+pair runs its phases and reports, then both are unloaded. Transports:
+
+* intra-plain: both loaded with ``use_intra_process_comms``; the source
+  publishes an ordinary message (a fresh array.array each time), the sink's
+  callback gets that same object.
+* intra-loan: the same, but the source fills a ``pub.loan(size)`` and
+  publishes it with ``publish_loan``; the sink (``loaned_field="data"``) gets
+  a read-only view of the loaned block.
+* dds: both loaded without it: the plain rclpy path, serialized through Fast
+  DDS over the harness's UDP-on-loopback profile (fixtures/fastdds_no_shm.xml).
+
+Latency: the source stamps each message with CLOCK_MONOTONIC just before
+publish (after building it), the sink subtracts it from CLOCK_MONOTONIC at
+the start of its callback; one message per period, so they do not queue
+(the table counts any latency longer than the period). Throughput: a burst
+of messages published back to back (each still built anew), from the first
+one's stamp to the last one's arrival at the sink.
+
+Goals (from the issue): intra 16 MiB median latency ≤ 2× intra 1 KiB, and
+intra ≥ 50× faster than DDS at 16 MiB (ratio of median latencies).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+from contextlib import contextmanager
+
+from . import common
+from .common import Goal, Result, Session, Table, fmt_ms, fmt_ratio, ratio, stats
+
+NAME = "intra"
+TITLE = "Intra-process delivery vs DDS: latency and throughput, 1 KiB … 16 MiB"
+SOURCE = "bench::PayloadSource"
+SINK = "bench::PayloadSink"
+MODE = "isolated-per-node"
+MIB = 1 << 20
+
+# key -> (label, use_intra_process_comms, source payload, sink loaned_field="data")
+TRANSPORTS = {
+    "intra-plain": ("intra-process, plain message", True, "plain", False),
+    "intra-loan": ("intra-process, loaned buffer", True, "loan", True),
+    "dds": ("DDS (UDP loopback profile)", False, "plain", False),
+}
+DEFAULT_SIZES = ["1KiB", "64KiB", "1MiB", "16MiB"]
+LARGE = MIB                 # from this size on: the large period; above it over DDS: its own period and count
+LATENCY_GOAL_RATIO = 2.0    # intra: 16 MiB median ≤ 2× 1 KiB median
+DDS_GOAL_RATIO = 50.0       # DDS median ≥ 50× intra median at 16 MiB
+GOAL_SMALL, GOAL_LARGE = 1024, 16 * MIB
+
+
+def parse_size(text: str | int) -> int:
+    """"1KiB", "64KiB", "16MiB", "4096" -> bytes."""
+    if isinstance(text, int):
+        return text
+    m = re.fullmatch(r"\s*(\d+)\s*(B|KiB|MiB|GiB)?\s*", str(text), re.IGNORECASE)
+    if not m:
+        raise ValueError(f"not a size: {text!r} (say 1KiB, 64KiB, 16MiB or a byte count)")
+    unit = (m.group(2) or "B").lower()
+    return int(m.group(1)) << {"b": 0, "kib": 10, "mib": 20, "gib": 30}[unit]
+
+
+def size_name(n: int) -> str:
+    for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
+        if n >= 1 << shift and n % (1 << shift) == 0:
+            return f"{n >> shift} {unit}"
+    return f"{n} B"
+
+
+@contextmanager
+def _bench_importable():
+    """The containers must import bench.components: the editable install maps
+    only container/, harness/ and faults/, so put the repository on their path."""
+    old = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(common.REPO_ROOT)] + ([old] if old else []))
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = old
+
+
+def plan(size: int, transport: str, p: dict) -> dict:
+    """What one pair runs: counts, period, burst, QoS depth, timeouts."""
+    dds = not TRANSPORTS[transport][1]
+    huge_dds = dds and size > LARGE
+    count = min(p["count"], p["dds_large_count"]) if huge_dds else p["count"]
+    period = p["dds_large_period"] if huge_dds else p["large_period"] if size >= LARGE else p["period"]
+    burst = max(2, min(p["burst"], p["burst_bytes"] // size))
+    depth = p["warmup"] + count + burst + 2        # every message fits: KEEP_LAST never has to drop
+    duration = p["settle"] + (p["warmup"] + count) * period + max(period, 0.2) + p["burst_seconds"]
+    return {"size": size, "transport": transport, "count": count, "period": float(period), "burst": burst,
+            "depth": depth, "warmup": p["warmup"], "match_timeout": 30.0,
+            "sink_timeout": 30.0 + duration + 60.0, "wait": 30.0 + duration + 75.0}
+
+
+def run_pair(running: common.Running, index: int, pl: dict, p: dict) -> dict:
+    """Load a sink and a source, wait for both reports, unload them."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    stats_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    _, intra_on, payload, loaned = TRANSPORTS[pl["transport"]]
+    cli = running.client
+    topic = f"/bench_intra/payload_{index}"
+    src_name, sink_name = f"bench_src_{index}", f"bench_sink_{index}"
+    rec = {name: cli.subscribe(String, f"/{name}/stats", stats_qos) for name in (src_name, sink_name)}
+    extra = {"use_intra_process_comms": True} if intra_on else {}
+    out = {"plan": pl, "error": "", "source": None, "sink": None}
+    loaded = []
+    try:
+        for plugin, name, params in (
+            (SINK, sink_name, {"topic": topic, "loaned": loaned, "depth": pl["depth"],
+                               "timeout": float(pl["sink_timeout"])}),
+            (SOURCE, src_name, {"topic": topic, "size": pl["size"], "payload": payload, "count": pl["count"],
+                                "period": pl["period"], "warmup": pl["warmup"], "burst": pl["burst"],
+                                "burst_seconds": float(p["burst_seconds"]), "depth": pl["depth"],
+                                "settle": float(p["settle"]), "match_timeout": pl["match_timeout"]}),
+        ):
+            resp = cli.load(common.PACKAGE, plugin, node_name=name, parameters=params,
+                            extra_arguments=extra, timeout=30.0)
+            if not resp.success:
+                raise RuntimeError(f"LoadNode {plugin} failed: {resp.error_message}")
+            loaded.append(resp.unique_id)
+        for role, name in (("source", src_name), ("sink", sink_name)):
+            msg = rec[name].wait_for(lambda m: True, pl["wait"], f"{role} report")
+            out[role] = json.loads(msg.data)
+        if out["source"]["error"]:
+            out["error"] = "source: " + out["source"]["error"]
+        elif not out["sink"]["complete"]:
+            out["error"] = "sink: no end message within its timeout"
+    except Exception as exc:     # this pair failed; the others still run
+        out["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    finally:
+        for uid in reversed(loaded):
+            try:
+                resp = cli.unload(uid, timeout=30.0)
+                if not resp.success:
+                    out["error"] += f" (UnloadNode {uid}: {resp.error_message})"
+            except Exception as exc:
+                out["error"] += f" (UnloadNode {uid}: {type(exc).__name__})"
+    if not running.proc.alive():
+        out["error"] += " (the container exited)"
+    return out
+
+
+def measure(session: Session, sizes: list[int], transports: list[str], p: dict) -> dict:
+    with _bench_importable():
+        running = session.start(MODE)
+    data = {}
+    index = 0
+    try:
+        for size in sizes:                   # transports in turn at each size
+            for transport in transports:
+                index += 1
+                data[(size, transport)] = run_pair(running, index, plan(size, transport, p), p)
+                if not running.proc.alive():
+                    raise RuntimeError("the container exited:\n" + common.log_tail(running.proc.log_text()))
+    finally:
+        session.stop(running)
+    return data
+
+
+def summarize(d: dict) -> dict:
+    """Figures of one pair from its two reports."""
+    pl, src, sink = d["plan"], d["source"] or {}, d["sink"] or {}
+    lat = stats([v / 1e3 for v in sink.get("latency_us", [])])          # ms
+    sent, got = src.get("sent", {}), sink.get("received", {})
+    first, last = sink.get("burst_first_stamp_ns"), sink.get("burst_last_ns")
+    burst_n = got.get("burst", 0)
+    dur = (last - first) / 1e9 if first is not None and last is not None and last > first else None
+    msgs_s = burst_n / dur if dur else None
+    lost = sum(max(0, sent.get(k, 0) - got.get(k, 0)) for k in ("warmup", "latency", "burst", "end"))
+    return {
+        "latency": lat,
+        "over_period": sum(1 for v in sink.get("latency_us", []) if v / 1e6 > pl["period"]),
+        "burst_sent": sent.get("burst", 0), "burst_received": burst_n, "burst_s": dur,
+        "msgs_s": msgs_s, "mib_s": msgs_s * pl["size"] / MIB if msgs_s else None,
+        "published_msgs_s": (sent.get("burst", 0) / (src["burst_publish_ns"] / 1e9)
+                             if src.get("burst_publish_ns") else None),
+        "lost": lost if d["source"] and d["sink"] else None,
+        "dropped": sink.get("queue_dropped"),
+        "publish": stats([v / 1e6 for v in src.get("publish_ns", [])]),
+        "build": stats([v / 1e6 for v in src.get("build_ns", [])]),
+        "sent_dds": src.get("sent_dds"), "received_dds": sink.get("received_dds"),
+        "received_intra": sink.get("received_intra"), "by_loan": sink.get("by_loan"),
+        "sizes": sink.get("sizes"),
+    }
+
+
+def _fmt(x: float | None, digits: str = ".0f") -> str:
+    return "–" if x is None else format(x, digits)
+
+
+def goal_ratio_at_most(goal: str, measure: str, value: float | None, limit: float, judged: bool) -> Goal:
+    if value is None:
+        return Goal(goal, measure, "–", None, "not measured")
+    if not judged:
+        return Goal(goal, measure, fmt_ratio(value), None, "not judged (the goal is 16 MiB vs 1 KiB)")
+    if value <= limit:
+        return Goal(goal, measure, fmt_ratio(value), True, f"met ({fmt_ratio(value)})")
+    return Goal(goal, measure, fmt_ratio(value), False,
+                f"missed: {fmt_ratio(value)} against ≤ {fmt_ratio(limit)} ({value / limit:.1f}× over)")
+
+
+def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
+        transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS), count: int = 100, warmup: int = 5,
+        period: float = 0.02, large_period: float = 0.1, dds_large_period: float = 0.5, dds_large_count: int = 20,
+        burst: int = 1000, burst_bytes: int = 256 * MIB, burst_seconds: float = 3.0, settle: float = 0.5,
+        out=common.DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+    sizes_b = [parse_size(s) for s in sizes]
+    p = {"count": count, "warmup": warmup, "period": period, "large_period": large_period,
+         "dds_large_period": dds_large_period, "dds_large_count": dds_large_count, "burst": burst,
+         "burst_bytes": burst_bytes, "burst_seconds": burst_seconds, "settle": settle}
+    args = {"sizes": [str(s) for s in sizes], "transports": list(transports), **p}
+    session = Session(NAME, keep_logs=keep_logs)
+    try:
+        data = measure(session, sizes_b, list(transports), p)
+    finally:
+        problems = session.close()
+    fig = {key: summarize(d) for key, d in data.items()}
+
+    table = Table("Per size and transport (one isolated per-node container; latency in ms)", [
+        "size", "transport", "n", "latency: median", "latency: p90", "latency: max", "period (ms)",
+        "latency > period", "burst: received / sent", "burst: msgs/s", "burst: MiB/s",
+        "burst: source's publish rate (msgs/s)", "lost", "KEEP_LAST dropped",
+        "publish() call: median", "build (not in latency): median", "sent over DDS (source)"])
+    for size in sizes_b:
+        for t in transports:
+            d, f = data[(size, t)], fig[(size, t)]
+            lat = f["latency"]
+            if d["error"]:
+                table.add(size_name(size), TRANSPORTS[t][0], lat["n"], "failed: " + d["error"], *["–"] * 13)
+                continue
+            table.add(size_name(size), TRANSPORTS[t][0], lat["n"], fmt_ms(lat["median"]), fmt_ms(lat["p90"]),
+                      fmt_ms(lat["max"]), fmt_ms(d["plan"]["period"] * 1e3), f["over_period"],
+                      f"{f['burst_received']} / {f['burst_sent']}", _fmt(f["msgs_s"]), _fmt(f["mib_s"]),
+                      _fmt(f["published_msgs_s"]), _fmt(f["lost"], "d"),
+                      "–" if f["dropped"] is None else f["dropped"],
+                      fmt_ms(f["publish"]["median"]), fmt_ms(f["build"]["median"]), _fmt(f["sent_dds"], "d"))
+
+    small, large = min(sizes_b), max(sizes_b)
+    judged = small == GOAL_SMALL and large == GOAL_LARGE
+    intra_ts = [t for t in transports if TRANSPORTS[t][1]]
+
+    def med(size, t):
+        if (size, t) not in fig or data[(size, t)]["error"]:
+            return None
+        return fig[(size, t)]["latency"]["median"]
+
+    ratios = Table("Ratios (of medians, this run)", ["ratio", "numerator", "denominator", "measured", "goal",
+                                                     "verdict"])
+    goals = []
+    size_goal = {}
+    for t in intra_ts:
+        r = ratio(med(large, t), med(small, t))
+        g = goal_ratio_at_most(f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the "
+                               f"{size_name(GOAL_SMALL)} median",
+                               f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
+                               r, LATENCY_GOAL_RATIO, judged)
+        goals.append(g)
+        size_goal[t] = g
+        ratios.add(f"{TRANSPORTS[t][0]}: {size_name(large)} ÷ {size_name(small)} latency",
+                   f"{fmt_ms(med(large, t))} ms", f"{fmt_ms(med(small, t))} ms", fmt_ratio(r),
+                   f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)}", g.verdict)
+    dds_goal = {}
+    if "dds" in transports:
+        for t in intra_ts:
+            r = ratio(med(large, "dds"), med(large, t))
+            if r is None:
+                g = Goal(f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+                         f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}", "–", None, "not measured")
+            elif large != GOAL_LARGE:
+                g = Goal(f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+                         f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}", fmt_ratio(r), None,
+                         f"not judged (the goal is at {size_name(GOAL_LARGE)})")
+            else:
+                g = common.goal_at_least_ratio(
+                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)", r, DDS_GOAL_RATIO)
+                if g.met:
+                    g.verdict = f"met ({fmt_ratio(r)})"
+            goals.append(g)
+            dds_goal[t] = g
+            ratios.add(f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}, latency",
+                       f"{fmt_ms(med(large, 'dds'))} ms", f"{fmt_ms(med(large, t))} ms", fmt_ratio(r),
+                       f"≥ {fmt_ratio(DDS_GOAL_RATIO)}", g.verdict)
+        for t in intra_ts:
+            a, b = fig.get((large, t), {}).get("mib_s"), fig.get((large, "dds"), {}).get("mib_s")
+            ratios.add(f"{TRANSPORTS[t][0]} ÷ DDS at {size_name(large)}, burst throughput",
+                       f"{_fmt(a)} MiB/s", f"{_fmt(b)} MiB/s", fmt_ratio(ratio(a, b)), "(reference)", "")
+
+    summary = []
+    for t in transports:
+        for size in sorted({small, large}):
+            f = fig[(size, t)]
+            goal, verdict = "", ""
+            if size == large and t in size_goal:
+                goal = f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the {size_name(small)} median"
+                verdict = size_goal[t].verdict
+            if size == large and t == "dds" and dds_goal:
+                goal = f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster"
+                verdict = "; ".join(f"{'loan' if TRANSPORTS[i][3] else 'plain'}: {g.verdict}"
+                                    for i, g in dds_goal.items())
+            if data[(size, t)]["error"]:
+                verdict = "failed: " + data[(size, t)]["error"]
+            summary.append(common.summary_row("intra-process", f"publish → callback latency, {size_name(size)}",
+                                              f"isolated per-node, {TRANSPORTS[t][0]}", f["latency"],
+                                              goal=goal, verdict=verdict))
+        f = fig[(large, t)]
+        summary.append(common.summary_row(
+            "intra-process", f"burst throughput, {size_name(large)}", f"isolated per-node, {TRANSPORTS[t][0]}",
+            {"n": f["burst_received"]}, median=f"{_fmt(f['msgs_s'])} msgs/s = {_fmt(f['mib_s'])} MiB/s",
+            p90=""))
+
+    dds_large = [size_name(s) for s in sizes_b if s > LARGE]
+    notes = [
+        "One container, `component_container --isolated --profile per-node`, launched as the harness does "
+        "(no-SHM Fast DDS profile: UDPv4 on loopback only, Fast DDS's own intraprocess delivery off). Every "
+        "pair (a bench::PayloadSink loaded first, then a bench::PayloadSource) runs in two clone children, "
+        "each on a DDS participant of its own, and is unloaded before the next; sizes in turn, and at each "
+        "size the transports in turn.",
+        "Latency: CLOCK_MONOTONIC stamped by the source into the first 8 bytes right before publish() / "
+        "publish_loan() (the message already built: a fresh array.array copied from a pattern, or a fresh "
+        "loan filled with it), read by the sink first thing in its callback. Intra-process delivery does "
+        "not read the payload (the sink gets the publisher's object, or a view of its loaned block); DDS "
+        "serializes, sends, reassembles and deserializes all of it.",
+        f"Warm-up: {warmup} messages before the latency phase (not counted), after a subscriber matched and "
+        f"{settle} s more. Period: {period * 1e3:g} ms below {size_name(LARGE)}, {large_period * 1e3:g} ms "
+        f"from {size_name(LARGE)} on, except over DDS above {size_name(LARGE)}: {dds_large_period * 1e3:g} ms. "
+        "'latency > period' counts messages that took longer than the period (they could have queued "
+        "behind each other).",
+        (f"Over DDS, sizes above {size_name(LARGE)} ({', '.join(dds_large)}) send only "
+         f"{min(count, dds_large_count)} latency messages (n column), not {count}, "
+         f"{dds_large_period * 1e3:g} ms apart, to keep the run short." if dds_large and "dds" in transports else
+         f"Over DDS, sizes above {size_name(LARGE)} would send at most {dds_large_count} latency messages."),
+        f"Throughput: a burst of up to {burst} messages back to back (at most {burst_bytes // MIB} MiB per "
+        f"burst, at least 2 messages, stopped after {burst_seconds} s), each built anew; msgs/s = received ÷ "
+        "(last arrival at the sink − first message's publish stamp). It includes building each message "
+        "(a copy of the payload into fresh memory) and, in isolated mode, both nodes take turns on the one "
+        "GIL they share. 'source's publish rate' is the source's own rate over the burst (first "
+        "stamp → its last publish returned): when it is close to msgs/s, the publisher is the bound.",
+        "QoS on both ends: RELIABLE, VOLATILE, KEEP_LAST with a depth of every message the pair sends, so "
+        "KEEP_LAST never needs to drop; 'lost' = sent − received over all phases, 'KEEP_LAST dropped' = the "
+        "intra-process queue's drop counter.",
+        "'sent over DDS (source)' is the intra publisher's own DDS publish count: 0 means intra-process "
+        "delivery never touched DDS (no subscriber outside the container).",
+    ]
+    result = Result(NAME, TITLE, common.command_line(NAME, args), {**args, "out": str(out)}, [table, ratios],
+                    goals, notes, summary,
+                    {"pairs": [{"size": s, "transport": t, **d, "figures": fig[(s, t)]}
+                               for (s, t), d in data.items()]}, problems)
+    common.finish(result, out, quiet=quiet)
+    failed = [f"{size_name(s)} {t}: {d['error']}" for (s, t), d in data.items() if d["error"]]
+    if failed:      # the report is written (with the failures in it); the run still failed
+        raise RuntimeError(f"{len(failed)} of {len(data)} pairs failed: " + "; ".join(failed))
+    return result
+
+
+def main(argv=None) -> int:
+    parser = common.arg_parser(NAME, TITLE)
+    parser.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="payload sizes (default: %(default)s)")
+    parser.add_argument("--transports", nargs="+", choices=list(TRANSPORTS), default=list(TRANSPORTS))
+    parser.add_argument("--count", type=int, default=100, help="latency messages per pair (default: %(default)s)")
+    parser.add_argument("--warmup", type=int, default=5)
+    parser.add_argument("--period", type=float, default=0.02, help="s between latency messages below 1 MiB")
+    parser.add_argument("--large-period", type=float, default=0.1, help="s, from 1 MiB on (DDS: only at 1 MiB)")
+    parser.add_argument("--dds-large-period", type=float, default=0.5, help="s, DDS, above 1 MiB")
+    parser.add_argument("--dds-large-count", type=int, default=20, help="latency messages over DDS above 1 MiB")
+    parser.add_argument("--burst", type=int, default=1000, help="messages in the throughput burst (at most)")
+    parser.add_argument("--burst-bytes", type=int, default=256 * MIB, help="bytes per burst (at most)")
+    parser.add_argument("--burst-seconds", type=float, default=3.0)
+    parser.add_argument("--settle", type=float, default=0.5, help="s after a subscriber matched")
+    opts = parser.parse_args(argv)
+    for s in opts.sizes:
+        parse_size(s)
+    result = run(sizes=opts.sizes, transports=opts.transports, count=opts.count, warmup=opts.warmup,
+                 period=opts.period, large_period=opts.large_period, dds_large_period=opts.dds_large_period,
+                 dds_large_count=opts.dds_large_count, burst=opts.burst, burst_bytes=opts.burst_bytes,
+                 burst_seconds=opts.burst_seconds, settle=opts.settle, out=opts.out, keep_logs=opts.keep_logs)
+    return 1 if result.cleanup else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
