@@ -32,10 +32,8 @@ intra ≥ 50× faster than DDS at 16 MiB (ratio of median latencies).
 from __future__ import annotations
 
 import json
-import os
 import re
 import sys
-from contextlib import contextmanager
 
 from . import common
 from .common import Goal, Result, Session, Table, fmt_ms, fmt_ratio, ratio, stats
@@ -76,21 +74,6 @@ def size_name(n: int) -> str:
         if n >= 1 << shift and n % (1 << shift) == 0:
             return f"{n >> shift} {unit}"
     return f"{n} B"
-
-
-@contextmanager
-def _bench_importable():
-    """The containers must import bench.components: the editable install maps
-    only container/, harness/ and faults/, so put the repository on their path."""
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(common.REPO_ROOT)] + ([old] if old else []))
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = old
 
 
 def plan(size: int, transport: str, p: dict) -> dict:
@@ -159,8 +142,7 @@ def run_pair(running: common.Running, index: int, pl: dict, p: dict) -> dict:
 
 
 def measure(session: Session, sizes: list[int], transports: list[str], p: dict) -> dict:
-    with _bench_importable():
-        running = session.start(MODE)
+    running = session.start(MODE)
     data = {}
     index = 0
     try:
