@@ -44,5 +44,7 @@ def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
               "are freed by a sibling; does the container, the sibling and new nodes go on?",
     )
     fault = MallocKill(rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
-    run_trials(fault.trial, fault.settle, quick=5, deep=300)
+    # A ceiling needs more trials than a floor not to flake: glibc has
+    # survived 0-3 of 5 in single runs (7 of 45 trials over nine runs).
+    run_trials(fault.trial, fault.settle, quick=8 if "at_most" in EXPECT[allocator] else 5, deep=300)
     resilience.expect_rate("survived", **EXPECT[allocator])
