@@ -39,6 +39,7 @@ def test_death_inside_an_intra_process_queue_operation(op, profile, rig_factory,
 PAYLOAD_EXPECT = {"malloc": {"at_most": 0.8}, "loan": {"at_least": 0.4}}
 
 
+@pytest.mark.timeout(360)      # 8 trials that mostly hang: ~15 s each to judge, diagnose, restart
 @pytest.mark.parametrize("payload", ["malloc", "loan"])
 def test_publisher_killed_while_subscriber_holds_its_messages(payload, rig_factory, resilience, run_trials):
     resilience.describe(

@@ -35,6 +35,7 @@ EXPECT = {
 }
 
 
+@pytest.mark.timeout(360)      # 8 trials that mostly hang: ~15 s each to judge, diagnose, restart
 @pytest.mark.parametrize("allocator", list(ALLOCATORS))
 def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
     resilience.describe(
