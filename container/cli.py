@@ -43,6 +43,8 @@ MITIGATION_SWITCHES = {
     "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
                            "after a child died waiting on them",
     "--no-crash-report": "no native/Python stack report from a child that crashes",
+    "--shared-arenas": "under glibc malloc, let threads and node processes share malloc "
+                       "arenas as glibc does by default (8 per core)",
 }
 
 
@@ -134,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
             allocator.ensure_jemalloc(argv)     # returns only once jemalloc is in use
         except allocator.AllocatorUnavailable as exc:
             raise SystemExit(f"component_container: --jemalloc: {exc}") from None
+    if opts.isolated and not opts.shared_arenas:
+        allocator.glibc_arena_per_task()        # before a second thread exists
     stop = StopSignals()
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     context = rclpy.get_default_context()

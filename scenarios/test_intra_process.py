@@ -28,18 +28,19 @@ def test_death_inside_an_intra_process_queue_operation(op, profile, rig_factory,
     resilience.expect_rate("survived", at_least=1.0)
 
 
-# Measured (glibc malloc, per-node; three runs of --trials 10-15): malloc
-# payloads 7/22 survived: the holder blocks in free() on the dead
-# publisher's arena lock with the GIL held, so every node stops. Loans 33/37:
-# the hangs left are glibc's, a task killed while freeing into another
-# task's arena (gdb names the arena lock), which no pool can prevent. The
-# bounds are far enough from those rates that the quick trials (8 for the
-# ceiling, 5 for the floor) do not flake; the malloc one is a ceiling: the
-# baseline the pool exists to beat.
-PAYLOAD_EXPECT = {"malloc": {"at_most": 0.8}, "loan": {"at_least": 0.4}}
+# Measured (glibc malloc, per-node, an arena per task; --trials 10-15):
+# loans 15/15 survived; malloc'd payloads 7/10 (the holder blocks in free()
+# on the dead publisher's arena lock, GIL held, and every node stops: how
+# often depends on where in its malloc churn the kill lands). With glibc's
+# default shared arenas (--shared-arenas) loans were 28/35: a container
+# thread shared the dead publisher's arena. The malloc case is the baseline
+# the pool exists to beat: its rate is recorded, not promised; what it
+# checks is that every trial ran as designed (no 'failed' trial).
+PAYLOAD_EXPECT = {"malloc": {"outcome": "failed", "at_most": 0.0},
+                  "loan": {"outcome": "survived", "at_least": 0.6}}
 
 
-@pytest.mark.timeout(360)      # 8 trials that mostly hang: ~15 s each to judge, diagnose, restart
+@pytest.mark.timeout(240)      # trials that hang take ~15 s each to judge, diagnose, restart
 @pytest.mark.parametrize("payload", ["malloc", "loan"])
 def test_publisher_killed_while_subscriber_holds_its_messages(payload, rig_factory, resilience, run_trials):
     resilience.describe(
@@ -51,5 +52,7 @@ def test_publisher_killed_while_subscriber_holds_its_messages(payload, rig_facto
     )
     rig = rig_factory("per-node")
     fault = PayloadKill(rig, payload)
-    run_trials(fault.trial, fault.settle, quick=8 if "at_most" in PAYLOAD_EXPECT[payload] else 5, deep=300)
-    resilience.expect_rate("survived", **PAYLOAD_EXPECT[payload])
+    run_trials(fault.trial, fault.settle, quick=5, deep=300)
+    if payload == "malloc":
+        resilience.note("baseline: malloc'd payloads, survival measured, not promised")
+    resilience.expect_rate(**PAYLOAD_EXPECT[payload])

@@ -184,3 +184,12 @@ def test_an_outside_sigterm_stops_a_node_cleanly(client, container):
     assert "after an outside SIGTERM" in ev.error_message
     assert "left in memory" not in container.log_text()   # released, not leaked
     assert client.list() == []
+
+
+@pytest.mark.parametrize("container_args, per_task", [
+    (["--isolated"], True), (["--isolated", "--shared-arenas"], False), ([], False)])
+def test_isolated_mode_gives_each_task_a_glibc_arena(client, container, per_task):
+    # The ready line names the allocator; mallopt's effect is glibc's own.
+    client.list()
+    line = next(ln for ln in container.log_text().splitlines() if " ready (" in ln)
+    assert ("glibc malloc, an arena per task" in line) == per_task, line
