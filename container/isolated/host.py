@@ -39,6 +39,7 @@ from ..options import CPU_QUOTA, LoadError
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
+from .robust import RobustMutex
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -101,6 +102,8 @@ class IsolatedHost:
         self.profile = profile
         self.on_death = on_death
         self._log = logger
+        if profile == SHARED:
+            _robust_context_lock(context, logger)
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
@@ -315,6 +318,20 @@ class IsolatedHost:
             proc.executor.shutdown()
             factory.destroy(proc.node)
         self._forget(proc, leak=not clean)
+
+
+def _robust_context_lock(context: Context, logger) -> None:
+    """In the shared profile every child's executor calls the container's
+    ``Context.ok()`` on each spin, and rclpy guards it with a threading.Lock
+    (rclpy 7.1: ``Context._lock``, used only as ``with self._lock:``). A
+    child SIGKILLed inside it would hold it for good and stop the container's
+    executor too (seen: 1 outside SIGKILL in ~180). Swap in a robust mutex:
+    what it guards (the context handle, the on-shutdown callbacks) is left
+    consistent by every step, so recovery needs no repair."""
+    if type(getattr(context, "_lock", None)) is not type(threading.Lock()):
+        logger.warning("rclpy Context has no plain _lock here: its lock stays non-robust")
+        return
+    context._lock = RobustMutex()
 
 
 def _stopping() -> None:
