@@ -105,8 +105,8 @@ def test_subscriber_killed_mid_take_leaves_the_messages_queued(core):
 
 
 def _entries(bus, owner, topic="/t", best_effort=False, reliable=True, msg_type=int):
-    sub = SubscriptionEntry(owner, "/n", topic, msg_type, reliable, MessageQueue(2), wake=lambda: None)
-    pub = PublisherEntry(owner, "/n", topic, msg_type, best_effort=best_effort, gid=bytes([owner]) * 16)
+    sub = SubscriptionEntry(owner, topic, msg_type, reliable, MessageQueue(2), wake=lambda: None)
+    pub = PublisherEntry(owner, topic, msg_type, best_effort=best_effort, gid=bytes([owner]) * 16)
     bus.add_subscription(sub)
     bus.add_publisher(pub)
     return sub, pub
@@ -116,13 +116,13 @@ def test_bus_matches_by_topic_type_and_reliability():
     bus = Bus()
     sub, pub = _entries(bus, 1)
     assert bus.targets(pub) == [sub]
-    assert bus.targets(PublisherEntry(2, "/m", "/other", int, False)) == []
-    assert bus.targets(PublisherEntry(2, "/m", "/t", str, False)) == []
+    assert bus.targets(PublisherEntry(2, "/other", int, False)) == []
+    assert bus.targets(PublisherEntry(2, "/t", str, False)) == []
     # A RELIABLE subscription does not match a BEST_EFFORT publisher (as DDS).
-    assert bus.targets(PublisherEntry(2, "/m", "/t", int, best_effort=True)) == []
-    be_sub = SubscriptionEntry(3, "/o", "/t", int, False, MessageQueue(1), wake=lambda: None)
+    assert bus.targets(PublisherEntry(2, "/t", int, best_effort=True)) == []
+    be_sub = SubscriptionEntry(3, "/t", int, False, MessageQueue(1), wake=lambda: None)
     bus.add_subscription(be_sub)
-    assert bus.targets(PublisherEntry(2, "/m", "/t", int, best_effort=True)) == [be_sub]
+    assert bus.targets(PublisherEntry(2, "/t", int, best_effort=True)) == [be_sub]
 
 
 def test_bus_forget_removes_one_loads_endpoints_and_gids():

@@ -4,22 +4,16 @@ import threading
 import time
 
 import pytest
-import rclpy
-from rclpy.context import Context
+from ros_support import ros_nodes
 
 from container.isolated.core import CloneCore
 from container.isolated.host import _robust_context_lock
-from harness.domains import lease
 
 
 @pytest.fixture
 def context():
-    held = lease()
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=held.domain_id)
-    yield ctx
-    ctx.try_shutdown()
-    held.release()
+    with ros_nodes() as (_, executor):
+        yield executor.context
 
 
 def _kill_holding(core, lock) -> None:

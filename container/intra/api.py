@@ -35,10 +35,9 @@ import weakref
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .bus import PublisherEntry, SubscriptionEntry, get_bus
+from .bus import PublisherEntry, SubscriptionEntry, get_bus, log
 from .dds_reader import GidFilteredReader, publisher_gid
 from .pool import Loan
 from .queue import MessageQueue
@@ -180,7 +179,7 @@ class Publisher:
         self._entry = None
         if self.intra:
             self._entry = PublisherEntry(
-                owner, node.get_fully_qualified_name(), self.topic, msg_type,
+                owner, self.topic, msg_type,
                 best_effort=profile.reliability == ReliabilityPolicy.BEST_EFFORT,
                 gid=publisher_gid(self._dds))
             get_bus().add_publisher(self._entry)
@@ -284,9 +283,9 @@ class Subscription:
         self.queue = MessageQueue(capacity, on_repair=self._queue_repaired)
         self._wake = node.create_guard_condition(self._drain, callback_group=callback_group)
         self._entry = SubscriptionEntry(
-            owner, node.get_fully_qualified_name(), self.topic, msg_type,
+            owner, self.topic, msg_type,
             reliable=profile.reliability == ReliabilityPolicy.RELIABLE,
-            queue=self.queue, wake=self._wake.trigger, loaned_field=loaned_field)
+            queue=self.queue, wake=self._wake.trigger)
         get_bus().add_subscription(self._entry)
         _track(node, self)
 
@@ -325,7 +324,6 @@ class Subscription:
         self.callback(msg)
 
     def _queue_repaired(self, queue: MessageQueue) -> None:
-        from .bus import log
         log.warning(f"intra-process queue of {self.topic} for {self.node.get_fully_qualified_name()}: "
                     "the owner of its lock died holding it (EOWNERDEAD); repaired, "
                     f"{len(queue)} message(s) kept")

@@ -30,13 +30,11 @@ log = get_logger("cloneguard.intra")
 @dataclass(eq=False)
 class SubscriptionEntry:
     owner: object                  # the load's unique_id, or None outside a container
-    node_name: str
     topic: str
     msg_type: type
     reliable: bool                 # asks for RELIABLE: a BEST_EFFORT publisher does not match
     queue: MessageQueue
     wake: Callable[[], None]       # triggers the subscription's guard condition
-    loaned_field: str | None = None
 
     def matches(self, pub: "PublisherEntry") -> bool:
         return pub.msg_type is self.msg_type and not (self.reliable and pub.best_effort)
@@ -45,7 +43,6 @@ class SubscriptionEntry:
 @dataclass(eq=False)
 class PublisherEntry:
     owner: object
-    node_name: str
     topic: str
     msg_type: type
     best_effort: bool

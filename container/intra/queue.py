@@ -77,11 +77,6 @@ class MessageQueue:
                 self._slots[(head + i) % self.capacity] = None
             return taken
 
-    def clear(self) -> None:
-        with self._mutex:
-            self._state = (self._state[0], 0)
-            self._slots = [None] * self.capacity
-
     def _repair(self) -> None:
         """EOWNERDEAD: the committed state is consistent by construction;
         drop the references a dead owner left outside it."""
