@@ -1,30 +1,49 @@
-"""Which malloc the container runs on, switching it to jemalloc, and glibc's arenas.
+"""Which malloc the container runs on: jemalloc or glibc, the allocator
+guard in front of it, and glibc's arenas.
 
-jemalloc must be in place before the first allocation, so ``--jemalloc``
-re-executes the container with Debian's libjemalloc2 in LD_PRELOAD (the rest
-of the command line and environment unchanged). Whether it is really in use
-is checked, not assumed: jemalloc exports ``mallctl``, glibc does not.
+Both must be in place before the first allocation, so the container
+re-executes itself with them in LD_PRELOAD (the guard first, then Debian's
+libjemalloc2; the rest of the command line and environment unchanged), and
+takes them out of LD_PRELOAD again once running, so that programs it starts
+do not inherit them. Whether each is really in use is checked, not assumed:
+jemalloc exports ``mallctl``, the guard ``cga_activate``.
 """
 from __future__ import annotations
 
 import ctypes
 import os
 import sys
+import sysconfig
+from pathlib import Path
 
 JEMALLOC_PATHS = (
     "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",   # Debian/Ubuntu libjemalloc2
     "/usr/lib64/libjemalloc.so.2",
     "/usr/lib/libjemalloc.so.2",
 )
-_REEXEC_MARK = "CLONEGUARD_JEMALLOC_REEXEC"
+# The allocator guard (container/isolated/allocguard.c), built beside the package.
+GUARD_PATH = str(Path(__file__).resolve().parent / "isolated"
+                 / f"_allocguard{sysconfig.get_config_var('EXT_SUFFIX')}")
+_REEXEC_MARK = "CLONEGUARD_PRELOAD_REEXEC"
 
 
-# glibc mallopt() parameter number of M_ARENA_MAX (malloc.h, glibc 2.36).
+# glibc mallopt() parameter numbers (malloc.h, glibc 2.36).
 M_ARENA_MAX = -8
+M_MMAP_THRESHOLD = -3
 # Arenas glibc may create when each task gets its own. glibc's default is
 # 8 per core, fixed the first time a thread finds the arenas exhausted: on
 # 2 cores the 17th task (thread or node process) shares someone's arena.
 OWN_ARENAS_MAX = 4096
+# glibc's initial mmap threshold, kept fixed. By default glibc raises it to
+# the size of each mmapped block freed (up to 32 MiB); then a request of
+# more than ~128 KiB that a non-main arena's full 64 MiB heap cannot hold
+# makes sysmalloc create a new heap, free the old top into the arena, and
+# heap_trim deletes the new (still empty) heap again: the request fails in
+# that arena and glibc retries it in the *main* arena (measured, glibc 2.36:
+# a thread allocating 16 B..2 MiB did so after ~5,000 allocations; with
+# this threshold fixed, not once in 20 million). A node process would then
+# allocate from, and hold the lock of, the container's own arena.
+MMAP_THRESHOLD = 128 * 1024
 
 
 class AllocatorUnavailable(RuntimeError):
@@ -39,6 +58,16 @@ def jemalloc_active() -> bool:
     return hasattr(ctypes.CDLL(None), "mallctl")
 
 
+def guard_loaded() -> bool:
+    """Is the allocator guard preloaded into this process?"""
+    return hasattr(ctypes.CDLL(None), "cga_activate")
+
+
+def own_arenas() -> bool:
+    """Has glibc_arena_per_task() raised glibc's arena limit here?"""
+    return _own_arenas
+
+
 def glibc_arena_per_task() -> None:
     """Under glibc malloc: give every thread and node process an arena of
     its own instead of glibc's few shared ones. A task SIGKILLed inside
@@ -46,13 +75,17 @@ def glibc_arena_per_task() -> None:
     hangs at its next malloc, however unrelated. With an arena each, only a
     task that frees the dead one's blocks can (a subscriber of its malloc'd
     messages; not of loaned ones: container.intra.pool). Costs address
-    space (a heap reservation per arena), little memory. Must run before a
-    second thread exists: glibc fixes its limit the first time it is reached."""
+    space (a heap reservation per arena), little memory. Also keeps glibc's
+    mmap threshold fixed (MMAP_THRESHOLD: why). Must run before a second
+    thread exists: glibc fixes its limit the first time it is reached."""
     global _own_arenas
     if jemalloc_active():
         return
-    if ctypes.CDLL(None).mallopt(M_ARENA_MAX, OWN_ARENAS_MAX) != 1:
+    libc = ctypes.CDLL(None)
+    if libc.mallopt(M_ARENA_MAX, OWN_ARENAS_MAX) != 1:
         raise AllocatorUnavailable("mallopt(M_ARENA_MAX) was refused")
+    if libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD) != 1:
+        raise AllocatorUnavailable("mallopt(M_MMAP_THRESHOLD) was refused")
     _own_arenas = True
 
 
@@ -60,28 +93,53 @@ _own_arenas = False
 
 
 def describe() -> str:
+    guard = ", allocator guard" if guard_loaded() else ""
     if not jemalloc_active():
-        return "glibc malloc" + (", an arena per task" if _own_arenas else "")
+        return "glibc malloc" + (", an arena per task" if _own_arenas else "") + guard
     version = ctypes.c_char_p()
     size = ctypes.c_size_t(ctypes.sizeof(version))
     ctypes.CDLL(None).mallctl(b"version", ctypes.byref(version), ctypes.byref(size), None, 0)
-    return f"jemalloc {version.value.decode()}"
+    return f"jemalloc {version.value.decode()}" + guard
 
 
-def ensure_jemalloc(argv: list[str]) -> None:
-    """Return if jemalloc is in use; else re-exec this process with it preloaded."""
-    if jemalloc_active():
+def ensure_preloaded(argv: list[str], *, guard: bool, jemalloc: bool) -> None:
+    """Return once what is asked for is in use (the allocator guard, jemalloc);
+    else re-exec this process with it preloaded. Then take both out of
+    LD_PRELOAD, for the programs this process starts."""
+    missing = []
+    if guard and not guard_loaded():
+        if not os.path.exists(GUARD_PATH):
+            raise AllocatorUnavailable(f"the allocator guard is not built ({GUARD_PATH})")
+        missing.append(GUARD_PATH)
+    if jemalloc and not jemalloc_active():
+        path = jemalloc_path()
+        if path is None:
+            raise AllocatorUnavailable(
+                "libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)")
+        missing.append(path)
+    if not missing:
+        _scrub_preload()
         return
     if os.environ.get(_REEXEC_MARK):
         raise AllocatorUnavailable(
-            "jemalloc was preloaded but is not in use (LD_PRELOAD ignored?)")
-    path = jemalloc_path()
-    if path is None:
-        raise AllocatorUnavailable(
-            "libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)")
+            f"{' and '.join(missing)} preloaded but not in use (LD_PRELOAD ignored?)")
     env = dict(os.environ)
-    env["LD_PRELOAD"] = " ".join(filter(None, [path, env.get("LD_PRELOAD", "")]))
+    # The guard comes first: its malloc and free are the ones every library
+    # binds to, and it reaches jemalloc through mallocx & co.
+    wanted = ([GUARD_PATH] if guard else []) + ([jemalloc_path()] if jemalloc else [])
+    rest = [p for p in env.get("LD_PRELOAD", "").split() if p not in wanted]
+    env["LD_PRELOAD"] = " ".join(wanted + rest)
     env[_REEXEC_MARK] = "1"
     sys.stdout.flush()
     sys.stderr.flush()
     os.execve(sys.executable, [sys.executable, *argv], env)
+
+
+def _scrub_preload() -> None:
+    ours = {GUARD_PATH, *JEMALLOC_PATHS}
+    left = [p for p in os.environ.get("LD_PRELOAD", "").split() if p not in ours]
+    if left:
+        os.environ["LD_PRELOAD"] = " ".join(left)
+    else:
+        os.environ.pop("LD_PRELOAD", None)
+    os.environ.pop(_REEXEC_MARK, None)

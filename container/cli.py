@@ -44,7 +44,10 @@ MITIGATION_SWITCHES = {
                            "after a child died waiting on them",
     "--no-crash-report": "no native/Python stack report from a child that crashes",
     "--shared-arenas": "under glibc malloc, let threads and node processes share malloc "
-                       "arenas as glibc does by default (8 per core)",
+                       "arenas as glibc does by default (8 per core); needs --no-alloc-guard",
+    "--no-alloc-guard": "for measurement, no allocator guard: blocks are freed into "
+                        "whichever node's arena they came from, and a node process "
+                        "killed inside malloc can leave its arena locked for others",
 }
 
 
@@ -69,8 +72,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     parser.add_argument(
         "--jemalloc-arenas", choices=("own", "auto"), default="own",
-        help="isolated mode under jemalloc: 'own' binds each node's process to an arena "
-        "of its own, 'auto' leaves the choice to jemalloc (default: %(default)s)",
+        help="isolated mode under jemalloc, with --no-alloc-guard: 'own' binds each node's "
+        "process to an arena of its own, 'auto' leaves the choice to jemalloc (the guard "
+        "always gives each its own) (default: %(default)s)",
     )
     for flag, what in MITIGATION_SWITCHES.items():
         parser.add_argument(flag, action="store_true", help=f"isolated mode: {what}")
@@ -114,6 +118,7 @@ def _make_host(opts, executor, context, logger):
         condvar_repair=not opts.no_condvar_repair,
         crash_report=not opts.no_crash_report,
         jemalloc_arena=opts.jemalloc_arenas,
+        alloc_guard=not opts.no_alloc_guard,
     )
     try:
         cgroups = NodeCgroups() if opts.cgroups else None
@@ -131,11 +136,17 @@ def _make_host(opts, executor, context, logger):
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     opts = parse_args(remove_ros_args(argv)[1:])
-    if opts.jemalloc:
+    guard = opts.isolated and not opts.no_alloc_guard
+    if guard and (opts.shared_arenas or opts.jemalloc_arenas != "own"):
+        raise SystemExit("component_container: --shared-arenas and --jemalloc-arenas auto "
+                         "need --no-alloc-guard (the guard gives every node process an arena "
+                         "of its own)")
+    if guard or opts.jemalloc:
         try:
-            allocator.ensure_jemalloc(argv)     # returns only once jemalloc is in use
+            # Returns only once what is asked for is in use (else re-executes).
+            allocator.ensure_preloaded(argv, guard=guard, jemalloc=opts.jemalloc)
         except allocator.AllocatorUnavailable as exc:
-            raise SystemExit(f"component_container: --jemalloc: {exc}") from None
+            raise SystemExit(f"component_container: {exc}") from None
     if opts.isolated and not opts.shared_arenas:
         allocator.glibc_arena_per_task()        # before a second thread exists
     stop = StopSignals()

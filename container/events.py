@@ -42,6 +42,7 @@ class EventPublisher:
         exit_signal: int = 0,
         exit_code: int = 0,
         start_time_ns: int = 0,
+        allocator_quarantined: bool = False,
     ) -> ComponentEvent:
         now = time.time_ns()
         msg = ComponentEvent()
@@ -56,6 +57,7 @@ class EventPublisher:
         msg.exit_signal = exit_signal
         msg.exit_code = exit_code
         msg.start_time = start_time_ns
+        msg.allocator_quarantined = allocator_quarantined
         # Children can die while the container shuts down (they got the same
         # SIGTERM); once the context is gone there is no one to tell.
         if not self._node.context.ok():

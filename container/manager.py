@@ -144,6 +144,7 @@ class ComponentManager:
             error_message=death.reason,
             exit_signal=death.exit_signal,
             exit_code=death.exit_code,
+            allocator_quarantined=death.allocator_quarantined,
         )
         self._log.error(
             f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "

@@ -134,7 +134,8 @@ class Rig:
             if procfs.alive(pid) and self.goes_on() is None:
                 return Outcome("failed", details={"pid": pid, "why": f"the fault did not kill pid {pid}"})
             return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
-        out = Outcome("survived", details={"pid": pid, "exit_signal": ev.exit_signal, "exit_code": ev.exit_code})
+        out = Outcome("survived", details={"pid": pid, "exit_signal": ev.exit_signal, "exit_code": ev.exit_code,
+                                           "allocator_quarantined": ev.allocator_quarantined})
         event_ns = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec
         fault_ns = fault_ns if fault_ns is not None else self.firing_ns(pid)
         if fault_ns is not None:

@@ -73,6 +73,7 @@ COMPONENT_EVENT_FIELDS = {
     "exit_signal": "int32",
     "exit_code": "int32",
     "start_time": "uint64",
+    "allocator_quarantined": "boolean",
 }
 
 SHARE = Path(sys.prefix) / "share"
@@ -237,7 +238,7 @@ def test_component_event_serialization_round_trip():
         stamp=Time(sec=1, nanosec=2), event_type=255, unique_id=2**64 - 1,
         full_node_name="/ns/talker", package_name="cloneguard", plugin_name="cloneguard::Talker",
         error_message="killed by SIGSEGV", pid=-2**31, exit_signal=2**31 - 1, exit_code=-1,
-        start_time=2**64 - 1)
+        start_time=2**64 - 1, allocator_quarantined=True)
     back = deserialize_message(serialize_message(msg), ComponentEvent)
     assert back == msg
     assert back.pid == -2**31 and back.exit_code == -1 and back.start_time == 2**64 - 1

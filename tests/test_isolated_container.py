@@ -186,10 +186,20 @@ def test_an_outside_sigterm_stops_a_node_cleanly(client, container):
     assert client.list() == []
 
 
-@pytest.mark.parametrize("container_args, per_task", [
-    (["--isolated"], True), (["--isolated", "--shared-arenas"], False), ([], False)])
-def test_isolated_mode_gives_each_task_a_glibc_arena(client, container, per_task):
+@pytest.mark.parametrize("container_args, per_task, guard", [
+    (["--isolated"], True, True),
+    (["--isolated", "--no-alloc-guard"], True, False),
+    (["--isolated", "--shared-arenas", "--no-alloc-guard"], False, False),
+    ([], False, False)])
+def test_isolated_mode_gives_each_task_a_glibc_arena(client, container, per_task, guard):
     # The ready line names the allocator; mallopt's effect is glibc's own.
     client.list()
     line = next(ln for ln in container.log_text().splitlines() if " ready (" in ln)
     assert ("glibc malloc, an arena per task" in line) == per_task, line
+    assert ("allocator guard" in line) == guard, line
+
+
+def test_shared_arenas_need_the_guard_off(container_factory):
+    proc = container_factory.start(["--isolated", "--shared-arenas"])
+    assert proc.wait(20) == 1
+    assert "--shared-arenas and --jemalloc-arenas auto need --no-alloc-guard" in proc.log_text()

@@ -34,6 +34,7 @@ struct cg_config {
     int crash_report;
     int jemalloc_own_arena;
     int jemalloc_tcache;
+    int alloc_guard;
 };
 
 struct cg_event {
@@ -44,7 +45,18 @@ struct cg_event {
     uint64_t serial;
     int64_t t_ns;
     uint32_t repairs;
-    uint32_t reserved;
+    uint32_t alloc;
+};
+
+struct cga_slot_stats {
+    int state;
+    int pid;
+    unsigned arena;
+    int glibc_arenas;
+    uint64_t handed_blocks;
+    uint64_t pending_blocks;
+    uint64_t pending_bytes;
+    uint64_t main_arena_allocs;
 };
 
 struct cg_condwait_probe {
@@ -104,7 +116,9 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out);
 int cg_request_stop(struct cg_child *c);
 int cg_release(struct cg_child *c);
+int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
+int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 
 /* robust mutexes */
 typedef struct { ...; } pthread_mutex_t;
@@ -122,6 +136,11 @@ int cg_rmutex_unlock(pthread_mutex_t *m);
 #define CG_STOP_SIGNAL ...
 #define CG_REAPED ...
 #define CG_FLAG_ALLOW_CORE ...
+#define CG_ALLOC_QUARANTINED ...
+#define CGA_UNUSED ...
+#define CGA_IDLE ...
+#define CGA_BOUND ...
+#define CGA_QUARANTINED ...
 #define CG_REPAIR_GIL_RELEASED ...
 #define CG_REPAIR_GIL_MUTEX ...
 #define CG_REPAIR_SWITCH_MUTEX ...
@@ -144,7 +163,7 @@ ffibuilder.set_source(
     # the __main__ build below run).
     sources=["container/isolated/gilrepair.c"],
     include_dirs=[str(HERE)],
-    depends=[f"container/isolated/{n}" for n in ("clonecore.c", "clonecore.h", "gilrepair.c")],
+    depends=[f"container/isolated/{n}" for n in ("clonecore.c", "clonecore.h", "gilrepair.c", "allocguard.h")],
     libraries=["dl", "pthread"],
     extra_compile_args=["-std=gnu11", "-Wall", "-Wno-unused-function"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would

@@ -57,6 +57,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "allocguard.h"
 #include "clonecore.h"
 
 #if !defined(__x86_64__)
@@ -81,8 +82,9 @@ struct cg_config {           /* per CloneCore; see core.Mitigations */
     int gil_repair;
     int condvar_repair;
     int crash_report;
-    int jemalloc_own_arena;
+    int jemalloc_own_arena;  /* without alloc_guard: arenas.create in the child */
     int jemalloc_tcache;
+    int alloc_guard;         /* allocguard.c is preloaded: use it (see there) */
 };
 
 enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3 };
@@ -96,8 +98,10 @@ struct cg_event {            /* one record on the event pipe: 40 bytes */
     uint64_t serial;
     int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
     uint32_t repairs;        /* death: CG_REPAIR_* (clonecore.h) */
-    uint32_t reserved;
+    uint32_t alloc;          /* death: its allocator slot (low 16 bits, 0:
+                                none) | CG_ALLOC_QUARANTINED */
 };
+#define CG_ALLOC_QUARANTINED (1u << 31)
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
@@ -125,11 +129,13 @@ struct cg_child {            /* control block, lives in container memory */
     size_t map_len, stack_size;
     char *alt;               /* guard page + signal stack (crash reports) */
     size_t alt_len;
-    char *tcb;               /* from _dl_allocate_tls */
+    char *tcb;               /* from _dl_allocate_tls (or ctx->tcb) */
+    struct cg_ctx *ctx;      /* with the allocator guard: its context */
     /* monitor-only */
     int stop_reported;
     int repair_done;         /* gilrepair has looked at this dead child */
     uint32_t repairs;        /* what it repaired for it */
+    int quarantined;         /* it died inside the allocator */
     struct cg_child *next;
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
@@ -162,6 +168,32 @@ static mallctl_fn g_mallctl;
 static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
 
 #define AT(base, off, type) (*(type *)((char *)(base) + (off)))
+
+/* The allocator guard's entry points (allocguard.h), when it is preloaded. */
+static struct {
+    cga_activate_fn activate;
+    cga_slot_new_fn slot_new;
+    cga_warm_fn warm;
+    cga_slot_bind_fn slot_bind;
+    cga_child_start_fn child_start;
+    cga_slot_retire_fn slot_retire;
+    cga_slot_stats_fn slot_stats;
+} G;
+
+/* With the guard, a child runs in a *context*: a TLS block (struct pthread
+   + static TLS) and the allocator slot bound to it, whose thread cache,
+   arena binding and (glibc) arena live in that TLS block.  A context whose
+   child ended outside the allocator is reused by the next child, with all
+   of that in place; one whose child died inside the allocator is never
+   touched again (its TLS block stays allocated: jemalloc keeps a list of
+   every thread's data, this one included). */
+struct cg_ctx {
+    char *tcb;
+    int slot;
+    struct cg_ctx *next;
+};
+static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
+static struct cg_ctx *g_pool;          /* idle contexts, most recent first */
 
 static int64_t mono_ns(void)
 {
@@ -388,6 +420,19 @@ _Static_assert(SYS_clone3 == 435, "SYS_clone3 number used in the trampoline");
 /* ---------------------------------------------------------------------- */
 /* A fresh TLS block + struct pthread for a child, filled in the parent.    */
 
+/* What a child may leave behind in its struct pthread that the next child
+   in the same TLS block must not inherit. */
+static void tls_reset(char *tcb)
+{
+    /* Empty robust list: list points at the head itself. */
+    AT(tcb, L.robust_head, void *) = tcb + L.robust_head;
+    AT(tcb, L.robust_head + 8, long) = L.robust_futex_offset;
+    AT(tcb, L.robust_head + 16, void *) = NULL;
+    /* No pthread_cleanup record (one is left by a death in a condvar wait,
+       and gilrepair.c reads it). */
+    AT(tcb, L.cleanup, void *) = NULL;
+}
+
 static char *tls_new(void)
 {
     char *tcb = dl_allocate_tls(NULL);   /* struct pthread zeroed, dtv set */
@@ -410,13 +455,10 @@ static char *tls_new(void)
     AT(tcb, L.list + 8, void *) = tcb + L.list;
     /* pthread_getspecific for keys < 32 goes through specific[0]. */
     AT(tcb, L.specific, void *) = tcb + L.specific_1stblock;
-    /* Empty robust list: list points at the head itself. */
-    AT(tcb, L.robust_head, void *) = tcb + L.robust_head;
-    AT(tcb, L.robust_head + 8, long) = L.robust_futex_offset;
-    AT(tcb, L.robust_head + 16, void *) = NULL;
     /* rseq is not registered for the child: RSEQ_CPU_ID_REGISTRATION_FAILED
        makes sched_getcpu fall back to the syscall. */
     AT(tcb, L.rseq_cpu_id, int32_t) = -2;
+    tls_reset(tcb);
     /* tid is written by the kernel (CLONE_{CHILD,PARENT}_SETTID). */
     return tcb;
 }
@@ -657,6 +699,9 @@ static int child_main(void *arg)
        only if it knows our list.  Must be done by this task itself. */
     syscall(SYS_set_robust_list, c->tcb + L.robust_head,
             sizeof(struct robust_list_head));
+    /* 2b. With the allocator guard: threads we create find our slot by pid. */
+    if (c->ctx)
+        G.child_start();
     /* 3. Locale: the fresh TLS has no ctype tables; uselocale sets them. */
     uselocale(LC_GLOBAL_LOCALE);
     AT(c->tcb, L.resp_tls, struct __res_state *) = &c->res;
@@ -678,7 +723,8 @@ static int child_main(void *arg)
     sigaction(SIGINT, &sa, NULL);
     if (C.crash_report)
         install_crash_handlers(c);
-    jemalloc_setup(c);
+    if (!c->ctx)
+        jemalloc_setup(c);
     sigset_t none;
     sigemptyset(&none);
     sigprocmask(SIG_SETMASK, &none, NULL);
@@ -745,8 +791,11 @@ static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
 static void emit(uint32_t kind, const struct cg_child *c, int status,
                  int code, int64_t t, uint32_t repairs)
 {
+    uint32_t alloc = 0;
+    if (c && c->ctx)
+        alloc = (uint32_t)c->ctx->slot | (c->quarantined ? CG_ALLOC_QUARANTINED : 0);
     struct cg_event ev = {kind, c ? c->pid : 0, status, code,
-                          c ? c->serial : 0, t, repairs, 0};
+                          c ? c->serial : 0, t, repairs, alloc};
     const char *p = (const char *)&ev;
     size_t left = sizeof ev;
     while (left) {   /* blocks if Python lags >2048 records behind */
@@ -861,6 +910,10 @@ static void reap(struct cg_child *c, int64_t t)
     int code = r == 0 ? si.si_code : 0;
 
     repair_after_death(c);
+    /* Every task of the child is gone: whether it died inside the allocator
+       is settled now (before anything hears of the death). */
+    if (c->ctx)
+        c->quarantined = G.slot_retire(c->ctx->slot);
     if (r == 0) {
         siginfo_t gone;
         memset(&gone, 0, sizeof gone);
@@ -925,6 +978,90 @@ static void close_fds(void)
             close(*fds[i]), *fds[i] = -1;
 }
 
+/* ---------------------------------------------------------------------- */
+/* The allocator guard's contexts.                                         */
+
+static int guard_start(void)
+{
+    if (G.activate)
+        return 0;                        /* one activation per process */
+#define FIND(field, name) G.field = (void *)dlsym(RTLD_DEFAULT, name)
+    FIND(activate, "cga_activate");
+    FIND(slot_new, "cga_slot_new");
+    FIND(warm, "cga_warm");
+    FIND(slot_bind, "cga_slot_bind");
+    FIND(child_start, "cga_child_start");
+    FIND(slot_retire, "cga_slot_retire");
+    FIND(slot_stats, "cga_slot_stats");
+#undef FIND
+    if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
+        !G.child_start || !G.slot_retire || !G.slot_stats) {
+        memset(&G, 0, sizeof G);
+        return -ENOENT;                  /* not preloaded */
+    }
+    int r = G.activate(getpid());
+    if (r < 0 && r != -EALREADY) {
+        memset(&G, 0, sizeof G);
+        return r;
+    }
+    return 0;
+}
+
+/* Run cga_warm(slot) as the context's own task would: with its TLS block as
+   this thread's, for the few calls that set up its allocator state.  All
+   signals stay blocked meanwhile (no handler may run on a borrowed TLS);
+   nothing here touches TLS itself across the switch. */
+static __attribute__((noinline)) int ctx_warm(struct cg_ctx *x)
+{
+    sigset_t all, old;
+    sigfillset(&all);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
+    uintptr_t mine = cg_thread_pointer();
+    syscall(SYS_arch_prctl, ARCH_SET_FS, (unsigned long)x->tcb);
+    int r = G.warm(x->slot);
+    syscall(SYS_arch_prctl, ARCH_SET_FS, (unsigned long)mine);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
+    return r;
+}
+
+static struct cg_ctx *ctx_take(void)
+{
+    pthread_mutex_lock(&g_pool_lock);
+    struct cg_ctx *x = g_pool;
+    if (x)
+        g_pool = x->next;
+    pthread_mutex_unlock(&g_pool_lock);
+    if (x)
+        return x;
+    x = calloc(1, sizeof *x);
+    if (!x)
+        return NULL;
+    x->tcb = tls_new();
+    x->slot = x->tcb ? G.slot_new() : -ENOMEM;
+    if (x->slot < 0 || ctx_warm(x) < 0) {
+        /* A slot made and not warmed stays unused: never handed out. */
+        if (x->tcb)
+            dl_deallocate_tls(x->tcb, true);
+        free(x);
+        return NULL;
+    }
+    return x;
+}
+
+static void ctx_put(struct cg_ctx *x)
+{
+    pthread_mutex_lock(&g_pool_lock);
+    x->next = g_pool;
+    g_pool = x;
+    pthread_mutex_unlock(&g_pool_lock);
+}
+
+/* What an allocator slot holds (allocguard.h); -ENOENT without the guard. */
+int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out)
+{
+    return G.slot_stats ? G.slot_stats(slot, out) : -ENOENT;
+}
+
 /* Start the monitor.  *event_fd receives the read end of the event pipe,
    which Python owns (and closes after cg_stop). */
 int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
@@ -946,6 +1083,11 @@ int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
     if (!dl_allocate_tls || !dl_deallocate_tls)
         return -ENOSYS;
     L = *layout;
+    if (C.alloc_guard) {
+        int r = guard_start();
+        if (r < 0)
+            return r;
+    }
 
     g_epfd = epoll_create1(EPOLL_CLOEXEC);
     g_wakefd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
@@ -999,6 +1141,25 @@ int cg_stop(void)
 
 static void forget_thread_state(PyThreadState *t);
 
+/* The child's TLS block, after it ended or never started: back to the pool
+   with its context, kept for good when it died inside the allocator, freed
+   when there is no guard. */
+static void tls_give_back(struct cg_child *c)
+{
+    if (c->ctx) {
+        if (c->quarantined) {
+            free(c->ctx);                /* the TLS block itself stays */
+        } else {
+            G.slot_retire(c->ctx->slot); /* idle (again, if reaped) */
+            ctx_put(c->ctx);
+        }
+        c->ctx = NULL;
+    } else if (c->tcb) {
+        dl_deallocate_tls(c->tcb, true);
+    }
+    c->tcb = NULL;
+}
+
 int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out)
 {
@@ -1037,11 +1198,19 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
     }
     mprotect(c->alt, page, PROT_NONE);
     c->arena = -1;
-    c->tcb = tls_new();
+    if (G.activate) {
+        c->ctx = ctx_take();
+        c->tcb = c->ctx ? c->ctx->tcb : NULL;
+        if (c->tcb) {
+            tls_reset(c->tcb);
+            G.slot_bind(c->ctx->slot);
+        }
+    } else {
+        c->tcb = tls_new();
+    }
     c->tstate = c->tcb ? cg_tstate_new() : NULL;
     if (!c->tstate) {
-        if (c->tcb)
-            dl_deallocate_tls(c->tcb, true);
+        tls_give_back(c);
         munmap(c->alt, c->alt_len);
         munmap(c->map, c->map_len);
         free(c);
@@ -1051,7 +1220,7 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
     int r = submit(&cmd);
     if (r < 0) {
         forget_thread_state(c->tstate);
-        dl_deallocate_tls(c->tcb, true);
+        tls_give_back(c);
         munmap(c->alt, c->alt_len);
         munmap(c->map, c->map_len);
         free(c);
@@ -1095,9 +1264,26 @@ int cg_release(struct cg_child *c)
     forget_thread_state(c->tstate);
     munmap(c->map, c->map_len);
     munmap(c->alt, c->alt_len);
-    dl_deallocate_tls(c->tcb, true);
+    tls_give_back(c);
     close(c->pidfd);
     free(c);
+    return 0;
+}
+
+/* A reaped child whose Python state must stay where it is (the host keeps a
+   crashed node's objects: destroying them could block on a lock the child
+   held): its thread state and stacks stay allocated (its frames point into
+   them); its TLS context goes back to the pool (or stays quarantined) and
+   its pidfd is closed.  -EBUSY if not reaped yet. */
+int cg_abandon(struct cg_child *c)
+{
+    if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
+        return -EBUSY;
+    if (c->ctx)
+        tls_give_back(c);
+    if (c->pidfd >= 0)
+        close(c->pidfd);
+    c->pidfd = -1;
     return 0;
 }
 

@@ -70,6 +70,14 @@ class Mitigations:
         jemalloc's choice.  No effect on glibc malloc.
     jemalloc_tcache
         False turns the child's jemalloc thread cache off.
+    alloc_guard
+        The allocator guard (allocguard.c, preloaded with LD_PRELOAD): each
+        child allocates from arenas of its own, set up by the container;
+        blocks freed by anyone else are handed back to their owner instead
+        of being freed into its arena; a child that dies inside the
+        allocator has its arena quarantined.  None (default): on when the
+        guard is preloaded.  With it, ``jemalloc_arena``/``jemalloc_tcache``
+        do not apply (every child has its own arena and cache anyway).
     """
 
     gil_repair: bool = True
@@ -77,6 +85,7 @@ class Mitigations:
     crash_report: bool = True
     jemalloc_arena: Literal["own", "auto"] = "own"
     jemalloc_tcache: bool = True
+    alloc_guard: bool | None = None
 
     def __post_init__(self) -> None:
         if self.jemalloc_arena not in ("own", "auto"):
@@ -89,7 +98,8 @@ class Mitigations:
                 "condvar_repair": int(self.condvar_repair),
                 "crash_report": int(self.crash_report),
                 "jemalloc_own_arena": int(self.jemalloc_arena == "own"),
-                "jemalloc_tcache": int(self.jemalloc_tcache)}
+                "jemalloc_tcache": int(self.jemalloc_tcache),
+                "alloc_guard": int(bool(self.alloc_guard))}
 
 
 @dataclass(frozen=True)
@@ -160,6 +170,25 @@ def thread_tcache() -> bool | None:
     return None if t < 0 else bool(t)
 
 
+def _resolve_guard(m: Mitigations) -> Mitigations:
+    """alloc_guard None -> whether the guard is preloaded; True where it
+    cannot work -> IsolationUnavailable."""
+    from container import allocator
+    loaded = allocator.guard_loaded()
+    if m.alloc_guard is None:
+        m = replace(m, alloc_guard=loaded)
+    if not m.alloc_guard:
+        return m
+    if not loaded:
+        raise IsolationUnavailable(
+            f"the allocator guard is not preloaded (LD_PRELOAD={allocator.GUARD_PATH})")
+    if not allocator.jemalloc_active() and not allocator.own_arenas():
+        raise IsolationUnavailable(
+            "the allocator guard under glibc malloc needs an arena per task: call "
+            "container.allocator.glibc_arena_per_task() before a second thread starts")
+    return m
+
+
 class CloneCore:
     """The process's one clone3 spawner and monitor.
 
@@ -187,7 +216,7 @@ class CloneCore:
         unknown = set(overrides) - names
         if unknown:
             raise TypeError(f"unknown mitigation(s): {sorted(unknown)}; known: {sorted(names)}")
-        self.mitigations = replace(mitigations or Mitigations(), **overrides)
+        self.mitigations = _resolve_guard(replace(mitigations or Mitigations(), **overrides))
         self.report = assumptions.self_check()
         ffi, lib = _lib()
         with CloneCore._instance_lock:
@@ -306,7 +335,42 @@ class CloneCore:
         if rc < 0:   # cannot happen once the death record was seen
             raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
 
+    def abandon(self, child: Child) -> None:
+        """Forget a reaped child whose Python objects are to be kept (a
+        crashed node the host leaves in memory): its thread state and stacks
+        stay allocated, since its frames point into them; its TLS context
+        goes back to the pool for the next child (unless its allocator slot
+        is quarantined) and its pidfd is closed."""
+        _, lib = _lib()
+        with self._lock:
+            entry = self._entry(child)
+            if not entry.dead.is_set():
+                raise RuntimeError(f"child {child.pid} has not been reaped yet")
+            del self._entries[child.serial]
+            rc = lib.cg_abandon(child._block)
+        if rc < 0:
+            raise OSError(-rc, f"abandon failed: {os.strerror(-rc)}")
+
     allocator = staticmethod(allocator)
+
+    def slot_stats(self, slot: int) -> dict | None:
+        """What allocator-guard slot ``slot`` (a Death's ``alloc_slot``)
+        holds: state ("idle", "bound", "quarantined"), pid, jemalloc arena,
+        glibc arenas, blocks handed to it by others, and of those the ones
+        not yet freed (``pending_blocks``/``pending_bytes``: for a
+        quarantined slot, what leaked; counted only while no process is
+        bound to it). None without the guard."""
+        ffi, lib = _lib()
+        out = ffi.new("struct cga_slot_stats *")
+        if lib.cg_alloc_slot_stats(slot, out) < 0:
+            return None
+        states = {lib.CGA_UNUSED: "unused", lib.CGA_IDLE: "idle",
+                  lib.CGA_BOUND: "bound", lib.CGA_QUARANTINED: "quarantined"}
+        return {"state": states.get(out.state, str(out.state)), "pid": out.pid,
+                "arena": out.arena, "glibc_arenas": out.glibc_arenas,
+                "handed_blocks": out.handed_blocks, "pending_blocks": out.pending_blocks,
+                "pending_bytes": out.pending_bytes,
+                "main_arena_allocs": out.main_arena_allocs}
 
     def children(self) -> list[Child]:
         """Children spawned and not yet released."""

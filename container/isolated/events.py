@@ -13,11 +13,13 @@ import struct
 from dataclasses import dataclass
 from typing import Union
 
-# struct cg_event: kind pid status code serial t_ns repairs reserved
+# struct cg_event: kind pid status code serial t_ns repairs alloc
 RECORD = struct.Struct("=IiiiQqII")
 assert RECORD.size == 40
 
 KIND_DEATH, KIND_STOP, KIND_CLOSED = 1, 2, 3
+ALLOC_QUARANTINED = 1 << 31        # CG_ALLOC_QUARANTINED
+ALLOC_SLOT_MASK = 0xFFFF
 STOP_BY_PARENT, STOP_BY_SIGNAL = 1, 2
 
 
@@ -57,6 +59,9 @@ class Death:
     core_dumped: bool
     detected_monotonic_ns: int
     repairs: Repair = Repair.NONE
+    alloc_slot: int = 0             # its allocator-guard slot, 0: no guard
+    alloc_quarantined: bool = False # it died inside the allocator: its arena
+                                    # is quarantined (allocguard.c)
 
     @property
     def status_lost(self) -> bool:
@@ -90,7 +95,7 @@ CoreEvent = Union[Death, StopRequested]
 
 def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
     """One record -> (kind, event); event is None for KIND_CLOSED."""
-    kind, pid, status, code, serial, t_ns, repairs, _ = RECORD.unpack(buf)
+    kind, pid, status, code, serial, t_ns, repairs, alloc = RECORD.unpack(buf)
     if kind == KIND_DEATH:
         exited = code == os.CLD_EXITED
         killed = code in (os.CLD_KILLED, os.CLD_DUMPED)
@@ -100,7 +105,9 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
                            si_code=code,
                            core_dumped=code == os.CLD_DUMPED,
                            detected_monotonic_ns=t_ns,
-                           repairs=Repair(repairs))
+                           repairs=Repair(repairs),
+                           alloc_slot=alloc & ALLOC_SLOT_MASK,
+                           alloc_quarantined=bool(alloc & ALLOC_QUARANTINED))
     if kind == KIND_STOP:
         by_signal = status == STOP_BY_SIGNAL
         sig = _signal.Signals(code) if by_signal and code > 0 else None

@@ -53,6 +53,7 @@ class NodeDeath:
     exit_signal: int
     exit_code: int
     reason: str
+    allocator_quarantined: bool = False
 
 
 class _Handoff:
@@ -258,6 +259,7 @@ class IsolatedHost:
         if proc.cgroup is not None:        # the process is reaped: the group is empty
             self.cgroups.remove(proc.cgroup)
         if leak:
+            self._core.abandon(proc.child)
             self.leaked.append(proc)
             self._log.warning(
                 f"unique_id {proc.unique_id}: the dead process's node, executor"
@@ -312,6 +314,7 @@ class IsolatedHost:
                 exit_signal=death.exit_signal or 0,
                 exit_code=death.exit_code or 0,
                 reason=reason,
+                allocator_quarantined=death.alloc_quarantined,
             ))
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
@@ -359,4 +362,6 @@ def _describe(death: Death | None) -> str:
     if death.repaired:
         # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED" -- the harness counts these
         what += "; repaired: " + ", ".join(death.repairs.names())
+    if death.alloc_quarantined:
+        what += "; it died inside the allocator: its arena is quarantined"
     return what

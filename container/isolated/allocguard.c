@@ -1,0 +1,863 @@
+/*
+ * allocguard.c - the allocator guard of cloneguard's --isolated mode.
+ *
+ * A malloc interposer, preloaded (LD_PRELOAD, before jemalloc if jemalloc is
+ * used) into an isolated container.  Its one rule:
+ *
+ *     A node process's allocator state is touched only by that process.
+ *
+ * Every node process (a "slot") allocates from arenas nobody else allocates
+ * from.  A block freed by anyone but its owner is never freed into the
+ * owner's arena: it is pushed onto the owner's hand-over stack (one CAS, the
+ * commit point), and the owner frees it into its arena at its next malloc or
+ * free.  So when a node process is SIGKILLed inside malloc, holding its
+ * arena's locks with its arena half-updated, no living task is ever inside,
+ * or waiting for, that arena: the container marks it quarantined and never
+ * uses it again; blocks handed to it afterwards stay on its stack (leaked,
+ * counted).  A process that ended outside the allocator leaves a consistent
+ * arena, which the next node process in that slot reuses, draining its stack.
+ *
+ * Whether a process died inside the allocator is known exactly: every call
+ * a node process makes into the allocator is bracketed by an atomic counter
+ * of its slot (slots[s].inside), which the monitor reads after the death.
+ *
+ * Which arena owns a block (owner_of):
+ *   jemalloc  each slot's arena is created by the container with extent hooks
+ *             (below) that carve its memory out of a VA range reserved for
+ *             that slot: the owner is arithmetic on the address.
+ *   glibc     a chunk's header says mmapped (no arena: munmap takes no lock),
+ *             main arena (the container's), or non-main; a non-main chunk's
+ *             arena is the first word of its 64 MiB-aligned heap.  Arenas are
+ *             mapped to slots as each thread learns its own (owners[]).
+ *
+ * Slot 0 is the container: its threads never die alone, so they free each
+ * other's blocks directly, as the allocator does without us.  Threads a node
+ * process creates (Fast DDS's) belong to its slot: they die with it.
+ *
+ * Before cga_activate() the guard passes everything straight through, so the
+ * process starts as it would without it.  Layout facts (glibc 2.36 x86_64,
+ * jemalloc 5.x public API) are checked at start-up by assumptions.py through
+ * cga_probe_glibc and the backend name.  The data structures and the reasons
+ * are in container/isolated/README.md.
+ */
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <errno.h>
+#include <pthread.h>
+#include <stdatomic.h>
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/mman.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include "allocguard.h"
+
+#define EXPORT __attribute__((visibility("default")))
+#define likely(x) __builtin_expect(!!(x), 1)
+#define unlikely(x) __builtin_expect(!!(x), 0)
+
+/* ---------------------------------------------------------------------- */
+/* The allocators underneath.                                              */
+
+/* glibc's own entry points (exported by libc for exactly this use). */
+extern void *__libc_malloc(size_t);
+extern void __libc_free(void *);
+extern void *__libc_calloc(size_t, size_t);
+extern void *__libc_realloc(void *, size_t);
+extern void *__libc_memalign(size_t, size_t);
+
+/* jemalloc's non-standard API: bound to jemalloc when it is preloaded after
+   us, NULL otherwise (weak).  Its malloc/free are shadowed by ours; these
+   names are not. */
+extern void *mallocx(size_t, int) __attribute__((weak));
+extern void *rallocx(void *, size_t, int) __attribute__((weak));
+extern void dallocx(void *, int) __attribute__((weak));
+extern size_t sallocx(const void *, int) __attribute__((weak));
+extern int mallctl(const char *, void *, size_t *, void *, size_t) __attribute__((weak));
+
+/* jemalloc underneath?  A link-time fact: the weak reference is bound when
+   jemalloc is loaded, before any code runs. */
+#define g_je (mallocx != NULL)
+
+/* jemalloc's public flag encodings (jemalloc.h, man jemalloc: MALLOCX_*). */
+#define JE_ZERO 0x40
+#define JE_LG_ALIGN(la) ((int)(la))
+#define JE_ARENA(a) ((((int)(a)) + 1) << 20)
+
+/* jemalloc's extent hook table (public ABI: man jemalloc, "arena.<i>.extent_hooks"). */
+typedef struct je_hooks je_hooks;
+struct je_hooks {
+    void *(*alloc)(je_hooks *, void *, size_t, size_t, bool *, bool *, unsigned);
+    bool (*dalloc)(je_hooks *, void *, size_t, bool, unsigned);
+    void (*destroy)(je_hooks *, void *, size_t, bool, unsigned);
+    bool (*commit)(je_hooks *, void *, size_t, size_t, size_t, unsigned);
+    bool (*decommit)(je_hooks *, void *, size_t, size_t, size_t, unsigned);
+    bool (*purge_lazy)(je_hooks *, void *, size_t, size_t, size_t, unsigned);
+    bool (*purge_forced)(je_hooks *, void *, size_t, size_t, size_t, unsigned);
+    bool (*split)(je_hooks *, void *, size_t, size_t, size_t, bool, unsigned);
+    bool (*merge)(je_hooks *, void *, size_t, void *, size_t, bool, unsigned);
+};
+
+/* glibc 2.36 malloc, x86_64 (malloc/malloc.c, malloc/arena.c): the chunk
+   size word just below a block carries IS_MMAPPED and NON_MAIN_ARENA; a
+   non-main arena's heaps are HEAP_MAX_SIZE-aligned and begin with a
+   heap_info whose first member is the arena.  Checked by cga_probe_glibc. */
+#define GLIBC_IS_MMAPPED 0x2u
+#define GLIBC_NON_MAIN_ARENA 0x4u
+#define GLIBC_HEAP_MAX ((uintptr_t)64 << 20)
+#define GLIBC_PROBE_SIZE 2048   /* above the tcache sizes: from the arena */
+
+/* ---------------------------------------------------------------------- */
+/* State.                                                                  */
+
+#define NSLOTS 512                      /* 0: the container; 1..: node processes */
+#define SLOT_SHIFT 34                   /* jemalloc: 16 GiB of address space a slot */
+#define NOWNERS 8192                    /* glibc: arenas (M_ARENA_MAX is 4096) */
+
+struct slot_hooks {                     /* jemalloc hands &h back to each hook */
+    je_hooks h;
+    int slot;
+};
+
+struct slot {
+    _Atomic int state;                  /* CGA_* */
+    _Atomic int pid;                    /* the process bound to it */
+    _Atomic long inside;                /* its tasks inside the allocator now */
+    unsigned arena;                     /* jemalloc: the arena made for it */
+    struct slot_hooks hooks;
+    uintptr_t base, limit;              /* jemalloc: its address range */
+    _Atomic uintptr_t bump;             /* ... carved up to here */
+    _Atomic uint64_t main_allocs;       /* glibc: blocks it got from the main
+                                           arena (should stay 0: see
+                                           container/allocator.py) */
+};
+
+/* An owner of blocks: who frees them into their arena.  jemalloc: owner i
+   is slot i.  glibc: owner i (i > 0) is one arena (key), attributed to the
+   slot whose thread last attached to it; owner 0 is the container's main
+   arena and every arena of slot 0. */
+struct owner {
+    _Atomic(void *) key;                /* glibc: the arena */
+    _Atomic int slot;
+    _Atomic(void *) stack;              /* blocks handed over, linked through
+                                           their first word */
+    _Atomic uint64_t handed;            /* blocks pushed so far */
+};
+
+static struct slot slots[NSLOTS];
+static struct owner owners[NOWNERS];
+static _Atomic int g_active;
+static int g_container_pid;
+static uintptr_t g_region, g_region_len;/* jemalloc: slots 1.. carve from here */
+static int g_nslots = NSLOTS;
+static size_t g_page = 4096;
+static size_t (*glibc_usable_size)(void *);
+
+/* Per task: slot + 1 (0: not known yet), and which owner's stack it drains. */
+static __thread int t_slot1 __attribute__((tls_model("initial-exec")));
+static __thread int t_owner __attribute__((tls_model("initial-exec")));
+
+/* ---------------------------------------------------------------------- */
+/* Owners.                                                                 */
+
+static int glibc_arena_owner(void *arena)   /* 0 if not known */
+{
+    uintptr_t h = ((uintptr_t)arena >> 12) * 0x9e3779b97f4a7c15ull;
+    for (int n = 0; n < NOWNERS - 1; n++) {
+        int i = 1 + (int)((h + (uintptr_t)n) % (NOWNERS - 1));
+        void *k = atomic_load_explicit(&owners[i].key, memory_order_acquire);
+        if (k == arena)
+            return i;
+        if (!k)
+            return 0;
+    }
+    return 0;
+}
+
+static int glibc_arena_claim(void *arena, int slot)
+{
+    uintptr_t h = ((uintptr_t)arena >> 12) * 0x9e3779b97f4a7c15ull;
+    for (int n = 0; n < NOWNERS - 1; n++) {
+        int i = 1 + (int)((h + (uintptr_t)n) % (NOWNERS - 1));
+        void *k = atomic_load_explicit(&owners[i].key, memory_order_acquire);
+        if (!k && atomic_compare_exchange_strong(&owners[i].key, &k, arena))
+            k = arena;
+        if (k == arena) {
+            atomic_store_explicit(&owners[i].slot, slot, memory_order_release);
+            return i;
+        }
+    }
+    return 0;   /* table full: counted as the container's */
+}
+
+static void *glibc_arena_of(void *p)        /* NULL: main arena or mmapped */
+{
+    size_t head = ((size_t *)p)[-1];
+    if ((head & GLIBC_IS_MMAPPED) || !(head & GLIBC_NON_MAIN_ARENA))
+        return NULL;
+    return *(void **)((uintptr_t)p & ~(GLIBC_HEAP_MAX - 1));
+}
+
+/* The owner of block p: an owners[] index, or -1 if no arena needs to be
+   entered to free it (a glibc mmapped chunk). */
+static inline int owner_of(void *p)
+{
+    if (g_je) {
+        uintptr_t off = (uintptr_t)p - g_region;
+        return off < g_region_len ? 1 + (int)(off >> SLOT_SHIFT) : 0;
+    }
+    if (((size_t *)p)[-1] & GLIBC_IS_MMAPPED)
+        return -1;
+    void *arena = glibc_arena_of(p);
+    return arena ? glibc_arena_owner(arena) : 0;
+}
+
+static inline int owner_slot(int o)
+{
+    return o <= 0 ? 0 : atomic_load_explicit(&owners[o].slot, memory_order_acquire);
+}
+
+/* ---------------------------------------------------------------------- */
+/* The backend calls, for the calling task's slot.                        */
+
+static inline int je_flags(int slot)
+{
+    return slot ? JE_ARENA(slots[slot].arena) : 0;
+}
+
+static inline void *be_malloc(int slot, size_t n)
+{
+    return g_je ? mallocx(n ? n : 1, je_flags(slot)) : __libc_malloc(n);
+}
+
+static inline void be_free(void *p)
+{
+    if (g_je)
+        dallocx(p, 0);
+    else
+        __libc_free(p);
+}
+
+static inline size_t be_usable(void *p)
+{
+    if (g_je)
+        return sallocx(p, 0);
+    return glibc_usable_size ? glibc_usable_size(p) : 0;
+}
+
+static void *be_aligned(int slot, size_t align, size_t n)
+{
+    if (!g_je)
+        return __libc_memalign(align, n);
+    if (align < sizeof(void *))
+        align = sizeof(void *);
+    return mallocx(n ? n : 1, JE_LG_ALIGN(__builtin_ctzl(align)) | je_flags(slot));
+}
+
+/* ---------------------------------------------------------------------- */
+/* Which slot the calling task is, and what it must do on each call.      */
+
+static int learn_glibc_arena(int slot)
+{
+    /* Whatever arena glibc attached to this thread (a new one, or one a
+       thread that ended cleanly gave back) serves this slot from now on. */
+    void *probe = __libc_malloc(GLIBC_PROBE_SIZE);
+    if (!probe)
+        return 0;
+    void *arena = glibc_arena_of(probe);
+    int o = arena ? glibc_arena_claim(arena, slot) : 0;
+    __libc_free(probe);
+    return o;
+}
+
+/* A node process's block from glibc's main arena means it held the
+   container's arena lock: count it (allocator.MMAP_THRESHOLD says why it
+   should not happen). */
+static inline void *check_main(int slot, void *p)
+{
+    if (!g_je && slot && p && !(((size_t *)p)[-1] & (GLIBC_IS_MMAPPED | GLIBC_NON_MAIN_ARENA)))
+        atomic_fetch_add_explicit(&slots[slot].main_allocs, 1, memory_order_relaxed);
+    return p;
+}
+
+static inline void enter(int slot)
+{
+    if (slot)
+        atomic_fetch_add_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+}
+
+static inline void leave(int slot)
+{
+    if (slot)
+        atomic_fetch_sub_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+}
+
+static __attribute__((noinline)) int resolve_slot(void)
+{
+    int pid = (int)syscall(SYS_getpid);
+    int s = 0;
+    if (pid != g_container_pid)
+        for (int i = 1; i < g_nslots; i++)
+            if (atomic_load_explicit(&slots[i].pid, memory_order_acquire) == pid) {
+                s = i;
+                break;
+            }
+    t_slot1 = s + 1;
+    if (g_je) {
+        t_owner = s;
+    } else {
+        enter(s);
+        t_owner = learn_glibc_arena(s);
+        leave(s);
+    }
+    return s;
+}
+
+static inline int my_slot(void)
+{
+    int s1 = t_slot1;
+    return likely(s1) ? s1 - 1 : resolve_slot();
+}
+
+static void drain_stack(struct owner *o)
+{
+    void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
+    while (p) {
+        void *next = *(void **)p;
+        be_free(p);
+        p = next;
+    }
+}
+
+/* Free what others handed to this task's owner(s).  Called inside. */
+static inline void drain_mine(int slot)
+{
+    struct owner *mine = &owners[t_owner];
+    if (unlikely(atomic_load_explicit(&mine->stack, memory_order_relaxed)))
+        drain_stack(mine);
+    if (slot == 0 && t_owner != 0 &&
+        unlikely(atomic_load_explicit(&owners[0].stack, memory_order_relaxed)))
+        drain_stack(&owners[0]);
+}
+
+static void hand_over(int o, void *p)
+{
+    if (owner_slot(o) == 0)
+        o = 0;                      /* any container thread frees it */
+    struct owner *to = &owners[o];
+    void *head = atomic_load_explicit(&to->stack, memory_order_relaxed);
+    do
+        *(void **)p = head;
+    while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p,
+                                                  memory_order_release,
+                                                  memory_order_relaxed));
+    atomic_fetch_add_explicit(&to->handed, 1, memory_order_relaxed);
+}
+
+/* ---------------------------------------------------------------------- */
+/* The interposed C API.                                                   */
+
+EXPORT void *malloc(size_t n)
+{
+    if (unlikely(!atomic_load_explicit(&g_active, memory_order_relaxed)))
+        return be_malloc(0, n);
+    int s = my_slot();
+    enter(s);
+    drain_mine(s);
+    void *p = check_main(s, be_malloc(s, n));
+    leave(s);
+    if (!p)
+        errno = ENOMEM;
+    return p;
+}
+
+EXPORT void free(void *p)
+{
+    if (!p)
+        return;
+    if (unlikely(!atomic_load_explicit(&g_active, memory_order_relaxed))) {
+        be_free(p);
+        return;
+    }
+    int s = my_slot();
+    int o = owner_of(p);
+    if (o < 0 || owner_slot(o) == s) {
+        enter(s);
+        drain_mine(s);
+        be_free(p);
+        leave(s);
+    } else {
+        hand_over(o, p);
+    }
+}
+
+EXPORT void *calloc(size_t n, size_t size)
+{
+    size_t total;
+    if (__builtin_mul_overflow(n, size, &total)) {
+        errno = ENOMEM;
+        return NULL;
+    }
+    int s = atomic_load_explicit(&g_active, memory_order_relaxed) ? my_slot() : 0;
+    enter(s);
+    if (s)
+        drain_mine(s);
+    void *p = check_main(s, g_je ? mallocx(total ? total : 1, JE_ZERO | je_flags(s))
+                                 : __libc_calloc(n, size));
+    leave(s);
+    if (!p)
+        errno = ENOMEM;
+    return p;
+}
+
+EXPORT void *realloc(void *p, size_t n)
+{
+    if (!p)
+        return malloc(n);
+    if (n == 0) {                   /* glibc's semantics: free, return NULL */
+        free(p);
+        return NULL;
+    }
+    int active = atomic_load_explicit(&g_active, memory_order_relaxed);
+    int s = active ? my_slot() : 0;
+    int o = active ? owner_of(p) : 0;
+    void *q;
+    if (o < 0 || owner_slot(o) == s) {
+        enter(s);
+        drain_mine(s);
+        q = check_main(s, g_je ? rallocx(p, n, je_flags(s)) : __libc_realloc(p, n));
+        leave(s);
+    } else {
+        /* Someone else's block: copy it into ours, hand theirs back. */
+        size_t have = be_usable(p);
+        q = malloc(n);
+        if (q) {
+            memcpy(q, p, have < n ? have : n);
+            hand_over(o, p);
+        }
+    }
+    if (!q)
+        errno = ENOMEM;
+    return q;
+}
+
+EXPORT void *reallocarray(void *p, size_t n, size_t size)
+{
+    size_t total;
+    if (__builtin_mul_overflow(n, size, &total)) {
+        errno = ENOMEM;
+        return NULL;
+    }
+    return realloc(p, total);
+}
+
+static void *aligned(size_t align, size_t n)
+{
+    if (align & (align - 1))        /* glibc rounds up to a power of two */
+        align = (size_t)1 << (64 - __builtin_clzl(align));
+    int s = atomic_load_explicit(&g_active, memory_order_relaxed) ? my_slot() : 0;
+    enter(s);
+    if (s)
+        drain_mine(s);
+    void *p = check_main(s, be_aligned(s, align, n));
+    leave(s);
+    if (!p)
+        errno = ENOMEM;
+    return p;
+}
+
+EXPORT void *memalign(size_t align, size_t n) { return aligned(align, n); }
+EXPORT void *aligned_alloc(size_t align, size_t n) { return aligned(align, n); }
+EXPORT void *valloc(size_t n) { return aligned(g_page, n); }
+
+EXPORT void *pvalloc(size_t n)
+{
+    size_t rounded = (n + g_page - 1) & ~(g_page - 1);
+    return aligned(g_page, rounded ? rounded : g_page);
+}
+
+EXPORT int posix_memalign(void **out, size_t align, size_t n)
+{
+    if (align < sizeof(void *) || (align & (align - 1)))
+        return EINVAL;
+    int saved = errno;
+    void *p = aligned(align, n);
+    errno = saved;
+    if (!p)
+        return ENOMEM;
+    *out = p;
+    return 0;
+}
+
+EXPORT size_t malloc_usable_size(void *p)
+{
+    if (!p)
+        return 0;
+    if (!g_je && !glibc_usable_size)
+        glibc_usable_size = (size_t (*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
+    return be_usable(p);
+}
+
+/* ---------------------------------------------------------------------- */
+/* C++ operator new / delete.  jemalloc defines them too, and would
+   otherwise serve C++ code without us: new forwards to libstdc++'s own (which
+   calls our malloc and keeps its new_handler and bad_alloc semantics),
+   delete is free.                                                         */
+
+#define NEW_OPS(X)                                                          \
+    X(_Znwm, (size_t n), (n), n, 0, 0)                                      \
+    X(_Znam, (size_t n), (n), n, 0, 0)                                      \
+    X(_ZnwmRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)      \
+    X(_ZnamRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)      \
+    X(_ZnwmSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)          \
+    X(_ZnamSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)          \
+    X(_ZnwmSt11align_val_tRKSt9nothrow_t, (size_t n, size_t a, const void *t), (n, a, t), n, a, 1) \
+    X(_ZnamSt11align_val_tRKSt9nothrow_t, (size_t n, size_t a, const void *t), (n, a, t), n, a, 1)
+
+static void *libstdcxx(const char *name)
+{
+    void *h = dlopen("libstdc++.so.6", RTLD_LAZY | RTLD_NOLOAD);
+    void *f = h ? dlsym(h, name) : NULL;
+    if (h)
+        dlclose(h);
+    return f;
+}
+
+/* Without libstdc++'s (a process that never loaded it): no new_handler. */
+static void *new_fallback(size_t n, size_t align, int nothrow)
+{
+    void *p = align ? aligned(align, n) : malloc(n ? n : 1);
+    if (!p && !nothrow)
+        abort();
+    return p;
+}
+
+#define DEFINE_NEW(name, params, args, n_, align_, nothrow_)                \
+    static void *(*_Atomic real_##name) params;                             \
+    EXPORT void *name params                                                \
+    {                                                                       \
+        void *(*f) params = real_##name;                                    \
+        if (unlikely(!f))                                                   \
+            f = real_##name = (void *(*) params)libstdcxx(#name);           \
+        return f ? f args : new_fallback(n_, align_, nothrow_);             \
+    }
+NEW_OPS(DEFINE_NEW)
+
+static void resolve_new_ops(void)
+{
+#define RESOLVE_NEW(name, params, args, n_, align_, nothrow_) \
+    if (!real_##name) real_##name = (void *(*) params)libstdcxx(#name);
+    NEW_OPS(RESOLVE_NEW)
+}
+
+#define DELETE_OPS(X)                                                       \
+    X(_ZdlPv, (void *p)) X(_ZdaPv, (void *p))                               \
+    X(_ZdlPvm, (void *p, size_t n)) X(_ZdaPvm, (void *p, size_t n))         \
+    X(_ZdlPvRKSt9nothrow_t, (void *p, const void *t))                       \
+    X(_ZdaPvRKSt9nothrow_t, (void *p, const void *t))                       \
+    X(_ZdlPvSt11align_val_t, (void *p, size_t a))                           \
+    X(_ZdaPvSt11align_val_t, (void *p, size_t a))                           \
+    X(_ZdlPvmSt11align_val_t, (void *p, size_t n, size_t a))                \
+    X(_ZdaPvmSt11align_val_t, (void *p, size_t n, size_t a))                \
+    X(_ZdlPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t a, const void *t)) \
+    X(_ZdaPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t a, const void *t))
+
+#define DEFINE_DELETE(name, params) \
+    EXPORT void name params { free(p); }
+DELETE_OPS(DEFINE_DELETE)
+
+/* ---------------------------------------------------------------------- */
+/* jemalloc extent hooks: a slot's arena gets its memory from the slot's
+   own address range, bumped forward, never given back (jemalloc retains
+   and purges instead).  The bump is one CAS: a task killed in here leaves
+   at worst a little address space unused.                                */
+
+#define SLOT_OF_HOOKS(hp) (((struct slot_hooks *)(hp))->slot)
+
+static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
+                        bool *zero, bool *commit, unsigned arena_ind)
+{
+    (void)arena_ind;
+    struct slot *sl = &slots[SLOT_OF_HOOKS(h)];
+    if (align < g_page)
+        align = g_page;
+    uintptr_t cur = atomic_load(&sl->bump), start;
+    do {
+        start = new_addr ? (uintptr_t)new_addr : (cur + align - 1) & ~(align - 1);
+        if ((new_addr && start != cur) || start + size > sl->limit || start + size < start)
+            return NULL;
+    } while (!atomic_compare_exchange_weak(&sl->bump, &cur, start + size));
+    if (mprotect((void *)start, size, PROT_READ | PROT_WRITE) != 0)
+        return NULL;
+    *zero = true;                   /* never handed out before: zero pages */
+    *commit = true;
+    return (void *)start;
+}
+
+static bool hook_dalloc(je_hooks *h, void *a, size_t n, bool c, unsigned i)
+{
+    (void)h, (void)a, (void)n, (void)c, (void)i;
+    return true;                    /* opt out: jemalloc keeps it */
+}
+
+static void hook_destroy(je_hooks *h, void *a, size_t n, bool c, unsigned i)
+{
+    (void)h, (void)c, (void)i;
+    madvise(a, n, MADV_DONTNEED);
+}
+
+static bool hook_commit(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
+{
+    (void)h, (void)n, (void)i;
+    return mprotect((char *)a + off, len, PROT_READ | PROT_WRITE) != 0;
+}
+
+static bool hook_decommit(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
+{
+    (void)h, (void)a, (void)n, (void)off, (void)len, (void)i;
+    return true;                    /* opt out: purged instead */
+}
+
+static bool hook_purge_lazy(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
+{
+    (void)h, (void)n, (void)i;
+    return madvise((char *)a + off, len, MADV_FREE) != 0;
+}
+
+static bool hook_purge_forced(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
+{
+    (void)h, (void)n, (void)i;
+    return madvise((char *)a + off, len, MADV_DONTNEED) != 0;
+}
+
+static bool hook_split(je_hooks *h, void *a, size_t n, size_t x, size_t y, bool c, unsigned i)
+{
+    (void)h, (void)a, (void)n, (void)x, (void)y, (void)c, (void)i;
+    return false;                   /* within one slot's range: fine */
+}
+
+static bool hook_merge(je_hooks *h, void *a, size_t n, void *b, size_t m, bool c, unsigned i)
+{
+    (void)h, (void)a, (void)n, (void)b, (void)m, (void)c, (void)i;
+    return false;                   /* jemalloc merges only within an arena */
+}
+
+/* ---------------------------------------------------------------------- */
+/* Control, for clonecore.c.                                               */
+
+static void after_fork_child(void)
+{
+    /* A fork()ed copy is an ordinary process: nobody shares its memory. */
+    atomic_store(&g_active, 0);
+}
+
+EXPORT const char *cga_backend(void)
+{
+    return mallocx ? "jemalloc" : "glibc";
+}
+
+/* Start guarding.  Called once, by the container, before any node process
+   exists.  0, or -errno. */
+EXPORT int cga_activate(int container_pid)
+{
+    if (atomic_load(&g_active))
+        return -EALREADY;
+    if (g_je && !(rallocx && dallocx && sallocx && mallctl))
+        return -ENOSYS;
+    g_page = (size_t)sysconf(_SC_PAGESIZE);
+    glibc_usable_size = (size_t (*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
+    if (!g_je && !glibc_usable_size)
+        return -ENOSYS;
+    if (g_je) {
+        /* Address space for every slot, reserved (no memory, no commit
+           charge); halved until the kernel agrees. */
+        for (int n = NSLOTS; n >= 16; n /= 2) {
+            size_t len = (size_t)(n - 1) << SLOT_SHIFT;
+            void *r = mmap(NULL, len, PROT_NONE,
+                           MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
+            if (r != MAP_FAILED) {
+                g_region = (uintptr_t)r;
+                g_region_len = len;
+                g_nslots = n;
+                break;
+            }
+        }
+        if (!g_region)
+            return -ENOMEM;
+    }
+    resolve_new_ops();
+    g_container_pid = container_pid;
+    atomic_store(&slots[0].state, CGA_BOUND);
+    atomic_store(&slots[0].pid, container_pid);
+    pthread_atfork(NULL, NULL, after_fork_child);
+    atomic_store(&g_active, 1);
+    return 0;
+}
+
+/* A slot for a new node process context: its arena made (jemalloc) by the
+   calling container thread.  The slot number, or -errno. */
+EXPORT int cga_slot_new(void)
+{
+    if (!atomic_load(&g_active))
+        return -ESRCH;
+    for (int s = 1; s < g_nslots; s++) {
+        int unused = CGA_UNUSED;
+        if (!atomic_compare_exchange_strong(&slots[s].state, &unused, CGA_IDLE))
+            continue;
+        struct slot *sl = &slots[s];
+        if (g_je) {
+            sl->base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);
+            sl->limit = sl->base + ((uintptr_t)1 << SLOT_SHIFT);
+            atomic_store(&sl->bump, sl->base);
+            sl->hooks.slot = s;
+            sl->hooks.h = (je_hooks){hook_alloc, hook_dalloc, hook_destroy,
+                                     hook_commit, hook_decommit, hook_purge_lazy,
+                                     hook_purge_forced, hook_split, hook_merge};
+            je_hooks *hp = &sl->hooks.h;
+            unsigned ind;
+            size_t sz = sizeof ind;
+            int r = mallctl("arenas.create", &ind, &sz, &hp, sizeof hp);
+            if (r) {
+                atomic_store(&sl->state, CGA_UNUSED);
+                return -r;
+            }
+            sl->arena = ind;
+            atomic_store(&owners[s].slot, s);
+        }
+        return s;
+    }
+    return -ENOSPC;
+}
+
+/* Called with a new context's thread pointer current (clonecore.c borrows
+   its TLS block on a container thread): make this "task" slot s's and set
+   up its allocator state (jemalloc's thread data and cache, glibc's arena
+   and cache) now, in the container, so the node process never runs that
+   set-up, which takes allocator-wide locks. */
+EXPORT int cga_warm(int slot)
+{
+    if (slot <= 0 || slot >= g_nslots)
+        return -EINVAL;
+    t_slot1 = slot + 1;
+    if (g_je) {
+        t_owner = slot;
+        void *p = mallocx(1, je_flags(slot));
+        if (!p)
+            return -ENOMEM;
+        dallocx(p, 0);
+        return 0;
+    }
+    t_owner = learn_glibc_arena(slot);
+    return t_owner ? 0 : -ENOMEM;
+}
+
+/* A context is about to run a new node process. */
+EXPORT void cga_slot_bind(int slot)
+{
+    atomic_store(&slots[slot].inside, 0);
+    atomic_store(&slots[slot].state, CGA_BOUND);
+}
+
+/* First thing in a node process: threads it creates find their slot by pid. */
+EXPORT void cga_child_start(void)
+{
+    int s = t_slot1 - 1;
+    if (s > 0)
+        atomic_store(&slots[s].pid, (int)syscall(SYS_getpid));
+}
+
+/* The slot's process is gone (every task of it).  1: it died inside the
+   allocator, the slot is quarantined for good; 0: its arena is consistent
+   and the slot idle, for the next process in that context. */
+EXPORT int cga_slot_retire(int slot)
+{
+    struct slot *sl = &slots[slot];
+    int inside = atomic_load(&sl->inside) != 0;
+    atomic_store(&sl->pid, 0);
+    atomic_store(&sl->state, inside ? CGA_QUARANTINED : CGA_IDLE);
+    return inside;
+}
+
+static void count_stack(struct owner *o, struct cga_slot_stats *out)
+{
+    for (void *p = atomic_load(&o->stack); p; p = *(void **)p) {
+        out->pending_blocks++;
+        out->pending_bytes += be_usable(p);
+    }
+}
+
+/* What a slot holds.  pending_* (the blocks handed to it not yet freed:
+   for a quarantined slot, what has leaked) are counted only while no
+   process drains them (the slot is not bound). */
+EXPORT int cga_slot_stats(int slot, struct cga_slot_stats *out)
+{
+    if (slot < 0 || slot >= g_nslots)
+        return -EINVAL;
+    memset(out, 0, sizeof *out);
+    struct slot *sl = &slots[slot];
+    out->state = atomic_load(&sl->state);
+    out->pid = atomic_load(&sl->pid);
+    out->arena = sl->arena;
+    out->main_arena_allocs = atomic_load(&sl->main_allocs);
+    bool walk = slot > 0 && out->state != CGA_BOUND;
+    if (g_je) {
+        out->handed_blocks = atomic_load(&owners[slot].handed);
+        if (walk)
+            count_stack(&owners[slot], out);
+        return 0;
+    }
+    for (int i = 1; i < NOWNERS; i++) {
+        if (!atomic_load(&owners[i].key) || atomic_load(&owners[i].slot) != slot)
+            continue;
+        out->glibc_arenas++;
+        out->handed_blocks += atomic_load(&owners[i].handed);
+        if (walk)
+            count_stack(&owners[i], out);
+    }
+    return 0;
+}
+
+/* Start-up check of the glibc layout facts owner_of rests on (assumptions.py):
+   a block from the main thread is main-arena; blocks a new thread allocates
+   are non-main, and the first word of their aligned heap is one arena, the
+   same for both, lying just past the heap header of its first heap.  The
+   calling thread must be the main thread.  0 if all hold, else which
+   failed (1..4). */
+struct probe_arg { void *a, *b; };
+
+static void *probe_thread(void *p)
+{
+    struct probe_arg *pa = p;
+    pa->a = __libc_malloc(GLIBC_PROBE_SIZE);
+    pa->b = __libc_malloc(GLIBC_PROBE_SIZE * 3);
+    return NULL;
+}
+
+EXPORT int cga_probe_glibc(void)
+{
+    void *m = __libc_malloc(GLIBC_PROBE_SIZE);
+    int main_ok = m && !(((size_t *)m)[-1] & (GLIBC_NON_MAIN_ARENA | GLIBC_IS_MMAPPED));
+    __libc_free(m);
+    if (!main_ok)
+        return 1;
+    struct probe_arg pa = {NULL, NULL};
+    pthread_t t;
+    if (pthread_create(&t, NULL, probe_thread, &pa) != 0)
+        return 2;
+    pthread_join(t, NULL);
+    int rc = 0;
+    void *ar_a = pa.a ? glibc_arena_of(pa.a) : NULL;
+    void *ar_b = pa.b ? glibc_arena_of(pa.b) : NULL;
+    uintptr_t heap = (uintptr_t)pa.a & ~(GLIBC_HEAP_MAX - 1);
+    if (!ar_a || ar_a != ar_b)
+        rc = 3;
+    else if ((uintptr_t)ar_a < heap || (uintptr_t)ar_a > heap + 256)
+        rc = 4;
+    __libc_free(pa.a);
+    __libc_free(pa.b);
+    return rc;
+}

@@ -1,0 +1,47 @@
+/*
+ * allocguard.h - the allocator guard's control interface (allocguard.c).
+ *
+ * The guard is a small malloc interposer preloaded (LD_PRELOAD) into an
+ * isolated container.  The container finds these functions with dlsym; a
+ * process without the guard preloaded simply has none of them.  Only
+ * clonecore.c calls them (from container threads, the monitor, and a child
+ * right after it starts).
+ */
+#ifndef CLONEGUARD_ALLOCGUARD_H
+#define CLONEGUARD_ALLOCGUARD_H
+
+#include <stdint.h>
+
+/* A slot is one node process's allocator identity: its arena(s) and the
+   stack of blocks others freed for it.  Slot 0 is the container. */
+enum {
+    CGA_UNUSED = 0,         /* never handed out */
+    CGA_IDLE = 1,           /* set up, no process in it (pooled) */
+    CGA_BOUND = 2,          /* a node process allocates from it */
+    CGA_QUARANTINED = 3,    /* its process died inside the allocator: its
+                               arena(s) may be locked or torn, for good */
+};
+
+struct cga_slot_stats {
+    int state;              /* CGA_* */
+    int pid;                /* the process bound to it, 0 if none */
+    unsigned arena;         /* jemalloc arena index (jemalloc backend) */
+    int glibc_arenas;       /* glibc arenas attributed to it */
+    uint64_t handed_blocks; /* blocks others freed and handed to it */
+    uint64_t pending_blocks;/* ... not freed into its arena yet */
+    uint64_t pending_bytes;
+    uint64_t main_arena_allocs;   /* glibc: blocks it got from the container's
+                                     main arena (a fallback glibc makes) */
+};
+
+/* The functions, as clonecore.c calls them (through dlsym). */
+typedef int (*cga_activate_fn)(int container_pid);
+typedef const char *(*cga_backend_fn)(void);
+typedef int (*cga_slot_new_fn)(void);
+typedef int (*cga_warm_fn)(int slot);
+typedef void (*cga_slot_bind_fn)(int slot);
+typedef void (*cga_child_start_fn)(void);
+typedef int (*cga_slot_retire_fn)(int slot);
+typedef int (*cga_slot_stats_fn)(int slot, struct cga_slot_stats *out);
+
+#endif

@@ -1,0 +1,255 @@
+"""The allocator guard (container/isolated/allocguard.c), under glibc and jemalloc.
+
+Each case runs a container side in a subprocess with the guard preloaded
+(and jemalloc after it, for the jemalloc cases): real clone children, real
+SIGKILLs. The subprocess prints what it saw as one JSON line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from container import allocator
+
+REPO = Path(__file__).resolve().parent.parent
+
+PRELUDE = textwrap.dedent("""
+    import ctypes, json, signal, sys, time
+    from container import allocator
+    allocator.glibc_arena_per_task()          # before any thread (no-op on jemalloc)
+    from container.isolated.core import CloneCore
+
+    libc = ctypes.CDLL(None)
+    libc.malloc.restype = ctypes.c_void_p
+    libc.malloc.argtypes = [ctypes.c_size_t]
+    libc.free.argtypes = [ctypes.c_void_p]
+    libc.malloc_usable_size.restype = ctypes.c_size_t
+    libc.malloc_usable_size.argtypes = [ctypes.c_void_p]
+
+    def run_child(core, fn, timeout=20):
+        child = core.spawn(fn)
+        death = core.wait(child, timeout)
+        assert death is not None, "child did not end"
+        core.release(child)
+        return death
+
+    out = {}
+""")
+
+CASES = {
+    # Blocks a child allocated and the container freed are handed back to the
+    # child's slot, not freed into its arena; the next child in that slot
+    # (the context is reused) frees them at its first allocation. Blocks a
+    # child frees itself are freed at once (nothing handed).
+    "hand_back": """
+        with CloneCore(alloc_guard=True) as core:
+            blocks = []
+            def owner():
+                blocks.extend(libc.malloc(200 + 40 * i) for i in range(50))
+                mine = [libc.malloc(300) for _ in range(20)]
+                for p in mine:
+                    libc.free(p)
+            d1 = run_child(core, owner)
+            before = core.slot_stats(d1.alloc_slot)
+            for p in blocks:
+                libc.free(p)
+            after_free = core.slot_stats(d1.alloc_slot)
+            d2 = run_child(core, lambda: libc.free(libc.malloc(64)))
+            out.update(slot1=d1.alloc_slot, slot2=d2.alloc_slot, before=before,
+                       after_free=after_free, after_reuse=core.slot_stats(d2.alloc_slot),
+                       quarantined=[d1.alloc_quarantined, d2.alloc_quarantined])
+    """,
+    # A child SIGKILLed inside malloc/free: its slot is quarantined, blocks of
+    # it freed afterwards are leaked and counted exactly, and later children
+    # get other slots.
+    "quarantine": """
+        from faults._hammer import lib as hammer
+        with CloneCore(alloc_guard=True) as core:
+            for attempt in range(5):
+                blocks, sizes, started = [], [], []
+                def victim():
+                    for i in range(40):
+                        p = libc.malloc(1000 + 977 * i)
+                        blocks.append(p)
+                        sizes.append(libc.malloc_usable_size(p))
+                    started.append(1)
+                    hammer.hammer_run(7, 12345 + attempt)   # never returns
+                child = core.spawn(victim)
+                while not started:
+                    time.sleep(0.001)
+                time.sleep(0.02)
+                core.kill(child, signal.SIGKILL)
+                death = core.wait(child, 10)
+                if death.alloc_quarantined:
+                    break
+                core.release(child)
+            hammer.drain_some(7)          # the hammer's handed-over blocks, first
+            before = core.slot_stats(death.alloc_slot)
+            for p in blocks:
+                libc.free(p)
+            after = core.slot_stats(death.alloc_slot)
+            core.release(child)
+            later = run_child(core, lambda: libc.free(libc.malloc(64)))
+            out.update(quarantined=death.alloc_quarantined, signal=death.exit_signal,
+                       slot=death.alloc_slot, later_slot=later.alloc_slot,
+                       later_quarantined=later.alloc_quarantined,
+                       before=before, after=after, expected_bytes=sum(sizes),
+                       expected_blocks=len(blocks))
+    """,
+    # A child killed outside the allocator (asleep in Python) leaves its
+    # slot idle, and the next child reuses it, also when the dead child's
+    # Python state is kept (abandon, as the host does with a crashed node).
+    "death_outside": """
+        with CloneCore(alloc_guard=True) as core:
+            asleep = []
+            def sleeper():
+                asleep.append(1)
+                time.sleep(60)
+            child = core.spawn(sleeper)
+            while not asleep:
+                time.sleep(0.001)
+            time.sleep(0.05)
+            core.kill(child, signal.SIGKILL)
+            death = core.wait(child, 10)
+            core.abandon(child)
+            state = core.slot_stats(death.alloc_slot)["state"]
+            again = run_child(core, lambda: libc.free(libc.malloc(64)))
+            out.update(quarantined=death.alloc_quarantined, state=state,
+                       slot=death.alloc_slot, again=again.alloc_slot)
+    """,
+    # Many children one after another, each allocating: one context, one
+    # slot, reused every time; no arena made per child.
+    "reuse": """
+        with CloneCore(alloc_guard=True) as core:
+            def work():
+                keep = [libc.malloc(4096) for _ in range(100)]
+                for p in keep:
+                    libc.free(p)
+            slots = {run_child(core, work).alloc_slot for _ in range(150)}
+            stats = core.slot_stats(min(slots))
+            out.update(slots=sorted(slots), glibc_arenas=stats["glibc_arenas"],
+                       arena=stats["arena"])
+            if allocator.jemalloc_active():
+                n = ctypes.c_uint()
+                size = ctypes.c_size_t(ctypes.sizeof(n))
+                libc.mallctl(b"arenas.narenas", ctypes.byref(n), ctypes.byref(size), None, 0)
+                out["narenas"] = n.value
+    """,
+    # A node allocating 16 B .. 2 MiB without pause while the container
+    # frees one block in eight of it: never a block from glibc's main arena
+    # (which it would take the container's lock for).
+    "no_main_arena": """
+        from faults._hammer import lib as hammer
+        with CloneCore(alloc_guard=True) as core:
+            started = []
+            def busy():
+                started.append(1)
+                hammer.hammer_run(6, 99)
+            child = core.spawn(busy)
+            while not started:
+                time.sleep(0.001)
+            deadline = time.monotonic() + 1.5
+            freed = 0
+            while time.monotonic() < deadline:
+                freed += hammer.drain_some(6)
+                time.sleep(0.002)
+            ops = hammer.hammer_ops_done(6)
+            core.kill(child, signal.SIGKILL)
+            death = core.wait(child, 10)
+            out.update(ops=ops, freed=freed,
+                       main_arena_allocs=core.slot_stats(death.alloc_slot)["main_arena_allocs"])
+            core.release(child)
+    """,
+    # C++ operator new in a child allocates in the child's slot (jemalloc
+    # defines operator new itself; the guard must take its place).
+    "operator_new": """
+        new = libc._Znwm
+        new.restype = ctypes.c_void_p
+        new.argtypes = [ctypes.c_size_t]
+        delete = libc._ZdlPv
+        delete.argtypes = [ctypes.c_void_p]
+        with CloneCore(alloc_guard=True) as core:
+            got = []
+            d = run_child(core, lambda: got.append(new(5000)))
+            before = core.slot_stats(d.alloc_slot)["handed_blocks"]
+            delete(got[0])
+            out.update(handed=core.slot_stats(d.alloc_slot)["handed_blocks"] - before)
+    """,
+}
+
+BACKENDS = ["glibc", "jemalloc"]
+
+
+def run(case: str, backend: str) -> dict:
+    env = dict(os.environ)
+    preload = [allocator.GUARD_PATH]
+    if backend == "jemalloc":
+        if allocator.jemalloc_path() is None:
+            pytest.skip("libjemalloc2 is not installed")
+        preload.append(allocator.jemalloc_path())
+    env["LD_PRELOAD"] = " ".join(preload)
+    script = PRELUDE + textwrap.dedent(CASES[case]) + "\nprint(json.dumps(out))\n"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_blocks_freed_by_others_go_back_to_their_owner(backend):
+    out = run("hand_back", backend)
+    assert out["quarantined"] == [False, False]
+    assert out["slot2"] == out["slot1"]                 # the context was reused
+    before, after_free, after_reuse = out["before"], out["after_free"], out["after_reuse"]
+    assert before["state"] == "idle"
+    # the child's own frees handed nothing; the container's 50 were handed back
+    assert after_free["handed_blocks"] - before["handed_blocks"] == 50
+    assert after_free["pending_blocks"] - before["pending_blocks"] == 50
+    # ... and the next child in the slot freed them into its arena
+    assert after_reuse["pending_blocks"] == 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_death_inside_the_allocator_quarantines_and_counts_what_leaks(backend):
+    out = run("quarantine", backend)
+    assert out["quarantined"] is True and out["signal"] == 9
+    assert out["after"]["state"] == "quarantined"
+    assert out["after"]["pending_blocks"] - out["before"]["pending_blocks"] == out["expected_blocks"]
+    assert out["after"]["pending_bytes"] - out["before"]["pending_bytes"] == out["expected_bytes"]
+    assert out["later_slot"] != out["slot"] and out["later_quarantined"] is False
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_death_outside_the_allocator_leaves_the_slot_reusable(backend):
+    out = run("death_outside", backend)
+    assert out["quarantined"] is False
+    assert out["state"] == "idle"
+    assert out["again"] == out["slot"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_children_one_after_another_reuse_one_context(backend):
+    out = run("reuse", backend)
+    assert len(out["slots"]) == 1, out["slots"]
+    if backend == "glibc":
+        assert out["glibc_arenas"] == 1           # the context's own, reused
+    else:
+        assert out["narenas"] == out["arena"] + 1  # one arena made, none since
+
+
+def test_a_node_never_allocates_from_glibcs_main_arena():
+    out = run("no_main_arena", "glibc")
+    assert out["ops"] > 50_000 and out["freed"] > 1_000
+    assert out["main_arena_allocs"] == 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_operator_new_in_a_child_is_guarded(backend):
+    assert run("operator_new", backend)["handed"] == 1
