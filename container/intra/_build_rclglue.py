@@ -1,9 +1,9 @@
 """cffi (API mode) builder for container.intra._rclglue.
 
 The C is rclglue.c (the generated module #includes it, so compiler messages
-point at rclglue.c lines); rclglue.h is its interface, which the cdef below
-mirrors: keep them in step (a mismatch is a compile error in the generated
-module).
+point at rclglue.c lines) and waker.c (a second source); rclglue.h and
+waker.h are their interfaces, which the cdef below mirrors: keep them in
+step (a mismatch is a compile error in the generated module).
 
 It is compiled against the real rcl/rmw/rcutils headers of the ROS 2 Jazzy
 wheels in this venv (``<sys.prefix>/include/<pkg>/<pkg>/...``) and linked to
@@ -88,17 +88,28 @@ int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
 int cgr_take_serialized(const rcl_subscription_t *subscription,
                         rcl_serialized_message_t *msg, uint8_t *gid_out,
                         char *err, size_t err_size);
+
+/* waker.h */
+#define CGW_TOKENS ...
+struct cgw_waker;
+int cgw_new(struct cgw_waker **out);
+int cgw_add(struct cgw_waker *w, void *guard_condition);
+void cgw_remove(struct cgw_waker *w, int token);
+void cgw_post(struct cgw_waker *w, int token);
+uint64_t cgw_triggered(struct cgw_waker *w);
+int cgw_close(struct cgw_waker *w, int timeout_ms);
 """
 
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "container.intra._rclglue",
-    '#include "rclglue.c"\n',
+    '#include "rclglue.c"\n#include "waker.h"\n',
+    sources=["container/intra/waker.c"],
     include_dirs=[str(HERE), *_include_dirs()],
     # setuptools wants paths relative to the repo root (where setup.py and
     # the __main__ build below run).
-    depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h")],
+    depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h", "waker.c", "waker.h")],
     libraries=["rcl", "rmw", "rcutils"],
     library_dirs=[str(LIB_DIR)],
     extra_compile_args=["-std=gnu11", "-Wall"],

@@ -30,6 +30,7 @@ message (copied on their side). Rules: container/intra/README.md.
 from __future__ import annotations
 
 import array
+import functools
 import threading
 import weakref
 from contextlib import contextmanager
@@ -282,10 +283,18 @@ class Subscription:
         capacity = KEEP_ALL_LIMIT if profile.history == HistoryPolicy.KEEP_ALL else max(1, profile.depth)
         self.queue = MessageQueue(capacity, on_repair=self._queue_repaired)
         self._wake = node.create_guard_condition(self._drain, callback_group=callback_group)
+        # In a node process, publishers (maybe in other processes) wake it
+        # through the waker the container opened for it; else directly.
+        self._waker = get_bus().waker(owner) if owner is not None else None
+        if self._waker is not None:
+            self._token = self._waker.add(self._wake)
+            wake = functools.partial(self._waker.post, self._token)
+        else:
+            wake = self._wake.trigger
         self._entry = SubscriptionEntry(
             owner, self.topic, msg_type,
             reliable=profile.reliability == ReliabilityPolicy.RELIABLE,
-            queue=self.queue, wake=self._wake.trigger)
+            queue=self.queue, wake=wake)
         get_bus().add_subscription(self._entry)
         _track(node, self)
 
@@ -297,6 +306,8 @@ class Subscription:
         if self._entry is not None:
             get_bus().remove(self._entry)
             self._entry = None
+            if self._waker is not None:
+                self._waker.remove(self._token)
             self.node.destroy_guard_condition(self._wake)
             self._reader.destroy()
         elif self._dds is not None:

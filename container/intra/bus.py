@@ -10,6 +10,10 @@ Readers (every publish) look entries up without locking: each topic's entry
 is an immutable tuple replaced by one dict store. Writers (create, destroy,
 a node's unload or death) take the bus's robust mutex; a writer that dies
 mid-change leaves either the old tuple or the new one.
+
+It also holds the wakers (waker.py) of the node processes the container
+opened them for: the isolated host opens one before it starts a node that
+uses intra-process messaging; the node's unload or death closes it.
 """
 from __future__ import annotations
 
@@ -23,6 +27,7 @@ from container.isolated.robust import RobustMutex
 
 from .pool import LoanPool
 from .queue import MessageQueue
+from .waker import Waker
 
 log = get_logger("cloneguard.intra")
 
@@ -34,7 +39,7 @@ class SubscriptionEntry:
     msg_type: type
     reliable: bool                 # asks for RELIABLE: a BEST_EFFORT publisher does not match
     queue: MessageQueue
-    wake: Callable[[], None]       # triggers the subscription's guard condition
+    wake: Callable[[], None]       # wakes the subscription's executor (waker.py)
 
     def matches(self, pub: "PublisherEntry") -> bool:
         return pub.msg_type is self.msg_type and not (self.reliable and pub.best_effort)
@@ -57,6 +62,8 @@ class Bus:
         self._pub_gids: dict[str, frozenset[bytes]] = {}
         self.pool = LoanPool()
         self.repairs = 0
+        self._wakers: dict[object, Waker] = {}
+        self.stuck_wakers = 0
 
     # -- lock-free reads (every publish, every DDS sample) ---------------------
 
@@ -68,6 +75,24 @@ class Bus:
 
     def is_intra_publisher(self, topic: str, gid: bytes) -> bool:
         return gid in self._pub_gids.get(topic, ())
+
+    # -- wakers (container threads only open and close them) ---------------------
+
+    def open_waker(self, owner: object) -> Waker:
+        waker = self._wakers.get(owner)
+        if waker is None:
+            waker = self._wakers[owner] = Waker()
+        return waker
+
+    def waker(self, owner: object) -> Waker | None:
+        return self._wakers.get(owner)
+
+    def _close_waker(self, owner: object) -> None:
+        waker = self._wakers.pop(owner, None)
+        if waker is not None and not waker.close():
+            self.stuck_wakers += 1
+            log.warning(f"intra-process waker of unique_id {owner}: stuck in its dead "
+                        "subscriber's wait-set lock; left behind")
 
     # -- changes (robust mutex) --------------------------------------------------
 
@@ -91,7 +116,9 @@ class Bus:
         if owner is None:
             return 0
         with self._mutex:
-            return self._drop(lambda e: e.owner == owner, set(self._subs) | set(self._pubs))
+            removed = self._drop(lambda e: e.owner == owner, set(self._subs) | set(self._pubs))
+        self._close_waker(owner)
+        return removed
 
     def _drop(self, doomed: Callable[[object], bool], topics: set[str]) -> int:
         removed = 0

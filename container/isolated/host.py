@@ -33,7 +33,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from .. import factory
+from .. import factory, intra
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from .board import ProgressBoard
@@ -119,6 +119,11 @@ class IsolatedHost:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
         proc = _NodeProcess(unique_id, self.profile)
+        if args.use_intra_process_comms:
+            # Its subscriptions are woken by a container thread, never by a
+            # publisher's process (intra/waker.c); the manager's forget()
+            # closes it.
+            intra.get_bus().open_waker(unique_id)
         proc.slot = self.board.register(unique_id)
         start_ns = time.time_ns()
         if self.profile == SHARED:
