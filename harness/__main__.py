@@ -2,6 +2,7 @@
 
     compare RUN_A RUN_B [--fail-on-regression] [--test z|wilson] [--alpha A]
     render RUN [-o OUT.html]
+    merge RUN RUN ... --out DIR [--allow-mixed-commits]
     reproduce FAULT [--profile P] [--allocator A] [--seed S] [--trials N]
 
 RUN is a report directory, its report.json, or reports/latest.
@@ -63,13 +64,45 @@ def run_render(args) -> int:
     return 0
 
 
+def _add_merge(subparsers) -> None:
+    p = subparsers.add_parser(
+        "merge", help="join the reports of shards (--shard K/N) into one report",
+        description="Join shards' reports: trials put together by scenario, every expectation "
+                    "judged on all of them, hangs and diagnoses kept; writes report.json, "
+                    "report.html and junit.xml. Exit 1 if a scenario failed or an expectation "
+                    "is not met.",
+    )
+    p.add_argument("runs", metavar="RUN", nargs="+", help="report directories or report.json files")
+    p.add_argument("--out", required=True, help="directory for the merged report")
+    p.add_argument("--allow-mixed-commits", action="store_true",
+                   help="merge runs of different commits (refused by default)")
+    p.set_defaults(func=run_merge)
+
+
+def run_merge(args) -> int:
+    from .report.merge import merge_reports, write_merged
+    from .report.model import load_report
+
+    merged = merge_reports([load_report(r) for r in args.runs],
+                           allow_mixed_commits=args.allow_mixed_commits)
+    out = write_merged(merged, args.out)
+    summary = merged.summary()
+    failed = [s for s in merged.scenarios if s.outcome in ("failed", "error")]
+    print(f"merged {len(args.runs)} run(s): {summary['tests']} scenario(s), {summary['trials']} trial(s) "
+          f"{summary['trial_outcomes']}; expectations {summary['expectations']}")
+    print(f"report: {out / 'report.html'}")
+    for s in failed:
+        print(f"FAILED {s.nodeid}: {s.message}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _add_reproduce(subparsers) -> None:
     from .reproduce import add_parser
 
     add_parser(subparsers)
 
 
-SUBCOMMANDS = [_add_compare, _add_render, _add_reproduce]
+SUBCOMMANDS = [_add_compare, _add_render, _add_merge, _add_reproduce]
 
 
 def build_parser() -> argparse.ArgumentParser:

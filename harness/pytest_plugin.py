@@ -10,6 +10,9 @@ Fixtures
 
 Options
     --container-exe PATH   the container executable under test (default: ours)
+    --deep, --trials N, --seed S   how many trials scenarios make, from which seeds (plan.py)
+
+Trial fixtures (plan.py): trial_plan, record_trial, run_trials.
 
 After every test that started a container: its process group is empty, the
 harness has no zombie child, and no orphaned /dev/shm/fastrtps_* segment
@@ -21,8 +24,9 @@ import os
 
 import pytest
 
-from . import domains, procfs, shm
+from . import domains, plan, procfs, shm
 from .factory import ContainerFactory, log_tail
+from .plan import record_trial, run_trials, trial_plan  # noqa: F401  (fixtures)
 from .process import ros_environment
 
 
@@ -32,6 +36,7 @@ def pytest_addoption(parser):
         "--container-exe", default=None,
         help="component container executable to test (default: this project's component_container)",
     )
+    plan.add_options(parser)
 
 
 def pytest_configure(config):

@@ -26,7 +26,7 @@ def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, run_t
 
 
 @pytest.mark.parametrize("fault", list(CALLBACK_FAULTS))
-def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, record_trial, trials, rng):
+def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, record_trial, trial_plan):
     """The baseline: the same fault in thread mode takes the container down."""
     plugin, params, sig = CALLBACK_FAULTS[fault]
     resilience.describe(
@@ -34,10 +34,9 @@ def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, r
         claim=f"baseline: {fault} in one node's callback ends the whole thread-mode container",
     )
     rig = rig_factory("threads")
-    for i in range(trials(2, 20)):
-        if i:
+    for n, (i, seed) in enumerate(trial_plan(2, 20)):
+        if n:
             rig.restart()            # the previous trial's container is gone
-        seed = rng.getrandbits(31)
         rig.client.load_ok("cloneguard", plugin, parameters={**params, "delay": 0.1, "seed": seed})
         code = rig.proc.wait(timeout=10)
         out = Outcome("crashed" if code == -sig else "failed", details={"exit_code": code})
@@ -45,17 +44,18 @@ def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, r
     resilience.expect_rate("crashed", at_least=1.0)
 
 
-def test_without_gil_repair_a_death_holding_the_gil_freezes_the_container(rig_factory, resilience, record_trial, rng):
+def test_without_gil_repair_a_death_holding_the_gil_freezes_the_container(rig_factory, resilience, record_trial,
+                                                                         trial_plan):
     """What the GIL repair buys: the same fault with it switched off."""
     resilience.describe(
         fault="segfault-gil-held", profile="per-node", mitigations={"gil_repair": False},
         claim="with --no-gil-repair, a node that dies holding the GIL freezes the whole "
               "container (the hang is diagnosed: every thread waits on a GIL owned by the dead node)",
     )
+    [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory("per-node", extra_args=["--no-gil-repair"])
-    seed = rng.getrandbits(31)
-    out = callback_fault(rig, "segfault-gil-held", seed, 0)
-    record_trial(0, seed, out)
+    out = callback_fault(rig, "segfault-gil-held", seed, index)
+    record_trial(index, seed, out)
     resilience.expect_rate("survived", at_most=0.0)
     assert out.outcome == "hung", out.details
     if out.diagnosis is not None:   # gdb is installed by setup; name the GIL owner

@@ -29,7 +29,8 @@ def tracked(rig_factory):
 
 
 @pytest.mark.parametrize("profile", ["threads", "per-node"])
-def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, record_trial):
+def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
         fault="slow-constructor-12s", profile=profile, mitigations={},
         claim="a node that takes 12 s to construct (longer than the 10 s loading "
@@ -39,12 +40,13 @@ def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, rec
     node = tracker.load("cloneguard", "faults::SlowConstructor", parameters={"seconds": 12.0}, timeout=40)
     state = tracker.wait_state(node, [State.LOADED, State.FAILED], timeout=10)
     ok = state == State.LOADED and not node.warnings
-    record_trial(0, 0, Outcome("survived" if ok else "failed",
+    record_trial(index, seed, Outcome("survived" if ok else "failed",
                                details={"state": state.value, "warnings": node.warnings}))
     resilience.expect_rate("survived", at_least=1.0)
 
 
-def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, record_trial):
+def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
         fault="die-in-constructor", profile="per-node", mitigations={},
         claim="a node whose process is killed while it is being built is reported "
@@ -56,11 +58,12 @@ def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, recor
     stopped = rig.goes_on()
     out = Outcome("survived" if ok and stopped is None else "failed",
                   details={"state": node.state.value, "error": node.error, "why": stopped or ""})
-    record_trial(0, 0, out)
+    record_trial(index, seed, out)
     resilience.expect_rate("survived", at_least=1.0)
 
 
-def test_lost_loaded_event_falls_back_after_listnodes_confirms(tracked, resilience, record_trial):
+def test_lost_loaded_event_falls_back_after_listnodes_confirms(tracked, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
         fault="lost-loaded-event", profile="per-node", mitigations={"listnodes_confirmation": True},
         claim="a node whose LOADED event is lost is promoted to Loaded 10 s after its "
@@ -72,13 +75,14 @@ def test_lost_loaded_event_falls_back_after_listnodes_confirms(tracked, resilien
     state = tracker.wait_state(node, [State.LOADED, State.FAILED], timeout=20)
     promoted_after = node.history[-1][0] - node.answered_at
     ok = state == State.LOADED and any("ListNodes confirms" in w for w in node.warnings)
-    record_trial(0, 0, Outcome("survived" if ok else "failed",
+    record_trial(index, seed, Outcome("survived" if ok else "failed",
                                latency_ms={"answer_to_promotion": promoted_after * 1000},
                                details={"state": state.value, "warnings": node.warnings}))
     resilience.expect_rate("survived", at_least=1.0)
 
 
-def test_lost_events_and_a_dead_node_are_never_loaded(tracked, resilience, record_trial):
+def test_lost_events_and_a_dead_node_are_never_loaded(tracked, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
         fault="lost-loaded-event+sigkill", profile="per-node", mitigations={"listnodes_confirmation": True},
         claim="a node whose LOADED and CRASHED events are both lost and that is gone "
@@ -95,6 +99,6 @@ def test_lost_events_and_a_dead_node_are_never_loaded(tracked, resilience, recor
     rig.client.wait_for_event(ComponentEvent.CRASHED, unique_id=node.unique_id)
     rig.client.events.add_listener(tracker._on_event)
     state = tracker.wait_state(node, [State.LOADED, State.FAILED], timeout=20)
-    record_trial(0, 0, Outcome("survived" if state == State.FAILED else "failed",
+    record_trial(index, seed, Outcome("survived" if state == State.FAILED else "failed",
                                details={"state": state.value, "warnings": node.warnings}))
     resilience.expect_rate("survived", at_least=1.0)

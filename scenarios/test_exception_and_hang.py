@@ -5,15 +5,14 @@ from harness.rig import Outcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience, record_trial, trials, rng):
+def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience, record_trial, trial_plan):
     resilience.describe(
         fault="exception", profile=profile, mitigations={},
         claim="an exception escaping one node's callback ends that node's process "
               "(CRASHED, exit code 1); the rest goes on",
     )
     rig = rig_factory(profile)
-    for i in range(trials(3, 100)):
-        seed = rng.getrandbits(31)
+    for i, seed in trial_plan(3, 100):
         resp = rig.client.load_ok("cloneguard", "faults::RaiseInCallback", node_name=f"raiser{i}",
                                   parameters={"delay": 0.1, "seed": seed})
         pid = rig.loaded_pid(resp.unique_id)
@@ -25,27 +24,29 @@ def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience,
     resilience.expect_rate("survived", at_least=1.0)
 
 
-def test_uncaught_exception_ends_a_thread_mode_container(rig_factory, resilience, record_trial, rng):
+def test_uncaught_exception_ends_a_thread_mode_container(rig_factory, resilience, record_trial, trial_plan):
     resilience.describe(
         fault="exception", profile="threads", mitigations={},
         claim="baseline: as with rclcpp, an exception escaping a callback ends the "
               "thread-mode container (exit status 1)",
     )
+    [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory("threads")
     rig.client.load_ok("cloneguard", "faults::RaiseInCallback", parameters={"delay": 0.1})
     code = rig.proc.wait(timeout=10)
-    record_trial(0, 0, Outcome("crashed" if code == 1 else "failed", details={"exit_code": code}))
+    record_trial(index, seed, Outcome("crashed" if code == 1 else "failed", details={"exit_code": code}))
     resilience.expect_rate("crashed", at_least=1.0)
 
 
 @pytest.mark.parametrize("mode", ["sleep", "spin"])
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_a_hanging_callback_stalls_only_its_node(profile, mode, rig_factory, resilience, record_trial):
+def test_a_hanging_callback_stalls_only_its_node(profile, mode, rig_factory, resilience, record_trial, trial_plan):
     resilience.describe(
         fault=f"hang-{mode}", profile=profile, mitigations={},
         claim="a callback that never returns stalls only its own node: the others "
               "keep running and the container keeps answering; unloading it works",
     )
+    [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory(profile)
     resp = rig.client.load_ok("cloneguard", "faults::HangInCallback", parameters={"delay": 0.1, "mode": mode})
     pid = rig.loaded_pid(resp.unique_id)
@@ -57,6 +58,6 @@ def test_a_hanging_callback_stalls_only_its_node(profile, mode, rig_factory, res
         unloaded = rig.client.unload(resp.unique_id, timeout=10)
         if not unloaded.success:
             out.outcome, out.details["why"] = "failed", unloaded.error_message
-    record_trial(0, 0, out)
+    record_trial(index, seed, out)
     rig.settle(out)
     resilience.expect_rate("survived", at_least=1.0)

@@ -8,18 +8,20 @@ from harness.process import SHM_PROFILE
 from harness.rig import Outcome, Rig
 
 
-def test_no_shm_profile_creates_no_segment(rig_factory, resilience, record_trial):
+def test_no_shm_profile_creates_no_segment(rig_factory, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(fault="none", profile="per-node", mitigations={"fastdds_profile": "no-shm"},
                         claim="under fixtures/fastdds_no_shm.xml no /dev/shm/fastrtps_* file is created")
     before = shm.segments()
     rig = rig_factory("per-node")
     rig.client.load_ok("cloneguard", "cloneguard::Talker")
     created = shm.segments() - before
-    record_trial(0, 0, Outcome("survived" if not created else "failed", details={"created": sorted(created)}))
+    record_trial(index, seed, Outcome("survived" if not created else "failed", details={"created": sorted(created)}))
     resilience.expect_rate("survived", at_least=1.0)
 
 
-def test_graceful_stop_with_shm_leaks_nothing(rig_factory, resilience, record_trial):
+def test_graceful_stop_with_shm_leaks_nothing(rig_factory, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(fault="sigterm-container", profile="per-node", mitigations={"fastdds_profile": "shm"},
                         claim="with the SHM transport on, a graceful stop (SIGTERM) removes every "
                               "segment the container and its children made")
@@ -33,7 +35,7 @@ def test_graceful_stop_with_shm_leaks_nothing(rig_factory, resilience, record_tr
     code = rig.proc.wait(timeout=10)
     left = shm.segments() & created
     ok = created and not left and code == 0
-    record_trial(0, 0, Outcome("survived" if ok else "failed",
+    record_trial(index, seed, Outcome("survived" if ok else "failed",
                                details={"created": len(created), "left": sorted(left), "exit_code": code}))
     resilience.expect_rate("survived", at_least=1.0)
 
@@ -56,7 +58,8 @@ class _Named:
 
 
 def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
-        container_factory, rig_factory, resilience, record_trial):
+        container_factory, rig_factory, resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(fault="sigkill-container", profile="per-node", mitigations={"fastdds_profile": "shm"},
                         claim="a SIGKILLed container leaves orphaned SHM segments; the harness finds "
                               "them the way Fast DDS does (their lock files can be locked) and removes "
@@ -104,7 +107,7 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
 
     ok = (victim_gone and removed and kept and not left_orphans and went_on is None
           and bystander_gone and not still_orphaned)
-    record_trial(0, 0, Outcome("survived" if ok else "failed", details={
+    record_trial(index, seed, Outcome("survived" if ok else "failed", details={
         "orphans_removed": [s.name for s in removed], "bystanders_own_kept": len(bystanders_own) if kept else False,
         "orphans_left": left_orphans, "bystander": went_on or "went on",
         "bystander_stop_forced": stopped.forced, "late_orphans_removed": [s.name for s in late],

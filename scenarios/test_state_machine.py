@@ -2,9 +2,12 @@
 
 A hypothesis rule-based state machine drives a real isolated container.
 Invariants after every step: ListNodes equals the model; every node that
-died was reported CRASHED exactly once; the container is alive.
+died was reported CRASHED exactly once; the container is alive. Each example
+(one container, a sequence of steps) is one trial: failed if any step or
+invariant raised (hypothesis then shrinks: each replay is a trial too).
 """
 import collections
+import functools
 import os
 import signal
 
@@ -14,9 +17,23 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import Bundle, RuleBasedStateMachine, consumes, invariant, rule, run_state_machine_as_test
 
+from harness.plan import trial_count
 from harness.rig import Outcome
 
 PLUGINS = ["cloneguard::Talker", "cloneguard::Listener", "cloneguard::Heartbeat", "cloneguard::EchoService"]
+
+
+def checked(step):
+    """A rule or invariant that marks the example failed when it raises
+    (teardown runs for failing examples too)."""
+    @functools.wraps(step)
+    def run(self, *args, **kwargs):
+        try:
+            return step(self, *args, **kwargs)
+        except BaseException as exc:
+            self.failure = self.failure or f"{step.__name__}: {type(exc).__name__}: {exc}"
+            raise
+    return run
 
 
 def make_machine(start_rig, on_example_end):
@@ -30,8 +47,10 @@ def make_machine(start_rig, on_example_end):
             self.model = {self.rig.survivor_id: "/survivor"}
             self.crashed = set()
             self.counter = 0
+            self.failure = None
 
         @rule(target=nodes, plugin=st.sampled_from(PLUGINS))
+        @checked
         def load(self, plugin):
             self.counter += 1
             name = f"n{self.counter}"
@@ -40,12 +59,14 @@ def make_machine(start_rig, on_example_end):
             return resp.unique_id
 
         @rule(uid=consumes(nodes))
+        @checked
         def unload(self, uid):
             resp = self.cli.unload(uid)
             assert resp.success, resp.error_message
             del self.model[uid]
 
         @rule(uid=consumes(nodes), sig=st.sampled_from([signal.SIGKILL, signal.SIGSEGV, signal.SIGABRT]))
+        @checked
         def crash(self, uid, sig):
             pid = self.rig.loaded_pid(uid)
             os.kill(pid, sig)
@@ -55,16 +76,19 @@ def make_machine(start_rig, on_example_end):
             self.crashed.add(uid)
 
         @rule(missing=st.integers(min_value=10_000, max_value=20_000))
+        @checked
         def unload_missing(self, missing):
             resp = self.cli.unload(missing)
             assert not resp.success and resp.error_message == f"No node found with unique_id: {missing}"
 
         @invariant()
+        @checked
         def listnodes_equals_model(self):
             assert self.rig.proc.alive(), "the container died"
             assert dict(self.cli.list()) == self.model
 
         @invariant()
+        @checked
         def every_death_reported_once(self):
             counts = collections.Counter(
                 e.unique_id for e in self.cli.events.messages() if e.event_type == ComponentEvent.CRASHED)
@@ -77,7 +101,8 @@ def make_machine(start_rig, on_example_end):
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, resilience, record_trial, trials):
+def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, resilience, record_trial,
+                                                        trial_plan, request):
     resilience.describe(
         fault="random load/unload/crash sequences", profile=profile, mitigations={},
         claim="any sequence of load, unload, unload of a missing id and crash (SIGKILL, "
@@ -92,11 +117,15 @@ def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, re
         return rig
 
     def end(machine):
-        record_trial(len(rigs) - 1, 0, Outcome("survived", details={"steps_model_size": len(machine.model)}))
+        details = {"model_size": len(machine.model)}
+        if machine.failure:
+            details["why"] = machine.failure
+        record_trial(len(rigs) - 1, 0, Outcome("failed" if machine.failure else "survived", details=details))
         machine.rig.client.close()
         machine.rig.proc.stop()
 
-    examples = trials(3, 50)
+    trial_plan(1, 1)                 # hypothesis draws the examples; one shard runs them
+    examples = trial_count(request.config, 3, 50)
     run_state_machine_as_test(
         make_machine(start, end),
         settings=settings(max_examples=examples, stateful_step_count=8, deadline=None,

@@ -1,46 +1,36 @@
-"""pytest plugin: the ``resilience`` fixture, and the report of the run.
+"""pytest plugin: the crash-resilience report of a run.
 
-Scenarios record what happened through the fixture::
-
-    def test_segfault_in_callback(resilience):
-        resilience.describe(fault="segfault-gil-held", profile="per-node",
-                            mitigations={"gil_repair": True},
-                            claim="the container survives a SIGSEGV in one node's callback")
-        for trial in range(20):
-            ...
-            resilience.trial("survived", seed=seed, latency_ms={"death_to_event": 0.4})
-        resilience.expect_rate("survived", at_least=0.95)
-
-At the end of a session that ran scenarios (a test used ``resilience``, or
-ran from a ``scenarios/`` directory) it writes ``report.json``,
-``report.html`` and ``junit.xml`` into the run's report directory and
-points ``reports/latest`` at it.
+Tests record through the ``resilience`` fixture (record.py). At the end of a
+session that ran scenarios (a test used ``resilience``, or ran from a
+``scenarios/`` directory) the report session writes ``report.json``,
+``report.html`` and ``junit.xml`` into the run's report directory and points
+``reports/latest`` at it. Under pytest-xdist (``-n N``) the controller does
+this, once, from what every worker's test reports carry.
 
 Options
     --report-dir PATH   this run's report directory (also env CLONEGUARD_REPORT_DIR);
                         default: <repo>/reports/<UTC time>-<random>
     --run-label TEXT    a label shown in the report
+    --shard K/N         run shard K of N of the scenarios' trials (see
+                        harness/trials.py); merge the shards' reports with
+                        ``python -m harness merge``
 """
 from __future__ import annotations
 
 import os
 import secrets
 import shutil
-import threading
 import time
 import traceback
-import xml.etree.ElementTree as ET
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Mapping
 
 import pytest
 
-from . import env, stats
-from .model import (
-    JUNIT_XML, REPORT_HTML, TRIAL_OUTCOMES, Expectation, Hang, Report, RunInfo, Scenario, Trial,
-    jsonable, write_atomic,
-)
+from . import env
+from .junit import write_junit
+from .model import JUNIT_XML, REPORT_HTML, TRIAL_OUTCOMES, Report, RunInfo, Scenario, write_atomic
+from .record import RECORD_ATTR, _iso, pytest_runtest_makereport, resilience  # noqa: F401 (the plugin's hook and fixture)
 from .render import write_html
 
 ENV_REPORT_DIR = "CLONEGUARD_REPORT_DIR"
@@ -67,166 +57,6 @@ def default_reports_root() -> Path:
 def new_run_id(now: datetime | None = None) -> str:
     now = now or datetime.now(timezone.utc)
     return now.strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(2)
-
-
-def _iso(ts: float) -> str:
-    return datetime.fromtimestamp(ts, timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
-
-
-# --------------------------------------------------------------------------
-# The fixture's object
-# --------------------------------------------------------------------------
-class Resilience:
-    """What one scenario records. Obtained through the ``resilience`` fixture."""
-
-    def __init__(self, scenario: Scenario):
-        self._scenario = scenario
-        self._lock = threading.Lock()
-
-    @property
-    def scenario(self) -> Scenario:
-        """The record being filled (read it, do not change it)."""
-        return self._scenario
-
-    def describe(self, *, fault: str | None = None, profile: str | None = None,
-                 mitigations: Mapping[str, Any] | None = None, claim: str | None = None,
-                 name: str | None = None) -> None:
-        """What the scenario is: the fault injected, the isolation profile, the
-        mitigations switched on, and the claim it checks. Can be called again;
-        arguments left out keep their value. ``name`` replaces the test name
-        shown in the report."""
-        with self._lock:
-            s = self._scenario
-            if fault is not None:
-                s.fault = str(fault)
-            if profile is not None:
-                s.profile = str(profile)
-            if mitigations is not None:
-                if not isinstance(mitigations, Mapping):
-                    raise TypeError(f"mitigations must be a mapping, got {type(mitigations).__name__}")
-                s.mitigations = jsonable(dict(mitigations))
-            if claim is not None:
-                s.claim = str(claim)
-            if name is not None:
-                s.name = str(name)
-
-    def trial(self, outcome: str, *, seed: Any = None,
-              latency_ms: Mapping[str, float | list[float] | None] | None = None,
-              details: Mapping[str, Any] | None = None) -> int:
-        """Record one trial and return its index (0, 1, ...).
-
-        outcome: survived (container and other nodes fine), hung (container
-        stopped making progress), crashed (container process died) or failed
-        (something else went wrong; say what in ``details``).
-        latency_ms: series name -> milliseconds (a number, a list of numbers,
-        or None for "not measured").
-        """
-        if outcome not in TRIAL_OUTCOMES:
-            raise ValueError(f"trial outcome must be one of {TRIAL_OUTCOMES}, got {outcome!r}")
-        latencies = _check_latencies(latency_ms or {})
-        if details is not None and not isinstance(details, Mapping):
-            raise TypeError(f"details must be a mapping, got {type(details).__name__}")
-        with self._lock:
-            index = len(self._scenario.trials)
-            self._scenario.trials.append(Trial(
-                index=index, outcome=outcome, seed=jsonable(seed), latency_ms=latencies,
-                details=jsonable(dict(details or {})), time=_iso(time.time()),
-            ))
-        return index
-
-    def hang(self, *, summary: str, trial: int | None = None, stacks: str | None = None,
-             lock: Any = None, owner_tid: int | None = None, owner_node: str | None = None,
-             details: Mapping[str, Any] | None = None) -> None:
-        """Record the diagnosis of a hang: a one-line ``summary``, the trial it
-        happened in, the threads' ``stacks`` (text), the ``lock`` waited on
-        (an int is shown in hex) and who owns it."""
-        if isinstance(lock, int) and not isinstance(lock, bool):
-            lock = hex(lock)
-        if lock == "":
-            lock = None
-        with self._lock:
-            self._scenario.hangs.append(Hang(
-                summary=str(summary), trial=trial, stacks=None if stacks is None else str(stacks),
-                lock=None if lock is None else str(lock),
-                owner_tid=None if owner_tid is None else int(owner_tid),
-                owner_node=None if owner_node is None else str(owner_node),
-                details=jsonable(dict(details or {})),
-            ))
-
-    def counts(self) -> dict[str, int]:
-        """Trials so far by outcome."""
-        with self._lock:
-            return self._scenario.counts()
-
-    def rate(self, outcome: str = "survived") -> stats.Proportion:
-        """The measured rate of ``outcome`` so far, with its Wilson interval."""
-        with self._lock:
-            return self._scenario.rate_of(outcome)
-
-    def expect_rate(self, outcome: str = "survived", *, at_least: float | None = None,
-                    at_most: float | None = None) -> Expectation:
-        """Record the rate of ``outcome`` this profile promises and check it
-        against the trials so far: raises AssertionError (with the counts)
-        when the measured rate is below ``at_least`` or above ``at_most``, or
-        when there are no trials."""
-        __tracebackhide__ = True
-        if outcome not in TRIAL_OUTCOMES:
-            raise ValueError(f"outcome must be one of {TRIAL_OUTCOMES}, got {outcome!r}")
-        if at_least is None and at_most is None:
-            raise ValueError("expect_rate needs at_least or at_most")
-        for bound in (at_least, at_most):
-            if bound is not None and not 0.0 <= bound <= 1.0:
-                raise ValueError(f"rates are between 0 and 1, got {bound!r}")
-        with self._lock:
-            p = self._scenario.rate_of(outcome)
-            met = p.rate is not None
-            if met and at_least is not None and p.rate < at_least:
-                met = False
-            if met and at_most is not None and p.rate > at_most:
-                met = False
-            expectation = Expectation(
-                outcome=outcome, at_least=at_least, at_most=at_most, successes=p.successes,
-                trials=p.trials, rate=p.rate, ci_low=p.low, ci_high=p.high, met=met,
-            )
-            self._scenario.expectations.append(expectation)
-        if not met:
-            if p.rate is None:
-                raise AssertionError(f"expected {outcome} rate {expectation.requirement()}, but no trials were recorded")
-            raise AssertionError(
-                f"expected {outcome} rate {expectation.requirement()}, measured {p.rate:.1%} "
-                f"({p.successes}/{p.trials} trials {outcome}; 95% CI {p.low:.1%}–{p.high:.1%}; "
-                f"counts {self.counts()})"
-            )
-        return expectation
-
-    def note(self, text: str) -> None:
-        """Free text shown with the scenario in the report."""
-        with self._lock:
-            self._scenario.notes.append(str(text))
-
-
-def _check_latencies(latency_ms: Mapping) -> dict:
-    if not isinstance(latency_ms, Mapping):
-        raise TypeError(f"latency_ms must be a mapping of series name to ms, got {type(latency_ms).__name__}")
-    out = {}
-    for name, value in latency_ms.items():
-        if value is None:
-            continue
-        values = value if isinstance(value, (list, tuple)) else [value]
-        clean = []
-        for v in values:
-            if v is None:
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise TypeError(f"latency {name!r}: expected a number of ms, got {v!r}")
-            v = float(v)
-            if v != v or v in (float("inf"), float("-inf")):
-                raise ValueError(f"latency {name!r}: not a finite number: {v!r}")
-            clean.append(v)
-        if not clean:
-            continue
-        out[str(name)] = clean if isinstance(value, (list, tuple)) else clean[0]
-    return out
 
 
 # --------------------------------------------------------------------------
@@ -260,13 +90,17 @@ def _args_run_scenarios(config) -> bool:
 
 
 class ReportSession:
-    """Collects one Scenario per test and writes the report at the end."""
+    """Collects one Scenario per test from the test reports (its own, or an
+    xdist worker's) and writes the report at the end. Lives only in the
+    process that writes the report: the one pytest process, or the xdist
+    controller."""
 
     def __init__(self, config):
         self.config = config
         self.started = time.time()
-        self.records: dict[str, Scenario] = {}
-        self.recorders: dict[str, Resilience] = {}
+        self.records: dict[str, Scenario] = {}      # every test seen, in order
+        self.in_scope: set[str] = set()             # ... that go in the report
+        self.workers: set[str] = set()
         self.reports_root = default_reports_root()
         option_dir = config.getoption("--report-dir", default=None)
         chosen = option_dir or os.environ.get(ENV_REPORT_DIR) or None
@@ -301,39 +135,31 @@ class ReportSession:
             self.junit_mode = "pytest"
 
     # -- recording -------------------------------------------------------
-    def _record(self, item) -> Scenario:
-        record = self.records.get(item.nodeid)
+    def _record(self, nodeid: str) -> Scenario:
+        record = self.records.get(nodeid)
         if record is None:
-            record = Scenario(nodeid=item.nodeid, name=item.name, started=_iso(time.time()))
-            self.records[item.nodeid] = record
+            name = nodeid.rsplit("::", 1)[-1]
+            record = Scenario(nodeid=nodeid, name=name, started=_iso(time.time()))
+            self.records[nodeid] = record
         return record
 
-    def recorder_for(self, item) -> Resilience:
-        recorder = self.recorders.get(item.nodeid)
-        if recorder is None:
-            record = self._record(item)
-            record.used_resilience = True
-            recorder = Resilience(record)
-            self.recorders[item.nodeid] = recorder
-        return recorder
-
-    def _in_scope(self, item) -> bool:
-        if item.nodeid in self.records:
-            return True
-        if "resilience" in getattr(item, "fixturenames", ()):
-            return True
-        path = getattr(item, "path", None)
-        return path is not None and _under_scenarios(Path(path), Path(self.config.rootpath))
-
-    @pytest.hookimpl(wrapper=True)
-    def pytest_runtest_makereport(self, item, call):
-        rep = yield
+    def pytest_runtest_logreport(self, report):
+        """Every phase report of every test, from this process or a worker."""
         try:
-            if self._in_scope(item):
-                self._update(self._record(item), rep)
+            record = self._record(report.nodeid)
+            path = Path(self.config.rootpath) / report.nodeid.split("::", 1)[0]
+            if _under_scenarios(path, Path(self.config.rootpath)):
+                self.in_scope.add(report.nodeid)
+            worker = getattr(getattr(getattr(report, "node", None), "gateway", None), "id", None)
+            if worker:
+                self.workers.add(worker)
+            self._update(record, report)
+            data = getattr(report, RECORD_ATTR, None)
+            if data is not None:
+                self.in_scope.add(report.nodeid)
+                _take_recorded(record, Scenario.from_dict(data))
         except Exception:  # never break the run over the report
             self.error = traceback.format_exc()
-        return rep
 
     def _update(self, record: Scenario, rep) -> None:
         record.duration_s += float(getattr(rep, "duration", 0.0) or 0.0)
@@ -383,6 +209,7 @@ class ReportSession:
                 return
             record = self.records.setdefault(report.nodeid, Scenario(
                 nodeid=report.nodeid, name=report.nodeid.rsplit("/", 1)[-1], started=_iso(time.time())))
+            self.in_scope.add(report.nodeid)
             record.outcome = "error"
             text = report.longreprtext
             record.message = "collection failed: " + ((text.strip().splitlines() or [""])[-1])
@@ -394,7 +221,7 @@ class ReportSession:
     @pytest.hookimpl(trylast=True)
     def pytest_sessionfinish(self, session, exitstatus):
         finished = time.time()
-        if not self.records:
+        if not self.in_scope:
             self._drop_unused_junit()
             return
         try:
@@ -430,13 +257,16 @@ class ReportSession:
             git=env.git_info(repo_root()),
             container_exe=None if container_exe is None else str(container_exe),
             deep=bool(deep_opt) or os.environ.get(ENV_DEEP, "") == "1",
+            workers=len(self.workers),
+            plan=trial_plan_of(config),
+            shard=config.getoption("--shard", default=None),
         )
 
     def write(self, exitstatus: int | None, finished: float) -> Path:
         run_dir = self.run_dir
         run_dir.mkdir(parents=True, exist_ok=True)
         run = self.run_info(exitstatus, finished)
-        report = Report(run=run, scenarios=list(self.records.values()))
+        report = Report(run=run, scenarios=[r for n, r in self.records.items() if n in self.in_scope])
         junit = run_dir / JUNIT_XML
         if self.junit_mode == "pytest":
             run.junit_writer = "pytest"
@@ -461,18 +291,22 @@ class ReportSession:
             tr.write_line(self.error.rstrip())
         if self.written is None:
             return
-        records = list(self.records.values())
+        records = [r for n, r in self.records.items() if n in self.in_scope]
         counts = {k: 0 for k in TRIAL_OUTCOMES}
         unmet = 0
         for r in records:
             for k, v in r.counts().items():
                 counts[k] = counts.get(k, 0) + v
-            unmet += sum(1 for x in r.expectations if not x.met)
+            unmet += sum(1 for x in r.expectations if x.met is False)
         total = sum(counts.values())
         detail = ", ".join(f"{v} {k}" for k, v in counts.items() if v) or "no trials"
         tr.write_sep("-", "cloneguard resilience report")
-        tr.write_line(f"{len(records)} scenario(s), {total} trial(s): {detail}"
-                      + (f"; {unmet} expectation(s) not met" if unmet else ""))
+        where = f" on {len(self.workers)} workers" if self.workers else ""
+        shard = self.config.getoption("--shard", default=None)
+        tr.write_line(f"{len(records)} scenario(s), {total} trial(s){where}: {detail}"
+                      + (f"; {unmet} expectation(s) not met" if unmet else "")
+                      + (f"; shard {shard}: expectations are judged by `python -m harness merge`"
+                         if shard else ""))
         tr.write_line(f"report: {self.written / REPORT_HTML}")
         tr.write_line(f"data:   {self.written / 'report.json'}")
 
@@ -496,47 +330,41 @@ def update_latest(root: Path, run_name: str) -> Path:
     return link
 
 
-def _classname(nodeid: str) -> tuple[str, str]:
-    parts = nodeid.split("::")
-    module = parts[0]
-    if module.endswith(".py"):
-        module = module[:-3]
-    module = module.replace("/", ".").replace("\\", ".")
-    return ".".join([module] + parts[1:-1]), parts[-1] if len(parts) > 1 else parts[0]
+def _take_recorded(record: Scenario, recorded: Scenario) -> None:
+    """What the test recorded through ``resilience`` goes into the session's
+    record of it (which keeps pytest's verdict, duration and failure text)."""
+    for name in ("fault", "profile", "claim"):
+        if getattr(recorded, name) is not None:
+            setattr(record, name, getattr(recorded, name))
+    if recorded.name != record.name:
+        record.name = recorded.name
+    record.mitigations = recorded.mitigations
+    record.used_resilience = True
+    record.started = recorded.started or record.started
+    record.trials, record.hangs = recorded.trials, recorded.hangs
+    record.expectations, record.notes = recorded.expectations, recorded.notes
 
 
-def write_junit(scenarios: list[Scenario], path: Path) -> Path:
-    """A JUnit XML of the scenarios, for sessions where pytest's own writer
-    was not pointed at the report directory."""
-    suite = ET.Element("testsuite", name="cloneguard-scenarios")
-    counts = {"failures": 0, "errors": 0, "skipped": 0}
-    total_time = 0.0
-    for s in scenarios:
-        classname, name = _classname(s.nodeid)
-        case = ET.SubElement(suite, "testcase", classname=classname, name=name, time=f"{s.duration_s:.3f}")
-        total_time += s.duration_s
-        if s.outcome == "failed":
-            counts["failures"] += 1
-            ET.SubElement(case, "failure", message=s.message or "failed").text = s.longrepr or ""
-        elif s.outcome in ("error", None):
-            counts["errors"] += 1
-            ET.SubElement(case, "error", message=s.message or "error").text = s.longrepr or ""
-        elif s.outcome == "skipped":
-            counts["skipped"] += 1
-            ET.SubElement(case, "skipped", message=s.message or "skipped")
-    suite.set("tests", str(len(scenarios)))
-    for k, v in counts.items():
-        suite.set(k, str(v))
-    suite.set("time", f"{total_time:.3f}")
-    suites = ET.Element("testsuites")
-    suites.append(suite)
-    ET.indent(suites)
-    write_atomic(path, ET.tostring(suites, encoding="unicode", xml_declaration=True) + "\n")
-    return path
+def trial_plan_of(config) -> dict:
+    """What decides which trials a run makes (runs merge only if equal)."""
+    return {"seed": config.getoption("--seed", default=None),
+            "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
+            "trials": config.getoption("--trials", default=None)}
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """"K/N" -> (K, N), 1 <= K <= N."""
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard takes K/N (e.g. 3/8), not {text!r}") from None
+    if not 1 <= k <= n:
+        raise ValueError(f"--shard {text}: K must be between 1 and N")
+    return k, n
 
 
 # --------------------------------------------------------------------------
-# Module-level hooks and the fixture
+# Module-level hooks
 # --------------------------------------------------------------------------
 def pytest_addoption(parser):
     group = parser.getgroup("cloneguard-report", "cloneguard crash-resilience reports")
@@ -546,10 +374,21 @@ def pytest_addoption(parser):
              f"(env {ENV_REPORT_DIR}; default: <repo>/reports/<UTC time>-<random>)",
     )
     group.addoption("--run-label", default=None, metavar="TEXT", help="a label for this run, shown in the report")
+    group.addoption(
+        "--shard", default=None, metavar="K/N",
+        help="run shard K of N of every scenario's trials (trial i where i %% N == K-1; seeds "
+             "are drawn as in the unsharded run); merge the shards with `python -m harness merge`",
+    )
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_configure(config):
+    shard = config.getoption("--shard", default=None)
+    if shard:
+        try:
+            parse_shard(shard)
+        except ValueError as exc:
+            raise pytest.UsageError(str(exc)) from None
     # Before pytest's junitxml plugin reads --junitxml. Not on xdist workers.
     if hasattr(config, "workerinput"):
         return
@@ -564,14 +403,3 @@ def pytest_unconfigure(config):
     if session is not None:
         config.pluginmanager.unregister(session)
         del config.stash[_SESSION]
-
-
-@pytest.fixture
-def resilience(request) -> Resilience:
-    """Records a scenario's description, trials, hangs, expectations and notes
-    for the crash-resilience report."""
-    session = request.config.stash.get(_SESSION, None)
-    if session is None:  # e.g. an xdist worker: record, but nowhere to report
-        scenario = Scenario(nodeid=request.node.nodeid, name=request.node.name, used_resilience=True)
-        return Resilience(scenario)
-    return session.recorder_for(request.node)

@@ -125,7 +125,24 @@ class Expectation:
     rate: float | None = None
     ci_low: float = 0.0
     ci_high: float = 1.0
-    met: bool = False
+    #: None: not judged in this run (a shard of a sharded run: the merge of
+    #: all shards judges it, on all their trials)
+    met: bool | None = False
+
+    @classmethod
+    def judged(cls, outcome: str, *, at_least: float | None, at_most: float | None,
+               successes: int, trials: int, defer: bool = False) -> "Expectation":
+        """The expectation with its measurement: the rate, its 95% Wilson
+        interval, and whether it was kept (None when ``defer``)."""
+        p = stats.proportion(successes, trials)
+        met = p.rate is not None
+        if met and at_least is not None and p.rate < at_least:
+            met = False
+        if met and at_most is not None and p.rate > at_most:
+            met = False
+        return cls(outcome=outcome, at_least=at_least, at_most=at_most, successes=p.successes,
+                   trials=p.trials, rate=p.rate, ci_low=p.low, ci_high=p.high,
+                   met=None if defer else met)
 
     def requirement(self) -> str:
         parts = []
@@ -196,7 +213,8 @@ class Scenario:
         return out
 
     def expectations_met(self) -> bool:
-        return all(e.met for e in self.expectations)
+        """No expectation judged and not kept (deferred ones do not count)."""
+        return all(e.met is not False for e in self.expectations)
 
     def stats_dict(self) -> dict:
         return {
@@ -252,6 +270,15 @@ class RunInfo:
     junit: str | None = None
     #: who wrote junit.xml: "pytest", "pytest (--junitxml copied)", or "cloneguard"
     junit_writer: str | None = None
+    #: pytest-xdist workers that ran the tests (0: none, one process)
+    workers: int = 0
+    #: what trials the run makes: base seed, deep, forced trial count; runs
+    #: (shards) merge only when these are equal
+    plan: dict[str, Any] = field(default_factory=dict)
+    #: "K/N": this run is shard K of N of that plan
+    shard: str | None = None
+    #: a merged report: the runs it was made of (id, shard, host, commit, ...)
+    shards: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -273,12 +300,12 @@ class Report:
 
     def summary(self) -> dict:
         trial_counts = {outcome: 0 for outcome in TRIAL_OUTCOMES}
-        expectations = {"met": 0, "not_met": 0}
+        expectations = {"met": 0, "not_met": 0, "deferred": 0}
         for scenario in self.scenarios:
             for outcome, n in scenario.counts().items():
                 trial_counts[outcome] = trial_counts.get(outcome, 0) + n
             for e in scenario.expectations:
-                expectations["met" if e.met else "not_met"] += 1
+                expectations[{True: "met", False: "not_met", None: "deferred"}[e.met]] += 1
         return {
             "tests": len(self.scenarios),
             "outcomes": self.outcome_counts(),

@@ -45,7 +45,7 @@ def scenario_status(s: Scenario) -> tuple[str, str]:
     from AMBER_FROM amber, below red)."""
     if s.outcome in ("failed", "error"):
         return "red", f"test {s.outcome}"
-    unmet = [x for x in s.expectations if not x.met]
+    unmet = [x for x in s.expectations if x.met is False]
     if unmet:
         return "red", f"{len(unmet)} expectation(s) not met"
     if not s.trials:
@@ -181,6 +181,15 @@ def _header(report: Report) -> str:
     if exp["met"] or exp["not_met"]:
         cls = "b-red" if exp["not_met"] else "b-green"
         badges.append(f'<span class="badge {cls}">expectations met: {exp["met"]}/{exp["met"] + exp["not_met"]}</span>')
+    if exp.get("deferred"):
+        badges.append(f'<span class="badge b-amber">{exp["deferred"]} expectation(s) judged only '
+                      f'when shards are merged (shard {e(run.shard or "?")})</span>')
+    if run.workers:
+        badges.append(f'<span class="badge">run by {run.workers} pytest-xdist workers</span>')
+    if run.shards:
+        parts = ", ".join(f'{sh.get("shard") or "unsharded"} ({sh.get("host") or "?"}, '
+                          f'{(sh.get("commit") or "?")[:12]})' for sh in run.shards)
+        badges.append(f'<span class="badge">merged from {len(run.shards)} run(s): {e(parts)}</span>')
 
     commit = git.get("commit")
     commit_text = "–"
@@ -283,11 +292,11 @@ def _matrix_entry(s: Scenario, anchor: str, distinguish: bool) -> str:
     else:
         lines.append(f'<div class="big">no trials</div><div class="sub">test {e(s.outcome or "did not finish")}</div>')
     for x in s.expectations:
-        mark = "✓" if x.met else "✗"
+        mark = {True: "✓", False: "✗", None: "(judged at merge)"}[x.met]
         lines.append(f'<div class="sub">expect {e(x.outcome)} {e(x.requirement())} {mark}</div>')
     if s.hangs:
         lines.append(f'<div class="sub">{len(s.hangs)} hang{"s" if len(s.hangs) > 1 else ""} diagnosed</div>')
-    if s.outcome in ("failed", "error") and not any(not x.met for x in s.expectations):
+    if s.outcome in ("failed", "error") and not any(x.met is False for x in s.expectations):
         lines.append(f'<div class="sub">test {e(s.outcome)}</div>')
     title = f"{s.name}: {why}" + (f" — {s.claim}" if s.claim else "")
     return f'<a class="entry st-{status}" href="#{e(anchor)}" title="{e(title)}">{"".join(lines)}</a>'
@@ -311,7 +320,8 @@ def _expectations(s: Scenario) -> str:
         return '<p class="muted">No expectation recorded.</p>'
     rows = []
     for x in s.expectations:
-        verdict = '<span class="ok">✓ met</span>' if x.met else '<span class="no">✗ not met</span>'
+        verdict = {True: '<span class="ok">✓ met</span>', False: '<span class="no">✗ not met</span>',
+                   None: '<span class="muted">judged when the shards are merged</span>'}[x.met]
         ci = f"{x.ci_low * 100:.1f}–{x.ci_high * 100:.1f}%" if x.trials else "–"
         rows.append(f"<tr><td>{e(x.outcome)}</td><td>{e(x.requirement())}</td>"
                     f'<td class="num">{e(pct(x.rate))} ({x.successes}/{x.trials})</td><td>{e(ci)}</td><td>{verdict}</td></tr>')

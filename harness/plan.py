@@ -1,0 +1,113 @@
+"""Which trials a run makes: counts, seeds, and shards.
+
+Every scenario's trials are a plan: trial ``i`` gets the ``i``-th seed drawn
+from a Random seeded by ``--seed`` and the test's node id, so any trial can
+be replayed alone. A scenario asks for ``quick`` trials by default, ``deep``
+with ``--deep`` (or CLONEGUARD_DEEP=1), exactly N with ``--trials N``.
+
+``--shard K/N`` (one of N runs, on other cores, jobs or machines) makes the
+trials ``i`` with ``i % N == K - 1``, with the seeds the unsharded run would
+have given them: the N shards together make exactly the unsharded run's
+trials, none twice, and ``python -m harness merge`` joins their reports. A
+scenario none of whose trials falls to this shard is skipped.
+
+Fixtures (registered by harness.pytest_plugin)
+    trial_plan(quick, deep) -> [(index, seed), ...] for this run (skips the test if empty)
+    record_trial(index, seed, Outcome)     one trial into the report
+    run_trials(trial, settle, quick, deep) the loop most scenarios share
+"""
+from __future__ import annotations
+
+import os
+import random
+import zlib
+
+import pytest
+
+ENV_DEEP = "CLONEGUARD_DEEP"
+
+
+def add_options(parser) -> None:
+    group = parser.getgroup("cloneguard trials")
+    group.addoption("--deep", action="store_true", default=False,
+                    help="run the deep trial counts (hundreds per scenario)")
+    group.addoption("--trials", type=int, default=None, help="run exactly N trials per scenario")
+    group.addoption("--seed", type=int, default=1, help="base seed of every random choice (default 1)")
+
+
+def shard_of(config) -> tuple[int, int] | None:
+    text = config.getoption("--shard", default=None)
+    if not text:
+        return None
+    from .report.collect import parse_shard
+    return parse_shard(text)
+
+
+def trial_count(config, quick: int, deep: int) -> int:
+    forced = config.getoption("--trials")
+    if forced is not None:
+        return forced
+    return deep if config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1" else quick
+
+
+def plan(count: int, rng: random.Random, shard: tuple[int, int] | None) -> list[tuple[int, int]]:
+    """(index, seed) of this shard's trials out of ``count``; the seeds are
+    drawn for every index, so they do not depend on the shard."""
+    out = []
+    for i in range(count):
+        seed = rng.getrandbits(31)
+        if shard is None or i % shard[1] == shard[0] - 1:
+            out.append((i, seed))
+    return out
+
+
+def scenario_rng(config, nodeid: str) -> random.Random:
+    """A Random seeded from --seed and the test's node id."""
+    return random.Random(config.getoption("--seed") * 1_000_003 + zlib.crc32(nodeid.encode()))
+
+
+@pytest.fixture
+def trial_plan(request):
+    def make(quick: int, deep: int) -> list[tuple[int, int]]:
+        config = request.config
+        shard = shard_of(config)
+        count = trial_count(config, quick, deep)
+        planned = plan(count, scenario_rng(config, request.node.nodeid), shard)
+        if not planned:
+            pytest.skip(f"shard {shard[0]}/{shard[1]} has none of this scenario's {count} trial(s)")
+        return planned
+    return make
+
+
+@pytest.fixture
+def record_trial(resilience):
+    """record_trial(index, seed, Outcome): one trial into the report."""
+    def record(index: int, seed: int, out) -> None:
+        resilience.trial(outcome=out.outcome, index=index, seed=seed, latency_ms=out.latency_ms,
+                         details=out.details)
+        d = out.diagnosis
+        if d is not None:
+            first = d.blocked[0] if d.blocked else None
+            resilience.hang(
+                trial=index,
+                summary=d.summary(),
+                stacks=d.stacks_text,
+                lock=first.address if first else "",
+                owner_tid=first.owner_tid if first else None,
+                owner_node=first.owner_node if first else None,
+            )
+    return record
+
+
+@pytest.fixture
+def run_trials(record_trial, trial_plan):
+    """run_trials(trial, settle, quick, deep): the trial loop every rate
+    scenario shares: ``trial(seed, index) -> Outcome`` for each planned
+    trial, recorded, then ``settle(outcome)`` (which replaces a broken
+    container)."""
+    def run(trial, settle, quick: int, deep: int) -> None:
+        for i, seed in trial_plan(quick, deep):
+            out = trial(seed, i)
+            record_trial(i, seed, out)
+            settle(out)
+    return run

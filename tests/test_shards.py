@@ -1,0 +1,127 @@
+"""One report from many processes: pytest-xdist workers, and shards merged.
+
+The scenarios here are stand-ins whose outcome is a function of the trial's
+seed, so that which trials ran, with which seeds, is all that can differ
+between an unsharded run, its shards merged, and an xdist run.
+"""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from harness.__main__ import main as harness_main
+from harness.report.merge import MergeError, merge_reports
+from harness.report.model import load_report
+
+from test_report import plugin_args
+
+pytest_plugins = ["pytester"]
+
+CELLS = '''
+from harness.rig import Outcome
+
+def by_seed(seed, index):
+    return Outcome("survived" if seed % 7 else "hung", details={"index": index})
+
+def test_cell(resilience, run_trials):
+    resilience.describe(fault="stand-in", profile="p", claim="outcome decided by the seed")
+    run_trials(by_seed, lambda out: None, quick=11, deep=11)
+    resilience.expect_rate("survived", at_least=0.5)
+
+def test_unmet(resilience, run_trials):
+    run_trials(by_seed, lambda out: None, quick=11, deep=11)
+    resilience.expect_rate("survived", at_least=1.0)
+
+def test_single(resilience, record_trial, trial_plan):
+    [(index, seed)] = trial_plan(1, 1)
+    record_trial(index, seed, Outcome("survived"))
+'''
+
+
+@pytest.fixture
+def cells(pytester):
+    pytester.mkdir("scenarios").joinpath("test_cells.py").write_text(CELLS)
+    return pytester
+
+
+def run(pytester, out, *args) -> dict:
+    pytester.runpytest(*plugin_args(), "-p", "no:cacheprovider", "--report-dir", str(out),
+                       "--seed", "5", *args, "scenarios")
+    return load_report(out)
+
+
+def trials_of(report) -> dict:
+    return {s.nodeid: [(t.index, t.seed, t.outcome) for t in s.trials] for s in report.scenarios}
+
+
+def test_three_shards_merged_are_the_unsharded_run(cells, tmp_path):
+    whole = run(cells, tmp_path / "whole")
+    shards = [run(cells, tmp_path / f"shard{k}", "--shard", f"{k}/3") for k in (1, 2, 3)]
+    for k, shard in enumerate(shards, 1):
+        assert shard.run.shard == f"{k}/3"
+        assert all(e.met is None for s in shard.scenarios for e in s.expectations)
+        cell = next(s for s in shard.scenarios if s.name == "test_cell")
+        assert [t.index % 3 for t in cell.trials] == [k - 1] * len(cell.trials)
+    single = {s.name: s.outcome for s in shards[1].scenarios}["test_single"]
+    assert single == "skipped"             # its one trial fell to shard 1
+
+    merged = merge_reports(shards)
+    assert trials_of(merged) == trials_of(whole)
+    assert len(trials_of(whole)["scenarios/test_cells.py::test_cell"]) == 11
+    by_name = {s.name: s for s in merged.scenarios}
+    assert [e.met for e in by_name["test_cell"].expectations] == [True]
+    assert [e.met for e in by_name["test_unmet"].expectations] == [False]
+    assert by_name["test_unmet"].outcome == "failed" and by_name["test_single"].outcome == "passed"
+    assert {s.name: s.outcome for s in whole.scenarios} == {s.name: s.outcome for s in merged.scenarios}
+    assert [sh["shard"] for sh in merged.run.shards] == ["1/3", "2/3", "3/3"]
+
+
+def test_merge_command_writes_a_report_and_fails_on_unmet(cells, tmp_path, capsys):
+    parts = [tmp_path / f"s{k}" for k in (1, 2)]
+    for k, out in enumerate(parts, 1):
+        run(cells, out, "--shard", f"{k}/2")
+    code = harness_main(["merge", *map(str, parts), "--out", str(tmp_path / "merged")])
+    assert code == 1                        # test_unmet's expectation is not met
+    merged = load_report(tmp_path / "merged")
+    assert {"report.json", "report.html", "junit.xml"} <= {p.name for p in (tmp_path / "merged").iterdir()}
+    assert sum(len(s.trials) for s in merged.scenarios) == 11 + 11 + 1
+    assert "FAILED scenarios/test_cells.py::test_unmet" in capsys.readouterr().err
+
+
+def test_merge_refuses_other_commits_overlaps_and_other_plans(cells, tmp_path):
+    a = run(cells, tmp_path / "a", "--shard", "1/2")
+    b = run(cells, tmp_path / "b", "--shard", "2/2")
+    b.run.git = {**b.run.git, "commit": "0" * 40}
+    with pytest.raises(MergeError, match="different commits"):
+        merge_reports([a, b])
+    assert merge_reports([a, b], allow_mixed_commits=True).run.shards[1]["commit"] == "0" * 40
+    with pytest.raises(MergeError, match="same shard"):
+        merge_reports([a, a])
+    c = run(cells, tmp_path / "c", "--shard", "2/2", "--seed", "6")
+    with pytest.raises(MergeError, match="different trial plans"):
+        merge_reports([a, c])
+    whole = run(cells, tmp_path / "whole")
+    with pytest.raises(MergeError, match="run twice"):
+        merge_reports([whole, a])
+
+
+def test_bad_shard_is_a_usage_error(cells, tmp_path):
+    result = cells.runpytest(*plugin_args(), "--shard", "4/3", "scenarios")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    assert "K must be between 1 and N" in result.stderr.str()
+
+
+def test_xdist_workers_make_one_report(cells, tmp_path):
+    pytest.importorskip("xdist")
+    serial = run(cells, tmp_path / "serial")
+    parallel = run(cells, tmp_path / "parallel", "-n", "2")
+    assert parallel.run.workers == 2 and serial.run.workers == 0
+    assert trials_of(parallel) == trials_of(serial)
+    assert {s.name: s.outcome for s in parallel.scenarios} == {s.name: s.outcome for s in serial.scenarios}
+    assert {s.name: [e.met for e in s.expectations] for s in parallel.scenarios} == {
+        "test_cell": [True], "test_unmet": [False], "test_single": []}
+    data = json.loads((tmp_path / "parallel" / "report.json").read_text())
+    assert data["summary"]["tests"] == 3
+    junit = (tmp_path / "parallel" / "junit.xml").read_text()
+    assert junit.count("<testcase") == 3
