@@ -1,15 +1,25 @@
-"""Why is it stuck? Native stacks of a hung container, the lock each thread
-waits on, and who owns it.
+"""Why is it stuck? Native (and Python) stacks of a hung container and of its
+live node processes, what each thread waits on, and who holds it.
 
-gdb (batch mode) attaches to the container and prints every thread's
-backtrace. Each thread's innermost waiting frame says what it waits for:
+gdb (batch mode) attaches to the container and to every node process that
+is still alive (each is a thread group of its own, in the same address
+space) and prints every thread's backtrace, and its Python stack where
+CPython's gdb extension is at hand. Each thread's innermost waiting frame
+says what it waits for:
 
-* ``pthread_mutex_lock (mutex=0x..)``: a pthread mutex; its ``__owner`` field
-  names the owning tid, read with a second gdb call;
-* ``__lll_lock_wait_private`` under malloc/free/realloc: a glibc malloc
-  arena lock, which records no owner;
+* ``pthread_mutex_lock``/``__pthread_mutex_cond_lock (mutex=0x..)``: a pthread
+  mutex (Fast DDS's and rclcpp's std::mutex, jemalloc's locks, ...); its
+  ``__owner`` field names the owning tid, read with a second gdb call;
+* ``__lll_lock_wait_private`` under malloc/free/realloc: a glibc malloc arena
+  lock. It records no owner: when no live thread is inside that arena, it is
+  held by a task that is gone, and the dead node processes are named;
 * ``take_gil``: the interpreter lock; ``_PyRuntime.ceval.gil.last_holder``
   names the thread state that holds it, and so its native thread id.
+
+A thread that waits on no lock is idle (in epoll/poll/recv/read, a condition
+variable, a sleep), waits on a Python lock (a semaphore, no owner), or runs
+(a spin: named by its innermost function). When no thread waits on a lock,
+the summary says that, and what the node processes' main threads do.
 
 An owner tid that belongs to a node's process that has died (the caller
 passes what it knows: pid -> node name, and which pids are dead) is named.
@@ -19,47 +29,73 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from . import procfs
 
 GDB_TIMEOUT_S = 90
+# CPython's gdb extension (py-bt), where the interpreter installed it.
+PY_GDB = Path(sys.base_prefix) / "bin" / f"python{sys.version_info[0]}.{sys.version_info[1]}-gdb.py"
 
 _THREAD = re.compile(r'^Thread \d+ \(Thread 0x[0-9a-f]+ \(LWP (\d+)\)(?: "([^"]*)")?\)')
 _FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-f]+ in )?(\S+) \((.*)")
+_PY_FILE = re.compile(r'^\s*File "([^"]+)", line (\S+), in (\S+)')
 _MUTEX_ARG = re.compile(r"mutex=(?:mutex@entry=)?(0x[0-9a-f]+)")
-_FUTEX_ARG = re.compile(r"futex=(?:futex@entry=)?(0x[0-9a-f]+)")
+_FUTEX_ARG = re.compile(r"futex=(?:futex@entry=)?(0x[0-9a-f]+)(?: <([^>]+)>)?")
+_AV_ARG = re.compile(r"\bav=(?:av@entry=)?(0x[0-9a-f]+)")
 _MALLOC_FUNCS = ("malloc", "free", "realloc", "calloc", "_int_free", "arena_get", "tcache")
+_MUTEX_FUNCS = ("pthread_mutex_lock", "pthread_mutex_timedlock", "pthread_mutex_clocklock",
+                "__pthread_mutex_cond_lock")
+_IDLE_FUNCS = ("epoll_wait", "epoll_pwait", "poll", "ppoll", "select", "pselect", "recvfrom",
+               "recvmsg", "recv", "read", "__libc_read", "accept", "nanosleep", "clock_nanosleep",
+               "sigwait", "sigtimedwait", "pause", "waitid", "wait4", "futex_wait")
 
 
 @dataclass
 class ThreadStack:
     tid: int
     name: str
-    frames: list[str] = field(default_factory=list)   # function names, innermost first
+    pid: int = 0                                        # its process (thread group)
+    frames: list[str] = field(default_factory=list)    # function names, innermost first
     raw: list[str] = field(default_factory=list)
+    python: list[str] = field(default_factory=list)    # "func (file:line)", innermost first
 
 
 @dataclass(frozen=True)
 class BlockedOn:
     tid: int
-    kind: str             # "pthread mutex", "malloc arena lock", "GIL"
+    kind: str             # "pthread mutex", "jemalloc lock", "malloc arena lock", "GIL"
     address: str          # the lock's address, "" when not known
     owner_tid: int | None
     owner_node: str | None
     owner_dead: bool
+    pid: int = 0          # the waiting thread's process
+    where: str = ""       # the waiter: node name / "container"
+    note: str = ""        # the next best fact when the owner is not recorded
 
     def describe(self) -> str:
-        owner = ("owner unknown (glibc arena locks record none)" if self.kind == "malloc arena lock"
-                 else "no owner recorded")
+        owner = "no owner recorded"
         if self.owner_tid is not None:
             owner = f"owned by tid {self.owner_tid}"
             if self.owner_node:
                 owner += f" ({'dead ' if self.owner_dead else ''}node {self.owner_node})"
             elif self.owner_dead:
                 owner += " (a dead process)"
-        where = f" at {self.address}" if self.address else ""
-        return f"tid {self.tid} waits on the {self.kind}{where}, {owner}"
+        elif self.note:
+            owner = self.note
+        at = f" at {self.address}" if self.address else ""
+        who = f"tid {self.tid}" + (f" ({self.where})" if self.where else "")
+        return f"{who} waits on the {self.kind}{at}, {owner}"
+
+
+@dataclass
+class ThreadState:
+    tid: int
+    pid: int
+    state: str            # "blocked", "idle", "python lock", "running"
+    what: str             # the function (and Python frame) it is in
 
 
 @dataclass
@@ -68,11 +104,22 @@ class Diagnosis:
     stacks_text: str
     threads: list[ThreadStack]
     blocked: list[BlockedOn]
+    states: list[ThreadState] = field(default_factory=list)
+    names: dict[int, str] = field(default_factory=dict)   # pid -> "container" / node name
 
     def summary(self) -> str:
-        if not self.blocked:
-            return f"pid {self.pid}: no thread is waiting on a lock gdb could name"
-        return "; ".join(b.describe() for b in self.blocked)
+        if self.blocked:
+            return "; ".join(b.describe() for b in self.blocked)
+        facts = []
+        for pid, name in self.names.items():
+            main = next((s for s in self.states if s.tid == pid), None)
+            busy = [s for s in self.states if s.pid == pid and s.state != "idle"]
+            if main is not None and (main.state != "idle" or pid != self.pid):
+                facts.append(f"{name} (pid {pid}) main thread {main.state}: {main.what}")
+            facts.extend(f"{name} tid {s.tid} {s.state}: {s.what}" for s in busy if s is not main)
+        if not facts:
+            facts.append("every thread is idle (waiting for work that never comes)")
+        return "no thread waits on a lock; " + "; ".join(facts)
 
 
 def gdb_available() -> bool:
@@ -90,64 +137,156 @@ def _gdb(pid: int, commands: list[str]) -> str:
     return out.stdout
 
 
-def parse_threads(text: str) -> list[ThreadStack]:
-    threads, current = [], None
+def parse_threads(text: str, pid: int = 0) -> list[ThreadStack]:
+    """Native backtraces (``thread apply all bt``), then, if present, Python
+    stacks (``thread apply all py-bt``) matched to their threads by tid."""
+    threads: dict[int, ThreadStack] = {}
+    order: list[ThreadStack] = []
+    current = None
     for line in text.splitlines():
         m = _THREAD.match(line)
         if m:
-            current = ThreadStack(int(m.group(1)), m.group(2) or "")
-            threads.append(current)
+            tid = int(m.group(1))
+            current = threads.get(tid)
+            if current is None:
+                current = threads[tid] = ThreadStack(tid, m.group(2) or "", pid)
+                order.append(current)
+            continue
+        if current is None:
             continue
         f = _FRAME.match(line)
-        if f and current is not None:
+        if f:
             current.frames.append(f.group(2))
             current.raw.append(line)
-    return threads
+            continue
+        p = _PY_FILE.match(line)
+        if p:
+            current.python.append(f"{p.group(3)} ({Path(p.group(1)).name}:{p.group(2)})")
+    return order
 
 
-def _classify(t: ThreadStack) -> tuple[str, str] | None:
-    """(kind, address) of what the thread waits on, or None."""
+def _lock_wait(t: ThreadStack) -> tuple[str, str, str] | None:
+    """(kind, address, symbol) of the lock the thread waits on, or None."""
     for i, (fn, raw) in enumerate(zip(t.frames, t.raw)):
         if fn == "take_gil":
-            return "GIL", ""
-        if "pthread_mutex_lock" in fn or "pthread_mutex_timedlock" in fn:
+            return "GIL", "", ""
+        if any(name in fn for name in _MUTEX_FUNCS):
             m = _MUTEX_ARG.search(raw)
-            return "pthread mutex", m.group(1) if m else ""
+            outer = " ".join(t.raw[i + 1:i + 3])
+            kind = "jemalloc lock" if "libjemalloc" in outer else "pthread mutex"
+            return kind, m.group(1) if m else "", ""
         if fn.endswith("lll_lock_wait_private") or fn.endswith("lll_lock_wait"):
             outer = t.frames[i + 1:i + 4]
             if any(any(k in o for k in _MALLOC_FUNCS) for o in outer):
                 m = _FUTEX_ARG.search(raw)
-                return "malloc arena lock", m.group(1) if m else ""
+                return "malloc arena lock", m.group(1) if m else "", (m.group(2) or "") if m else ""
     return None
 
 
-def _read_int(text: str) -> int | None:
-    m = re.search(r"= (-?\d+)", text)
-    return int(m.group(1)) if m else None
+def _where(t: ThreadStack) -> str:
+    skip = ("futex", "__GI_", "syscall", "do_futex_wait", "__new_sem_wait", "___sem_", "__pthread_cond",
+            "___pthread_cond", "__lll_", "lll_")
+    native = next((f for f in t.frames if not f.startswith(skip) and f != "??"), t.frames[0] if t.frames else "?")
+    return native + (f" [Python: {t.python[0]}]" if t.python else "")
+
+
+def _state(t: ThreadStack) -> tuple[str, str]:
+    top = t.frames[:6]
+    if any(f.startswith("PyThread_acquire_lock") for f in top):
+        return "python lock", _where(t)
+    if any("pthread_cond" in f for f in top) or any(any(f.endswith(i) or f == i for i in _IDLE_FUNCS)
+                                                     for f in top[:3]):
+        return "idle", _where(t)
+    return "running", _where(t)
+
+
+_GIL_OWNER = "((PyThreadState *)_PyRuntime.ceval.gil.last_holder._value)->native_thread_id"
+
+
+def _read_ints(pid: int, expressions: list[str]) -> list[int | None]:
+    """Evaluate integer expressions in ``pid`` with one gdb call."""
+    if not expressions:
+        return []
+    text = _gdb(pid, [f"print {x}" for x in expressions])
+    values: dict[int, int] = {}
+    for m in re.finditer(r"^\$(\d+) = (-?\d+)", text, re.M):
+        values[int(m.group(1))] = int(m.group(2))
+    return [values.get(i + 1) for i in range(len(expressions))]
+
+
+def _inside_arena(threads: list[ThreadStack], arena: str) -> list[int]:
+    """Live threads whose stacks are inside glibc malloc on ``arena`` (and
+    not just waiting for its lock)."""
+    out = []
+    for t in threads:
+        if _lock_wait(t) is not None:
+            continue
+        if any(arena in (_AV_ARG.search(r).group(1) if _AV_ARG.search(r) else "") for r in t.raw):
+            out.append(t.tid)
+    return out
 
 
 def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids: set[int] = frozenset()) -> Diagnosis:
-    """Attach to ``pid`` with gdb and say what its threads are blocked on."""
+    """Attach to the container ``pid`` and each live node process with gdb
+    and say what their threads are blocked on."""
     nodes_by_pid = nodes_by_pid or {}
-    text = _gdb(pid, ["thread apply all bt 40"])
-    threads = parse_threads(text)
-    blocked = []
-    for t in threads:
-        what = _classify(t)
+    names = {pid: "container"}
+    names.update({p: n for p, n in sorted(nodes_by_pid.items())
+                  if p not in dead_pids and p != pid and procfs.alive(p)})
+    commands = ["thread apply all bt 40"]
+    if PY_GDB.is_file():
+        commands = [f"source {PY_GDB}", *commands, "thread apply all py-bt"]
+    texts, threads = [], []
+    for p, name in names.items():
+        text = _gdb(p, commands)
+        texts.append(f"===== {name} (pid {p}) =====\n{text}")
+        threads.extend(parse_threads(text, p))
+    waits = [(t, _lock_wait(t)) for t in threads]
+    owners = _owners(pid, waits)
+    blocked, states = [], []
+    for t, what in waits:
         if what is None:
+            state, where = _state(t)
+            states.append(ThreadState(t.tid, t.pid, state, where))
             continue
-        kind, addr = what
-        owner = None
-        if kind == "pthread mutex" and addr:
-            owner = _read_int(_gdb(pid, [f"print ((int *){addr})[2]"]))   # __data.__owner
-        elif kind == "GIL":
-            owner = _read_int(_gdb(pid, [
-                "print ((PyThreadState *)_PyRuntime.ceval.gil.last_holder._value)->native_thread_id"
-            ]))
+        states.append(ThreadState(t.tid, t.pid, "blocked", _where(t)))
+        kind, addr, symbol = what
+        owner, note = owners.get((kind, addr)), ""
+        if kind == "malloc arena lock":
+            arena = symbol or addr
+            inside = _inside_arena(threads, addr) if addr else []
+            if inside:
+                note = f"{arena}: glibc records no owner; live threads inside it: {inside}"
+            else:
+                dead = sorted(f"{nodes_by_pid.get(d, '?')} (pid {d})" for d in dead_pids)
+                note = (f"{arena}: glibc records no owner and no live thread is inside it, so a "
+                        f"task that is gone holds it" + (f"; dead node processes: {', '.join(dead)}" if dead else ""))
         owner = owner or None
         blocked.append(BlockedOn(
             tid=t.tid, kind=kind, address=addr, owner_tid=owner,
             owner_node=nodes_by_pid.get(owner) if owner else None,
             owner_dead=bool(owner) and (owner in dead_pids or not procfs.alive(owner)),
+            pid=t.pid, where=names.get(t.pid, ""), note=note,
         ))
-    return Diagnosis(pid, text, threads, blocked)
+    return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names)
+
+
+def _owners(pid: int, waits) -> dict[tuple[str, str], int | None]:
+    """The owner tid of every lock waited on that records one: a mutex's
+    ``__owner`` (read in the waiter's process: one gdb call per process),
+    the GIL's last holder (one interpreter: read once, in the container)."""
+    wanted: dict[int, list[tuple[str, str]]] = {}
+    for t, what in waits:
+        if what is None:
+            continue
+        kind, addr, _ = what
+        if kind == "GIL":
+            wanted.setdefault(pid, []).append(("GIL", ""))
+        elif addr and kind != "malloc arena lock":
+            wanted.setdefault(t.pid, []).append((kind, addr))
+    owners = {}
+    for p, keys in wanted.items():
+        keys = list(dict.fromkeys(keys))
+        exprs = [_GIL_OWNER if kind == "GIL" else f"((int *){addr})[2]" for kind, addr in keys]  # __owner
+        owners.update(zip(keys, _read_ints(p, exprs)))
+    return owners

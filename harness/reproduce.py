@@ -19,11 +19,7 @@ from harness.factory import ContainerFactory
 from harness.process import ros_environment
 from harness.rig import PROFILES, Rig
 
-ALLOCATOR_ARGS = {
-    "glibc": [],
-    "jemalloc-auto": ["--jemalloc", "--jemalloc-arenas", "auto"],
-    "jemalloc-own": ["--jemalloc", "--jemalloc-arenas", "own"],
-}
+ALLOCATOR_ARGS = trials.MALLOC_ALLOCATORS
 FAULTS = sorted([*trials.CALLBACK_FAULTS, "sigkill-outside", "die-holding-robust-mutex", "malloc-kill"])
 
 

@@ -32,10 +32,13 @@ SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
 FIRING = re.compile(r"cloneguard-fault: (\S+) firing at (\d+) pid (\d+)")
 
 # Container arguments per profile; scenarios are parametrized over these.
+# Isolated containers get a long watchdog: a hang is the harness's to judge
+# and diagnose (which takes seconds of gdb) before the container's own
+# watchdog (10 s by default) ends it; it still ends an abandoned one.
 PROFILES = {
     "threads": [],
-    "per-node": ["--isolated", "--profile", "per-node"],
-    "shared": ["--isolated", "--profile", "shared"],
+    "per-node": ["--isolated", "--profile", "per-node", "--watchdog", "120"],
+    "shared": ["--isolated", "--profile", "shared", "--watchdog", "120"],
 }
 
 

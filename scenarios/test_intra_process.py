@@ -28,20 +28,15 @@ def test_death_inside_an_intra_process_queue_operation(op, profile, rig_factory,
     resilience.expect_rate("survived", at_least=1.0)
 
 
-# Measured (glibc malloc, per-node, an arena per task). Alone (--trials
-# 15): loans 15/15, malloc'd payloads 7/10. In full quick runs: loans 7/10,
-# malloc'd 3/10. When a malloc'd payload hangs, the holder is blocked in free()
-# on the dead publisher's arena lock, holding the GIL, and every node stops.
-# The loan hangs that remain are a different glibc hazard that no pool can
-# remove: the dead publisher was freeing (Python's shared heap, its garbage
-# collector) into another task's arena, and a container thread then blocks
-# on that arena (gdb names it). With glibc's shared arenas (--shared-arenas),
-# loans were 28/35. The malloc case is the baseline: its rate is recorded,
-# not promised, and what it checks is that every trial ran as designed (no
-# 'failed' trial). The loan floor is set low enough that 5 trials do not
-# flake.
-PAYLOAD_EXPECT = {"malloc": {"outcome": "failed", "at_most": 0.0},
-                  "loan": {"outcome": "survived", "at_least": 0.2}}
+# Measured (glibc malloc, per-node). Before the allocator guard and the
+# wakers: loans 7/10 and malloc'd payloads 3/10 in full quick runs (the
+# holder blocked in free() on the dead publisher's arena lock; or its
+# executor blocked on its own wait-set mutex, which the dead publisher held
+# while waking it). With both: loans 150/150, malloc'd 100/100 (deep runs:
+# docs/evidence.md). 18 of 20 is a floor a 99% rate breaks about once in
+# 1,000 runs.
+PAYLOAD_EXPECT = {"malloc": {"outcome": "survived", "at_least": 0.9},
+                  "loan": {"outcome": "survived", "at_least": 0.9}}
 
 
 @pytest.mark.timeout(240)      # trials that hang take ~15 s each to judge, diagnose, restart
@@ -56,7 +51,5 @@ def test_publisher_killed_while_subscriber_holds_its_messages(payload, rig_facto
     )
     rig = rig_factory("per-node")
     fault = PayloadKill(rig, payload)
-    run_trials(fault.trial, fault.settle, quick=5, deep=300)
-    if payload == "malloc":
-        resilience.note("baseline: malloc'd payloads, survival measured, not promised")
+    run_trials(fault.trial, fault.settle, quick=20, deep=300)
     resilience.expect_rate(**PAYLOAD_EXPECT[payload])

@@ -1,0 +1,87 @@
+"""What the hang diagnosis reads off gdb's output (harness/diagnose.py).
+
+The texts are trimmed copies of gdb output seen in real hangs of this
+project: a node blocked on a Fast DDS mutex re-locked after a condvar wait,
+a drain blocked inside jemalloc, a container thread on glibc's main arena.
+The end-to-end checks (gdb on real hung containers) are the scenarios'
+baselines, whose hangs must come out named.
+"""
+from harness.diagnose import Diagnosis, _lock_wait, _state, parse_threads
+
+HOLDER = """\
+Thread 2 (Thread 0x7f01d2bff6c0 (LWP 3659) "dds.ev.2"):
+#0  __futex_abstimed_wait_common64 (private=0, cancel=true, abstime=0x7f01d2bfe420, op=393, expected=0, futex_word=0x7f01d2c4663c) at ./nptl/futex-internal.c:57
+#3  0x00007f01edea68bc in __pthread_cond_wait_common (abstime=0x7f01d2bfe420, clockid=0, mutex=0x7f01d2c02110, cond=0x7f01d2c46610) at ./nptl/pthread_cond_wait.c:503
+#4  ___pthread_cond_timedwait64 (cond=0x7f01d2c46610, mutex=0x7f01d2c02110, abstime=0x7f01d2bfe420) at ./nptl/pthread_cond_wait.c:643
+#5  0x00007f01ebafa1b4 in eprosima::fastrtps::rtps::ResourceEvent::event_service() () from /venv/lib/libfastrtps.so.2.14
+Thread 1 (Thread 0x7f4a7e7fc6c0 (LWP 1798) "python"):
+#0  futex_wait (private=0, expected=2, futex_word=0x7f4a58257c40) at ../sysdeps/nptl/futex-internal.h:146
+#1  __GI___lll_lock_wait (futex=futex@entry=0x7f4a58257c40, private=0) at ./nptl/lowlevellock.c:49
+#2  0x00007f4abfea9753 in __pthread_mutex_cond_lock (mutex=mutex@entry=0x7f4a58257c40) at ../nptl/pthread_mutex_lock.c:93
+#3  0x00007f4abfea67ad in __pthread_cond_wait_common (abstime=<optimized out>, clockid=<optimized out>, mutex=0x7f4a58257c40, cond=0x7f4a58257c68) at ./nptl/pthread_cond_wait.c:607
+#5  0x00007f4abe7ceb55 in eprosima::fastdds::dds::detail::WaitSetImpl::wait(std::vector<eprosima::fastdds::dds::Condition*> >&, eprosima::fastrtps::Time_t const&) () from /venv/lib/libfastrtps.so.2.14
+Thread 2 (Thread 0x7f01d2bff6c0 (LWP 3659) "dds.ev.2"):
+Traceback (most recent call first):
+  <built-in method wait of pybind11_builtins object at remote 0x7f4abf6e24>
+Thread 1 (Thread 0x7f4a7e7fc6c0 (LWP 1798) "python"):
+Traceback (most recent call first):
+  File "/venv/lib/python3.11/site-packages/rclpy/executors.py", line ?, in _wait_for_ready_callbacks
+  File "/work/main/container/isolated/host.py", line 168, in _spin_until_stopped
+"""
+
+DRAIN = """\
+Thread 1 (Thread 0x7f01e7472980 (LWP 3658) "python"):
+#0  futex_wait (private=0, expected=2, futex_word=0x7f019a803a68) at ../sysdeps/nptl/futex-internal.h:146
+#1  __GI___lll_lock_wait (futex=futex@entry=0x7f019a803a68, private=0) at ./nptl/lowlevellock.c:49
+#2  0x00007f01edeaa482 in lll_mutex_lock_optimized (mutex=0x7f019a803a68) at ./nptl/pthread_mutex_lock.c:48
+#3  ___pthread_mutex_lock (mutex=0x7f019a803a68) at ./nptl/pthread_mutex_lock.c:93
+#4  0x00007f01ee6923a0 in ?? () from /usr/lib/x86_64-linux-gnu/libjemalloc.so.2
+#5  0x00007f01ee688108 in ?? () from /usr/lib/x86_64-linux-gnu/libjemalloc.so.2
+#9  0x00007f01ea42463b in drain_some (ring=ring@entry=0) at /work/main/faults/hammer.c:109
+"""
+
+ARENA = """\
+Thread 15 (Thread 0x7f320d1fe6c0 (LWP 12816) "python"):
+#0  futex_wait (private=0, expected=2, futex_word=0x7f32301f1c60 <main_arena>) at ../sysdeps/nptl/futex-internal.h:146
+#1  __GI___lll_lock_wait_private (futex=futex@entry=0x7f32301f1c60 <main_arena>) at ./nptl/lowlevellock.c:34
+#2  0x00007f32300b497d in _int_free (av=0x7f32301f1c60 <main_arena>, p=0x55da7d965850, have_lock=have_lock@entry=0) at ./malloc/malloc.c:4572
+#3  0x00007f32300b6f5f in __GI___libc_free (mem=<optimized out>) at ./malloc/malloc.c:3385
+Thread 14 (Thread 0x7f320d9ff6c0 (LWP 12815) "python"):
+#0  0x00007f3230126f36 in epoll_wait (epfd=18, events=events@entry=0x7f320d9fe820, maxevents=maxevents@entry=32, timeout=timeout@entry=-1) at ../sysdeps/unix/sysv/linux/epoll_wait.c:30
+#1  0x00007f322fc7b2f5 in monitor_main (unused=<optimized out>) at /work/main/container/isolated/clonecore.c:938
+Thread 13 (Thread 0x7f320d9ff6c1 (LWP 12817) "python"):
+#0  0x00007f3230126f37 in spin_forever (n=3) at spin.c:10
+#1  0x00007f3230126f38 in main_loop () at spin.c:20
+"""
+
+
+def test_a_mutex_relocked_after_a_condvar_wait_is_a_mutex_wait():
+    threads = parse_threads(HOLDER, pid=1798)
+    main = next(t for t in threads if t.tid == 1798)
+    assert _lock_wait(main) == ("pthread mutex", "0x7f4a58257c40", "")
+    assert main.python[0].startswith("_wait_for_ready_callbacks (executors.py")
+    events = next(t for t in threads if t.tid == 3659)
+    assert _lock_wait(events) is None and _state(events)[0] == "idle"
+
+
+def test_a_lock_taken_inside_jemalloc_is_named_so():
+    [t] = parse_threads(DRAIN, pid=3658)
+    assert _lock_wait(t) == ("jemalloc lock", "0x7f019a803a68", "")
+
+
+def test_a_glibc_arena_lock_is_named_by_its_arena_and_idle_and_running_threads_are_told_apart():
+    threads = parse_threads(ARENA, pid=12787)
+    by_tid = {t.tid: t for t in threads}
+    assert _lock_wait(by_tid[12816]) == ("malloc arena lock", "0x7f32301f1c60", "main_arena")
+    assert _state(by_tid[12815])[0] == "idle"
+    state, where = _state(by_tid[12817])
+    assert state == "running" and where.startswith("spin_forever")
+
+
+def test_without_a_lock_the_summary_says_what_the_main_threads_do():
+    from harness.diagnose import ThreadState
+    d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container", 11: "/drain"},
+                  states=[ThreadState(10, 10, "idle", "epoll_wait"),
+                          ThreadState(11, 11, "running", "drain_some [Python: _drain (components.py:225)]")])
+    assert d.summary() == ("no thread waits on a lock; /drain (pid 11) main thread running: "
+                           "drain_some [Python: _drain (components.py:225)]")
