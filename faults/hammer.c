@@ -115,3 +115,42 @@ uint64_t hammer_ops_done(int ring)
 {
     return (ring < 0 || ring >= RINGS) ? 0 : atomic_load(&hammer_ops[ring]);
 }
+
+/* For bench/alloc_guard.py: timed loops, CLOCK_MONOTONIC ns elapsed. */
+#include <time.h>
+
+static int64_t now_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+/* n malloc(size)/free pairs. */
+int64_t hammer_pairs(size_t size, long n)
+{
+    int64_t t0 = now_ns();
+    for (long i = 0; i < n; i++) {
+        void *volatile p = malloc(size);
+        free(p);
+    }
+    return now_ns() - t0;
+}
+
+/* n blocks of size into out[]; the time it took. */
+int64_t hammer_alloc_many(void **out, size_t size, long n)
+{
+    int64_t t0 = now_ns();
+    for (long i = 0; i < n; i++)
+        out[i] = malloc(size);
+    return now_ns() - t0;
+}
+
+/* free() the n blocks of blocks[]; the time it took. */
+int64_t hammer_free_many(void **blocks, long n)
+{
+    int64_t t0 = now_ns();
+    for (long i = 0; i < n; i++)
+        free(blocks[i]);
+    return now_ns() - t0;
+}

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from container.isolated import killbench
+from bench import random_kill as killbench
 from container.isolated._clonecore import lib
 from container.isolated.core import CloneCore, Repair
 
@@ -176,7 +176,7 @@ def test_a_child_killed_while_waiting_for_the_gil_is_cancelled(core, counter):
 
 
 # --------------------------------------------------------------------------
-# random kills (the container side runs in subprocesses: see killbench)
+# random kills (the container side runs in subprocesses: see bench/random_kill.py)
 
 def test_random_kills_in_a_tight_python_loop_all_survived():
     res = killbench.run(120, seed=20261122, hang_s=5.0, budget_s=150)

@@ -18,8 +18,10 @@
  * arena, which the next node process in that slot reuses, draining its stack.
  *
  * Whether a process died inside the allocator is known exactly: every call
- * a node process makes into the allocator is bracketed by an atomic counter
- * of its slot (slots[s].inside), which the monitor reads after the death.
+ * a node process makes into the allocator is bracketed by a counter the
+ * monitor reads after the death: a plain word in the TLS of the process's
+ * main task (t_inside: the main task does nearly all the allocating), an
+ * atomic counter of its slot (slots[s].inside) for threads it created.
  *
  * Which arena owns a block (owner_of):
  *   jemalloc  each slot's arena is created by the container with extent hooks
@@ -82,6 +84,15 @@ extern int mallctl(const char *, void *, size_t *, void *, size_t) __attribute__
 /* jemalloc underneath?  A link-time fact: the weak reference is bound when
    jemalloc is loaded, before any code runs. */
 #define g_je (mallocx != NULL)
+
+/* jemalloc's own malloc and friends (its fast paths), found with
+   dlsym(RTLD_NEXT) by cga_activate; until then the *x API serves. */
+static struct {
+    void *(*malloc)(size_t);
+    void (*free)(void *);
+    void *(*calloc)(size_t, size_t);
+    void *(*realloc)(void *, size_t);
+} je_real;
 
 /* jemalloc's public flag encodings (jemalloc.h, man jemalloc: MALLOCX_*). */
 #define JE_ZERO 0x40
@@ -157,9 +168,16 @@ static int g_nslots = NSLOTS;
 static size_t g_page = 4096;
 static size_t (*glibc_usable_size)(void *);
 
-/* Per task: slot + 1 (0: not known yet), and which owner's stack it drains. */
+/* Per task: slot + 1 (0: not known yet), and which owner's stack it drains.
+   t_bound: this is a node process's main task, whose allocator state the
+   container set up (cga_warm): t_inside brackets its calls, and under
+   jemalloc its thread arena is the slot's. */
 static __thread int t_slot1 __attribute__((tls_model("initial-exec")));
 static __thread int t_owner __attribute__((tls_model("initial-exec")));
+static __thread int t_bound __attribute__((tls_model("initial-exec")));
+static __thread int t_inside __attribute__((tls_model("initial-exec")));
+static __thread void *t_arena __attribute__((tls_model("initial-exec"))); /* glibc: its own */
+static long g_inside_off;               /* &t_inside - thread pointer */
 
 /* ---------------------------------------------------------------------- */
 /* Owners.                                                                 */
@@ -213,6 +231,8 @@ static inline int owner_of(void *p)
     if (((size_t *)p)[-1] & GLIBC_IS_MMAPPED)
         return -1;
     void *arena = glibc_arena_of(p);
+    if (arena && arena == t_arena)
+        return t_owner;                 /* its own arena: no table lookup */
     return arena ? glibc_arena_owner(arena) : 0;
 }
 
@@ -224,22 +244,33 @@ static inline int owner_slot(int o)
 /* ---------------------------------------------------------------------- */
 /* The backend calls, for the calling task's slot.                        */
 
+/* jemalloc: a bound main task's (or the container's) arena is its thread
+   arena already; another thread of a node process names its slot's. */
 static inline int je_flags(int slot)
 {
-    return slot ? JE_ARENA(slots[slot].arena) : 0;
+    return slot && !t_bound ? JE_ARENA(slots[slot].arena) : 0;
+}
+
+static inline bool je_fast(int slot)
+{
+    return je_real.malloc && (slot == 0 || t_bound);
 }
 
 static inline void *be_malloc(int slot, size_t n)
 {
-    return g_je ? mallocx(n ? n : 1, je_flags(slot)) : __libc_malloc(n);
+    if (!g_je)
+        return __libc_malloc(n);
+    return je_fast(slot) ? je_real.malloc(n) : mallocx(n ? n : 1, je_flags(slot));
 }
 
 static inline void be_free(void *p)
 {
-    if (g_je)
-        dallocx(p, 0);
-    else
+    if (!g_je)
         __libc_free(p);
+    else if (je_real.free)
+        je_real.free(p);                /* into this thread's own cache */
+    else
+        dallocx(p, 0);
 }
 
 static inline size_t be_usable(void *p)
@@ -270,6 +301,7 @@ static int learn_glibc_arena(int slot)
         return 0;
     void *arena = glibc_arena_of(probe);
     int o = arena ? glibc_arena_claim(arena, slot) : 0;
+    t_arena = o ? arena : NULL;
     __libc_free(probe);
     return o;
 }
@@ -284,16 +316,30 @@ static inline void *check_main(int slot, void *p)
     return p;
 }
 
+/* The main task's word is read only after its death: program order is all
+   that matters, and the compiler must keep it. */
 static inline void enter(int slot)
 {
-    if (slot)
+    if (!slot)
+        return;
+    if (t_bound) {
+        t_inside++;
+        atomic_signal_fence(memory_order_seq_cst);
+    } else {
         atomic_fetch_add_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+    }
 }
 
 static inline void leave(int slot)
 {
-    if (slot)
+    if (!slot)
+        return;
+    if (t_bound) {
+        atomic_signal_fence(memory_order_seq_cst);
+        t_inside--;
+    } else {
         atomic_fetch_sub_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+    }
 }
 
 static __attribute__((noinline)) int resolve_slot(void)
@@ -406,8 +452,9 @@ EXPORT void *calloc(size_t n, size_t size)
     enter(s);
     if (s)
         drain_mine(s);
-    void *p = check_main(s, g_je ? mallocx(total ? total : 1, JE_ZERO | je_flags(s))
-                                 : __libc_calloc(n, size));
+    void *p = check_main(s, !g_je ? __libc_calloc(n, size)
+                            : je_fast(s) ? je_real.calloc(n, size)
+                            : mallocx(total ? total : 1, JE_ZERO | je_flags(s)));
     leave(s);
     if (!p)
         errno = ENOMEM;
@@ -429,7 +476,8 @@ EXPORT void *realloc(void *p, size_t n)
     if (o < 0 || owner_slot(o) == s) {
         enter(s);
         drain_mine(s);
-        q = check_main(s, g_je ? rallocx(p, n, je_flags(s)) : __libc_realloc(p, n));
+        q = check_main(s, !g_je ? __libc_realloc(p, n)
+                          : je_fast(s) ? je_real.realloc(p, n) : rallocx(p, n, je_flags(s)));
         leave(s);
     } else {
         /* Someone else's block: copy it into ours, hand theirs back. */
@@ -690,6 +738,16 @@ EXPORT int cga_activate(int container_pid)
             return -ENOMEM;
     }
     resolve_new_ops();
+    if (g_je) {
+#define REAL(name) je_real.name = (__typeof__(je_real.name))dlsym(RTLD_NEXT, #name)
+        REAL(malloc); REAL(free); REAL(calloc); REAL(realloc);
+#undef REAL
+        if (!je_real.malloc || !je_real.free || !je_real.calloc || !je_real.realloc)
+            memset(&je_real, 0, sizeof je_real);   /* the *x API serves */
+    }
+    uintptr_t tp;
+    __asm__("mov %%fs:0, %0" : "=r"(tp));
+    g_inside_off = (long)((uintptr_t)&t_inside - tp);
     g_container_pid = container_pid;
     atomic_store(&slots[0].state, CGA_BOUND);
     atomic_store(&slots[0].pid, container_pid);
@@ -743,16 +801,24 @@ EXPORT int cga_warm(int slot)
     if (slot <= 0 || slot >= g_nslots)
         return -EINVAL;
     t_slot1 = slot + 1;
+    t_bound = 0;
     if (g_je) {
         t_owner = slot;
-        void *p = mallocx(1, je_flags(slot));
+        void *p = mallocx(1, je_flags(slot));      /* thread data, cache */
         if (!p)
             return -ENOMEM;
         dallocx(p, 0);
-        return 0;
+        unsigned arena = slots[slot].arena;         /* its thread arena */
+        if (mallctl("thread.arena", NULL, NULL, &arena, sizeof arena) != 0)
+            return -EINVAL;
+    } else {
+        t_owner = learn_glibc_arena(slot);
+        if (!t_owner)
+            return -ENOMEM;
     }
-    t_owner = learn_glibc_arena(slot);
-    return t_owner ? 0 : -ENOMEM;
+    t_inside = 0;
+    t_bound = 1;
+    return 0;
 }
 
 /* A context is about to run a new node process. */
@@ -770,13 +836,15 @@ EXPORT void cga_child_start(void)
         atomic_store(&slots[s].pid, (int)syscall(SYS_getpid));
 }
 
-/* The slot's process is gone (every task of it).  1: it died inside the
+/* The slot's process is gone (every task of it); tcb is its main task's
+   thread pointer (its context's TLS block).  1: it died inside the
    allocator, the slot is quarantined for good; 0: its arena is consistent
    and the slot idle, for the next process in that context. */
-EXPORT int cga_slot_retire(int slot)
+EXPORT int cga_slot_retire(int slot, char *tcb)
 {
     struct slot *sl = &slots[slot];
-    int inside = atomic_load(&sl->inside) != 0;
+    int inside = atomic_load(&sl->inside) != 0 ||
+                 (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
     atomic_store(&sl->pid, 0);
     atomic_store(&sl->state, inside ? CGA_QUARANTINED : CGA_IDLE);
     return inside;

@@ -41,7 +41,7 @@ typedef int (*cga_slot_new_fn)(void);
 typedef int (*cga_warm_fn)(int slot);
 typedef void (*cga_slot_bind_fn)(int slot);
 typedef void (*cga_child_start_fn)(void);
-typedef int (*cga_slot_retire_fn)(int slot);
+typedef int (*cga_slot_retire_fn)(int slot, char *tcb);
 typedef int (*cga_slot_stats_fn)(int slot, struct cga_slot_stats *out);
 
 #endif

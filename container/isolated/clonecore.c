@@ -913,7 +913,7 @@ static void reap(struct cg_child *c, int64_t t)
     /* Every task of the child is gone: whether it died inside the allocator
        is settled now (before anything hears of the death). */
     if (c->ctx)
-        c->quarantined = G.slot_retire(c->ctx->slot);
+        c->quarantined = G.slot_retire(c->ctx->slot, c->ctx->tcb);
     if (r == 0) {
         siginfo_t gone;
         memset(&gone, 0, sizeof gone);
@@ -1150,7 +1150,7 @@ static void tls_give_back(struct cg_child *c)
         if (c->quarantined) {
             free(c->ctx);                /* the TLS block itself stays */
         } else {
-            G.slot_retire(c->ctx->slot); /* idle (again, if reaped) */
+            G.slot_retire(c->ctx->slot, c->ctx->tcb); /* idle (again, if reaped) */
             ctx_put(c->ctx);
         }
         c->ctx = NULL;

@@ -1,19 +1,30 @@
-"""Kill children at random instants and see whether the process goes on.
+"""Kill clone children at random instants and see whether the process goes on.
 
 Run as a program, it is the *container side*: a CloneCore with the given
 mitigations, a Python counter thread of its own, a long-lived sibling child
-that counts too, and a loop that spawns a victim child running a tight Python
-loop (so it holds, waits for and hands over the GIL all the time), says so on
-stdout, waits for its death and checks that both counters still advance.
+that counts too, and a loop that spawns a victim child, says so on stdout,
+waits for its death and checks that both counters still advance. The victim
+(``--victim``):
 
-``run()`` is the *outside*: it runs that program in subprocesses, SIGKILLs
-each victim itself after a random 0-``max_delay_ms`` (from another process,
-so the kill lands wherever the victim is, the GIL held or not), and counts
-per kill: survived / hung (no progress within ``hang_s``: the subprocess is
-killed and a fresh one takes over) / crashed (the subprocess died).  Only the
-subprocess can freeze.
+``loop``      a tight Python loop: it holds, waits for and hands over the
+              GIL all the time (what the GIL and condvar repairs are for);
+``pymalloc``  Python objects of <= 512 B (Python's own allocator, under the GIL);
+``malloc``    the malloc hammer in C (GIL released): 16 B .. 2 MiB blocks,
+              one in eight handed to the container's counter thread, which
+              frees them (what the allocator guard is for). The sibling then
+              allocates blocks from malloc too.
 
-    python -m container.isolated.killbench --kills 300 --gil-repair 0
+``run()`` is the *outside*: it runs that program in subprocesses (with the
+allocator guard and jemalloc preloaded as asked), SIGKILLs each victim
+itself after a random 0-``max_delay_ms`` (from another process, so the kill
+lands wherever the victim is), and counts per kill: survived / hung (no
+progress within ``hang_s``: diagnosed with the harness's gdb diagnosis, then
+the subprocess is killed and a fresh one takes over) / crashed (the
+subprocess died). Only the subprocess can freeze.
+
+    python -m bench.random_kill --kills 300 --victim malloc
+    python -m bench.random_kill --kills 300 --victim malloc --jemalloc
+    python -m bench.random_kill --kills 100 --gil-repair 0
 """
 from __future__ import annotations
 
@@ -42,7 +53,7 @@ def _victim_loop() -> None:
         x = (x + 1) & 255
 
 
-def _victim_alloc() -> None:
+def _victim_pymalloc() -> None:
     junk = []
     while True:                 # allocates (pymalloc) all the time
         junk.append([str(i) for i in range(20)])
@@ -50,19 +61,38 @@ def _victim_alloc() -> None:
             junk.clear()
 
 
+RING = 5                        # the malloc hammer's ring this bench uses
+
+
+def _victim_malloc() -> None:
+    from faults._hammer import lib as hammer
+    hammer.hammer_run(RING, int.from_bytes(os.urandom(8), "little") | 1)
+
+
+VICTIMS = {"loop": _victim_loop, "pymalloc": _victim_pymalloc, "malloc": _victim_malloc}
+
+
 def _serve(args) -> int:
+    from container import allocator
+    allocator.glibc_arena_per_task()        # before a second thread starts
     from container.isolated.core import CloneCore, stop_requested
+    from faults._hammer import lib as hammer
 
     counter = [0]
     sibling_count = [0]
+    mallocs = args.victim == "malloc"
 
     def count() -> None:
         while True:
             counter[0] += 1
+            if mallocs and counter[0] % 64 == 0:
+                hammer.drain_some(RING)     # frees the victims' blocks
 
     def sibling() -> None:
         while not stop_requested():
             sibling_count[0] += 1
+            if mallocs:
+                bytes(1000 + sibling_count[0] % 4000)   # > 512 B: malloc
 
     def advances(cell, timeout: float) -> bool:
         start = cell[0]
@@ -76,29 +106,34 @@ def _serve(args) -> int:
     threading.Thread(target=count, daemon=True).start()
     core = CloneCore(gil_repair=bool(args.gil_repair),
                      condvar_repair=bool(args.condvar_repair),
-                     crash_report=False)
+                     crash_report=False, alloc_guard=allocator.guard_loaded())
     sib = core.spawn(sibling)
-    victim = _victim_alloc if args.alloc else _victim_loop
-    print("ready", flush=True)
+    victim = VICTIMS[args.victim]
+    print(f"ready {sib.pid}", flush=True)
     for i in range(args.kills):
         child = core.spawn(victim)
         print(f"spawned {i} {child.pid}", flush=True)    # the outside kills it
         death = core.wait(child, 30)
         if death is None:
-            print(f"stuck {i} no-death", flush=True)
-            return 3
+            return _stuck(i, "no-death")
         core.release(child)
         if not advances(counter, PROGRESS_TIMEOUT_S):
-            print(f"stuck {i} counter", flush=True)
-            return 3
+            return _stuck(i, "counter")
         if not advances(sibling_count, PROGRESS_TIMEOUT_S):
-            print(f"stuck {i} sibling", flush=True)
-            return 3
-        print(f"ok {i} {int(death.repairs)} {death.exit_signal}", flush=True)
+            return _stuck(i, "sibling")
+        print(f"ok {i} {int(death.repairs)} {death.exit_signal} {int(death.alloc_quarantined)}", flush=True)
     core.request_stop(sib)
     core.wait(sib, PROGRESS_TIMEOUT_S)
     print("done", flush=True)
     os._exit(0)   # the dead children's leftovers must not be finalized
+
+
+def _stuck(i: int, what: str) -> int:
+    """Say what stopped and wait, stuck as we are, for the outside's
+    diagnosis (and its SIGKILL)."""
+    print(f"stuck {i} {what}", flush=True)
+    while True:
+        time.sleep(3600)
 
 
 # --------------------------------------------------------------------------
@@ -112,26 +147,35 @@ class Result:
     hung: int = 0
     crashed: int = 0
     repairs: collections.Counter = field(default_factory=collections.Counter)
+    quarantined: int = 0        # victims that died inside the allocator
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    hangs: list[str] = field(default_factory=list)   # diagnosis summaries
 
     def line(self) -> str:
         rep = ", ".join(f"{k} {v}" for k, v in sorted(self.repairs.items())) or "none"
         return (f"{self.settings}: {self.survived}/{self.kills} survived, "
                 f"{self.hung} hung, {self.crashed} crashed "
-                f"({self.seconds:.0f} s; repairs: {rep})")
+                f"({self.seconds:.0f} s; repairs: {rep}; {self.quarantined} died inside the allocator)")
 
 
 def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
-        alloc: bool = False, seed: int = 1, hang_s: float = 3.0,
+        victim: str = "loop", alloc_guard: bool = True, jemalloc: bool = False,
+        seed: int = 1, hang_s: float = 3.0,
         max_delay_ms: float = 20.0, budget_s: float | None = None,
         max_hangs: int | None = None, diagnose_dir: str | None = None) -> Result:
     """``kills`` random kills in as many fresh subprocesses as needed (fewer
     if ``budget_s`` runs out or ``max_hangs`` hangs were seen)."""
+    from container import allocator
     from container.isolated.events import Repair
+    from harness import diagnose
 
     res = Result({"gil_repair": gil_repair, "condvar_repair": condvar_repair,
-                  "alloc": alloc})
+                  "victim": victim, "alloc_guard": alloc_guard, "jemalloc": jemalloc})
+    env = dict(os.environ)
+    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + (
+        [allocator.jemalloc_path()] if jemalloc else [])
+    env["LD_PRELOAD"] = " ".join(preload)
     t0 = time.monotonic()
     rng = random.Random(seed)
     run_no = 0
@@ -142,15 +186,16 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
         if max_hangs is not None and res.hung + res.crashed >= max_hangs:
             break
         run_no += 1
-        argv = [sys.executable, "-m", "container.isolated.killbench", "--serve",
+        argv = [sys.executable, "-m", "bench.random_kill", "--serve",
                 "--kills", str(kills - res.kills),
                 "--gil-repair", str(int(gil_repair)),
-                "--condvar-repair", str(int(condvar_repair))] + (
-                    ["--alloc"] if alloc else [])
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                cwd=os.path.dirname(os.path.dirname(os.path.dirname(
-                                    os.path.abspath(__file__)))),
+                "--condvar-repair", str(int(condvar_repair)),
+                "--victim", victim]
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                 start_new_session=True)
+        pids: dict[int, str] = {}
+        dead: set[int] = set()
         buf = b""
         ready = False
         last = time.monotonic()
@@ -172,7 +217,10 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
                 last = time.monotonic()
                 if words[0] == "ready":
                     ready = True
+                    pids[int(words[1])] = "sibling"
                 elif words[0] == "spawned":
+                    pids[int(words[2])] = f"victim {words[1]}"
+                    dead.add(int(words[2]))
                     time.sleep(rng.uniform(0, max_delay_ms / 1000))
                     try:
                         os.kill(int(words[2]), signal.SIGKILL)
@@ -184,47 +232,36 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
                     res.survived += 1
                     for name in Repair(int(words[2])).names():
                         res.repairs[name] += 1
+                    res.quarantined += int(words[4])
                 elif words[0] == "stuck":
                     res.notes.append(" ".join(words))
+                    outcome = "hung"
                 elif words[0] == "done":
                     outcome = "done"
         if outcome == "hung" and ready:
             res.kills += 1
             res.hung += 1
-            if diagnose_dir:
-                _diagnose(proc.pid, os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt"))
+            if diagnose.gdb_available():
+                d = diagnose.diagnose(proc.pid, nodes_by_pid=pids, dead_pids=dead)
+                res.hangs.append(d.summary())
+                if diagnose_dir:
+                    with open(os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt"), "w") as out:
+                        out.write(d.summary() + "\n\n" + d.stacks_text)
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         rc = proc.wait()
         err = proc.stderr.read().decode(errors="replace")
         if outcome == "exited":
             if not ready:
-                raise RuntimeError(f"killbench did not start (rc {rc}):\n{err[-3000:]}")
-            if rc < 0 or rc not in (0, 3):
+                raise RuntimeError(f"random_kill did not start (rc {rc}):\n{err[-3000:]}")
+            if rc != 0:
                 res.kills += 1
                 res.crashed += 1
                 res.notes.append(f"run {run_no}: exit {rc}: {err.strip()[-300:]}")
-            elif rc == 3:
-                res.kills += 1
-                res.hung += 1
         proc.stdout.close()
         proc.stderr.close()
     res.seconds = time.monotonic() - t0
     return res
-
-
-def _diagnose(pid: int, path: str) -> None:
-    """Every task's native stack (gdb), for a hung container side."""
-    with open(path, "w") as out:
-        tasks = sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
-        kids = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True,
-                              text=True).stdout.split()
-        for target in [pid, *map(int, kids)]:
-            out.write(f"==== gdb -p {target} (tasks {tasks if target == pid else ''})\n")
-            out.flush()
-            subprocess.run(["gdb", "-p", str(target), "-batch", "-iex", "set auto-load safe-path /",
-                            "-ex", "thread apply all bt 30"], stdout=out, stderr=subprocess.STDOUT,
-                           timeout=120)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -234,8 +271,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="for the kill delays")
     ap.add_argument("--gil-repair", type=int, default=1)
     ap.add_argument("--condvar-repair", type=int, default=1)
-    ap.add_argument("--alloc", action="store_true",
-                    help="the victim allocates (pymalloc) instead of a pure loop")
+    ap.add_argument("--victim", choices=sorted(VICTIMS), default="loop",
+                    help="what the victim does (default: %(default)s)")
+    ap.add_argument("--alloc-guard", type=int, default=1, help="preload the allocator guard (default 1)")
+    ap.add_argument("--jemalloc", action="store_true", help="preload jemalloc too")
     ap.add_argument("--max-delay-ms", type=float, default=20.0)
     ap.add_argument("--hang-s", type=float, default=3.0)
     ap.add_argument("--json", action="store_true")
@@ -244,12 +283,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.serve:
         return _serve(args)
     res = run(args.kills, gil_repair=bool(args.gil_repair),
-              condvar_repair=bool(args.condvar_repair), alloc=args.alloc,
+              condvar_repair=bool(args.condvar_repair), victim=args.victim,
+              alloc_guard=bool(args.alloc_guard), jemalloc=args.jemalloc,
               seed=args.seed, hang_s=args.hang_s, max_delay_ms=args.max_delay_ms,
               diagnose_dir=args.diagnose)
     print(json.dumps(res.__dict__, default=dict) if args.json else res.line())
     for note in res.notes[:20]:
         print("  ", note)
+    for hang in res.hangs[:20]:
+        print("   hang:", hang)
     return 0
 
 
