@@ -25,6 +25,9 @@ import zlib
 import pytest
 
 ENV_DEEP = "CLONEGUARD_DEEP"
+#: per-test timeout of a deep run or one with --trials N (hundreds of trials
+#: do not fit the quick runs' per-test timeouts)
+LONG_RUN_TIMEOUT_S = 4 * 3600
 
 
 def add_options(parser) -> None:
@@ -48,6 +51,19 @@ def trial_count(config, quick: int, deep: int) -> int:
     if forced is not None:
         return forced
     return deep if config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1" else quick
+
+
+def long_run(config) -> bool:
+    return bool(config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1"
+                or config.getoption("--trials") is not None)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """A deep run's tests get LONG_RUN_TIMEOUT_S (before any timeout marker
+    of their own, which sized the quick run)."""
+    if long_run(config):
+        for item in items:
+            item.add_marker(pytest.mark.timeout(LONG_RUN_TIMEOUT_S), append=False)
 
 
 def plan(count: int, rng: random.Random, shard: tuple[int, int] | None) -> list[tuple[int, int]]:

@@ -26,7 +26,7 @@ import pytest
 
 from . import domains, plan, procfs, shm
 from .factory import ContainerFactory, log_tail
-from .plan import record_trial, run_trials, trial_plan  # noqa: F401  (fixtures)
+from .plan import pytest_collection_modifyitems, record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
 from .process import ros_environment
 
 
