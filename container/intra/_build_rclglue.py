@@ -96,7 +96,6 @@ int cgw_new(struct cgw_waker **out);
 int cgw_add(struct cgw_waker *w, void *guard_condition);
 void cgw_remove(struct cgw_waker *w, int token);
 void cgw_post(struct cgw_waker *w, int token);
-uint64_t cgw_triggered(struct cgw_waker *w);
 int cgw_close(struct cgw_waker *w, int timeout_ms);
 """
 

@@ -22,6 +22,14 @@
  * waker while it triggers and by whoever adds or removes an entry (the
  * subscriber's process, or the container): once cgw_remove returns, the
  * guard condition is never touched again and may be destroyed.
+ *
+ * A waker's block is never freed.  Publishers find a subscription (and so
+ * its waker) through lock-free reads of the bus, so one may still post
+ * after the subscriber is gone and its waker closed; that post must land in
+ * memory that is still a waker.  Closed blocks go on a free list and are
+ * reused by the next cgw_new: a late post there sets a pending bit that at
+ * worst wakes some live subscription once (a spurious wake-up, which every
+ * executor tolerates).
  */
 #include "waker.h"
 
@@ -49,9 +57,39 @@ struct cgw_waker {
     _Atomic int finished;
     pthread_mutex_t lock;                       /* robust; guards gc[] */
     rcl_guard_condition_t *gc[CGW_TOKENS];
-    _Atomic uint64_t triggered;
     pthread_t thread;
+    struct cgw_waker *next_free;                /* on the free list once closed */
 };
+
+/* Closed wakers, for reuse; only container threads open and close wakers. */
+static pthread_mutex_t free_lock = PTHREAD_MUTEX_INITIALIZER;
+static struct cgw_waker *free_list;
+
+static struct cgw_waker *take_block(void)
+{
+    pthread_mutex_lock(&free_lock);
+    struct cgw_waker *w = free_list;
+    if (w)
+        free_list = w->next_free;
+    pthread_mutex_unlock(&free_lock);
+    if (!w)
+        return calloc(1, sizeof *w);
+    /* Late posts may still bump seq or set pending bits: both stay atomic
+       and harmless, so only the table and the flags are reset. */
+    memset(w->gc, 0, sizeof w->gc);
+    atomic_store(&w->stop, 0);
+    atomic_store(&w->finished, 0);
+    w->next_free = NULL;
+    return w;
+}
+
+static void put_block(struct cgw_waker *w)
+{
+    pthread_mutex_lock(&free_lock);
+    w->next_free = free_list;
+    free_list = w;
+    pthread_mutex_unlock(&free_lock);
+}
 
 static int lock_table(struct cgw_waker *w)
 {
@@ -74,12 +112,8 @@ static void trigger_pending(struct cgw_waker *w)
             if (lock_table(w) != 0)
                 continue;
             rcl_guard_condition_t *gc = w->gc[token];
-            if (gc) {
-                if (rcl_trigger_guard_condition(gc) == RCL_RET_OK)
-                    atomic_fetch_add(&w->triggered, 1);
-                else
-                    rcl_reset_error();      /* destroyed under us: nothing to wake */
-            }
+            if (gc && rcl_trigger_guard_condition(gc) != RCL_RET_OK)
+                rcl_reset_error();          /* destroyed under us: nothing to wake */
             pthread_mutex_unlock(&w->lock);
         }
     }
@@ -100,7 +134,7 @@ static void *waker_main(void *arg)
 
 int cgw_new(struct cgw_waker **out)
 {
-    struct cgw_waker *w = calloc(1, sizeof *w);
+    struct cgw_waker *w = take_block();
     if (!w)
         return -ENOMEM;
     pthread_mutexattr_t a;
@@ -116,7 +150,7 @@ int cgw_new(struct cgw_waker **out)
     pthread_sigmask(SIG_SETMASK, &old, NULL);
     if (r) {
         pthread_mutex_destroy(&w->lock);
-        free(w);
+        put_block(w);
         return -r;
     }
     *out = w;
@@ -155,11 +189,6 @@ void cgw_post(struct cgw_waker *w, int token)
     syscall(SYS_futex, &w->seq, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
 }
 
-uint64_t cgw_triggered(struct cgw_waker *w)
-{
-    return atomic_load(&w->triggered);
-}
-
 int cgw_close(struct cgw_waker *w, int timeout_ms)
 {
     atomic_store(&w->stop, 1);
@@ -176,6 +205,6 @@ int cgw_close(struct cgw_waker *w, int timeout_ms)
     }
     pthread_join(w->thread, NULL);
     pthread_mutex_destroy(&w->lock);
-    free(w);
+    put_block(w);
     return 0;
 }

@@ -18,10 +18,9 @@ int cgw_add(struct cgw_waker *w, void *guard_condition);
 void cgw_remove(struct cgw_waker *w, int token);
 /* Ask for one wake-up of token's guard condition: lock-free, from anyone. */
 void cgw_post(struct cgw_waker *w, int token);
-/* Wake-ups delivered so far. */
-uint64_t cgw_triggered(struct cgw_waker *w);
-/* Stop and free it: 0, or -ETIMEDOUT when its thread is stuck (then both
-   are left behind). */
+/* Stop it; its block is kept for reuse, never freed, so late posts stay
+   harmless.  0, or -ETIMEDOUT when its thread is stuck (then both are left
+   behind). */
 int cgw_close(struct cgw_waker *w, int timeout_ms);
 
 #endif

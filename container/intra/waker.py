@@ -21,6 +21,7 @@ class Waker:
         if rc < 0:
             raise OSError(-rc, "cannot start an intra-process waker thread")
         self._w = out[0]
+        self._closed = False
 
     def add(self, guard_condition) -> int:
         """A token for ``guard_condition`` (an rclpy GuardCondition)."""
@@ -32,17 +33,17 @@ class Waker:
         return token
 
     def remove(self, token: int) -> None:
-        """After this, the token's guard condition is never touched again."""
-        lib.cgw_remove(self._w, token)
+        """After this, the token's guard condition is never touched again.
+        After close() it does nothing: the block may be another waker's now."""
+        if not self._closed:
+            lib.cgw_remove(self._w, token)
 
     def post(self, token: int) -> None:
         lib.cgw_post(self._w, token)
 
-    @property
-    def triggered(self) -> int:
-        return lib.cgw_triggered(self._w)
-
     def close(self) -> bool:
         """Stop the thread; False when it is stuck (in a dead subscriber's
-        lock) and was left behind."""
+        lock) and was left behind. Posts through it stay harmless afterwards
+        (waker.c keeps every block)."""
+        self._closed = True
         return lib.cgw_close(self._w, CLOSE_TIMEOUT_MS) == 0
