@@ -18,6 +18,7 @@ the ``on_death(unique_id, death)`` callback the manager gives it.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -56,7 +57,20 @@ class ThreadHost:
 
     def stop(self, hosted: Hosted) -> None:
         self._executor.remove_node(hosted.node)
+        self._quiesce()
         factory.destroy(hosted.node)
+
+    def _quiesce(self, timeout: float = 2.0) -> None:
+        """Wait until the executor has been round its loop once more: a wait
+        it was in when the node was removed still held the node's entities,
+        and destroying a node while they are in use leaks them (rclpy 7.1:
+        ~0.17 MiB of malloc'd memory per load/unload, measured)."""
+        if self._executor._is_shutdown:
+            return
+        turned = threading.Event()
+        self._executor.create_task(turned.set)
+        self._executor.wake()
+        turned.wait(timeout)
 
     def close(self, hosted_nodes) -> None:
         for hosted in hosted_nodes:

@@ -1,0 +1,145 @@
+"""Long life: does a container drain itself over hundreds of loads?
+
+Per mode, one container; a cycle is one load and unload of a valid node and
+one failed construction (a Heartbeat whose constructor refuses its period).
+After ``warmup`` cycles (pools and caches fill), the container's RSS (its
+address space, which its node processes share), open fds and threads (its
+own thread group; node processes are counted apart and must be none at
+rest) are read, then again after ``cycles`` more. The figures are growth
+per cycle.
+
+    python -m bench.leaks [--cycles 300] [--warmup 40] [--modes threads per-node shared cgroups]
+
+tests/test_leaks.py runs the same with small counts and asserts the bounds
+(RSS <= LIMIT_MIB_PER_CYCLE per cycle, fds and threads +0).
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass
+
+from harness import domains, procfs
+from harness.factory import ContainerFactory
+
+from . import common
+
+MODES = {
+    "threads": [],
+    "per-node": ["--isolated"],
+    "shared": ["--isolated", "--profile", "shared"],
+    "cgroups": ["--isolated", "--cgroups"],
+}
+LIMIT_MIB_PER_CYCLE = 0.05
+PKG, NODE = "cloneguard", "cloneguard::Heartbeat"
+
+
+@dataclass
+class Sample:
+    rss_kib: int
+    fds: int
+    threads: int
+    node_processes: int
+
+
+@dataclass
+class Growth:
+    mode: str
+    cycles: int
+    before: Sample
+    after: Sample
+
+    @property
+    def rss_mib_per_cycle(self) -> float:
+        return (self.after.rss_kib - self.before.rss_kib) / 1024 / self.cycles
+
+    @property
+    def fds(self) -> int:
+        return self.after.fds - self.before.fds
+
+    @property
+    def threads(self) -> int:
+        return self.after.threads - self.before.threads
+
+
+def sample(pid: int) -> Sample:
+    """After a moment to settle (threads that end a request exit)."""
+    time.sleep(0.5)
+    return Sample(rss_kib=int(procfs.status_field(pid, "VmRSS").split()[0]),
+                  fds=len(os.listdir(f"/proc/{pid}/fd")),
+                  threads=len(os.listdir(f"/proc/{pid}/task")),
+                  node_processes=len(procfs.children_of(pid)))
+
+
+def cycle(client) -> None:
+    uid = client.load_ok(PKG, NODE, node_name="cycled").unique_id
+    if not client.unload(uid).success:
+        raise AssertionError(f"unload of {uid} failed")
+    resp = client.load(PKG, NODE, node_name="refused", parameters={"period": -1.0})
+    if resp.success:
+        raise AssertionError("a Heartbeat with period -1 was loaded")
+
+
+def burst(client, n: int = 16) -> None:
+    """Concurrent requests, so that the container's thread pools (services,
+    builders) reach the size they are bounded to before anything is counted."""
+    threads = [threading.Thread(target=cycle, args=(client,)) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
+def measure(mode: str, cycles: int, warmup: int, log_dir) -> Growth:
+    with domains.lease() as lease:
+        factory = ContainerFactory(lease.domain_id, log_dir)
+        try:
+            proc = factory.start(MODES[mode])
+            client = factory.connect(proc)
+            burst(client)
+            for _ in range(warmup):
+                cycle(client)
+            before = sample(proc.pid)
+            for _ in range(cycles):
+                cycle(client)
+            after = sample(proc.pid)
+        finally:
+            factory.stop_all()
+    return Growth(mode, cycles, before, after)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tempfile
+    parser = common.arg_parser("leaks", __doc__.splitlines()[0])
+    parser.add_argument("--cycles", type=int, default=300)
+    parser.add_argument("--warmup", type=int, default=40)
+    parser.add_argument("--modes", nargs="+", choices=sorted(MODES), default=list(MODES))
+    args = parser.parse_args(argv)
+    table = common.Table("Growth at rest, per cycle (one load+unload and one failed construction)",
+                         ["mode", "cycles", "RSS before", "RSS after", "RSS per cycle", "fds", "threads",
+                          "node processes at rest", "goal", "verdict"])
+    raw, goals = {}, []
+    with tempfile.TemporaryDirectory(prefix="cloneguard-leaks-") as logs:
+        for mode in args.modes:
+            g = measure(mode, args.cycles, args.warmup, logs)
+            raw[mode] = {"before": g.before.__dict__, "after": g.after.__dict__}
+            ok = g.rss_mib_per_cycle <= LIMIT_MIB_PER_CYCLE and g.fds <= 0 and g.threads <= 0
+            table.add(mode, g.cycles, f"{g.before.rss_kib / 1024:.1f} MiB", f"{g.after.rss_kib / 1024:.1f} MiB",
+                      f"{g.rss_mib_per_cycle:+.4f} MiB", f"{g.fds:+d}", f"{g.threads:+d}",
+                      g.after.node_processes, f"≤ {LIMIT_MIB_PER_CYCLE} MiB, fds/threads +0",
+                      "met" if ok else "missed")
+    result = common.Result(
+        name="leaks", title="Long life: growth per load cycle",
+        command=common.command_line("leaks", {"cycles": args.cycles, "warmup": args.warmup, "modes": args.modes}),
+        params={"cycles": args.cycles, "warmup": args.warmup, "modes": args.modes},
+        tables=[table], goals=goals,
+        notes=["RSS is the container's (VmRSS of its pid): its node processes share its address space.",
+               "Threads and fds are the container's own thread group's; node processes are counted apart."],
+        summary=[], raw=raw, cleanup=[])
+    common.finish(result, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
