@@ -191,11 +191,11 @@ def _where(t: ThreadStack) -> str:
 
 
 def _state(t: ThreadStack) -> tuple[str, str]:
-    top = t.frames[:6]
+    top = t.frames[:10]
     if any(f.startswith("PyThread_acquire_lock") for f in top):
         return "python lock", _where(t)
-    if any("pthread_cond" in f for f in top) or any(any(f.endswith(i) or f == i for i in _IDLE_FUNCS)
-                                                     for f in top[:3]):
+    waiting = top[:1] and ("futex" in top[0] or any(top[0].endswith(i) for i in _IDLE_FUNCS))
+    if waiting or any("pthread_cond" in f for f in top):
         return "idle", _where(t)
     return "running", _where(t)
 
