@@ -36,6 +36,10 @@ from .stop_signals import StopSignals
 from .watchdog import Watchdog
 
 DEFAULT_NODE_NAME = "ComponentManager"
+# Threads serving LoadNode/UnloadNode/ListNodes (and the watchdog, restarts):
+# a load waiting for its node takes one for up to ComponentManager.CONSTRUCT_WAIT_S.
+SERVICE_THREADS = 8
+WATCHDOG_MAX_S = 86400.0
 
 # Mitigations that can be switched off, to measure what each one buys.
 MITIGATION_SWITCHES = {
@@ -51,8 +55,24 @@ MITIGATION_SWITCHES = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):
+        """One line, exit status 2 (argparse would add the usage)."""
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _watchdog_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (0.0 <= value <= WATCHDOG_MAX_S):     # also refuses nan and inf
+        raise argparse.ArgumentTypeError(f"must be 0 (off) to {WATCHDOG_MAX_S:g} seconds, got {text!r}")
+    return value
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="component_container",
         description="ROS 2 component container (rclpy) with optional per-node "
         "clone(CLONE_VM) process isolation.",
@@ -89,7 +109,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "0.5 s doubling to 30 s (reset once it stayed up 60 s) (default: %(default)s)",
     )
     parser.add_argument(
-        "--watchdog", type=float, default=None, metavar="SECONDS",
+        "--watchdog", type=_watchdog_seconds, default=None, metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
     )
@@ -100,6 +120,16 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "container's (default: %(default)s)",
     )
     return parser.parse_args(argv)
+
+
+def _ros_init(argv: list[str]) -> None:
+    """rclpy.init, with bad ROS arguments (an invalid remap, a missing
+    parameter file, bytes that are not UTF-8 ...) said in one line."""
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise SystemExit(f"component_container: invalid ROS arguments: {first}") from None
 
 
 def _make_host(opts, executor, context, logger):
@@ -135,7 +165,11 @@ def _make_host(opts, executor, context, logger):
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
-    opts = parse_args(remove_ros_args(argv)[1:])
+    try:
+        plain = remove_ros_args(argv)[1:]
+    except Exception as exc:
+        raise SystemExit(f"component_container: invalid ROS arguments: {exc}") from None
+    opts = parse_args(plain)
     guard = opts.isolated and not opts.no_alloc_guard
     if guard and (opts.shared_arenas or opts.jemalloc_arenas != "own"):
         raise SystemExit("component_container: --shared-arenas and --jemalloc-arenas auto "
@@ -150,14 +184,19 @@ def main(argv: list[str] | None = None) -> int:
     if opts.isolated and not opts.shared_arenas:
         allocator.glibc_arena_per_task()        # before a second thread exists
     stop = StopSignals()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    _ros_init(argv)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
+    # Thread mode's nodes spin on this executor (as upstream's containers);
+    # the container's own services spin on one of their own, so that no
+    # node's callback, nor a LoadNode waiting for a constructor, can keep
+    # them from answering.
     executor = (
         MultiThreadedExecutor(context=context)
         if opts.use_multi_threaded_executor
         else SingleThreadedExecutor(context=context)
     )
+    services = MultiThreadedExecutor(num_threads=SERVICE_THREADS, context=context)
     try:
         host = _make_host(opts, executor, context, node.get_logger())
     except SystemExit:
@@ -169,18 +208,20 @@ def main(argv: list[str] | None = None) -> int:
         host.on_death = manager.on_death
         if opts.restart_policy == "on-crash":
             manager.restart_policy = RestartPolicy(node, manager.reload)
-    executor.add_node(node)
+    services.add_node(node)
     watchdog_s = opts.watchdog if opts.watchdog is not None else (10.0 if opts.isolated else 0.0)
     watchdog = None
     if watchdog_s > 0:
         # In isolated mode each tick also reads the progress board, so a lock
         # a dead child left on it is found and repaired even when idle.
         on_tick = host.board.snapshot if opts.isolated else None
-        watchdog = Watchdog(node, watchdog_s, on_tick=on_tick)
+        watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick)
         manager.watchdog = watchdog
     failure: list[BaseException] = []
     spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
     spinner.start()
+    server = threading.Thread(target=_serve, args=(services, node), name="container-services")
+    server.start()
     node.get_logger().info(
         f"{node.get_fully_qualified_name()} ready "
         f"({'multi' if opts.use_multi_threaded_executor else 'single'}-threaded executor"
@@ -195,9 +236,14 @@ def main(argv: list[str] | None = None) -> int:
     # Stop serving first, then stop the nodes, then tear down our own DDS side.
     if watchdog is not None:
         watchdog.close()
+    services.shutdown()
+    server.join()
     executor.shutdown()
     spinner.join()
-    manager.close()
+    try:
+        manager.close()
+    except Exception:                     # shutdown goes on regardless
+        node.get_logger().error("stopping the nodes failed:\n" + traceback.format_exc())
     node.destroy_node()
     rclpy.try_shutdown()
     # Destroying the context destroys its DDS participant now, which unlinks
@@ -214,6 +260,20 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.flush()
         os._exit(1 if failure else 0)
     return 1 if failure else 0
+
+
+def _serve(services, node) -> None:
+    """The services' executor: its callbacks contain their own failures
+    (manager.py); should anything still escape, it is logged and serving
+    goes on."""
+    while True:
+        try:
+            services.spin()
+            return                         # shut down
+        except Exception:
+            if not node.context.ok():
+                return
+            node.get_logger().error("a service callback raised (served on):\n" + traceback.format_exc())
 
 
 def _spin(executor, stop: StopSignals, failure: list) -> None:

@@ -10,12 +10,15 @@ from .options import LoadError, NodeArguments
 
 def construct(cls: type[Node], args: NodeArguments, context, owner: int) -> Node:
     """Instantiate ``cls`` for load ``owner`` (its unique_id); any failure
-    becomes a :class:`LoadError`. Intra-process endpoints the node creates
-    follow its ``use_intra_process_comms`` and belong to ``owner``."""
+    becomes a :class:`LoadError`, and whatever node the constructor had
+    already made is destroyed (it leaves no trace in the ROS graph).
+    Intra-process endpoints the node creates follow its
+    ``use_intra_process_comms`` and belong to ``owner``."""
     try:
         with intra.api.constructing(owner, args.use_intra_process_comms):
             node = cls(**args.node_kwargs(context))
-    except Exception as exc:
+    except BaseException as exc:     # SystemExit too: the component's failure, not ours
+        _destroy_half_built(exc)
         # Same wording as rclcpp_components for a throwing constructor.
         raise LoadError(
             f"Component constructor threw an exception: {type(exc).__name__}: {exc}"
@@ -26,6 +29,25 @@ def construct(cls: type[Node], args: NodeArguments, context, owner: int) -> Node
     if args.log_level:
         node.get_logger().set_level(LoggingSeverity(args.log_level))
     return node
+
+
+def _destroy_half_built(exc: BaseException) -> None:
+    """A constructor that raised after ``Node.__init__`` had made the node
+    (a publisher made, then a bad parameter) leaves it alive: it is still a
+    local (``self``) of the frames the exception went through. Destroy every
+    Node found there."""
+    seen: list[Node] = []
+    tb = exc.__traceback__
+    while tb is not None:
+        for value in tb.tb_frame.f_locals.values():
+            if isinstance(value, Node) and not any(value is s for s in seen):
+                seen.append(value)
+        tb = tb.tb_next
+    for node in seen:
+        try:
+            destroy(node)
+        except Exception:       # half made: destroy what can be
+            pass
 
 
 def destroy(node: Node) -> None:

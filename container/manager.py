@@ -9,14 +9,27 @@ a failed load answers unique_id 0 and an empty full_node_name.
 Deaths come from the host (isolated mode), on its monitor's thread: the node
 leaves the table, a CRASHED event goes out, and with a restart policy the
 same request is loaded again after a backoff.
+
+No request can stop the container serving others. The services share a
+reentrant callback group (the command line spins this node on an executor
+of its own, with several threads); a node is built on a thread of its own,
+which a LoadNode waits for at most CONSTRUCT_WAIT_S (a constructor that
+never returns is answered as a failure, and its node is stopped if it ever
+appears); and an unexpected exception anywhere in a request is that
+request's failure (``success=false``, the cause named, the traceback logged
+once), never the container's end. What a request echoes back is bounded and
+escaped (``shown``).
 """
 from __future__ import annotations
 
-import contextlib
 import threading
+import traceback
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.qos import QoSProfile, qos_profile_services_default
 
 from . import events, intra, options, registry
 from .events import EventPublisher
@@ -33,9 +46,28 @@ class _Entry:
     lineage: Lineage
 
 
+def _qos_fields(profile: QoSProfile) -> dict:
+    return {"history": profile.history, "reliability": profile.reliability,
+            "durability": profile.durability}
+
+
+def shown(text: str, limit: int = 500) -> str:
+    """``text`` as an answer or a log line may carry it: control characters
+    escaped, at most ``limit`` characters (plus how many were cut)."""
+    out = "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in text[:limit])
+    return out + (f"... ({len(text) - limit} more characters)" if len(text) > limit else "")
+
+
 class ComponentManager:
-    # How long a LoadNode may block the executor while a node is built.
-    LOAD_ALLOWANCE_S = 70.0
+    # How long a LoadNode waits for its node to be built (the isolated host
+    # gives up on a child after 60 s of its own).
+    CONSTRUCT_WAIT_S = 65.0
+    # Threads that build nodes: reused (a thread per load would churn
+    # stacks and arenas); more than one, so that constructors that never
+    # return do not hold up the rest.
+    BUILDERS = 8
+    # Requests a service keeps queued while its threads are busy.
+    REQUEST_QUEUE = 1000
 
     def __init__(self, node, host, *, logger=None):
         self._node = node
@@ -47,18 +79,38 @@ class ComponentManager:
         self._loaded: dict[int, _Entry] = {}
         self._starting: set[int] = set()    # ids whose host.start() is running
         self._early_deaths: dict[int, object] = {}   # deaths seen while starting
+        self._builders = ThreadPoolExecutor(self.BUILDERS, thread_name_prefix="cloneguard-build")
         self.watchdog = None                # set by the command line when it runs one
         self.restart_policy = None          # likewise (container.restart.RestartPolicy)
         # The intra-process bus is container-owned: made here, before any child.
         intra.get_bus()
-        node.create_service(LoadNode, "~/_container/load_node", self._on_load_node)
-        node.create_service(UnloadNode, "~/_container/unload_node", self._on_unload_node)
-        node.create_service(ListNodes, "~/_container/list_nodes", self._on_list_nodes)
+        group = ReentrantCallbackGroup()
+        # ROS's default service queue keeps 10 requests: an eleventh that
+        # arrives while they wait is dropped, never answered. Keep more.
+        qos = QoSProfile(**{**_qos_fields(qos_profile_services_default), "depth": self.REQUEST_QUEUE})
+        for srv_type, name, handler in ((LoadNode, "load_node", self._on_load_node),
+                                        (UnloadNode, "unload_node", self._on_unload_node),
+                                        (ListNodes, "list_nodes", self._on_list_nodes)):
+            node.create_service(srv_type, f"~/_container/{name}", handler, qos_profile=qos, callback_group=group)
 
     # -- services -------------------------------------------------------------
 
     def _on_load_node(self, request, response):
-        return self._load(request, response, None)
+        return self._contained("LoadNode", self._load, request, response, None)
+
+    def _contained(self, what, handler, request, response, *args):
+        """Run a request; an exception nobody expected fails that request only."""
+        try:
+            return handler(request, response, *args)
+        except Exception as exc:
+            self._log.error(f"{what} failed unexpectedly:\n" + "".join(traceback.format_exception(exc)))
+            message = shown(f"internal error: {type(exc).__name__}: {exc}")
+            if isinstance(response, LoadNode.Response):
+                return self._load_failed(request, response, message)
+            response.success = False
+            if hasattr(response, "error_message"):
+                response.error_message = message
+            return response
 
     def _load(self, request, response, lineage: Lineage | None):
         try:
@@ -69,12 +121,15 @@ class ComponentManager:
             return self._load_failed(request, response, str(exc))
         unique_id = self._take_id()
         try:
-            with self.watchdog.allow(self.LOAD_ALLOWANCE_S) if self.watchdog else contextlib.nullcontext():
-                hosted = self._host.start(unique_id, cls, args)
-        except LoadError as exc:
+            hosted = self._start(unique_id, cls, args)
+        except BaseException as exc:     # whatever the start raised fails this load only
             intra.get_bus().forget(unique_id)   # what a failed constructor registered
             with self._lock:
                 self._starting.discard(unique_id)
+            if not isinstance(exc, LoadError):
+                self._log.error(f"unique_id {unique_id}: starting the node failed unexpectedly:\n"
+                                + "".join(traceback.format_exception(exc)))
+                exc = LoadError(f"internal error: {type(exc).__name__}: {exc}")
             return self._load_failed(request, response, str(exc))
         entry = _Entry(hosted, spec, request, lineage or Lineage(hosted.full_node_name))
         with self._lock:
@@ -100,6 +155,9 @@ class ComponentManager:
         return response
 
     def _on_unload_node(self, request, response):
+        return self._contained("UnloadNode", self._unload, request, response)
+
+    def _unload(self, request, response):
         with self._lock:
             entry = self._loaded.pop(request.unique_id, None)
         if entry is None:
@@ -115,6 +173,9 @@ class ComponentManager:
         return response
 
     def _on_list_nodes(self, request, response):
+        return self._contained("ListNodes", self._list, request, response)
+
+    def _list(self, request, response):
         with self._lock:
             entries = sorted(self._loaded.items())
         response.unique_ids = [uid for uid, _ in entries]
@@ -159,7 +220,7 @@ class ComponentManager:
 
     def reload(self, request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""
-        resp = self._load(request, LoadNode.Response(), lineage)
+        resp = self._contained("restart", self._load, request, LoadNode.Response(), lineage)
         if not resp.success:
             self._log.error(f"restart of {lineage.name} failed: {resp.error_message}")
 
@@ -174,8 +235,38 @@ class ComponentManager:
         for uid in [e.hosted.unique_id for e in entries]:
             intra.get_bus().forget(uid)
         self._host.close([e.hosted for e in entries])
+        self._builders.shutdown(wait=False, cancel_futures=True)
 
     # -- helpers --------------------------------------------------------------
+
+    def _start(self, unique_id: int, cls, args):
+        """host.start on a thread of its own, waited for at most
+        CONSTRUCT_WAIT_S. A start that finishes after that is undone."""
+        done = threading.Event()
+        box: dict = {}
+
+        def build() -> None:
+            try:
+                box["hosted"] = self._host.start(unique_id, cls, args)
+            except BaseException as exc:
+                box["error"] = exc
+            with self._lock:
+                late = box.setdefault("late", False)
+                done.set()
+            if late and "hosted" in box:
+                self._log.warning(f"unique_id {unique_id}: built after its LoadNode gave up; stopping it")
+                self._host.stop(box["hosted"])
+
+        self._builders.submit(build)
+        if not done.wait(self.CONSTRUCT_WAIT_S):
+            with self._lock:
+                if not done.is_set():
+                    box["late"] = True
+            if box.get("late"):
+                raise LoadError(f"the node was not constructed within {self.CONSTRUCT_WAIT_S:g} s")
+        if "error" in box:
+            raise box["error"]
+        return box["hosted"]
 
     def _take_id(self) -> int:
         with self._lock:
@@ -184,11 +275,12 @@ class ComponentManager:
         return unique_id
 
     def _load_failed(self, request, response, message: str):
+        message = shown(message)
         self._log.error(f"Failed to load component: {message}")
         self._events.publish(
             events.LOAD_FAILED,
-            package_name=request.package_name,
-            plugin_name=request.plugin_name,
+            package_name=shown(request.package_name, 256),
+            plugin_name=shown(request.plugin_name, 256),
             error_message=message,
         )
         response.success = False

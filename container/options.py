@@ -1,20 +1,26 @@
 """Turn a LoadNode request into the arguments a component's Node is built with.
 
 Everything here is validation and translation; nothing is constructed. A bad
-request raises :class:`LoadError` with a message that says what is wrong, and
-the manager answers ``success=false`` with it before it touches any state.
+parameter or extra argument raises :class:`LoadError` with a message that
+says what is wrong, and the manager answers ``success=false`` with it before
+it takes a unique id, as rclcpp_components does. The node name, namespace
+and remap rules are, as there, handed to the node's constructor as ROS
+arguments (rules first, then ``__node:=``, then ``__ns:=``: the first rule
+that matches wins) and judged by rcl when the node is built: a bad one fails
+the load after an id was taken, with rcl's message.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
-from rclpy.exceptions import InvalidNamespaceException, InvalidNodeNameException
 from rclpy.parameter import Parameter
-from rclpy.validate_namespace import validate_namespace
-from rclpy.validate_node_name import validate_node_name
 
-# rcutils log severities a LoadNode.log_level may carry (0 means "unset").
+# rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
+# rclcpp_components, any other value is ignored.
 LOG_LEVELS = {10: "debug", 20: "info", 30: "warn", 40: "error", 50: "fatal"}
+# The CPU quota a node may ask for, in CPUs (cgroup cpu.max / cfs_quota_us).
+CPU_QUOTA_RANGE = (0.001, 1024.0)
 
 # extra_arguments this container understands, and the type each must have.
 # DROP_LOADED_EVENT is a fault-injection hook for the harness: the node loads
@@ -56,35 +62,6 @@ class NodeArguments:
         }
 
 
-def _node_name_rule(name: str) -> str:
-    try:
-        validate_node_name(name)
-    except InvalidNodeNameException as exc:
-        raise LoadError(str(exc)) from None
-    return f"__node:={name}"
-
-
-def _namespace_rule(namespace: str) -> str:
-    # launch_ros sends relative namespaces as written by users; rcl needs them
-    # fully qualified, so a relative one is taken as relative to the root.
-    if not namespace.startswith("/"):
-        namespace = "/" + namespace
-    try:
-        validate_namespace(namespace)
-    except InvalidNamespaceException as exc:
-        raise LoadError(str(exc)) from None
-    return f"__ns:={namespace}"
-
-
-def _checked_remap_rule(rule: str) -> str:
-    lhs, sep, rhs = rule.partition(":=")
-    if not sep or not lhs or not rhs or any(c.isspace() for c in rule):
-        raise LoadError(
-            f"Invalid remap rule {rule!r}: expected 'from:=to' with no spaces"
-        )
-    return rule
-
-
 def _parameters(messages) -> list[Parameter]:
     out = []
     for msg in messages:
@@ -108,25 +85,22 @@ def _extra_arguments(messages) -> dict[str, object]:
             raise LoadError(
                 f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}"
             )
-        if param.name == CPU_QUOTA and not param.value > 0:
-            raise LoadError(f"Extra component argument '{CPU_QUOTA}' must be positive, got {param.value}")
+        if param.name == CPU_QUOTA and not (math.isfinite(param.value)
+                                            and CPU_QUOTA_RANGE[0] <= param.value <= CPU_QUOTA_RANGE[1]):
+            low, high = CPU_QUOTA_RANGE
+            raise LoadError(f"Extra component argument '{CPU_QUOTA}' must be between {low:g} and "
+                            f"{high:g} (CPUs), got {param.value!r}")
         extra[param.name] = param.value
     return extra
 
 
 def from_request(request) -> NodeArguments:
     """Validate a ``LoadNode.Request`` and build the node's arguments."""
-    rules = []
+    rules = list(request.remap_rules)
     if request.node_name:
-        rules.append(_node_name_rule(request.node_name))
+        rules.append(f"__node:={request.node_name}")
     if request.node_namespace:
-        rules.append(_namespace_rule(request.node_namespace))
-    rules.extend(_checked_remap_rule(r) for r in request.remap_rules)
-    if request.log_level and request.log_level not in LOG_LEVELS:
-        raise LoadError(
-            f"Invalid log_level {request.log_level}: expected 0 (unset) or one of "
-            + ", ".join(f"{k} ({v})" for k, v in LOG_LEVELS.items())
-        )
+        rules.append(f"__ns:={request.node_namespace}")
     cli_args = ["--ros-args"]
     for rule in rules:
         cli_args += ["-r", rule]
@@ -137,6 +111,6 @@ def from_request(request) -> NodeArguments:
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
         drop_loaded_event=bool(extra.get(DROP_LOADED_EVENT, False)),
         cpu_quota=extra.get(CPU_QUOTA),
-        log_level=request.log_level,
+        log_level=request.log_level if request.log_level in LOG_LEVELS else 0,
         extra=extra,
     )

@@ -29,7 +29,9 @@ UNKNOWN_PLUGIN = "Failed to find class with the requested plugin name."
 
 
 def _normalize(name: str) -> str:
-    return re.sub(r"[-_.]+", "-", name).lower()
+    # Runs of - _ . are one separator (a distribution's name may be spelt
+    # either way), but case counts: an ament package name is matched exactly.
+    return re.sub(r"[-_.]+", "-", name)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ MISFITS = {
     "misfits::IgnoresOptions": "misfit_components:IgnoresOptions",
     "misfits::DeclaresInteger": "misfit_components:DeclaresInteger",
     "misfits::DebugLogger": "misfit_components:DebugLogger",
+    "misfits::ExitsInConstructor": "misfit_components:ExitsInConstructor",
     "misfits::Missing": "misfit_components_that_do_not_exist:Nothing",
 }
 

@@ -69,7 +69,6 @@ def test_unload_twice(client):
         ("my_talker", "", "/my_talker"),
         ("", "/robot", "/robot/talker"),
         ("front", "/robot/arm", "/robot/arm/front"),
-        ("front", "relative", "/relative/front"),
     ],
 )
 def test_node_name_and_namespace_overrides(client, name, namespace, expected):

@@ -6,13 +6,13 @@ the process spinning it) stopped making progress.
 from rclpy.node import Node
 from std_msgs.msg import UInt64
 
+from . import checks
+
 
 class Heartbeat(Node):
     def __init__(self, **kwargs):
         super().__init__("heartbeat", **kwargs)
-        period = self.declare_parameter("period", 0.05).value
-        if period <= 0:
-            raise ValueError(f"parameter 'period' must be positive, got {period}")
+        period = checks.period(self.declare_parameter("period", 0.05).value)
         self._beats = 0
         self._pub = self.create_publisher(UInt64, "~/heartbeat", 10)
         self._timer = self.create_timer(period, self._beat)

@@ -10,18 +10,16 @@ from std_msgs.msg import String
 
 from container import intra
 
+from . import checks
+
 
 class Talker(Node):
     def __init__(self, **kwargs):
         super().__init__("talker", **kwargs)
         topic = self.declare_parameter("topic", "chatter").value
-        period = self.declare_parameter("period", 0.1).value
+        period = checks.period(self.declare_parameter("period", 0.1).value)
         self._text = self.declare_parameter("message", "hello").value
-        self._limit = self.declare_parameter("limit", 0).value
-        if period <= 0:
-            raise ValueError(f"parameter 'period' must be positive, got {period}")
-        if self._limit < 0:
-            raise ValueError(f"parameter 'limit' must not be negative, got {self._limit}")
+        self._limit = checks.count(self.declare_parameter("limit", 0).value, "limit")
         self._count = 0
         self._pub = intra.create_publisher(self, String, topic, 10)
         self._timer = self.create_timer(period, self._tick)

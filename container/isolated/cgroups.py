@@ -105,6 +105,15 @@ class NodeCgroups:
         v2_dir = self.v2_root / f"node-{unique_id}"
         v2_dir.mkdir()
         cg = NodeCgroup(unique_id, v2_dir, os.open(v2_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC))
+        try:
+            self._set_quota(cg, cpu_quota)
+        except BaseException:
+            self.remove(cg)             # nothing may stay of a cgroup that failed
+            raise
+        return cg
+
+    def _set_quota(self, cg: NodeCgroup, cpu_quota: float | None) -> None:
+        unique_id, v2_dir = cg.unique_id, cg.v2_dir
         if cpu_quota is not None:
             quota_us = max(1000, int(cpu_quota * CFS_PERIOD_US))
             if self._v2_cpu:
@@ -115,7 +124,6 @@ class NodeCgroups:
                 cg.cpu_v1_dir.mkdir()
                 (cg.cpu_v1_dir / "cpu.cfs_period_us").write_text(str(CFS_PERIOD_US))
                 (cg.cpu_v1_dir / "cpu.cfs_quota_us").write_text(str(quota_us))
-        return cg
 
     def attach(self, cg: NodeCgroup, pid: int) -> None:
         """After the clone: join the v1 cpu group, if the node has one."""
@@ -129,7 +137,26 @@ class NodeCgroups:
         if cg.cpu_v1_dir is not None:
             _rmdir(cg.cpu_v1_dir)
 
-    def close(self) -> None:
-        _rmdir(self.v2_root)
-        if self.v1_root is not None and self.v1_root.exists():
-            _rmdir(self.v1_root)
+    def close(self) -> list[str]:
+        """Remove every cgroup this container made, emptying any that still
+        holds a process first (cgroup.kill). Never raises: returns what could
+        not be removed."""
+        problems = []
+        for root in (self.v2_root, self.v1_root):
+            if root is None or not root.exists():
+                continue
+            for d in sorted(root.glob("node-*")):
+                if root == self.v2_root and (d / "cgroup.kill").exists():
+                    try:
+                        (d / "cgroup.kill").write_text("1")
+                    except OSError as exc:
+                        problems.append(f"{d}/cgroup.kill: {exc.strerror}")
+                try:
+                    _rmdir(d)
+                except OSError as exc:
+                    problems.append(f"{d}: {exc.strerror}")
+            try:
+                _rmdir(root)
+            except OSError as exc:
+                problems.append(f"{root}: {exc.strerror}")
+        return problems

@@ -26,6 +26,7 @@ import select
 import signal
 import threading
 import time
+import traceback
 from dataclasses import dataclass, field
 
 import rclpy
@@ -43,6 +44,13 @@ from .robust import RobustMutex
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
+# After a failed construction the child tears its half-made node and DDS
+# participant down and ends; if it does not (a thread that will not stop)
+# within this, it is killed.
+FAILED_EXIT_TIMEOUT_S = 5.0
+
+# The one-byte words a child (or the monitor) posts on a handoff.
+READY, FAILED, DIED = b"R", b"F", b"D"
 
 
 @dataclass(frozen=True)
@@ -58,21 +66,26 @@ class NodeDeath:
 
 class _Handoff:
     """One-shot word from a child to the thread waiting for it: a pipe, so a
-    child that dies half-way can never leave a lock behind for the waiter."""
+    child that dies half-way can never leave a lock behind for the waiter.
+    Words are one byte and the waiter reads one: the child's word and the
+    monitor's DIED (it exits right after posting) never run together."""
 
     def __init__(self):
         self._r, self._w = os.pipe2(os.O_CLOEXEC)
+        self.closed = False
 
     def post(self, word: bytes) -> None:
         os.write(self._w, word)
 
     def wait(self, timeout: float) -> bytes | None:
         ready, _, _ = select.select([self._r], [], [], timeout)
-        return os.read(self._r, 64) if ready else None
+        return os.read(self._r, 1) if ready else None
 
     def close(self) -> None:
-        for fd in (self._r, self._w):
-            os.close(fd)
+        if not self.closed:
+            self.closed = True
+            for fd in (self._r, self._w):
+                os.close(fd)
 
 
 @dataclass
@@ -86,6 +99,7 @@ class _NodeProcess:
     context: object = None             # the child's own Context (per-node)
     full_name: str = ""
     slot: int = -1                     # this node's slot on the progress board
+    start_ns: int = 0
     stop_guard: object = None          # triggered to wake the child's spin loop
     stopped_by: object = None          # the outside signal that asked it to stop
     cgroup: object = None              # NodeCgroup, with --cgroups
@@ -119,13 +133,36 @@ class IsolatedHost:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
         proc = _NodeProcess(unique_id, self.profile)
+        try:
+            self._start(proc, cls, args)
+        except BaseException as exc:
+            # Whatever was half made goes: the child, the container-built
+            # node, the cgroup, the board slot, the handoff pipe.
+            self._undo(proc)
+            if isinstance(exc, LoadError):
+                raise
+            self._log.error(f"unique_id {unique_id}: starting its process failed:\n"
+                            + "".join(traceback.format_exception(exc)))
+            raise LoadError(f"the node's process could not be started: {type(exc).__name__}: {exc}") from None
+        with self._lock:
+            # The handoff is closed under the lock that guards posting to it.
+            proc.handoff.close()
+            died = proc.death
+            proc.state = "running" if died is None else "dead"
+        hosted = Hosted(unique_id, proc.full_name, proc.child.pid, proc.start_ns, detail=proc)
+        if died is not None:   # died between construction and now
+            self._crashed(proc, died)
+        return hosted
+
+    def _start(self, proc: _NodeProcess, cls, args) -> None:
+        unique_id = proc.unique_id
         if args.use_intra_process_comms:
             # Its subscriptions are woken by a container thread, never by a
             # publisher's process (intra/waker.c); the manager's forget()
             # closes it.
             intra.get_bus().open_waker(unique_id)
         proc.slot = self.board.register(unique_id)
-        start_ns = time.time_ns()
+        proc.start_ns = time.time_ns()
         if self.profile == SHARED:
             proc.node = factory.construct(cls, args, self._context, unique_id)
             proc.full_name = proc.node.get_fully_qualified_name()
@@ -144,15 +181,37 @@ class IsolatedHost:
             self.cgroups.attach(proc.cgroup, proc.child.pid)
         if self.profile != SHARED:
             self._await_construction(proc)
+
+    def _undo(self, proc: _NodeProcess) -> None:
+        """Undo a start that failed part-way (each step best-effort, so that
+        one failure does not keep the rest in place)."""
+        steps = []
+        if proc.child is not None and proc.state != "gone":
+            steps.append(lambda: self._end_child(proc))
+        if proc.node is not None and proc.profile == SHARED and proc.state != "gone":
+            steps.append(lambda: (proc.executor.shutdown(), factory.destroy(proc.node)))
+        if proc.cgroup is not None:
+            steps.append(lambda: self.cgroups.remove(proc.cgroup))
+        if proc.slot >= 0:
+            steps.append(lambda: self.board.unregister(proc.unique_id))
+        steps.append(lambda: proc.handoff.close())
+        for step in steps:
+            try:
+                step()
+            except Exception as exc:
+                self._log.error(f"unique_id {proc.unique_id}: clean-up after a failed start: "
+                                f"{type(exc).__name__}: {exc}")
+        proc.cgroup = None
+
+    def _end_child(self, proc: _NodeProcess) -> None:
+        """SIGKILL a child that was spawned for a start that failed; reap it;
+        keep what it left (it may have held locks), give its context back."""
+        self._core.kill(proc.child, signal.SIGKILL)
+        self._core.wait(proc.child)
         with self._lock:
-            # The handoff is closed under the lock that guards posting to it.
-            proc.handoff.close()
-            died = proc.death
-            proc.state = "running" if died is None else "dead"
-        hosted = Hosted(unique_id, proc.full_name, proc.child.pid, start_ns, detail=proc)
-        if died is not None:   # died between construction and now
-            self._crashed(proc, died)
-        return hosted
+            self._by_pid.pop(proc.child.pid, None)
+            proc.state = "gone"
+        self._core.abandon(proc.child)
 
     def stop(self, hosted: Hosted) -> None:
         self._stop_all([hosted.detail])
@@ -161,7 +220,8 @@ class IsolatedHost:
         self._stop_all([h.detail for h in hosted_nodes])
         self._core.close(kill=True)
         if self.cgroups is not None:
-            self.cgroups.close()
+            for problem in self.cgroups.close():
+                self._log.error(f"cgroup left behind: {problem}")
 
     # -- what runs in the child -------------------------------------------------
 
@@ -184,18 +244,20 @@ class IsolatedHost:
             rclpy.init(args=[], context=ctx, signal_handler_options=SignalHandlerOptions.NO)
             try:
                 node = factory.construct(cls, args, ctx, proc.unique_id)
-            except LoadError as exc:
-                proc.error = str(exc)
+            except Exception as exc:
+                # construct() has destroyed whatever node was half made, so
+                # the participant goes with the context and its threads end.
+                proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
                 ctx.try_shutdown()
                 ctx.destroy()
-                proc.handoff.post(b"failed")
+                proc.handoff.post(FAILED)
                 return
             executor = SingleThreadedExecutor(context=ctx)
             executor.add_node(node)
             proc.stop_guard = node.create_guard_condition(_stopping)
             proc.node, proc.executor, proc.context = node, executor, ctx
             proc.full_name = node.get_fully_qualified_name()
-            proc.handoff.post(b"ready")
+            proc.handoff.post(READY)
             try:
                 self._spin_until_stopped(proc)
             finally:
@@ -212,20 +274,26 @@ class IsolatedHost:
 
     def _await_construction(self, proc: _NodeProcess) -> None:
         word = proc.handoff.wait(CONSTRUCT_TIMEOUT_S)
-        if word == b"ready":
+        if word == READY:
             return
         if word is None:
             self._core.kill(proc.child, signal.SIGKILL)
             why = f"the node was not constructed within {CONSTRUCT_TIMEOUT_S:.0f} s; its process was killed"
-        elif word == b"failed":
+        elif word == FAILED:
             why = proc.error
-        else:  # b"died", posted by _on_core_event
+        else:  # DIED, posted by _on_core_event
             why = f"the node's process died during construction ({_describe(proc.death)})"
-        self._core.wait(proc.child)
+        clean = word == FAILED
+        if self._core.wait(proc.child, FAILED_EXIT_TIMEOUT_S if clean else None) is None:
+            self._log.warning(f"unique_id {proc.unique_id}: its process did not end within "
+                              f"{FAILED_EXIT_TIMEOUT_S:g} s of a failed construction: SIGKILL")
+            self._core.kill(proc.child, signal.SIGKILL)
+            self._core.wait(proc.child)
+            clean = False
         with self._lock:
             proc.handoff.close()
             proc.state = "gone"
-        self._forget(proc, leak=word != b"failed")
+        self._forget(proc, leak=not clean)
         raise LoadError(why)
 
     def _stop_all(self, procs: list[_NodeProcess]) -> None:
@@ -261,8 +329,10 @@ class IsolatedHost:
             self._by_pid.pop(proc.child.pid, None)
             proc.state = "gone"
         self.board.unregister(proc.unique_id)
+        proc.slot = -1
         if proc.cgroup is not None:        # the process is reaped: the group is empty
-            self.cgroups.remove(proc.cgroup)
+            cgroup, proc.cgroup = proc.cgroup, None
+            self.cgroups.remove(cgroup)
         if leak:
             self._core.abandon(proc.child)
             self.leaked.append(proc)
@@ -290,8 +360,8 @@ class IsolatedHost:
         with self._lock:
             proc.death = event
             state = proc.state
-            if state == "starting":
-                proc.handoff.post(b"died")
+            if state == "starting" and not proc.handoff.closed:
+                proc.handoff.post(DIED)
             elif state == "running":
                 proc.state = "dead"
         if state == "running":

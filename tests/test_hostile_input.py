@@ -1,0 +1,195 @@
+"""Requests and command lines that used to end, wedge or drain a container.
+
+Each case is one a hostile (or careless) client found: after it the
+container answers, its table is what it was, and it stops cleanly leaving
+nothing behind (the harness's leftovers check: processes, cgroups, SHM).
+"""
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+
+from container.isolated.cgroups import cgroup2_mount
+from harness.process import default_container_exe
+
+PKG = "cloneguard"
+MODES = {
+    "threads": [],
+    "per-node": ["--isolated"],
+    "shared": ["--isolated", "--profile", "shared"],
+    "cgroups": ["--isolated", "--cgroups"],
+}
+needs_cgroups = pytest.mark.skipif(cgroup2_mount() is None, reason="no cgroup2 here")
+
+
+def _double(name, value):
+    return ParameterMsg(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
+
+
+def _still_serves(client, before):
+    assert client.list() == before
+    probe = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="probe")
+    assert client.unload(probe.unique_id).success
+    assert client.list() == before
+
+
+def _fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
+@needs_cgroups
+@pytest.mark.parametrize("container_args", [MODES["cgroups"]])
+@pytest.mark.parametrize("quota", [float("inf"), 1e300, 1e308, float("nan"), 0.0, -1.0, 1e-9])
+def test_an_impossible_cpu_quota_is_refused_with_its_range(client, container, quota):
+    kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
+    resp = client.load(PKG, "cloneguard::Heartbeat", extra_arguments=[_double("cloneguard.cpu_quota", quota)])
+    assert not resp.success
+    assert "'cloneguard.cpu_quota' must be between 0.001 and 1024 (CPUs)" in resp.error_message
+    _still_serves(client, [(kept.unique_id, "/kept")])
+    container.stop()
+    assert container.exit_status.returncode == 0
+
+
+@pytest.mark.parametrize("container_args", [MODES["per-node"], MODES["cgroups"], MODES["shared"], MODES["threads"]],
+                         ids=["per-node", "cgroups", "shared", "threads"])
+@pytest.mark.parametrize("period", [float("nan"), float("inf"), 1e300, -1.0])
+def test_a_constructor_refusing_its_parameter_is_answered_and_leaves_nothing(client, container, period):
+    if "--cgroups" in container.argv and cgroup2_mount() is None:
+        pytest.skip("no cgroup2 here")
+    kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
+    started = time.monotonic()
+    resp = client.load(PKG, "cloneguard::Talker", node_name="refused", parameters=[_double("period", period)])
+    assert time.monotonic() - started < 10
+    assert not resp.success
+    assert resp.error_message.startswith("Component constructor threw an exception: ValueError: "
+                                         "parameter 'period' must be more than 0 and at most 3600 seconds")
+    _still_serves(client, [(kept.unique_id, "/kept")])
+    # The half-built node (its publisher was made) is not left in the graph.
+    deadline = time.monotonic() + 3
+    while "refused" in client.node.get_node_names():
+        assert time.monotonic() < deadline, "the failed node is still in the ROS graph"
+        time.sleep(0.1)
+    assert "left in memory" not in container.log_text()
+    container.stop()
+    assert container.exit_status.returncode == 0 and not container.exit_status.forced
+
+
+@pytest.mark.parametrize("container_args", [MODES["per-node"]])
+def test_every_failed_construction_is_answered_with_the_constructors_error(client, container):
+    """The child's word and the monitor's 'died' once ran together on the
+    hand-off pipe (about 1 failure in 100 was called a death)."""
+    for _ in range(100):
+        resp = client.load(PKG, "cloneguard::Talker", parameters={"period": -1.0})
+        assert not resp.success
+        assert "must be more than 0" in resp.error_message, resp.error_message
+    assert "left in memory" not in container.log_text()
+    _still_serves(client, [])
+
+
+@pytest.mark.parametrize("container_args", [MODES["shared"], MODES["per-node"], MODES["threads"]],
+                         ids=["shared", "per-node", "threads"])
+def test_failed_constructions_do_not_use_up_fds_or_board_slots(client, container):
+    for _ in range(20):                      # warm-up: pools, caches
+        client.load(PKG, "cloneguard::Heartbeat", parameters={"period": -1.0})
+    fds = _fds(container.pid)
+    for _ in range(280):                     # more than the board's 256 slots
+        resp = client.load(PKG, "cloneguard::Heartbeat", parameters={"period": -1.0})
+        assert not resp.success and "must be more than 0" in resp.error_message
+    assert _fds(container.pid) <= fds + 2    # a socket or two of DDS may come and go
+    _still_serves(client, [])
+
+
+@pytest.mark.parametrize("container_args", [MODES["threads"], MODES["per-node"]], ids=["threads", "per-node"])
+def test_a_constructor_that_never_returns_does_not_stop_the_container_answering(client, container):
+    kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
+    slow = threading.Thread(target=lambda: client.load(PKG, "faults::SlowConstructor",
+                                                       parameters={"seconds": 30.0}, timeout=60),
+                            daemon=True)
+    slow.start()
+    time.sleep(0.5)                          # it is being built now
+    t0 = time.monotonic()
+    assert client.list(timeout=5) == [(kept.unique_id, "/kept")]
+    other = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="other")
+    assert client.unload(other.unique_id).success
+    assert time.monotonic() - t0 < 5
+    container.stop()
+
+
+@pytest.mark.parametrize("container_args", [MODES["threads"], MODES["per-node"]], ids=["threads", "per-node"])
+def test_what_a_request_echoes_is_bounded_and_escaped(client, container):
+    rule = "x" * 1_000_000 + "\x1b[31m\x07:="
+    resp = client.load(PKG, "cloneguard::Talker", remap_rules=[rule], timeout=30)
+    assert not resp.success
+    assert len(resp.error_message) < 2000
+    assert "\x1b" not in resp.error_message and "\x07" not in resp.error_message
+    assert "more characters)" in resp.error_message
+    assert max(len(line) for line in container.log_text().splitlines()) < 5000
+    _still_serves(client, [])
+
+
+@pytest.mark.parametrize("container_args", [MODES["threads"]])
+def test_a_component_exiting_in_its_constructor_fails_only_its_load(client, container):
+    resp = client.load("misfit-components", "misfits::ExitsInConstructor")
+    assert not resp.success and "SystemExit" in resp.error_message
+    _still_serves(client, [])
+
+
+@pytest.fixture
+def container_env(misfit_env):
+    return misfit_env
+
+
+def test_log_level_outside_rcutils_severities_is_ignored_as_upstream_does(client):
+    resp = client.load_ok(PKG, "cloneguard::Talker", log_level=7)
+    assert resp.full_node_name == "/talker"
+
+
+def test_package_names_match_exactly(client):
+    resp = client.load("CLONEGUARD", "cloneguard::Talker")
+    assert not resp.success and resp.error_message == "Could not find requested resource in ament index"
+
+
+# -- the command line ----------------------------------------------------------
+
+def _run(args, env_extra=None):
+    env = dict(os.environ)
+    env.update(env_extra or {})
+    return subprocess.run([default_container_exe(), *args], capture_output=True, timeout=60, env=env)
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf", "1e400", "abc", "86401"])
+def test_a_bad_watchdog_value_is_one_line_and_exit_2(value):
+    proc = _run(["--watchdog", value])
+    err = proc.stderr.decode()
+    assert proc.returncode == 2
+    assert err.count("\n") == 1 and "--watchdog" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args", [
+    ["--ros-args", "-r", "bad rule"],
+    ["--ros-args", "--params-file", "/nonexistent/params.yaml"],
+    ["--ros-args", "-p", "noequals"],
+    ["--ros-args", "--log-level", "loud"],
+], ids=["remap", "params-file", "param", "log-level"])
+def test_bad_ros_arguments_are_one_line_and_a_nonzero_exit(args):
+    proc = _run(args)
+    err = proc.stderr.decode()
+    assert proc.returncode != 0
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.startswith("component_container:")]
+    assert len(lines) == 1 and "invalid ROS arguments" in lines[0], err
+
+
+def test_arguments_that_are_not_utf8_are_one_line_and_a_nonzero_exit():
+    proc = subprocess.run([sys.executable, "-c",
+                           "import os, sys; os.execv(sys.argv[1], [sys.argv[1], '--ros-args', '-r', "
+                           "b'a:=\\xff'.decode('utf-8', 'surrogateescape')])",
+                           default_container_exe()], capture_output=True, timeout=60)
+    err = proc.stderr.decode(errors="replace")
+    assert proc.returncode != 0 and "Traceback" not in err, err
+    assert "component_container:" in err
