@@ -5,6 +5,7 @@ from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 
 from . import intra
+from .intra._rclglue import ffi, lib
 from .options import LoadError, NodeArguments
 
 
@@ -52,6 +53,27 @@ def _destroy_half_built(exc: BaseException) -> None:
 
 def destroy(node: Node) -> None:
     """Destroy a node the container built, with its intra-process endpoints
-    (which ``Node.destroy_node`` does not know about)."""
+    (which ``Node.destroy_node`` does not know about) and its type
+    description service. The node is in no executor's wait any more."""
     intra.api.destroy_endpoints(node)
+    _finish_type_description_service(node)
     node.destroy_node()
+
+
+def _finish_type_description_service(node: Node) -> None:
+    """rclpy 7.1 (rclpy/src/rclpy/type_description_service.cpp) keeps each
+    node's ~/get_type_description rcl_service_t in a shared_ptr with no
+    deleter, so rcl_service_fini never runs: its DDS reader and writer live
+    on after destroy_node(), visible in the graph, ~0.1 MiB each (and every
+    later endpoint pairs against them, so creating nodes slows down). The
+    last node of a Context hides it (the participant goes), not a container
+    that keeps its Context. rclcpp had the same bug (fixed by a deleter)."""
+    service = getattr(getattr(node, "_type_description_service", None), "_type_description_srv", None)
+    if service is None:
+        return
+    err = ffi.new("char[]", lib.CGR_ERR_SIZE)
+    with node.handle, service.impl:
+        rc = lib.cgr_service_fini(ffi.cast("rcl_service_t *", service.impl.pointer),
+                                  ffi.cast("rcl_node_t *", node.handle.pointer), err, lib.CGR_ERR_SIZE)
+    if rc != 0:
+        node.get_logger().warning(f"finalizing ~/get_type_description failed: {ffi.string(err).decode(errors='replace')}")

@@ -1,4 +1,6 @@
 """The container's services behave like rclcpp_components' ComponentManager."""
+import time
+
 import pytest
 from std_msgs.msg import String
 
@@ -110,3 +112,24 @@ def test_renamed_and_namespaced_container(container_factory):
     services = {name for name, _types in cli.node.get_service_names_and_types()}
     assert "/robot/my_container/_container/list_nodes" in services
     assert not any(name.startswith("/ComponentManager/") for name in services)
+
+
+@pytest.mark.parametrize("container_args", [[], ["--isolated", "--profile", "shared"]], ids=["threads", "shared"])
+def test_an_unloaded_node_takes_its_type_description_service_with_it(client):
+    # Nodes that share the container's Context: rclpy alone would leave the
+    # service's DDS endpoints behind (container/factory.py).
+    service = "/tds/get_type_description"
+
+    def offered():
+        return any(name == service for name, _ in client.node.get_service_names_and_types())
+
+    uid = client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="tds").unique_id
+    deadline = time.monotonic() + 10
+    while not offered():
+        assert time.monotonic() < deadline, f"{service} never appeared"
+        time.sleep(0.1)
+    assert client.unload(uid).success
+    deadline = time.monotonic() + 10
+    while offered():
+        assert time.monotonic() < deadline, f"{service} is still offered after the unload"
+        time.sleep(0.1)

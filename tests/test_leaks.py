@@ -7,22 +7,14 @@ LIMIT_MIB_PER_CYCLE a cycle, and fds and threads not at all; no node
 process is left at rest.
 
 Thread mode and the shared profile build nodes on the container's own
-rclpy Context, and there rclpy 7.1 / rmw_fastrtps (the Jazzy wheels) leaks:
-creating and destroying a node while another node lives in the same
-Context loses ~0.1 MiB of malloc'd memory and takes longer each time
-(measured in a plain rclpy loop, no container involved: 0.0014 MiB per
-cycle with no other node, 0.10 MiB with one; 300 cycles took 3 s at first
-and 34 s after 1,500). Their RSS bound is an expected failure, strict: it
-shows the day that leak is gone. The per-node profile gives every node a
-Context of its own, which goes with its process, and stays flat.
+rclpy Context, where rclpy 7.1 never finalizes a node's type description
+service (~0.1 MiB and two DDS endpoints per node, measured); the container
+finalizes it itself (container/factory.py). The per-node profile gives
+every node a Context of its own, which goes with its process.
 """
 import pytest
 
 from bench import leaks
-
-UPSTREAM_LEAK = pytest.mark.xfail(
-    strict=True, reason="rclpy/rmw_fastrtps (Jazzy wheels) leak ~0.1 MiB per node created and "
-                        "destroyed beside another node in one Context (module docstring)")
 
 
 @pytest.mark.timeout(300)
@@ -34,9 +26,7 @@ def test_load_cycles_leave_fds_threads_and_processes_flat(mode, tmp_path):
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("mode", [
-    "per-node", "cgroups",
-    pytest.param("threads", marks=UPSTREAM_LEAK), pytest.param("shared", marks=UPSTREAM_LEAK)])
+@pytest.mark.parametrize("mode", ["per-node", "cgroups", "threads", "shared"])
 def test_load_cycles_leave_rss_flat(mode, tmp_path):
     g = leaks.measure(mode, cycles=100, warmup=20, log_dir=tmp_path)
     assert g.rss_mib_per_cycle <= leaks.LIMIT_MIB_PER_CYCLE, (

@@ -65,6 +65,8 @@ def _include_dirs() -> list[str]:
 CDEF = r"""
 typedef struct { ...; } rcl_publisher_t;
 typedef struct { ...; } rcl_subscription_t;
+typedef struct { ...; } rcl_service_t;
+typedef struct { ...; } rcl_node_t;
 /* rcl_serialized_message_t is rcutils_uint8_array_t; only these fields are
    read from Python. */
 typedef struct {
@@ -88,6 +90,7 @@ int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
 int cgr_take_serialized(const rcl_subscription_t *subscription,
                         rcl_serialized_message_t *msg, uint8_t *gid_out,
                         char *err, size_t err_size);
+int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
 
 /* waker.h */
 #define CGW_TOKENS ...

@@ -8,6 +8,8 @@
  * publisher_gid are both the writer's GUID (12-byte prefix + 4-byte entity
  * id), so a byte comparison is exact.
  *
+ * And finalize a service rclpy leaves unfinalized (cgr_service_fini).
+ *
  * The pointers come from rclpy's handles (`handle.pointer`).  The caller
  * keeps the handle in use (`with handle:`) around every call, so rclpy can
  * not finalize the rcl object under us.
@@ -108,4 +110,17 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
     }
     memcpy(gid_out, info.publisher_gid.data, CGR_GID_SIZE);
     return CGR_TAKEN;
+}
+
+int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size)
+{
+    /* rclpy 7.1 never finalizes a node's ~/get_type_description service
+     * (factory.py says why this is called); fini of one already finalized
+     * is a no-op in rcl, so this stays right once rclpy does it itself. */
+    rcl_ret_t ret = rcl_service_fini(service, node);
+    if (ret != RCL_RET_OK) {
+        take_error("rcl_service_fini", ret, err, err_size);
+        return CGR_ERROR;
+    }
+    return 0;
 }

@@ -1,4 +1,4 @@
-/* rclglue: the two rcl calls rclpy does not give us (see rclglue.c).
+/* rclglue: the rcl calls rclpy does not give us (see rclglue.c).
  *
  * The cdef in _build_rclglue.py mirrors this header: keep them in step (a
  * mismatch is a compile error in the generated module). */
@@ -8,7 +8,9 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "rcl/node.h"
 #include "rcl/publisher.h"
+#include "rcl/service.h"
 #include "rcl/subscription.h"
 
 /* Bytes of a DDS endpoint's gid as rmw gives it (rmw_gid_t.data). */
@@ -32,5 +34,8 @@ int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
 int cgr_take_serialized(const rcl_subscription_t *subscription,
                         rcl_serialized_message_t *msg, uint8_t *gid_out,
                         char *err, size_t err_size);
+
+/* rcl_service_fini(service, node): 0, or CGR_ERROR with the text in err. */
+int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
 
 #endif
