@@ -10,6 +10,10 @@ from container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
 PKG = "cloneguard"
 CG_ARGS = ["--isolated", "--cgroups"]
 
+needs_cpu = pytest.mark.skipif(
+    v1_cpu_mount() is None and "cpu" not in (cgroup2_mount() / "cgroup.controllers").read_text(),
+    reason="no cpu controller on this machine")
+
 
 def _cgroup_dirs(container_pid):
     name = f"cloneguard-{container_pid}"
@@ -30,8 +34,7 @@ def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, containe
     assert not (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").exists()
 
 
-@pytest.mark.skipif(v1_cpu_mount() is None and "cpu" not in (cgroup2_mount() / "cgroup.controllers").read_text(),
-                    reason="no cpu controller on this machine")
+@needs_cpu
 @pytest.mark.parametrize("container_args", [CG_ARGS])
 def test_a_cpu_quota_throttles_a_busy_node(client, container):
     resp = client.load_ok("cloneguard", "faults::HangInCallback", parameters={"mode": "spin", "delay": 0.0},
@@ -49,6 +52,19 @@ def test_a_cpu_quota_throttles_a_busy_node(client, container):
             break
         assert time.monotonic() < deadline, f"never throttled: {stat}"
         time.sleep(0.1)
+
+
+@needs_cpu
+@pytest.mark.parametrize("container_args", [CG_ARGS])
+def test_a_throttled_node_is_unthrottled_to_stop_cleanly(client, container):
+    # At 0.01 CPUs a clean stop would take seconds; killed instead, the node
+    # would leave its participant behind (and in the graph).
+    for plugin in ("cloneguard::EchoService", "cloneguard::Talker"):
+        uid = client.load_ok(PKG, plugin, extra_arguments={"cloneguard.cpu_quota": 0.01}).unique_id
+        client.wait_for_event(ComponentEvent.LOADED, unique_id=uid)
+        assert client.unload(uid).success
+    log = container.log_text()
+    assert "did not stop" not in log and "left in memory" not in log, log
 
 
 @pytest.mark.parametrize("container_args", [[], ["--isolated"]])

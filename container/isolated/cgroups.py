@@ -125,6 +125,18 @@ class NodeCgroups:
                 (cg.cpu_v1_dir / "cpu.cfs_period_us").write_text(str(CFS_PERIOD_US))
                 (cg.cpu_v1_dir / "cpu.cfs_quota_us").write_text(str(quota_us))
 
+    def unthrottle(self, cg: NodeCgroup) -> None:
+        """Lift a node's CPU quota, so that it winds down at full speed when
+        it is asked to stop (at 0.01 CPUs its clean stop takes seconds, and
+        a node killed for being slow leaves its participant behind)."""
+        try:
+            if cg.cpu_v1_dir is not None:
+                (cg.cpu_v1_dir / "cpu.cfs_quota_us").write_text("-1")
+            elif self._v2_cpu:
+                (cg.v2_dir / "cpu.max").write_text(f"max {CFS_PERIOD_US}")
+        except OSError:
+            pass                       # then it stops throttled: slower, not wrong
+
     def attach(self, cg: NodeCgroup, pid: int) -> None:
         """After the clone: join the v1 cpu group, if the node has one."""
         if cg.cpu_v1_dir is not None:

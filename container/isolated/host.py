@@ -304,6 +304,8 @@ class IsolatedHost:
                 if proc.state != "running":
                     continue
                 proc.state = "stopping"
+            if proc.cgroup is not None:
+                self.cgroups.unthrottle(proc.cgroup)
             self._core.request_stop(proc.child)
             _wake(proc)
             self._core.kill(proc.child, signal.SIGTERM)
