@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 
-MAX_PERIOD_S = 3600.0
+# A timer period in seconds: below a millisecond a demo timer would only
+# burn a CPU (and under a nanosecond rclpy rounds it to 0: fire forever).
+PERIOD_RANGE_S = (0.001, 3600.0)
 
 
 def period(value: float, name: str = "period") -> float:
-    """A timer period in seconds: finite, > 0, <= MAX_PERIOD_S."""
-    if not (math.isfinite(value) and 0.0 < value <= MAX_PERIOD_S):
-        raise ValueError(f"parameter '{name}' must be more than 0 and at most "
-                         f"{MAX_PERIOD_S:g} seconds, got {value!r}")
+    """A timer period in seconds, within PERIOD_RANGE_S."""
+    low, high = PERIOD_RANGE_S
+    if not (math.isfinite(value) and low <= value <= high):
+        raise ValueError(f"parameter '{name}' must be between {low:g} and {high:g} seconds, got {value!r}")
     return value
 
 
