@@ -194,7 +194,11 @@ class ContainerClient:
         return req
 
     def load(self, package_name: str, plugin_name: str, *, timeout: float = 15.0, **fields) -> LoadNode.Response:
-        return self.call(self._load, self.load_request(package_name, plugin_name, **fields), timeout)
+        return self.send_load(self.load_request(package_name, plugin_name, **fields), timeout)
+
+    def send_load(self, request: LoadNode.Request, timeout: float = 15.0) -> LoadNode.Response:
+        """A LoadNode request as it is, however odd its fields."""
+        return self.call(self._load, request, timeout)
 
     def load_ok(self, package_name: str, plugin_name: str, **fields) -> LoadNode.Response:
         """Load and insist that it worked."""
