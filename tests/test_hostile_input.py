@@ -107,16 +107,21 @@ def test_failed_constructions_do_not_use_up_fds_or_board_slots(client, container
 @pytest.mark.parametrize("container_args", [MODES["threads"], MODES["per-node"]], ids=["threads", "per-node"])
 def test_a_constructor_that_never_returns_does_not_stop_the_container_answering(client, container):
     kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
-    slow = threading.Thread(target=lambda: client.load(PKG, "faults::SlowConstructor",
-                                                       parameters={"seconds": 30.0}, timeout=60),
-                            daemon=True)
+    answers = []
+    slow = threading.Thread(target=lambda: answers.append(
+        client.load(PKG, "faults::SlowConstructor", parameters={"seconds": 6.0}, timeout=30)))
     slow.start()
-    time.sleep(0.5)                          # it is being built now
-    t0 = time.monotonic()
+    # Its node exists (in the graph) while its constructor sleeps.
+    deadline = time.monotonic() + 10
+    while "slow" not in client.node.get_node_names():
+        assert time.monotonic() < deadline, "the slow constructor never started"
+        time.sleep(0.05)
     assert client.list(timeout=5) == [(kept.unique_id, "/kept")]
     other = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="other")
     assert client.unload(other.unique_id).success
-    assert time.monotonic() - t0 < 5
+    assert slow.is_alive(), "the other requests were answered only after the slow construction"
+    slow.join()
+    assert answers and answers[0].success, answers
     container.stop()
 
 

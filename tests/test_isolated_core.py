@@ -519,11 +519,11 @@ def test_a_stop_signal_landing_on_a_thread_the_child_created_reaches_the_child(c
 
         def helper():
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+            armed.set()                  # only now can a process-directed SIGINT land here
             quit_helper.wait(30)
 
         t = threading.Thread(target=helper)
         t.start()
-        armed.set()
         deadline = time.monotonic() + 10
         while signal.SIGINT not in signal.sigpending() and time.monotonic() < deadline:
             time.sleep(0.001)
@@ -536,7 +536,6 @@ def test_a_stop_signal_landing_on_a_thread_the_child_created_reaches_the_child(c
 
     c = core.spawn(child)
     assert armed.wait(10)
-    time.sleep(0.05)                     # the helper has unblocked SIGINT
     core.kill(c, signal.SIGINT)
     death = core.wait(c, 20)
     assert death.exit_code == 0, death
