@@ -12,7 +12,7 @@ def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience,
               "(CRASHED, exit code 1); the rest goes on",
     )
     rig = rig_factory(profile)
-    for i, seed in trial_plan(3, 100):
+    for i, seed in trial_plan(3, 200):
         resp = rig.client.load_ok("cloneguard", "faults::RaiseInCallback", node_name=f"raiser{i}",
                                   parameters={"delay": 0.1, "seed": seed})
         pid = rig.loaded_pid(resp.unique_id)

@@ -125,7 +125,7 @@ def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, re
         machine.rig.proc.stop()
 
     trial_plan(1, 1)                 # hypothesis draws the examples; one shard runs them
-    examples = trial_count(request.config, 3, 50)
+    examples = trial_count(request.config, 3, 200)
     run_state_machine_as_test(
         make_machine(start, end),
         settings=settings(max_examples=examples, stateful_step_count=8, deadline=None,
