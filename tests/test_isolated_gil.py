@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from bench import random_kill as killbench
-from container.isolated._clonecore import lib
 from container.isolated.core import CloneCore, Repair
+from faults._gilfault import lib as gilfault
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -129,15 +129,15 @@ def test_a_child_dying_with_the_gil_is_repaired(core, counter, target, sig):
 # the child dies inside the GIL's machinery (simulated at exact points)
 
 @pytest.mark.parametrize("where, expect", [
-    (lib.CG_TEST_DROP_GIL_LOCKED, Repair.GIL_MUTEX | Repair.GIL_RELEASED),
-    (lib.CG_TEST_TAKE_GIL_HANDOVER,
+    (gilfault.GILFAULT_DROP_GIL_LOCKED, Repair.GIL_MUTEX | Repair.GIL_RELEASED),
+    (gilfault.GILFAULT_TAKE_GIL_HANDOVER,
      Repair.GIL_MUTEX | Repair.SWITCH_MUTEX | Repair.GIL_RELEASED),
-    (lib.CG_TEST_TAKE_GIL_CHECKING, Repair.GIL_MUTEX),
-    (lib.CG_TEST_SWITCH_MUTEX, Repair.SWITCH_MUTEX),
+    (gilfault.GILFAULT_TAKE_GIL_CHECKING, Repair.GIL_MUTEX),
+    (gilfault.GILFAULT_SWITCH_MUTEX, Repair.SWITCH_MUTEX),
 ], ids=["drop_gil-holding-mutex", "take_gil-hand-over", "take_gil-checking",
         "holding-switch_mutex"])
 def test_a_child_dying_inside_take_gil_or_drop_gil_is_repaired(core, counter, where, expect):
-    c = core.spawn(lambda: lib.cg_test_die_in_gil(where))
+    c = core.spawn(lambda: gilfault.gilfault_die_in_gil(where))
     death = core.wait(c, 10)
     assert death is not None, "death not reported: the monitor is stuck"
     assert death.exit_signal == signal.SIGKILL

@@ -73,15 +73,6 @@ struct cg_gil_probe {
 };
 int cg_gil_probe(struct cg_gil_probe *out);
 
-/* Tests only (gilrepair.c): die inside the GIL's machinery. */
-enum {
-    CG_TEST_DROP_GIL_LOCKED = 1,
-    CG_TEST_TAKE_GIL_HANDOVER = 2,
-    CG_TEST_TAKE_GIL_CHECKING = 3,
-    CG_TEST_SWITCH_MUTEX = 4,
-};
-int cg_test_die_in_gil(int where);
-
 /* Async-signal-safe-ish: the Python stack of the calling thread, as
    faulthandler writes it. */
 void cg_dump_py_stack(int fd);

@@ -1,0 +1,68 @@
+/* gilfault.c - die at a chosen point inside CPython 3.11's GIL machinery, as
+ * a clone child SIGKILLed there would (tests of the GIL repair in
+ * container/isolated/gilrepair.c).  A test extension of the rig: the
+ * product's C has no test entry points.
+ *
+ * Reads the GIL's internal state (Python/ceval_gil.h) like gilrepair.c, so
+ * it is compiled with Py_BUILD_CORE against the running interpreter's
+ * headers; the product's start-up self-check (assumptions.py) is what
+ * vouches for that layout. */
+#define Py_BUILD_CORE 1
+#include <Python.h>
+#include "internal/pycore_runtime.h"   /* _PyRuntime, _gil_runtime_state */
+
+#include <errno.h>
+#include <pthread.h>
+#include <signal.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "gilfault.h"
+
+#define GIL (&_PyRuntime.ceval.gil)
+
+static void sleep_us(long us)
+{
+    struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
+    nanosleep(&ts, NULL);
+}
+
+/* Make the calling child die (SIGKILL to itself) at `where`.  Called
+   through cffi, which has released the GIL around the call. */
+int gilfault_die_in_gil(int where)
+{
+    struct _gil_runtime_state *gil = GIL;
+    PyGILState_STATE g = PyGILState_Ensure();
+    (void)g;
+    switch (where) {
+    case GILFAULT_DROP_GIL_LOCKED:      /* drop_gil: mutex taken, GIL ours */
+        pthread_mutex_lock(&gil->mutex);
+        break;
+    case GILFAULT_TAKE_GIL_HANDOVER:    /* take_gil's hand-over: both mutexes,
+                                           locked = 1, last_holder not yet us */
+        PyEval_SaveThread();
+        for (;;) {
+            pthread_mutex_lock(&gil->mutex);
+            if (!_Py_atomic_load_relaxed(&gil->locked))
+                break;
+            pthread_mutex_unlock(&gil->mutex);
+            sleep_us(1000);
+        }
+        pthread_mutex_lock(&gil->switch_mutex);
+        _Py_atomic_store_relaxed(&gil->locked, 1);
+        break;
+    case GILFAULT_TAKE_GIL_CHECKING:    /* take_gil: mutex taken, GIL not ours */
+        PyEval_SaveThread();
+        pthread_mutex_lock(&gil->mutex);
+        break;
+    case GILFAULT_SWITCH_MUTEX:         /* drop_gil: switch_mutex taken */
+        PyEval_SaveThread();
+        pthread_mutex_lock(&gil->switch_mutex);
+        break;
+    default:
+        return -EINVAL;
+    }
+    kill(getpid(), SIGKILL);
+    for (;;)
+        pause();
+}
