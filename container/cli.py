@@ -42,6 +42,9 @@ SERVICE_THREADS = 8
 WATCHDOG_MAX_S = 86400.0
 
 # Mitigations that can be switched off, to measure what each one buys.
+# Options that mean something only with --isolated (refused without it).
+ISOLATED_ONLY = ("--jemalloc-arenas", "--no-gil-repair", "--no-condvar-repair", "--no-crash-report",
+                 "--shared-arenas", "--no-alloc-guard", "--cgroups", "--restart-policy", "--profile")
 MITIGATION_SWITCHES = {
     "--no-gil-repair": "for measurement, do not release the GIL a dead child held",
     "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
@@ -74,6 +77,7 @@ def _watchdog_seconds(text: str) -> float:
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = _Parser(
         prog="component_container",
+        allow_abbrev=False,           # an isolated-only flag must be seen for what it is
         description="ROS 2 component container (rclpy) with optional per-node "
         "clone(CLONE_VM) process isolation.",
     )
@@ -119,7 +123,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "its own rclpy Context and DDS participant, 'shared' builds them on the "
         "container's (default: %(default)s)",
     )
-    return parser.parse_args(argv)
+    opts = parser.parse_args(argv)
+    if not opts.isolated:
+        given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
+        for flag in ISOLATED_ONLY:
+            if flag in given:
+                parser.error(f"{flag} needs --isolated")
+    return opts
 
 
 def _ros_init(argv: list[str]) -> None:
@@ -134,11 +144,9 @@ def _ros_init(argv: list[str]) -> None:
 
 def _make_host(opts, executor, context, logger):
     if not opts.isolated:
-        for flag, given in (("--cgroups", opts.cgroups), ("--restart-policy", opts.restart_policy != "never")):
-            if given:
-                raise SystemExit(f"component_container: {flag} needs --isolated")
         return ThreadHost(executor, context)
-    # Imported here: thread mode must work where the C core cannot.
+    # Imported here: thread mode must work where the C core cannot (not
+    # built on this platform: setup.py); the self-check says so.
     from .isolated.assumptions import IsolationUnavailable
     from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
     from .isolated.core import Mitigations

@@ -29,7 +29,7 @@ import pytest
 from container.isolated.assumptions import IsolationUnavailable, self_check
 from container.isolated.core import (CloneCore, Death, StopRequested, in_child,
                                      stop_requested)
-from container.isolated.robust import MutexNotRecoverable, RobustMutex
+from container.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)
 SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 1   # KCMP_VM is 1 (0 is KCMP_FILE)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from container.isolated.robust import RobustMutex
+from container.robust import RobustMutex
 
 # Fault-injection hook: called with the queue while a put holds the lock,
 # after the slot was written and before it is published. None in production;

@@ -119,15 +119,6 @@ int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 
-/* robust mutexes */
-typedef struct { ...; } pthread_mutex_t;
-pthread_mutex_t *cg_rmutex_new(void);
-void cg_rmutex_free(pthread_mutex_t *m);
-int cg_rmutex_lock(pthread_mutex_t *m, int64_t timeout_ns);
-int cg_rmutex_trylock(pthread_mutex_t *m);
-int cg_rmutex_consistent(pthread_mutex_t *m);
-int cg_rmutex_unlock(pthread_mutex_t *m);
-
 #define CG_EV_DEATH ...
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...

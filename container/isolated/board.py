@@ -21,7 +21,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from .robust import RobustMutex
+from ..robust import RobustMutex
 
 SLOTS = 256
 

@@ -40,7 +40,7 @@ from ..options import CPU_QUOTA, LoadError
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
-from .robust import RobustMutex
+from ..robust import RobustMutex
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0

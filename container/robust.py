@@ -5,8 +5,9 @@ of the container) dies holding it, the kernel marks it and the next locker is
 told (EOWNERDEAD) instead of hanging forever.  That locker owns it, must bring
 the protected state back to something sane and mark it consistent; if it
 unlocks without doing so the mutex becomes unusable for good
-(ENOTRECOVERABLE).  Children register their robust list at start (see
-clonecore.c), which is what makes this work for them.
+(ENOTRECOVERABLE).  Isolated children register their robust list at start
+(see isolated/clonecore.c), which is what makes this work for them.  The C
+(robust.c) is an extension of its own: thread mode needs no clone core.
 
 Blocking happens in C with the GIL released (cffi API mode does that for every
 call), so other Python threads and children go on meanwhile.
@@ -22,7 +23,7 @@ import os
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
-from container.isolated._clonecore import ffi, lib
+from ._robust import ffi, lib
 
 
 class MutexNotRecoverable(RuntimeError):
@@ -37,10 +38,10 @@ class RobustMutex:
     """
 
     def __init__(self, repair: Callable[[], None] | None = None) -> None:
-        m = lib.cg_rmutex_new()
+        m = lib.rm_new()
         if m == ffi.NULL:
             raise MemoryError("cannot create a robust mutex")
-        self._m = ffi.gc(m, lib.cg_rmutex_free)
+        self._m = ffi.gc(m, lib.rm_free)
         self.repair = repair
 
     def lock(self, timeout: float | None = None) -> bool:
@@ -51,19 +52,19 @@ class RobustMutex:
         RuntimeError if this thread already holds it.
         """
         ns = -1 if timeout is None else max(0, int(timeout * 1e9))
-        rc = lib.cg_rmutex_lock(self._m, ns)
+        rc = lib.rm_lock(self._m, ns)
         return self._result(rc)
 
     def try_lock(self) -> bool | None:
         """None if someone holds it, else like lock()."""
-        rc = lib.cg_rmutex_trylock(self._m)
+        rc = lib.rm_trylock(self._m)
         return None if rc == errno.EBUSY else self._result(rc)
 
     def mark_consistent(self) -> None:
-        self._check(lib.cg_rmutex_consistent(self._m), "mark_consistent")
+        self._check(lib.rm_consistent(self._m), "mark_consistent")
 
     def unlock(self) -> None:
-        self._check(lib.cg_rmutex_unlock(self._m), "unlock")
+        self._check(lib.rm_unlock(self._m), "unlock")
 
     def acquire(self, timeout: float | None = None,
                 repair: Callable[[], None] | None = None) -> bool:
