@@ -35,6 +35,8 @@ import json
 import re
 import sys
 
+from faults import PACKAGE as RIG
+
 from . import common
 from .common import Goal, Result, Session, Table, fmt_ms, fmt_ratio, ratio, stats
 
@@ -114,7 +116,7 @@ def run_pair(running: common.Running, index: int, pl: dict, p: dict) -> dict:
                                 "burst_seconds": float(p["burst_seconds"]), "depth": pl["depth"],
                                 "settle": float(p["settle"]), "match_timeout": pl["match_timeout"]}),
         ):
-            resp = cli.load(common.PACKAGE, plugin, node_name=name, parameters=params,
+            resp = cli.load(RIG, plugin, node_name=name, parameters=params,
                             extra_arguments=extra, timeout=30.0)
             if not resp.success:
                 raise RuntimeError(f"LoadNode {plugin} failed: {resp.error_message}")

@@ -31,7 +31,7 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.qos import QoSProfile, qos_profile_services_default
 
-from . import events, intra, options, registry
+from . import events, intra, options, registry, seams
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
@@ -144,7 +144,7 @@ class ComponentManager:
         if args.drop_loaded_event:
             self._log.warning(
                 f"not publishing LOADED for unique_id {unique_id} "
-                f"(fault injection: {options.DROP_LOADED_EVENT})")
+                f"(fault injection: {seams.DROP_LOADED_EVENT})")
         else:
             self._publish(events.LOADED, entry)
         if early_death is not None:

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 from rclpy.parameter import Parameter
 
+from . import seams
+
 # rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
 # rclcpp_components, any other value is ignored.
 LOG_LEVELS = {10: "debug", 20: "info", 30: "warn", 40: "error", 50: "fatal"}
@@ -23,16 +25,15 @@ LOG_LEVELS = {10: "debug", 20: "info", 30: "warn", 40: "error", 50: "fatal"}
 CPU_QUOTA_RANGE = (0.001, 1024.0)
 
 # extra_arguments this container understands, and the type each must have.
-# DROP_LOADED_EVENT is a fault-injection hook for the harness: the node loads
-# normally but its LOADED event is not published (a lost event).
 # CPU_QUOTA (CPUs, e.g. 0.5) puts an isolated node in a cgroup with that quota.
-DROP_LOADED_EVENT = "cloneguard.fault.drop_loaded_event"
+# seams.DROP_LOADED_EVENT (the node loads, its LOADED event is not sent) is
+# fault injection: known only where the test rig is installed.
 CPU_QUOTA = "cloneguard.cpu_quota"
 KNOWN_EXTRA_ARGUMENTS = {
     "use_intra_process_comms": Parameter.Type.BOOL,
-    DROP_LOADED_EVENT: Parameter.Type.BOOL,
     CPU_QUOTA: Parameter.Type.DOUBLE,
 }
+FAULT_EXTRA_ARGUMENTS = {seams.DROP_LOADED_EVENT: Parameter.Type.BOOL}
 _TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double"}
 
 
@@ -81,6 +82,8 @@ def _extra_arguments(messages) -> dict[str, object]:
     extra = {}
     for param in _parameters(messages):
         wanted = KNOWN_EXTRA_ARGUMENTS.get(param.name)
+        if wanted is None and seams.enabled():
+            wanted = FAULT_EXTRA_ARGUMENTS.get(param.name)
         if wanted is not None and param.type_ != wanted:
             raise LoadError(
                 f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}"
@@ -109,7 +112,7 @@ def from_request(request) -> NodeArguments:
         cli_args=cli_args,
         parameter_overrides=_parameters(request.parameters),
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
-        drop_loaded_event=bool(extra.get(DROP_LOADED_EVENT, False)),
+        drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=extra.get(CPU_QUOTA),
         log_level=request.log_level if request.log_level in LOG_LEVELS else 0,
         extra=extra,

@@ -259,14 +259,14 @@ class IntraDieMidQueueOp(_FaultNode):
         self._pub.publish(self._String(data="from the victim"))
 
     def fire(self):
-        from container.intra import queue
+        from container import seams
 
         me = os.getpid()
 
         def die(q):
             if os.getpid() == me:      # the hook is global: only this node's process
                 ctypes.CDLL(None).kill(me, signal.SIGKILL)
-        setattr(queue, f"mid_{self.op}_hook", die)
+        seams.arm(f"queue_mid_{self.op}", die)
 
 
 class PayloadPublisher(Node):

@@ -15,6 +15,7 @@ from std_msgs.msg import UInt64
 from harness.client import HarnessTimeout
 from harness.rig import Outcome, Rig
 
+from . import PACKAGE as RIG
 from .outside import kill_at
 
 # fault id -> (plugin, parameters, the signal the node dies of)
@@ -53,7 +54,7 @@ def _repairs_of(log: str, unique_id: int) -> int:
 def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
     """A node that dies holding the container's progress-board lock, its
     slot half-written; survived means exactly one EOWNERDEAD repair of it."""
-    resp = rig.client.load_ok("cloneguard", "faults::DieHoldingContainerLock", node_name=f"holder{index}",
+    resp = rig.client.load_ok(RIG, "faults::DieHoldingContainerLock", node_name=f"holder{index}",
                               parameters={"delay": 0.05, "jitter": 0.1, "seed": seed})
     pid = rig.loaded_pid(resp.unique_id)
     out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
@@ -86,14 +87,14 @@ class MallocKill:
         self._start_drain()
 
     def _start_drain(self) -> None:
-        self.rig.client.load_ok("cloneguard", "faults::MallocDrain")
+        self.rig.client.load_ok(RIG, "faults::MallocDrain")
         self.freed = self.rig.client.subscribe(UInt64, "/malloc_drain/freed")
         self.freed.wait_count(3, timeout=10)
 
     def trial(self, seed: int, index: int) -> Outcome:
         rig, rng = self.rig, random.Random(seed)
         try:
-            resp = rig.client.load_ok("cloneguard", "faults::MallocHammer", node_name=f"hammer{index}",
+            resp = rig.client.load_ok(RIG, "faults::MallocHammer", node_name=f"hammer{index}",
                                       parameters={"delay": 0.0, "seed": seed})
         except HarnessTimeout as exc:
             # The container went on after the last trial's death and stopped later.
@@ -150,7 +151,7 @@ class IntraQueueDeath:
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
         before = self._repairs()
-        resp = rig.client.load_ok("cloneguard", "faults::IntraDieMidQueueOp", node_name=f"queue_victim{index}",
+        resp = rig.client.load_ok(RIG, "faults::IntraDieMidQueueOp", node_name=f"queue_victim{index}",
                                   parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05,
                                               "jitter": 0.1, "seed": seed},
                                   extra_arguments=INTRA)
@@ -186,7 +187,7 @@ class PayloadKill:
         self._start_holder()
 
     def _start_holder(self) -> None:
-        self.rig.client.load_ok("cloneguard", "faults::PayloadHolder",
+        self.rig.client.load_ok(RIG, "faults::PayloadHolder",
                                 parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA)
         self.released = self.rig.client.subscribe(UInt64, "/payload_holder/released")
         self.released.wait_count(3, timeout=10)
@@ -199,7 +200,7 @@ class PayloadKill:
         rig, rng = self.rig, random.Random(seed)
         before = self._released_total()
         try:
-            resp = rig.client.load_ok("cloneguard", "faults::PayloadPublisher", node_name=f"payload_pub{index}",
+            resp = rig.client.load_ok(RIG, "faults::PayloadPublisher", node_name=f"payload_pub{index}",
                                       parameters={"payload": self.payload, "seed": seed}, extra_arguments=INTRA)
         except HarnessTimeout as exc:
             # The container went on after the last trial's death and stopped later.

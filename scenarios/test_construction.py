@@ -6,8 +6,8 @@ import signal
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
+from faults import PACKAGE as RIG
 from harness import procfs
-
 from harness.rig import Outcome
 from harness.tracker import NodeTracker, State
 
@@ -37,7 +37,7 @@ def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, rec
               "fallback) ends Loaded through its LOADED event, not through the fallback",
     )
     rig, tracker = tracked(profile)
-    node = tracker.load("cloneguard", "faults::SlowConstructor", parameters={"seconds": 12.0}, timeout=40)
+    node = tracker.load(RIG, "faults::SlowConstructor", parameters={"seconds": 12.0}, timeout=40)
     state = tracker.wait_state(node, [State.LOADED, State.FAILED], timeout=10)
     ok = state == State.LOADED and not node.warnings
     record_trial(index, seed, Outcome("survived" if ok else "failed",
@@ -53,7 +53,7 @@ def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, recor
               "Failed (LoadNode fails), never Loaded; the container goes on",
     )
     rig, tracker = tracked("per-node")
-    node = tracker.load("cloneguard", "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
+    node = tracker.load(RIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
     ok = node.state == State.FAILED and "died during construction" in node.error
     stopped = rig.goes_on()
     out = Outcome("survived" if ok and stopped is None else "failed",

@@ -1,6 +1,7 @@
 """Callbacks that raise or never return."""
 import pytest
 
+from faults import PACKAGE as RIG
 from harness.rig import Outcome
 
 
@@ -13,7 +14,7 @@ def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience,
     )
     rig = rig_factory(profile)
     for i, seed in trial_plan(3, 200):
-        resp = rig.client.load_ok("cloneguard", "faults::RaiseInCallback", node_name=f"raiser{i}",
+        resp = rig.client.load_ok(RIG, "faults::RaiseInCallback", node_name=f"raiser{i}",
                                   parameters={"delay": 0.1, "seed": seed})
         pid = rig.loaded_pid(resp.unique_id)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=0, fault_ns=None)
@@ -32,7 +33,7 @@ def test_uncaught_exception_ends_a_thread_mode_container(rig_factory, resilience
     )
     [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory("threads")
-    rig.client.load_ok("cloneguard", "faults::RaiseInCallback", parameters={"delay": 0.1})
+    rig.client.load_ok(RIG, "faults::RaiseInCallback", parameters={"delay": 0.1})
     code = rig.proc.wait(timeout=10)
     record_trial(index, seed, Outcome("crashed" if code == 1 else "failed", details={"exit_code": code}))
     resilience.expect_rate("crashed", at_least=1.0)
@@ -48,7 +49,7 @@ def test_a_hanging_callback_stalls_only_its_node(profile, mode, rig_factory, res
     )
     [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory(profile)
-    resp = rig.client.load_ok("cloneguard", "faults::HangInCallback", parameters={"delay": 0.1, "mode": mode})
+    resp = rig.client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.1, "mode": mode})
     pid = rig.loaded_pid(resp.unique_id)
     rig.wait_firing(pid)
     stopped = rig.goes_on()

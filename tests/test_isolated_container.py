@@ -8,6 +8,7 @@ from cloneguard_interfaces.msg import ComponentEvent
 from cloneguard_interfaces.srv import Echo
 from std_msgs.msg import String, UInt64
 
+from faults import PACKAGE as RIG
 from harness import procfs
 
 PKG = "cloneguard"
@@ -116,7 +117,7 @@ def test_a_child_dying_with_a_container_lock_leaves_it_recoverable(client, conta
     survivor = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="survivor")
     beats = client.subscribe(UInt64, "/survivor/heartbeat")
     beats.wait_count(3, timeout=10)
-    holder = client.load_ok("cloneguard", "faults::DieHoldingContainerLock", parameters={"delay": 0.3})
+    holder = client.load_ok(RIG, "faults::DieHoldingContainerLock", parameters={"delay": 0.3})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
     assert crashed.exit_signal == signal.SIGKILL
     # The next locker got EOWNERDEAD and repaired the half-written slot ...

@@ -1,11 +1,13 @@
 """The watchdog ends a container whose executor stopped making progress."""
 import pytest
 
+from faults import PACKAGE as RIG
+
 
 @pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
 def test_a_stalled_executor_is_reported_with_stacks_and_exit_1(client, container):
     # Thread mode, one executor: a callback that never returns stalls it all.
-    client.load_ok("cloneguard", "faults::HangInCallback", parameters={"delay": 0.2})
+    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2})
     code = container.wait(timeout=20)
     assert code == 1, f"exit code {code}"
     log = container.log_text()

@@ -23,14 +23,8 @@ from __future__ import annotations
 
 from typing import Callable
 
+from container import seams
 from container.robust import RobustMutex
-
-# Fault-injection hook: called with the queue while a put holds the lock,
-# after the slot was written and before it is published. None in production;
-# faults::IntraDieMidPublish sets it to die right there.
-mid_put_hook: Callable[["MessageQueue"], None] | None = None
-# Likewise for take: called after the messages were read, before the commit.
-mid_take_hook: Callable[["MessageQueue"], None] | None = None
 
 
 class MessageQueue:
@@ -60,8 +54,8 @@ class MessageQueue:
                 self._state = (head, count)     # commit the drop first
                 self.dropped += 1
             self._slots[(head + count) % self.capacity] = message
-            if mid_put_hook is not None:
-                mid_put_hook(self)
+            if seams.queue_mid_put is not None:     # fault injection (seams.py)
+                seams.queue_mid_put(self)
             self._state = (head, count + 1)     # commit: now it is visible
             return count == 0
 
@@ -70,8 +64,8 @@ class MessageQueue:
         with self._mutex:
             head, count = self._state
             taken = [self._slots[(head + i) % self.capacity] for i in range(count)]
-            if mid_take_hook is not None:
-                mid_take_hook(self)
+            if seams.queue_mid_take is not None:
+                seams.queue_mid_take(self)
             self._state = ((head + count) % self.capacity, 0)   # commit
             for i in range(count):
                 self._slots[(head + i) % self.capacity] = None

@@ -21,6 +21,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+from .. import seams
 from ..robust import RobustMutex
 
 SLOTS = 256
@@ -119,6 +120,7 @@ class ProgressBoard:
         """Lock and start a slot update without finishing it: what a writer
         that dies half-way leaves. For fault injection only: the caller is
         expected to die holding the lock."""
+        seams.require("a torn progress-board write")
         self.mutex.lock()
         self._slots[slot].seq += 1
 
