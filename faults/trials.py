@@ -31,7 +31,7 @@ _REPAIRED = re.compile(r"repaired (\d+) half-written slot\(s\) of unique_id\(s\)
 def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
     """A node whose timer callback faults 0.1-0.3 s after it starts."""
     plugin, params, sig = CALLBACK_FAULTS[fault]
-    resp = rig.client.load_ok("cloneguard", plugin, node_name=f"victim{index}",
+    resp = rig.client.load_ok(RIG, plugin, node_name=f"victim{index}",
                               parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed})
     pid = rig.loaded_pid(resp.unique_id)
     return rig.judge_death(resp.unique_id, pid, signal_expected=sig, fault_ns=None)

@@ -7,6 +7,7 @@ its signal, and everything else goes on.
 """
 import pytest
 
+from faults import PACKAGE as RIG
 from faults.trials import CALLBACK_FAULTS, callback_fault
 from harness.rig import Outcome
 
@@ -37,7 +38,7 @@ def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, r
     for n, (i, seed) in enumerate(trial_plan(2, 20)):
         if n:
             rig.restart()            # the previous trial's container is gone
-        rig.client.load_ok("cloneguard", plugin, parameters={**params, "delay": 0.1, "seed": seed})
+        rig.client.load_ok(RIG, plugin, parameters={**params, "delay": 0.1, "seed": seed})
         code = rig.proc.wait(timeout=10)
         out = Outcome("crashed" if code == -sig else "failed", details={"exit_code": code})
         record_trial(i, seed, out)
