@@ -1,14 +1,19 @@
 """One trial of each fault: inject it into a rig's container and judge it.
 
-Scenarios run these N times and record the outcomes; ``python -m harness
-reproduce`` runs one of them until it does not survive. Every random
-choice of a trial comes from its ``seed``, so any trial can be replayed.
+``FAULTS`` (at the end) is the registry: every fault the scenarios inject,
+by the name the reports give it. Scenarios run its trials N times and record
+the outcomes; ``python -m harness reproduce`` runs one until it does not
+survive (the harness finds the registry through the entry point group
+``cloneguard.trials``, so the dependency runs one way: faults use the
+harness, never the reverse). Every random choice of a trial comes from its
+``seed``, so any trial can be replayed.
 """
 from __future__ import annotations
 
 import random
 import re
 import signal
+from typing import Callable, Protocol
 
 from std_msgs.msg import UInt64
 
@@ -35,6 +40,17 @@ def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
                               parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed})
     pid = rig.loaded_pid(resp.unique_id)
     return rig.judge_death(resp.unique_id, pid, signal_expected=sig, fault_ns=None)
+
+
+def raise_in_callback(rig: Rig, seed: int, index: int) -> Outcome:
+    """A node whose timer callback raises: its process ends (exit code 1)."""
+    resp = rig.client.load_ok(RIG, "faults::RaiseInCallback", node_name=f"raiser{index}",
+                              parameters={"delay": 0.1, "seed": seed})
+    pid = rig.loaded_pid(resp.unique_id)
+    out = rig.judge_death(resp.unique_id, pid, signal_expected=0, fault_ns=None)
+    if out.outcome == "survived" and out.details.get("exit_code") != 1:
+        out.outcome, out.details["why"] = "failed", "exit code was not 1"
+    return out
 
 
 def outside_sigkill(rig: Rig, seed: int, index: int) -> Outcome:
@@ -222,3 +238,46 @@ class PayloadKill:
         if out.outcome != "survived":
             self.rig.restart()
             self._start_holder()
+
+
+# -- the registry ------------------------------------------------------------------
+
+class Trials(Protocol):
+    """A fault set up on a rig: one trial from a seed, and what to do after."""
+
+    def trial(self, seed: int, index: int) -> Outcome: ...
+
+    def settle(self, out: Outcome) -> None: ...
+
+
+class _Each:
+    """A fault with no set-up of its own: ``fn(rig, seed, index)`` per trial,
+    then the rig's own settle (a fresh container after a failure)."""
+
+    def __init__(self, rig: Rig, fn: Callable[[Rig, int, int], Outcome]):
+        self.rig, self._fn = rig, fn
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        return self._fn(self.rig, seed, index)
+
+    def settle(self, out: Outcome) -> None:
+        self.rig.settle(out)
+
+
+def _callback(name: str) -> Callable[[Rig], Trials]:
+    return lambda rig: _Each(rig, lambda r, seed, index: callback_fault(r, name, seed, index))
+
+
+#: fault name -> make(rig) -> Trials. The malloc faults run under the
+#: allocator set-up the rig was started with (MALLOC_ALLOCATORS).
+FAULTS: dict[str, Callable[[Rig], Trials]] = {
+    **{name: _callback(name) for name in CALLBACK_FAULTS},
+    "exception": lambda rig: _Each(rig, raise_in_callback),
+    "sigkill-outside": lambda rig: _Each(rig, outside_sigkill),
+    "die-holding-robust-mutex": lambda rig: _Each(rig, die_holding_lock),
+    "sigkill-during-malloc": MallocKill,
+    "intra-die-mid-put": lambda rig: IntraQueueDeath(rig, "put"),
+    "intra-die-mid-take": lambda rig: IntraQueueDeath(rig, "take"),
+    "sigkill-publisher-holding-messages/malloc": lambda rig: PayloadKill(rig, "malloc"),
+    "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
+}

@@ -2,8 +2,12 @@
 survive, then stop right there with the container still running, print the
 diagnosis, and say how to attach a debugger.
 
-    python -m harness reproduce malloc-kill --allocator glibc --seed 7 --trials 200
+    python -m harness reproduce sigkill-during-malloc --allocator glibc --seed 7 --trials 200
     python -m harness reproduce segfault-gil-held --profile shared --trial-seed 123456
+
+Every fault the scenarios inject can be replayed: the faults come from the
+registry the test rig's faults package declares (entry point group
+``cloneguard.trials``), the one the scenarios take their trials from.
 """
 from __future__ import annotations
 
@@ -11,39 +15,37 @@ import os
 import random
 import signal
 import tempfile
+from importlib.metadata import entry_points
 from pathlib import Path
 
-from faults import trials
 from harness import domains
 from harness.factory import ContainerFactory
 from harness.process import ros_environment
 from harness.rig import PROFILES, Rig
 
-ALLOCATOR_ARGS = trials.MALLOC_ALLOCATORS
-FAULTS = sorted([*trials.CALLBACK_FAULTS, "sigkill-outside", "die-holding-robust-mutex", "malloc-kill"])
+REGISTRY_GROUP = "cloneguard.trials"
 
 
-def _trial_fn(fault: str, rig: Rig):
-    """trial(seed, index) -> Outcome for ``fault`` on ``rig``."""
-    if fault in trials.CALLBACK_FAULTS:
-        return lambda seed, i: trials.callback_fault(rig, fault, seed, i), rig.settle
-    if fault == "sigkill-outside":
-        return lambda seed, i: trials.outside_sigkill(rig, seed, i), rig.settle
-    if fault == "die-holding-robust-mutex":
-        return lambda seed, i: trials.die_holding_lock(rig, seed, i), rig.settle
-    malloc = trials.MallocKill(rig)
-    return malloc.trial, malloc.settle
+def registry() -> tuple[dict, dict]:
+    """(fault name -> make(rig), allocator set-up -> container arguments)."""
+    found = {ep.name: ep for ep in entry_points(group=REGISTRY_GROUP)}
+    missing = {"faults", "allocators"} - set(found)
+    if missing:
+        raise SystemExit(f"no fault registry installed (entry points {sorted(missing)} of "
+                         f"{REGISTRY_GROUP}: the test rig's faults package)")
+    return found["faults"].load(), found["allocators"].load()
 
 
 def add_parser(subparsers) -> None:
+    faults, allocators = registry()
     p = subparsers.add_parser(
         "reproduce", help="replay a fault until it does not survive, then stop there",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("fault", choices=FAULTS)
+    p.add_argument("fault", choices=sorted(faults))
     p.add_argument("--profile", choices=sorted(PROFILES), default="per-node")
-    p.add_argument("--allocator", choices=sorted(ALLOCATOR_ARGS), default="glibc",
-                   help="for malloc-kill (default: glibc)")
+    p.add_argument("--allocator", choices=sorted(allocators), default="glibc",
+                   help="the container's allocator set-up (default: glibc, guarded)")
     p.add_argument("--seed", type=int, default=1, help="base seed; each trial's seed is drawn from it")
     p.add_argument("--trial-seed", type=int, default=None, help="run every trial with this one seed")
     p.add_argument("--trials", type=int, default=100)
@@ -57,22 +59,23 @@ def run(args) -> int:
         if key != "ROS_DOMAIN_ID":
             os.environ[key] = value
     os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    faults, allocators = registry()
     log_dir = Path(tempfile.mkdtemp(prefix="cloneguard-reproduce-"))
     rng = random.Random(args.seed)
     with domains.lease() as lease:
         factory = ContainerFactory(lease.domain_id, log_dir)
         try:
-            rig = Rig(factory, args.profile, extra_args=ALLOCATOR_ARGS[args.allocator])
-            trial, settle = _trial_fn(args.fault, rig)
+            rig = Rig(factory, args.profile, extra_args=allocators[args.allocator])
+            fault = faults[args.fault](rig)
             for i in range(args.trials):
                 seed = args.trial_seed if args.trial_seed is not None else rng.getrandbits(31)
-                out = trial(seed, i)
+                out = fault.trial(seed, i)
                 lat = ", ".join(f"{k} {v:.2f} ms" for k, v in out.latency_ms.items())
                 print(f"trial {i} seed {seed}: {out.outcome}" + (f" ({lat})" if lat else ""), flush=True)
                 if out.outcome != "survived":
                     _report_stuck(rig, out, log_dir, wait=not args.no_wait)
                     return 1
-                settle(out)
+                fault.settle(out)
             print(f"{args.trials} trials survived")
             return 0
         finally:

@@ -8,7 +8,7 @@ its signal, and everything else goes on.
 import pytest
 
 from faults import PACKAGE as RIG
-from faults.trials import CALLBACK_FAULTS, callback_fault
+from faults.trials import CALLBACK_FAULTS, FAULTS, callback_fault
 from harness.rig import Outcome
 
 
@@ -21,8 +21,8 @@ def test_isolated_node_dies_alone(fault, profile, rig_factory, resilience, run_t
         claim=f"{fault} in one node's callback kills only that node: CRASHED with "
               f"{sig.name}, the other nodes and the container go on",
     )
-    rig = rig_factory(profile)
-    run_trials(lambda seed, i: callback_fault(rig, fault, seed, i), rig.settle, quick=3, deep=200)
+    trials = FAULTS[fault](rig_factory(profile))
+    run_trials(trials.trial, trials.settle, quick=3, deep=200)
     resilience.expect_rate("survived", at_least=1.0)
 
 

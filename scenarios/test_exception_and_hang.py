@@ -2,26 +2,19 @@
 import pytest
 
 from faults import PACKAGE as RIG
+from faults.trials import FAULTS
 from harness.rig import Outcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience, record_trial, trial_plan):
+def test_uncaught_exception_ends_only_its_node(profile, rig_factory, resilience, run_trials):
     resilience.describe(
         fault="exception", profile=profile, mitigations={},
         claim="an exception escaping one node's callback ends that node's process "
               "(CRASHED, exit code 1); the rest goes on",
     )
-    rig = rig_factory(profile)
-    for i, seed in trial_plan(3, 200):
-        resp = rig.client.load_ok(RIG, "faults::RaiseInCallback", node_name=f"raiser{i}",
-                                  parameters={"delay": 0.1, "seed": seed})
-        pid = rig.loaded_pid(resp.unique_id)
-        out = rig.judge_death(resp.unique_id, pid, signal_expected=0, fault_ns=None)
-        if out.outcome == "survived" and out.details.get("exit_code") != 1:
-            out.outcome, out.details["why"] = "failed", "exit code was not 1"
-        record_trial(i, seed, out)
-        rig.settle(out)
+    fault = FAULTS["exception"](rig_factory(profile))
+    run_trials(fault.trial, fault.settle, quick=3, deep=200)
     resilience.expect_rate("survived", at_least=1.0)
 
 

@@ -9,7 +9,7 @@ holds its messages.
 """
 import pytest
 
-from faults.trials import IntraQueueDeath, PayloadKill
+from faults.trials import FAULTS
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
@@ -22,8 +22,7 @@ def test_death_inside_an_intra_process_queue_operation(op, profile, rig_factory,
               "mutex: the queue stays consistent (EOWNERDEAD repair), the other nodes keep "
               "exchanging messages by reference, the container goes on",
     )
-    rig = rig_factory(profile)
-    fault = IntraQueueDeath(rig, op)
+    fault = FAULTS[f"intra-die-mid-{op}"](rig_factory(profile))
     run_trials(fault.trial, fault.settle, quick=2, deep=200)
     resilience.expect_rate("survived", at_least=QUEUE_DEATH_FLOOR)
 
@@ -57,7 +56,6 @@ def test_publisher_killed_while_subscriber_holds_its_messages(payload, rig_facto
               "a publisher SIGKILLed while churning malloc, a subscriber then drops the 256 KiB "
               "messages it held; does the subscriber (and the container) go on?",
     )
-    rig = rig_factory("per-node")
-    fault = PayloadKill(rig, payload)
+    fault = FAULTS[f"sigkill-publisher-holding-messages/{payload}"](rig_factory("per-node"))
     run_trials(fault.trial, fault.settle, quick=20, deep=300)
     resilience.expect_rate(**PAYLOAD_EXPECT[payload])

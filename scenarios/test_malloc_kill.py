@@ -12,8 +12,8 @@ baselines run the same fault with the guard switched off.
 """
 import pytest
 
+from faults.trials import FAULTS
 from faults.trials import MALLOC_ALLOCATORS as ALLOCATORS
-from faults.trials import MallocKill
 # Guarded: measured 100% (glibc 120/120, jemalloc 130/130 while building
 # it; the deep runs are in docs/evidence.md). 28 of 30 is a floor a 99%
 # rate breaks once in ~300 runs (binomial tail), and that the unguarded
@@ -44,7 +44,7 @@ def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
         claim=f"under {allocator}: a node SIGKILLed inside malloc/free while its blocks "
               "are freed by a sibling; does the container, the sibling and new nodes go on?",
     )
-    fault = MallocKill(rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
+    fault = FAULTS["sigkill-during-malloc"](rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
     run_trials(fault.trial, fault.settle, quick=QUICK[allocator], deep=DEEP[allocator])
     if EXPECT[allocator] is None:
         resilience.note("baseline: survival measured, not promised")

@@ -1,7 +1,7 @@
 """A node dies holding a lock of the container's (a robust mutex)."""
 import pytest
 
-from faults.trials import die_holding_lock
+from faults.trials import FAULTS
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
@@ -12,6 +12,6 @@ def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resili
               "half-written: the next locker gets EOWNERDEAD, repairs the slot, and "
               "everyone goes on",
     )
-    rig = rig_factory(profile)
-    run_trials(lambda seed, i: die_holding_lock(rig, seed, i), rig.settle, quick=3, deep=200)
+    fault = FAULTS["die-holding-robust-mutex"](rig_factory(profile))
+    run_trials(fault.trial, fault.settle, quick=3, deep=200)
     resilience.expect_rate("survived", at_least=1.0)
