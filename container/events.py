@@ -22,6 +22,7 @@ LOADED = ComponentEvent.LOADED
 UNLOADED = ComponentEvent.UNLOADED
 LOAD_FAILED = ComponentEvent.LOAD_FAILED
 CRASHED = ComponentEvent.CRASHED
+REPAIRED = ComponentEvent.REPAIRED
 
 
 class EventPublisher:
@@ -43,8 +44,10 @@ class EventPublisher:
         exit_code: int = 0,
         start_time_ns: int = 0,
         allocator_quarantined: bool = False,
+        repaired_state: str = "",
+        stamp_ns: int | None = None,
     ) -> ComponentEvent:
-        now = time.time_ns()
+        now = time.time_ns() if stamp_ns is None else stamp_ns
         msg = ComponentEvent()
         msg.stamp.sec, msg.stamp.nanosec = divmod(now, 1_000_000_000)
         msg.event_type = event_type
@@ -58,6 +61,7 @@ class EventPublisher:
         msg.exit_code = exit_code
         msg.start_time = start_time_ns
         msg.allocator_quarantined = allocator_quarantined
+        msg.repaired_state = repaired_state
         # Children can die while the container shuts down (they got the same
         # SIGTERM); once the context is gone there is no one to tell.
         if not self._node.context.ok():

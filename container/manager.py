@@ -31,7 +31,7 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.qos import QoSProfile, qos_profile_services_default
 
-from . import events, intra, options, registry, seams
+from . import events, intra, options, registry, repairs, seams
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
@@ -62,6 +62,8 @@ class ComponentManager:
     # How long a LoadNode waits for its node to be built (the isolated host
     # gives up on a child after 60 s of its own).
     CONSTRUCT_WAIT_S = 65.0
+    # How often repairs recorded by any task are published as REPAIRED events.
+    REPAIR_POLL_S = 0.05
     # Threads that build nodes: reused (a thread per load would churn
     # stacks and arenas); more than one, so that constructors that never
     # return do not hold up the rest.
@@ -92,6 +94,8 @@ class ComponentManager:
                                         (UnloadNode, "unload_node", self._on_unload_node),
                                         (ListNodes, "list_nodes", self._on_list_nodes)):
             node.create_service(srv_type, f"~/_container/{name}", handler, qos_profile=qos, callback_group=group)
+        # Repairs recorded by whichever task did them (repairs.py), published here.
+        self._repair_timer = node.create_timer(self.REPAIR_POLL_S, self.publish_repairs)
 
     # -- services -------------------------------------------------------------
 
@@ -288,6 +292,17 @@ class ComponentManager:
         response.full_node_name = ""
         response.unique_id = 0
         return response
+
+    def publish_repairs(self) -> None:
+        for repair in repairs.drain():
+            with self._lock:
+                entry = self._loaded.get(repair.unique_id)
+            names = {}
+            if entry is not None:
+                names = {"full_node_name": entry.hosted.full_node_name, "package_name": entry.spec.package_name,
+                         "plugin_name": entry.spec.plugin_name, "pid": entry.hosted.pid}
+            self._events.publish(events.REPAIRED, unique_id=repair.unique_id, error_message=repair.detail,
+                                 repaired_state=repair.state, stamp_ns=repair.stamp_ns, **names)
 
     def _publish(self, event_type, entry: _Entry, **extra) -> None:
         hosted = entry.hosted

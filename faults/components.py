@@ -7,11 +7,11 @@ pyproject.toml), configured by ROS parameters:
 ``jitter``     extra random seconds in [0, jitter), drawn from ``seed``
 ``seed``       makes the instant (and any other choice) reproducible
 
-Just before a fault fires the component writes one line to stderr,
-``cloneguard-fault: <fault> firing at <time.time_ns()> pid <pid>``, written
-with a single write(2) so it is in the container's log before the fault can
-take the process down. The harness reads it to measure fault-to-event
-latency against the CRASHED event's stamp (same host clock).
+Just before a fault fires the component writes one line to stderr (its
+format: harness/firing.py), with a single write(2) so it is in the
+container's log before the fault can take the process down. The harness
+reads it to measure fault-to-event latency against the CRASHED event's
+stamp (same host clock).
 """
 from __future__ import annotations
 
@@ -26,13 +26,11 @@ from rclpy.node import Node
 # Imported here, in the container, when the class is looked up: a C library
 # loaded for the first time inside a clone child is best avoided.
 from faults._hammer import lib as hammer
-
-FIRING_MARK = "cloneguard-fault:"
+from harness import firing
 
 
 def announce(fault: str) -> None:
-    line = f"{FIRING_MARK} {fault} firing at {time.time_ns()} pid {os.getpid()}\n"
-    os.write(2, line.encode())
+    os.write(2, firing.line(fault, time.time_ns(), os.getpid()))
 
 
 class _FaultNode(Node):

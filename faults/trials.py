@@ -11,10 +11,11 @@ harness, never the reverse). Every random choice of a trial comes from its
 from __future__ import annotations
 
 import random
-import re
 import signal
+import time
 from typing import Callable, Protocol
 
+from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
 from harness.client import HarnessTimeout
@@ -30,7 +31,6 @@ CALLBACK_FAULTS = {
     "abort": ("faults::AbortInCallback", {}, signal.SIGABRT),
 }
 
-_REPAIRED = re.compile(r"repaired (\d+) half-written slot\(s\) of unique_id\(s\) \[([0-9, ]*)\]")
 
 
 def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
@@ -63,8 +63,21 @@ def outside_sigkill(rig: Rig, seed: int, index: int) -> Outcome:
     return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
 
 
-def _repairs_of(log: str, unique_id: int) -> int:
-    return sum(1 for m in _REPAIRED.finditer(log) if str(unique_id) in m.group(2).split(", "))
+def repaired(rig: Rig, state: str, unique_id: int, *, since_ns: int = 0, wait_s: float = 0.0) -> int:
+    """How many REPAIRED events of ``state`` (ComponentEvent.repaired_state)
+    for ``unique_id``, of repairs made since ``since_ns`` (host clock), the
+    container has published, once at least one has come or ``wait_s`` has
+    passed."""
+    def match(ev) -> bool:
+        stamp = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec
+        return (ev.event_type == ComponentEvent.REPAIRED and ev.repaired_state == state
+                and ev.unique_id == unique_id and stamp >= since_ns)
+    if wait_s > 0:
+        try:
+            rig.client.events.wait_for(match, wait_s)
+        except HarnessTimeout:
+            pass
+    return sum(1 for ev in rig.client.events.messages() if match(ev))
 
 
 def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
@@ -75,9 +88,9 @@ def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
     pid = rig.loaded_pid(resp.unique_id)
     out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
     if out.outcome == "survived":
-        # The survivor has beaten since the death and takes this lock after
-        # every callback, so the repair has been logged by now.
-        repairs = _repairs_of(rig.proc.log_text(), resp.unique_id)
+        # The survivor takes this lock after every callback, and has beaten
+        # since the death: the repair is done, its event on its way.
+        repairs = repaired(rig, "progress-board", resp.unique_id, wait_s=5.0)
         out.details["repairs"] = repairs
         if repairs != 1:
             out.outcome, out.details["why"] = "failed", f"{repairs} EOWNERDEAD repairs logged, expected 1"
@@ -133,7 +146,6 @@ class MallocKill:
 # -- intra-process messaging -----------------------------------------------------
 
 INTRA = {"use_intra_process_comms": True}
-_QUEUE_REPAIRED = re.compile(r"intra-process queue of (\S+) for (\S+): the owner of its lock died")
 
 
 class IntraQueueDeath:
@@ -153,20 +165,17 @@ class IntraQueueDeath:
 
     def _start_pair(self) -> None:
         client = self.rig.client
-        client.load_ok("cloneguard", "cloneguard::Listener", node_name="intra_listener",
-                       parameters={"topic": self.TOPIC}, extra_arguments=INTRA)
+        self.listener = client.load_ok("cloneguard", "cloneguard::Listener", node_name="intra_listener",
+                                       parameters={"topic": self.TOPIC}, extra_arguments=INTRA).unique_id
         client.load_ok("cloneguard", "cloneguard::Talker", node_name="intra_talker",
                        parameters={"topic": self.TOPIC, "period": 0.005}, extra_arguments=INTRA)
         self.received = client.subscribe(UInt64, "/intra_listener/received")
         self.received.wait_count(5, timeout=10)
 
-    def _repairs(self) -> int:
-        return sum(1 for m in _QUEUE_REPAIRED.finditer(self.rig.proc.log_text())
-                   if m.group(2) == "/intra_listener")
 
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
-        before = self._repairs()
+        started = time.time_ns()
         resp = rig.client.load_ok(RIG, "faults::IntraDieMidQueueOp", node_name=f"queue_victim{index}",
                                   parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05,
                                               "jitter": 0.1, "seed": seed},
@@ -177,7 +186,8 @@ class IntraQueueDeath:
             out = rig.keeps_flowing(self.received, "the listener's receiving", out, more=5)
         if out.outcome != "survived":
             return out
-        repairs = self._repairs() - before
+        repairs = repaired(rig, "intra-queue", self.listener, since_ns=started,
+                           wait_s=5.0 if self.op == "put" else 0.0)
         out.details["listener_queue_repairs"] = repairs
         if self.op == "put" and repairs != 1:
             out.outcome, out.details["why"] = "failed", f"{repairs} repairs of the listener's queue, expected 1"

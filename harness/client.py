@@ -30,6 +30,7 @@ EVENT_NAMES = {
     ComponentEvent.UNLOADED: "UNLOADED",
     ComponentEvent.LOAD_FAILED: "LOAD_FAILED",
     ComponentEvent.CRASHED: "CRASHED",
+    ComponentEvent.REPAIRED: "REPAIRED",
 }
 
 

@@ -16,7 +16,6 @@ The rig restarts the container after a trial that did not survive.
 """
 from __future__ import annotations
 
-import re
 import signal
 import time
 from dataclasses import dataclass, field
@@ -24,12 +23,11 @@ from dataclasses import dataclass, field
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
-from . import diagnose, procfs
+from . import diagnose, firing, procfs
 from .client import ContainerClient, HarnessTimeout
 from .process import ContainerProcess
 
 SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
-FIRING = re.compile(r"cloneguard-fault: (\S+) firing at (\d+) pid (\d+)")
 
 # Container arguments per profile; scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
@@ -90,10 +88,7 @@ class Rig:
 
     def firing_ns(self, pid: int) -> int | None:
         """When the fault in ``pid`` announced itself (time.time_ns()), from the log."""
-        for m in FIRING.finditer(self.proc.log_text()):
-            if int(m.group(3)) == pid:
-                return int(m.group(2))
-        return None
+        return next((ns for _, ns, who in firing.parse(self.proc.log_text()) if who == pid), None)
 
     def wait_firing(self, pid: int, timeout: float = 10.0) -> int:
         """Wait until the fault in ``pid`` has announced itself; its time_ns."""

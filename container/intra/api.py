@@ -38,6 +38,7 @@ from typing import Callable, Iterator
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from .. import repairs
 from .bus import PublisherEntry, SubscriptionEntry, get_bus, log
 from .dds_reader import GidFilteredReader, publisher_gid
 from .pool import Loan
@@ -338,6 +339,9 @@ class Subscription:
         log.warning(f"intra-process queue of {self.topic} for {self.node.get_fully_qualified_name()}: "
                     "the owner of its lock died holding it (EOWNERDEAD); repaired, "
                     f"{len(queue)} message(s) kept")
+        if self._entry is not None and self._entry.owner is not None:
+            repairs.record(repairs.INTRA_QUEUE, self._entry.owner,
+                           f"the intra-process queue of {self.topic}: {len(queue)} message(s) kept")
 
 
 def create_publisher(node, msg_type, topic: str, qos: QoSProfile | int = 10, **kwargs) -> Publisher:

@@ -34,13 +34,13 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from .. import factory, intra
+from .. import factory, intra, repairs
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
+from ..robust import RobustMutex
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested
 from .profiles import DEFAULT, PROFILES, SHARED
-from ..robust import RobustMutex
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -375,6 +375,8 @@ class IsolatedHost:
             "progress board: its lock's owner died holding it (EOWNERDEAD); repaired "
             f"{len(repair.torn_slots)} half-written slot(s) of unique_id(s) {list(repair.torn_slots)}"
         )
+        for unique_id in repair.torn_slots:
+            repairs.record(repairs.PROGRESS_BOARD, unique_id, "a half-written progress-board slot")
 
     def _crashed(self, proc: _NodeProcess, death: Death) -> None:
         """A node's process ended without being unloaded: a crash, or a clean
