@@ -6,6 +6,10 @@
     python -m bench.crash_latency      # fault -> CRASHED latency
     python -m bench.load_latency       # LoadNode -> LOADED latency
     python -m bench.shutdown           # SIGTERM -> exit
+    python -m bench.intra              # intra-process vs DDS latency and throughput
+    python -m bench.leaks              # RSS, fds, threads per load cycle (long life)
+    python -m bench.random_kill        # random SIGKILLs of clone children (the core alone)
+    python -m bench.alloc_guard        # the allocator guard's cost per malloc/free
 
 Each writes ``reports/bench/<name>.md`` and ``<name>.json`` (``--out DIR``
 elsewhere) and prints its table. ``bench.process_per_node`` is the

@@ -28,14 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from harness import domains, procfs, shm
-from harness.process import NO_SHM_PROFILE, REPO_ROOT, ContainerProcess, ros_environment
+from harness.process import NO_SHM_PROFILE, REPO_ROOT, ContainerProcess, process_environment, use_loopback_ros
 
 # The benchmark's own participant (its clients) runs under the same rules as
 # the containers: UDP on loopback only. Set before any rclpy.init.
-os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-for _key, _value in ros_environment(0).items():
-    if _key != "ROS_DOMAIN_ID":
-        os.environ[_key] = _value
+use_loopback_ros()
 
 from harness.client import ContainerClient, HarnessTimeout, Received  # noqa: E402
 from harness.factory import log_tail, wait_ready  # noqa: E402
@@ -301,9 +298,7 @@ class NodeProcess:
 
     def __init__(self, domain_id: int, log_path: Path, *, package: str = PACKAGE,
                  plugin: str = HEARTBEAT, node_name: str = ""):
-        env = dict(os.environ)
-        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-        env.update(ros_environment(domain_id, fastdds_profile=NO_SHM_PROFILE))
+        env = process_environment(domain_id, fastdds_profile=NO_SHM_PROFILE)
         env["PYTHONUNBUFFERED"] = "1"
         r, w = os.pipe2(os.O_CLOEXEC)
         argv = [sys.executable, "-m", "bench.process_per_node", "--ready-fd", str(w),

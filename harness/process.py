@@ -48,6 +48,27 @@ def ros_environment(domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE) -
     }
 
 
+def process_environment(domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE,
+                        base: dict[str, str] | None = None) -> dict[str, str]:
+    """``base`` (default: this process's environment) with the ROS variables
+    of ros_environment(); a discovery-range setting would replace the
+    profile's transports, so it goes."""
+    env = dict(os.environ if base is None else base)
+    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
+    return env
+
+
+def use_loopback_ros() -> None:
+    """This process's own participants (the harness's clients) run under
+    the rules the containers get, UDP on loopback only: call before any
+    rclpy.init. The domain is chosen per context."""
+    os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    for key, value in ros_environment(0).items():
+        if key != "ROS_DOMAIN_ID":
+            os.environ[key] = value
+
+
 @dataclass(frozen=True)
 class ExitStatus:
     returncode: int          # as subprocess reports it: -N for signal N
@@ -75,10 +96,7 @@ class ContainerProcess:
         self.log_path = Path(log_path)
         ros_args = [] if node_name == "ComponentManager" else ["--ros-args", "-r", f"__node:={node_name}"]
         self.argv = [self.exe, *args, *ros_args]
-        env = dict(os.environ)
-        # A discovery-range setting would replace the profile's transports.
-        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-        env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
+        env = process_environment(domain_id, fastdds_profile=fastdds_profile)
         env["PYTHONUNBUFFERED"] = "1"
         env.update(extra_env or {})
         self.log_path.parent.mkdir(parents=True, exist_ok=True)

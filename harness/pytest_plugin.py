@@ -27,7 +27,7 @@ import pytest
 from . import domains, plan, procfs, shm
 from .factory import ContainerFactory, log_tail
 from .plan import pytest_collection_modifyitems, record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
-from .process import ros_environment
+from .process import use_loopback_ros
 
 
 def pytest_addoption(parser):
@@ -41,12 +41,7 @@ def pytest_addoption(parser):
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
-    # The harness's own participant runs under the same rules as the
-    # containers it launches: UDP on loopback only. Set before any rclpy init.
-    os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-    for key, value in ros_environment(0).items():
-        if key != "ROS_DOMAIN_ID":
-            os.environ[key] = value
+    use_loopback_ros()
 
 
 @pytest.fixture

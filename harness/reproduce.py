@@ -11,7 +11,6 @@ registry the test rig's faults package declares (entry point group
 """
 from __future__ import annotations
 
-import os
 import random
 import signal
 import tempfile
@@ -20,7 +19,7 @@ from pathlib import Path
 
 from harness import domains
 from harness.factory import ContainerFactory
-from harness.process import ros_environment
+from harness.process import use_loopback_ros
 from harness.rig import PROFILES, Rig
 
 REGISTRY_GROUP = "cloneguard.trials"
@@ -55,10 +54,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    for key, value in ros_environment(0).items():
-        if key != "ROS_DOMAIN_ID":
-            os.environ[key] = value
-    os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    use_loopback_ros()
     faults, allocators = registry()
     log_dir = Path(tempfile.mkdtemp(prefix="cloneguard-reproduce-"))
     rng = random.Random(args.seed)

@@ -6,13 +6,9 @@ import sys
 
 import pytest
 
+from bench import __main__ as bench_all
+from bench import common
 from harness.process import REPO_ROOT
-
-if str(REPO_ROOT) not in sys.path:      # bench/ is run from the repository root, not installed
-    sys.path.insert(0, str(REPO_ROOT))
-
-from bench import __main__ as bench_all  # noqa: E402
-from bench import common  # noqa: E402
 
 # The tables each benchmark writes, with the "tiny" preset's parameters.
 EXPECTED_TABLES = {
