@@ -4,6 +4,7 @@
     render RUN [-o OUT.html]
     merge RUN RUN ... --out DIR [--allow-mixed-commits]
     reproduce FAULT [--profile P] [--allocator A] [--seed S] [--trials N]
+    summary RUN [--hang-chars N]
 
 RUN is a report directory, its report.json, or reports/latest.
 
@@ -102,7 +103,22 @@ def _add_reproduce(subparsers) -> None:
     add_parser(subparsers)
 
 
-SUBCOMMANDS = [_add_compare, _add_render, _add_merge, _add_reproduce]
+def _add_summary(subparsers) -> None:
+    p = subparsers.add_parser("summary", help="a report as Markdown: the trials table and every non-survival")
+    p.add_argument("run", metavar="RUN", help="report directory or report.json")
+    p.add_argument("--hang-chars", type=int, default=240, help="how much of each diagnosis to quote")
+    p.set_defaults(func=run_summary)
+
+
+def run_summary(args) -> int:
+    from .report.model import load_report
+    from .report.summary import markdown
+
+    print(markdown(load_report(args.run), hang_chars=args.hang_chars), end="")
+    return 0
+
+
+SUBCOMMANDS = [_add_compare, _add_render, _add_merge, _add_reproduce, _add_summary]
 
 
 def build_parser() -> argparse.ArgumentParser:

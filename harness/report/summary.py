@@ -1,0 +1,76 @@
+"""A report as a Markdown summary: the run, a table of every scenario's
+trials (survived, rate, 95% interval, expectation) and every trial that did
+not survive with its diagnosis, for docs and closing notes.
+
+    python -m harness summary reports/deep [--hang-chars 240]
+"""
+from __future__ import annotations
+
+from .model import Report, Scenario
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f}%"
+
+
+def _expectation(s: Scenario) -> str:
+    parts = []
+    for e in s.expectations:
+        bound = f"≥ {_pct(e.at_least)}" if e.at_least is not None else f"≤ {_pct(e.at_most)}"
+        verdict = {True: "met", False: "missed", None: "not judged"}[e.met]
+        parts.append(f"{e.outcome} {bound}: {verdict}")
+    return "; ".join(parts) or "(measured, not promised)"
+
+
+def _cell(s: Scenario) -> str:
+    return s.name.removeprefix("test_")
+
+
+def _others(counts: dict[str, int]) -> str:
+    return ", ".join(f"{n} {k}" for k, n in sorted(counts.items()) if k != "survived" and n) or "-"
+
+
+def markdown(report: Report, *, hang_chars: int = 240) -> str:
+    run = report.run
+    git = run.git or {}
+    commit = (git.get("commit") or "?")[:12] + (" (dirty tree)" if git.get("dirty") else "")
+    host = run.host or {}
+    lines = [
+        f"Run `{run.id}` at commit `{commit}`, {run.duration_s or 0:.0f} s"
+        + (f" on {run.workers} workers" if run.workers else "")
+        + (f", {len(run.shards)} shards merged" if run.shards else "")
+        + (f"; host: {host.get('cpu_count', '?')} CPUs, kernel {host.get('kernel', '?')}, "
+           f"{host.get('glibc', 'glibc ?')}" if host else ""),
+        "",
+        f"    python -m pytest {' '.join(run.pytest_args)}",
+        "",
+        "| scenario | profile | trials | survived | rate | 95% interval | other outcomes | expectation |",
+        "|---|---|---:|---:|---:|---|---|---|",
+    ]
+    for s in sorted(report.scenarios, key=lambda s: (s.fault or "", s.nodeid)):
+        if not s.trials:
+            continue
+        p = s.survival()
+        counts = s.counts()
+        lines.append(
+            f"| {_cell(s)} | {s.profile or '-'} | {p.trials} | {p.successes} | {_pct(p.rate)} "
+            f"| {_pct(p.low)}–{_pct(p.high)} | {_others(counts)} | {_expectation(s)} |")
+    troubled = [s for s in report.scenarios if any(t.outcome != "survived" for t in s.trials)]
+    if troubled:
+        lines += ["", "Every trial that did not survive (thread-mode baselines, whose trials are",
+                  "expected to crash, are left out when all of them did):", ""]
+    for s in sorted(troubled, key=lambda s: s.nodeid):
+        bad = [t for t in s.trials if t.outcome != "survived"]
+        if s.profile == "threads" and all(t.outcome == "crashed" for t in bad):
+            continue
+        hangs = {h.trial: h for h in s.hangs}
+        lines.append(f"- **{_cell(s)}** ({s.profile}): {len(bad)} of {len(s.trials)}")
+        for t in bad:
+            why = str(t.details.get("why", "")).strip()
+            text = f"  - trial {t.index} (seed {t.seed}), {t.outcome}" + (f": {why}" if why else "")
+            if t.index in hangs:
+                summary = hangs[t.index].summary
+                cut = summary if len(summary) <= hang_chars else summary[:hang_chars] + " …"
+                text += f". Diagnosis: {cut}"
+            lines.append(text)
+    return "\n".join(lines) + "\n"
