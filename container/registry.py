@@ -1,7 +1,9 @@
 """Find component classes among installed entry points.
 
 A component is an ``rclpy.node.Node`` subclass that an installed distribution
-registers in the ``cloneguard.components`` entry-point group. A LoadNode's
+registers in the ``cloneguard.components`` entry-point group, or in
+``rclpy_components``, the group of rclpy's composition proposal (ros2/rclpy
+PR #599), so that a component written for it loads unchanged. A LoadNode's
 ``package_name`` names the distribution, its ``plugin_name`` the entry point.
 Only installed entry points are ever loaded: a request can never name a file
 or an arbitrary module.
@@ -21,6 +23,8 @@ from rclpy.node import Node
 from .options import LoadError
 
 ENTRY_POINT_GROUP = "cloneguard.components"
+# Searched too; where a distribution registers a name in both, ours wins.
+RCLPY_COMPONENTS_GROUP = "rclpy_components"
 
 # Upstream rclcpp_components' texts, kept word for word so clients that match
 # on them behave the same with this container.
@@ -61,9 +65,10 @@ def _scan() -> dict[str, dict[str, EntryPoint]]:
     Reading every distribution's metadata takes milliseconds, so it is done
     once and again only when a request names something not seen yet."""
     index: dict[str, dict[str, EntryPoint]] = {}
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.dist is not None:
-            index.setdefault(_normalize(ep.dist.name), {})[ep.name] = ep
+    for group in (RCLPY_COMPONENTS_GROUP, ENTRY_POINT_GROUP):
+        for ep in entry_points(group=group):
+            if ep.dist is not None:
+                index.setdefault(_normalize(ep.dist.name), {})[ep.name] = ep
     return index
 
 

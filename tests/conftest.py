@@ -24,7 +24,9 @@ def misfit_site(tmp_path_factory) -> Path:
     dist.mkdir()
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: misfit-components\nVersion: 0.0\n")
     lines = "".join(f"{name} = {target}\n" for name, target in MISFITS.items())
-    (dist / "entry_points.txt").write_text("[cloneguard.components]\n" + lines)
+    # One more, registered only in rclpy's composition proposal's group.
+    (dist / "entry_points.txt").write_text("[cloneguard.components]\n" + lines
+                                           + "[rclpy_components]\nmisfits::RclpyStyle = misfit_components:RclpyStyle\n")
     (site / "misfit_components.py").write_text((FIXTURES / "misfit_components.py").read_text())
     return site
 
