@@ -27,7 +27,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from . import allocator
+from . import allocator, options
 from .hosting import ThreadHost
 from .isolated import profiles
 from .manager import ComponentManager
@@ -193,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         allocator.glibc_arena_per_task()        # before a second thread exists
     stop = StopSignals()
     _ros_init(argv)
+    options.container_argv = list(argv)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
     # Thread mode's nodes spin on this executor (as upstream's containers);

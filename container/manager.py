@@ -123,6 +123,8 @@ class ComponentManager:
             cls = spec.load_class()
         except LoadError as exc:
             return self._load_failed(request, response, str(exc))
+        if args.forward_global_arguments:
+            self._log.warning(options.FORWARD_GLOBAL_WARNING)
         unique_id = self._take_id()
         try:
             hosted = self._start(unique_id, cls, args)

@@ -31,8 +31,20 @@ CPU_QUOTA_RANGE = (0.001, 1024.0)
 CPU_QUOTA = "cloneguard.cpu_quota"
 KNOWN_EXTRA_ARGUMENTS = {
     "use_intra_process_comms": Parameter.Type.BOOL,
+    # As rclcpp_components: false (its default) builds the node without the
+    # container's global ROS arguments, true with them.
+    "forward_global_arguments": Parameter.Type.BOOL,
     CPU_QUOTA: Parameter.Type.DOUBLE,
 }
+# rclcpp_components' warning when forward_global_arguments is true, word for word.
+FORWARD_GLOBAL_WARNING = (
+    "forward_global_arguments is true by default in nodes, but is not recommended in a component "
+    "manager. If true, this will cause this node's behavior to be influenced by global arguments, "
+    "not only those targeted at this node.")
+# The container's own command line: a node built with forward_global_arguments
+# on a Context of its own (isolated, per-node) gets its global ROS arguments
+# from here. Set by the command line before any load.
+container_argv: list[str] = []
 FAULT_EXTRA_ARGUMENTS = {seams.DROP_LOADED_EVENT: Parameter.Type.BOOL}
 _TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double"}
 
@@ -48,6 +60,7 @@ class NodeArguments:
     cli_args: list[str]
     parameter_overrides: list[Parameter]
     use_intra_process_comms: bool = False
+    forward_global_arguments: bool = False
     drop_loaded_event: bool = False
     cpu_quota: float | None = None
     log_level: int = 0
@@ -58,7 +71,7 @@ class NodeArguments:
         return {
             "context": context,
             "cli_args": list(self.cli_args),
-            "use_global_arguments": False,
+            "use_global_arguments": self.forward_global_arguments,
             "parameter_overrides": list(self.parameter_overrides),
         }
 
@@ -112,6 +125,7 @@ def from_request(request) -> NodeArguments:
         cli_args=cli_args,
         parameter_overrides=_parameters(request.parameters),
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
+        forward_global_arguments=bool(extra.get("forward_global_arguments", False)),
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=extra.get(CPU_QUOTA),
         log_level=request.log_level if request.log_level in LOG_LEVELS else 0,

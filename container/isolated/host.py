@@ -34,7 +34,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from .. import factory, intra, repairs
+from .. import factory, intra, options, repairs
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
@@ -241,7 +241,9 @@ class IsolatedHost:
     def _build_and_spin_target(self, proc: _NodeProcess, cls, args):
         def run():
             ctx = Context()
-            rclpy.init(args=[], context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+            # The container's global ROS arguments, if the node is to see them.
+            ros_args = options.container_argv if args.forward_global_arguments else []
+            rclpy.init(args=ros_args, context=ctx, signal_handler_options=SignalHandlerOptions.NO)
             try:
                 node = factory.construct(cls, args, ctx, proc.unique_id)
             except Exception as exc:
