@@ -97,6 +97,22 @@ def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
     return out
 
 
+def _kill_when_firing(rig: Rig, seed: int, plugin: str, node_name: str, parameters: dict,
+                      extra_arguments: dict | None = None) -> Outcome:
+    """Load ``plugin``, wait until it announces its fault (it is at work),
+    SIGKILL it 0-20 ms later (from ``seed``) and judge the death."""
+    try:
+        resp = rig.client.load_ok(RIG, plugin, node_name=node_name, parameters=parameters,
+                                  extra_arguments=extra_arguments or {})
+    except HarnessTimeout as exc:
+        # The container went on after the last trial's death and stopped later.
+        return rig.not_survived(f"a load before the fault got no answer: {exc}")
+    pid = rig.loaded_pid(resp.unique_id)
+    rig.wait_firing(pid)
+    sent = kill_at(pid, signal.SIGKILL, random.Random(seed).uniform(0.0, 0.02))
+    return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+
+
 # Container arguments of the allocator set-ups the malloc faults run under:
 # guarded (the default in isolated mode) and, as baselines, unguarded.
 MALLOC_ALLOCATORS = {
@@ -121,17 +137,8 @@ class MallocKill:
         self.freed.wait_count(3, timeout=10)
 
     def trial(self, seed: int, index: int) -> Outcome:
-        rig, rng = self.rig, random.Random(seed)
-        try:
-            resp = rig.client.load_ok(RIG, "faults::MallocHammer", node_name=f"hammer{index}",
-                                      parameters={"delay": 0.0, "seed": seed})
-        except HarnessTimeout as exc:
-            # The container went on after the last trial's death and stopped later.
-            return rig.not_survived(f"a load before the fault got no answer: {exc}")
-        pid = rig.loaded_pid(resp.unique_id)
-        rig.wait_firing(pid)
-        sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.02))
-        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+        rig = self.rig
+        out = _kill_when_firing(rig, seed, "faults::MallocHammer", f"hammer{index}", {"delay": 0.0, "seed": seed})
         if out.outcome == "survived":
             out = rig.keeps_flowing(self.freed, "the drain sibling's freeing", out)
         return out
@@ -223,18 +230,10 @@ class PayloadKill:
         return msgs[-1].data if msgs else 0
 
     def trial(self, seed: int, index: int) -> Outcome:
-        rig, rng = self.rig, random.Random(seed)
+        rig = self.rig
         before = self._released_total()
-        try:
-            resp = rig.client.load_ok(RIG, "faults::PayloadPublisher", node_name=f"payload_pub{index}",
-                                      parameters={"payload": self.payload, "seed": seed}, extra_arguments=INTRA)
-        except HarnessTimeout as exc:
-            # The container went on after the last trial's death and stopped later.
-            return rig.not_survived(f"a load before the fault got no answer: {exc}")
-        pid = rig.loaded_pid(resp.unique_id)
-        rig.wait_firing(pid)
-        sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.02))
-        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
+        out = _kill_when_firing(rig, seed, "faults::PayloadPublisher", f"payload_pub{index}",
+                                {"payload": self.payload, "seed": seed}, INTRA)
         if out.outcome == "survived":
             out = rig.keeps_flowing(self.released, "the holder's releasing", out)
         if out.outcome != "survived":
