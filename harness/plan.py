@@ -38,12 +38,27 @@ def add_options(parser) -> None:
     group.addoption("--seed", type=int, default=1, help="base seed of every random choice (default 1)")
 
 
+def parse_shard(text: str) -> tuple[int, int]:
+    """"K/N" -> (K, N), 1 <= K <= N."""
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard takes K/N (e.g. 3/8), not {text!r}") from None
+    if not 1 <= k <= n:
+        raise ValueError(f"--shard {text}: K must be between 1 and N")
+    return k, n
+
+
 def shard_of(config) -> tuple[int, int] | None:
     text = config.getoption("--shard", default=None)
-    if not text:
-        return None
-    from .report.collect import parse_shard
-    return parse_shard(text)
+    return parse_shard(text) if text else None
+
+
+def trial_plan_of(config) -> dict:
+    """What decides which trials a run makes (runs merge only if equal)."""
+    return {"seed": config.getoption("--seed", default=None),
+            "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
+            "trials": config.getoption("--trials", default=None)}
 
 
 def trial_count(config, quick: int, deep: int) -> int:

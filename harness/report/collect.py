@@ -12,7 +12,7 @@ Options
                         default: <repo>/reports/<UTC time>-<random>
     --run-label TEXT    a label shown in the report
     --shard K/N         run shard K of N of the scenarios' trials (see
-                        harness/trials.py); merge the shards' reports with
+                        harness/plan.py); merge the shards' reports with
                         ``python -m harness merge``
 """
 from __future__ import annotations
@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 
+from ..plan import ENV_DEEP, parse_shard, trial_plan_of
 from . import env
 from .junit import write_junit
 from .model import JUNIT_XML, REPORT_HTML, TRIAL_OUTCOMES, Report, RunInfo, Scenario, write_atomic
@@ -34,7 +35,6 @@ from .record import RECORD_ATTR, _iso, pytest_runtest_makereport, resilience  # 
 from .render import write_html
 
 ENV_REPORT_DIR = "CLONEGUARD_REPORT_DIR"
-ENV_DEEP = "CLONEGUARD_DEEP"
 SCENARIO_DIR = "scenarios"
 LATEST = "latest"
 #: longest pytest failure text kept per test
@@ -343,24 +343,6 @@ def _take_recorded(record: Scenario, recorded: Scenario) -> None:
     record.started = recorded.started or record.started
     record.trials, record.hangs = recorded.trials, recorded.hangs
     record.expectations, record.notes = recorded.expectations, recorded.notes
-
-
-def trial_plan_of(config) -> dict:
-    """What decides which trials a run makes (runs merge only if equal)."""
-    return {"seed": config.getoption("--seed", default=None),
-            "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
-            "trials": config.getoption("--trials", default=None)}
-
-
-def parse_shard(text: str) -> tuple[int, int]:
-    """"K/N" -> (K, N), 1 <= K <= N."""
-    try:
-        k, n = (int(x) for x in text.split("/"))
-    except ValueError:
-        raise ValueError(f"--shard takes K/N (e.g. 3/8), not {text!r}") from None
-    if not 1 <= k <= n:
-        raise ValueError(f"--shard {text}: K must be between 1 and N")
-    return k, n
 
 
 # --------------------------------------------------------------------------
