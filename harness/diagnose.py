@@ -26,16 +26,24 @@ passes what it knows: pid -> node name, and which pids are dead) is named.
 """
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import procfs
 
 GDB_TIMEOUT_S = 90
+# CPU use of every thread is sampled over this window before the stacks are
+# taken; at SPIN_PERCENT or more of a CPU a thread of a hung container is
+# called spinning.
+CPU_WINDOW_S = 0.5
+SPIN_PERCENT = 50
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 # CPython's gdb extension (py-bt), where the interpreter installed it.
 PY_GDB = Path(sys.base_prefix) / "bin" / f"python{sys.version_info[0]}.{sys.version_info[1]}-gdb.py"
 
@@ -96,6 +104,7 @@ class ThreadState:
     pid: int
     state: str            # "blocked", "idle", "python lock", "running"
     what: str             # the function (and Python frame) it is in
+    cpu_percent: int = 0  # CPU it used in the sampling window before the stacks were taken
 
 
 @dataclass
@@ -108,12 +117,15 @@ class Diagnosis:
     names: dict[int, str] = field(default_factory=dict)   # pid -> "container" / node name
 
     def summary(self) -> str:
+        spinning = [f"{self.names.get(s.pid, '?')} tid {s.tid} spinning ({s.cpu_percent}% of a CPU "
+                    f"while nothing progressed): {s.what}" for s in self.states if s.cpu_percent >= SPIN_PERCENT]
         if self.blocked:
-            return "; ".join(b.describe() for b in self.blocked)
-        facts = []
+            return "; ".join([b.describe() for b in self.blocked] + spinning)
+        facts = list(spinning)
         for pid, name in self.names.items():
             main = next((s for s in self.states if s.tid == pid), None)
-            busy = [s for s in self.states if s.pid == pid and s.state != "idle"]
+            busy = [s for s in self.states
+                    if s.pid == pid and s.state != "idle" and s.cpu_percent < SPIN_PERCENT]
             if main is not None and (main.state != "idle" or pid != self.pid):
                 facts.append(f"{name} (pid {pid}) main thread {main.state}: {main.what}")
             facts.extend(f"{name} tid {s.tid} {s.state}: {s.what}" for s in busy if s is not main)
@@ -233,6 +245,13 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
     names = {pid: "container"}
     names.update({p: n for p, n in sorted(nodes_by_pid.items())
                   if p not in dead_pids and p != pid and procfs.alive(p)})
+    # A stack shows a moment; CPU time over a window says who is spinning
+    # (a livelock, a busy wait on something that never comes) and who waits.
+    before = {p: procfs.thread_cpu_ticks(p) for p in names}
+    time.sleep(CPU_WINDOW_S)
+    after = {p: procfs.thread_cpu_ticks(p) for p in names}
+    cpu = {tid: round(100 * (ticks - before[p].get(tid, ticks)) / (CLOCK_TICKS * CPU_WINDOW_S))
+           for p in names for tid, ticks in after[p].items()}
     commands = ["thread apply all bt 40"]
     if PY_GDB.is_file():
         commands = [f"source {PY_GDB}", *commands, "thread apply all py-bt"]
@@ -247,9 +266,9 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
     for t, what in waits:
         if what is None:
             state, where = _state(t)
-            states.append(ThreadState(t.tid, t.pid, state, where))
+            states.append(ThreadState(t.tid, t.pid, state, where, cpu.get(t.tid, 0)))
             continue
-        states.append(ThreadState(t.tid, t.pid, "blocked", _where(t)))
+        states.append(ThreadState(t.tid, t.pid, "blocked", _where(t), cpu.get(t.tid, 0)))
         kind, addr, symbol = what
         owner, note = owners.get((kind, addr)), ""
         if kind == "malloc arena lock":

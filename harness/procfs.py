@@ -33,6 +33,23 @@ def stat(pid: int) -> ProcStat | None:
     )
 
 
+def thread_cpu_ticks(pid: int) -> dict[int, int]:
+    """CPU time (user + system, in clock ticks) of every thread of ``pid``."""
+    out = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except (FileNotFoundError, ProcessLookupError):
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
+                rest = f.read().decode(errors="replace").rpartition(")")[2].split()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        out[int(tid)] = int(rest[11]) + int(rest[12])      # utime, stime (fields 14, 15)
+    return out
+
+
 def all_stats() -> list[ProcStat]:
     out = []
     for name in os.listdir("/proc"):

@@ -85,3 +85,38 @@ def test_without_a_lock_the_summary_says_what_the_main_threads_do():
                           ThreadState(11, 11, "running", "drain_some [Python: _drain (components.py:225)]")])
     assert d.summary() == ("no thread waits on a lock; /drain (pid 11) main thread running: "
                            "drain_some [Python: _drain (components.py:225)]")
+
+
+def test_a_thread_that_burns_cpu_while_nothing_progresses_is_called_spinning():
+    from harness.diagnose import ThreadState
+    d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container"},
+                  states=[ThreadState(10, 10, "idle", "epoll_wait"),
+                          ThreadState(12, 10, "running", "process_data_message", cpu_percent=97)])
+    assert d.summary() == ("no thread waits on a lock; container tid 12 spinning (97% of a CPU while "
+                           "nothing progressed): process_data_message")
+
+
+def test_a_live_busy_loop_is_told_from_a_sleeper():
+    """gdb on a real process: one thread spins, the main thread sleeps."""
+    import subprocess
+    import sys
+
+    import pytest
+
+    from harness.diagnose import diagnose, gdb_available
+    if not gdb_available():
+        pytest.skip("no gdb here")
+    code = "import threading, time\nthreading.Thread(target=lambda: [None for _ in iter(int, 1)], daemon=True).start()\n" \
+           "print('ready', flush=True)\ntime.sleep(60)\n"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        d = diagnose(proc.pid)
+        by_cpu = sorted(d.states, key=lambda s: -s.cpu_percent)
+        # The loop's thread used the CPU (how much depends on the machine's
+        # load); the sleeping main thread none.
+        assert by_cpu[0].tid != proc.pid and by_cpu[0].cpu_percent > 0, d.states
+        assert next(s for s in d.states if s.tid == proc.pid).cpu_percent == 0, d.states
+    finally:
+        proc.kill()
+        proc.wait()
