@@ -60,7 +60,7 @@ UPSTREAM_HASHES = {
 }
 SERVICES = {"LoadNode": LoadNode, "UnloadNode": UnloadNode, "ListNodes": ListNodes}
 
-COMPONENT_EVENT_CONSTANTS = {"LOADED": 0, "UNLOADED": 1, "LOAD_FAILED": 2, "CRASHED": 3}
+COMPONENT_EVENT_CONSTANTS = {"LOADED": 0, "UNLOADED": 1, "LOAD_FAILED": 2, "CRASHED": 3, "REPAIRED": 4}
 COMPONENT_EVENT_FIELDS = {
     "stamp": "builtin_interfaces/Time",
     "event_type": "uint8",
@@ -74,6 +74,7 @@ COMPONENT_EVENT_FIELDS = {
     "exit_code": "int32",
     "start_time": "uint64",
     "allocator_quarantined": "boolean",
+    "repaired_state": "string",
 }
 
 SHARE = Path(sys.prefix) / "share"
@@ -238,7 +239,7 @@ def test_component_event_serialization_round_trip():
         stamp=Time(sec=1, nanosec=2), event_type=255, unique_id=2**64 - 1,
         full_node_name="/ns/talker", package_name="cloneguard", plugin_name="cloneguard::Talker",
         error_message="killed by SIGSEGV", pid=-2**31, exit_signal=2**31 - 1, exit_code=-1,
-        start_time=2**64 - 1, allocator_quarantined=True)
+        start_time=2**64 - 1, allocator_quarantined=True, repaired_state="progress-board")
     back = deserialize_message(serialize_message(msg), ComponentEvent)
     assert back == msg
     assert back.pid == -2**31 and back.exit_code == -1 and back.start_time == 2**64 - 1
