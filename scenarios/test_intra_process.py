@@ -23,16 +23,19 @@ def test_death_inside_an_intra_process_queue_operation(op, profile, rig_factory,
               "exchanging messages by reference, the container goes on",
     )
     fault = FAULTS[f"intra-die-mid-{op}"](rig_factory(profile))
-    run_trials(fault.trial, fault.settle, quick=2, deep=200)
-    resilience.expect_rate("survived", at_least=QUEUE_DEATH_FLOOR)
+    run_trials(fault.trial, fault.settle, quick=5, deep=200)
+    trials = len(resilience.scenario.trials)
+    resilience.expect_rate("survived", at_least=QUEUE_DEATH_FLOOR if trials >= 100 else QUICK_FLOOR)
 
 
 # Measured in deep runs (docs/evidence.md): put 200/200 in both profiles,
-# take 199/200 in each. The queue itself always survived; the two hangs
-# were elsewhere: per-node, a container thread waiting on a Fast DDS mutex
-# (a payload pool process-wide per topic) that the dead subscription's
-# process held; shared, every thread idle in its wait (diagnosed, open).
+# take 199/200 in each. The queue itself always survived; the hangs were
+# elsewhere (a Fast DDS mutex of a payload pool shared per topic, held by
+# the dead subscription's process; the shared profile's participant). On a
+# quick run's 5 trials the floor is 4: a 99.5% rate misses it once in
+# 4,000 runs, where demanding 5 of 5 would fail one run in 40.
 QUEUE_DEATH_FLOOR = 0.98
+QUICK_FLOOR = 0.8
 
 
 # Measured (glibc malloc, per-node). Before the allocator guard and the

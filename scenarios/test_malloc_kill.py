@@ -14,20 +14,22 @@ import pytest
 
 from faults.trials import FAULTS
 from faults.trials import MALLOC_ALLOCATORS as ALLOCATORS
-# Guarded: measured 100% (glibc 120/120, jemalloc 130/130 while building
-# it; the deep runs are in docs/evidence.md). 28 of 30 is a floor a 99%
-# rate breaks once in ~300 runs (binomial tail), and that the unguarded
-# allocators miss by far. Unguarded glibc hangs most of the time (the dead
+# Guarded: 299/300 with glibc and with jemalloc in deep runs
+# (docs/evidence.md). 28 of 30 is a floor a 99% rate breaks once in ~300
+# runs (binomial tail), and that the unguarded allocators miss by far.
+# Unguarded glibc hangs about half the time (111/200 survived: the dead
 # hammer keeps its arena lock and the drain frees into that arena): a
-# ceiling, so that a change that makes it survive is noticed. Unguarded
-# jemalloc with an arena per node has ranged from 60% to 100% between runs:
-# recorded, not promised.
+# ceiling, so that a change that makes it survive is noticed, judged only
+# on CEILING_MIN_TRIALS or more (on 8 trials a 55% rate passes 80% in 7% of
+# runs). Unguarded jemalloc with an arena per node: 184/200, recorded, not
+# promised.
 EXPECT = {
     "glibc": {"at_least": 0.93},
     "jemalloc": {"at_least": 0.93},
     "glibc-unguarded": {"at_most": 0.8},
     "jemalloc-own-unguarded": None,
 }
+CEILING_MIN_TRIALS = 100
 QUICK = {"glibc": 30, "jemalloc": 30, "glibc-unguarded": 8, "jemalloc-own-unguarded": 8}
 # The unguarded baselines hang often (~15 s each to judge, diagnose and
 # restart): 200 deep trials, the floor for every isolated-mode cell.
@@ -46,10 +48,13 @@ def test_sigkill_during_malloc(allocator, rig_factory, resilience, run_trials):
     )
     fault = FAULTS["sigkill-during-malloc"](rig_factory("per-node", extra_args=ALLOCATORS[allocator]))
     run_trials(fault.trial, fault.settle, quick=QUICK[allocator], deep=DEEP[allocator])
-    if EXPECT[allocator] is None:
+    expect = EXPECT[allocator]
+    if expect is None:
         resilience.note("baseline: survival measured, not promised")
+    elif "at_most" in expect and len(resilience.scenario.trials) < CEILING_MIN_TRIALS:
+        resilience.note(f"baseline: its ceiling is judged on {CEILING_MIN_TRIALS} trials or more (--deep)")
     else:
-        resilience.expect_rate("survived", **EXPECT[allocator])
+        resilience.expect_rate("survived", **expect)
     if guarded:
         quarantined = sum(1 for t in resilience.scenario.trials
                           if t.details.get("allocator_quarantined"))

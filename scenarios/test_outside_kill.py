@@ -13,11 +13,15 @@ def test_random_sigkill_of_a_busy_node(profile, rig_factory, resilience, run_tri
     )
     fault = FAULTS["sigkill-outside"](rig_factory(profile))
     run_trials(fault.trial, fault.settle, quick=5, deep=300)
-    resilience.expect_rate("survived", at_least=FLOOR[profile])
+    floor = FLOOR[profile] if len(resilience.scenario.trials) >= 100 else QUICK_FLOOR[profile]
+    resilience.expect_rate("survived", at_least=floor)
 
 
 # Per-node: 300/300 in deep runs. Shared: 298/300; both hangs were the
 # container waiting on a mutex of its own DDS participant that the killed
 # node's process held (shared-profile nodes publish through the container's
 # participant: a kill there is outside what any mitigation here covers).
+# On a quick run's 5 trials the shared floor is 4 of 5 (a 99.3% rate misses
+# it once in ~4,000 runs; 5 of 5 would fail one run in 30).
 FLOOR = {"per-node": 1.0, "shared": 0.98}
+QUICK_FLOOR = {"per-node": 1.0, "shared": 0.8}
