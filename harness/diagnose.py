@@ -91,6 +91,8 @@ class BlockedOn:
                 owner += f" ({'dead ' if self.owner_dead else ''}node {self.owner_node})"
             elif self.owner_dead:
                 owner += " (a dead process)"
+            elif self.note:
+                owner += f" ({self.note})"
         elif self.note:
             owner = self.note
         at = f" at {self.address}" if self.address else ""
@@ -281,6 +283,10 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
                 note = (f"{arena}: glibc records no owner and no live thread is inside it, so a "
                         f"task that is gone holds it" + (f"; dead node processes: {', '.join(dead)}" if dead else ""))
         owner = owner or None
+        if owner and not note and owner not in {s.tid for s in threads}:
+            # Owned by a task in no process we looked into: say what it is.
+            facts = procfs.task_facts(owner)
+            note = f"tid {owner}: {facts}" if facts else ""
         blocked.append(BlockedOn(
             tid=t.tid, kind=kind, address=addr, owner_tid=owner,
             owner_node=nodes_by_pid.get(owner) if owner else None,

@@ -124,6 +124,22 @@ def cgroup_dirs_named(name: str) -> list:
     return found
 
 
+def task_facts(tid: int) -> str:
+    """What /proc says of a task nobody attached to: its state, its thread
+    group, and the innermost kernel frames it sleeps in ("" if gone)."""
+    state = status_field(tid, "State")
+    if state is None:
+        return ""
+    tgid = status_field(tid, "Tgid")
+    try:
+        with open(f"/proc/{tid}/stack") as f:
+            frames = [line.split("] ", 1)[-1].split("+")[0] for line in f.read().splitlines()[:4]]
+    except OSError:
+        frames = []
+    facts = f"state {state}, thread group {tgid}"
+    return facts + (f", in the kernel at {' < '.join(frames)}" if frames else "")
+
+
 def alive(pid: int) -> bool:
     """The task exists and is not a zombie."""
     st = stat(pid)

@@ -120,3 +120,20 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
     finally:
         proc.kill()
         proc.wait()
+
+
+def test_an_owner_in_no_process_looked_into_is_described_from_proc():
+    from harness.diagnose import BlockedOn
+    b = BlockedOn(tid=5, kind="GIL", address="", owner_tid=77, owner_node=None, owner_dead=False,
+                  where="container", note="tid 77: state D (disk sleep), thread group 70")
+    assert b.describe() == ("tid 5 (container) waits on the GIL, owned by tid 77 "
+                            "(tid 77: state D (disk sleep), thread group 70)")
+
+
+def test_proc_facts_of_a_live_task_name_its_state_and_group():
+    import os
+
+    from harness import procfs
+    facts = procfs.task_facts(os.getpid())
+    assert facts.startswith("state R") or facts.startswith("state S"), facts
+    assert f"thread group {os.getpid()}" in facts

@@ -6,7 +6,12 @@ not survive with its diagnosis, for docs and closing notes.
 """
 from __future__ import annotations
 
+import re
+
 from .model import Report, Scenario
+
+#: more non-survivals than this in one scenario are grouped by cause
+GROUP_OVER = 5
 
 
 def _pct(x: float | None) -> str:
@@ -28,6 +33,13 @@ def _cell(s: Scenario) -> str:
 
 def _others(counts: dict[str, int]) -> str:
     return ", ".join(f"{n} {k}" for k, n in sorted(counts.items()) if k != "survived" and n) or "-"
+
+
+def _cause(text: str) -> str:
+    """A diagnosis or reason with its numbers, addresses and node names
+    taken out, so that hangs of one cause read the same."""
+    first = text.split("; ")[0]
+    return re.sub(r"0x[0-9a-f]+|/[a-z_]+\d+|\d+", "#", first)
 
 
 def markdown(report: Report, *, hang_chars: int = 240) -> str:
@@ -65,12 +77,20 @@ def markdown(report: Report, *, hang_chars: int = 240) -> str:
             continue
         hangs = {h.trial: h for h in s.hangs}
         lines.append(f"- **{_cell(s)}** ({s.profile}): {len(bad)} of {len(s.trials)}")
+        groups: dict[str, list] = {}
         for t in bad:
             why = str(t.details.get("why", "")).strip()
-            text = f"  - trial {t.index} (seed {t.seed}), {t.outcome}" + (f": {why}" if why else "")
-            if t.index in hangs:
-                summary = hangs[t.index].summary
-                cut = summary if len(summary) <= hang_chars else summary[:hang_chars] + " …"
+            diagnosis = hangs[t.index].summary if t.index in hangs else ""
+            key = _cause(diagnosis or why) if len(bad) > GROUP_OVER else str(t.index)
+            groups.setdefault(key, []).append((t, why, diagnosis))
+        for members in sorted(groups.values(), key=len, reverse=True):
+            t, why, diagnosis = members[0]
+            text = (f"  - trial {t.index} (seed {t.seed}), {t.outcome}" if len(members) == 1 else
+                    f"  - {len(members)} trials ({', '.join(str(m[0].index) for m in members[:12])}"
+                    f"{' …' if len(members) > 12 else ''}), {t.outcome} alike; the first")
+            text += f": {why}" if why else ""
+            if diagnosis:
+                cut = diagnosis if len(diagnosis) <= hang_chars else diagnosis[:hang_chars] + " …"
                 text += f". Diagnosis: {cut}"
             lines.append(text)
     return "\n".join(lines) + "\n"
