@@ -2,22 +2,33 @@
 ``timeout`` seconds, every Python thread's stack goes to stderr and the
 container exits with status 1 (its children die with it, PR_SET_PDEATHSIG).
 
-It is faulthandler's dump_traceback_later, re-armed once every watched
-executor has shown progress since the last arming: the services' executor
-through a timer on the container's node, the nodes' executor (thread mode's
-nodes spin there) through a task the timer hands it. The dump runs on
-faulthandler's own C thread and needs neither the GIL nor any lock, so it
-still fires when a dead child has left the interpreter or an executor stuck.
+Progress: the watchdog is re-armed once every watched executor has shown
+progress since the last arming: the services' executor through a timer on
+the container's node, the nodes' executor (thread mode's nodes spin there)
+through a task the timer hands it.
+
+The dump has two stages, because the two ways to take it fail differently:
+- At ``timeout``, a Python thread of the watchdog dumps every thread's stack
+  while it holds the GIL, so no other thread's frames change under the dump.
+- If that thread cannot run (the GIL itself is stuck: a dead child left the
+  interpreter, or a C call holds it), faulthandler's own C thread dumps
+  ``FALLBACK_GRACE_S`` later without the GIL and without any lock, and exits.
+  That dump reads the frames of threads that may be running, so it is only
+  the last resort: taken while Python threads still run, it can read a frame
+  being freed and crash the container with SIGSEGV instead of exiting 1.
 The typical cause in isolated mode is a child that died holding a lock the
 container then waits for; in thread mode, a callback that never returns.
 """
 from __future__ import annotations
 
 import faulthandler
+import os
 import sys
 import threading
+import time
 
 BANNER = "cloneguard watchdog"
+FALLBACK_GRACE_S = 2.0
 
 
 class Watchdog:
@@ -33,7 +44,11 @@ class Watchdog:
         self._lock = threading.Lock()
         self._progressed: set[int] = set()     # indexes into _watched since the last arming
         self._pending: dict[int, object] = {}  # a task handed out, not yet run
+        self._closed = threading.Event()
+        self._deadline = 0.0
         self._arm()
+        self._thread = threading.Thread(target=self._watch, name="cloneguard-watchdog", daemon=True)
+        self._thread.start()
         self._timer = node.create_timer(min(1.0, timeout_s / 4), self._tick)
         self._log.info(
             f"{BANNER}: if an executor makes no progress for {timeout_s:g} s, "
@@ -41,7 +56,28 @@ class Watchdog:
         )
 
     def _arm(self) -> None:
-        faulthandler.dump_traceback_later(self.timeout_s, repeat=False, file=sys.stderr, exit=True)
+        self._deadline = time.monotonic() + self.timeout_s
+        faulthandler.dump_traceback_later(
+            self.timeout_s + FALLBACK_GRACE_S, repeat=False, file=sys.stderr, exit=True
+        )
+
+    def _watch(self) -> None:
+        while True:
+            remaining = self._deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            if self._closed.wait(remaining):
+                return
+        # Holding the GIL from here on: no thread runs Python code while the
+        # dump reads the frames, and nothing re-arms us.
+        sys.stderr.write(
+            f"{BANNER}: no progress for {self.timeout_s:g} s; the stacks of all threads follow "
+            "and the container exits with status 1\n"
+        )
+        sys.stderr.flush()
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        sys.stderr.flush()
+        os._exit(1)
 
     def _tick(self) -> None:
         for index, executor in enumerate(self._watched):
@@ -63,5 +99,7 @@ class Watchdog:
                 self._arm()
 
     def close(self) -> None:
+        self._closed.set()
         faulthandler.cancel_dump_traceback_later()
         self._timer.cancel()
+        self._thread.join()

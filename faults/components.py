@@ -112,7 +112,9 @@ class HangInCallback(_FaultNode):
     """A callback that never returns.
 
     ``mode`` "sleep": blocks with the GIL released; "spin": loops in Python
-    (the interpreter still hands the GIL to others every few ms).
+    (the interpreter still hands the GIL to others every few ms); "gil":
+    blocks in a C call that keeps the GIL (libc sleep() through ctypes.PyDLL),
+    so no other Python thread of the process runs again.
     """
 
     fault = "hang"
@@ -120,14 +122,16 @@ class HangInCallback(_FaultNode):
     def __init__(self, **kwargs):
         super().__init__("hanger", **kwargs)
         self.mode = self.declare_parameter("mode", "sleep").value
-        if self.mode not in ("sleep", "spin"):
-            raise ValueError(f"parameter 'mode' must be 'sleep' or 'spin', got {self.mode!r}")
+        if self.mode not in ("sleep", "spin", "gil"):
+            raise ValueError(f"parameter 'mode' must be 'sleep', 'spin' or 'gil', got {self.mode!r}")
         self.fault = f"hang-{self.mode}"
 
     def fire(self):
         while True:
             if self.mode == "sleep":
                 time.sleep(3600)
+            elif self.mode == "gil":
+                ctypes.PyDLL(None).sleep(3600)
 
 
 class SlowConstructor(Node):
