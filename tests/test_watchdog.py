@@ -4,32 +4,34 @@ import pytest
 from faults import PACKAGE as RIG
 
 
-@pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
-def test_a_stalled_executor_is_reported_with_stacks_and_exit_1(client, container):
-    # Thread mode, one executor: a callback that never returns stalls it all.
-    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2})
+def _hang_until_the_watchdog_ends_it(client, container, mode: str) -> str:
+    """Load a callback that never returns; the container must exit with 1
+    and its log (returned) must show the stack of the callback that hangs."""
+    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
     code = container.wait(timeout=20)
     assert code == 1, f"exit code {code}"
     log = container.log_text()
+    assert "faults/components.py" in log and "in fire" in log
+    return log
+
+
+@pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
+def test_a_stalled_executor_is_reported_with_stacks_and_exit_1(client, container):
+    # Thread mode, one executor: a callback that never returns stalls it all.
+    log = _hang_until_the_watchdog_ends_it(client, container, "sleep")
     # The dump was taken with the GIL held (the first stage), not by the
     # lock-free fallback.
     assert "cloneguard watchdog: no progress for 2 s" in log
     assert "Timeout (" not in log
-    # The stuck thread's stack names the callback that hangs.
-    assert "faults/components.py" in log and "in fire" in log
 
 
 @pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
 def test_a_callback_that_keeps_the_gil_is_still_reported_and_ends_the_container(client, container):
     # No Python thread runs again, the watchdog's own included: the dump
     # comes from faulthandler's C thread, 2 s (the grace) later.
-    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": "gil"})
-    code = container.wait(timeout=20)
-    assert code == 1, f"exit code {code}"
-    log = container.log_text()
+    log = _hang_until_the_watchdog_ends_it(client, container, "gil")
     assert "Timeout (0:00:04)!" in log
     assert "cloneguard watchdog: no progress" not in log
-    assert "faults/components.py" in log and "in fire" in log
 
 
 @pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
