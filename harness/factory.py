@@ -42,12 +42,14 @@ class ContainerFactory:
         node_name: str = "ComponentManager",
         fastdds_profile=NO_SHM_PROFILE,
         extra_env: dict[str, str] | None = None,
+        exe: str | None = None,
     ) -> ContainerProcess:
+        """``exe`` overrides the factory's container executable for this one."""
         proc = ContainerProcess(
             list(args),
             domain_id=self.domain_id,
             log_path=self._log_dir / f"container-{len(self.started)}.log",
-            exe=self._exe,
+            exe=exe or self._exe,
             node_name=node_name,
             fastdds_profile=fastdds_profile,
             extra_env=extra_env,

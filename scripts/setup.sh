@@ -44,6 +44,17 @@ echo "== interfaces: composition_interfaces, cloneguard_interfaces"
 .venv/bin/python scripts/build_interfaces.py
 echo "== cloneguard, the product (editable, builds the C core)"
 "${PIP[@]}" install --no-build-isolation --no-deps -e .
+echo "== ament index: launch and ros2 component find cloneguard under .venv"
+.venv/bin/python scripts/register_ament.py
+if ! grep -q "cloneguard: the venv is an ament prefix" .venv/bin/activate; then
+    cat >> .venv/bin/activate <<'ACTIVATE'
+# cloneguard: the venv is an ament prefix (launch files, ros2 component)
+case ":${AMENT_PREFIX_PATH-}:" in
+    *":$VIRTUAL_ENV:"*) ;;
+    *) export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}" ;;
+esac
+ACTIVATE
+fi
 echo "== cloneguard-testrig: harness, faults, benchmarks (editable, beside the product)"
 "${PIP[@]}" install --no-build-isolation --no-deps -e rig
 .venv/bin/python -c "import container, harness, faults; print('cloneguard and its test rig are set up in .venv')"

@@ -7,6 +7,7 @@ packages, cffi) from this venv's site-packages through a directory of links
 that leaves out both cloneguard distributions, so nothing of the rig can
 leak in.
 """
+import os
 import shutil
 import subprocess
 import sys
@@ -65,7 +66,13 @@ def test_the_product_wheel_holds_only_the_container(product):
         tops = {n.split("/")[0] for n in names}
         [entry_points] = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
         declared = zf.read(entry_points).decode()
-    assert {t for t in tops if not t.endswith(".dist-info")} == {"container"}, tops
+    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"container"}, tops
+    # Besides the package, only the ament index entries (ament/README.md).
+    data = sorted(n.split(".data/data/")[1] for n in names if ".data/" in n)
+    assert data == ["lib/cloneguard/cloneguard-python-components.not-a-library",
+                    "lib/cloneguard/component_container",
+                    "share/ament_index/resource_index/packages/cloneguard",
+                    "share/ament_index/resource_index/rclcpp_components/cloneguard"], data
     assert "faults" not in declared and "bench" not in declared and "pytest11" not in declared, declared
     assert any(n.startswith("container/isolated/_clonecore") for n in names)
 
@@ -78,6 +85,8 @@ def test_a_product_install_serves_loads_and_refuses_every_fault_component(produc
     assert probe.returncode != 0 and "No module named 'faults'" in probe.stderr
     exe = venv / "bin" / "component_container"
     assert exe.exists()
+    # Where launch looks for it (<prefix>/lib/<package>), installed executable.
+    assert os.access(venv / "lib" / "cloneguard" / "component_container", os.X_OK)
     with domains.lease() as lease:
         factory = ContainerFactory(lease.domain_id, tmp_path, exe=str(exe))
         try:
