@@ -162,6 +162,8 @@ def _make_host(opts, executor, context, logger):
         cgroups = NodeCgroups() if opts.cgroups else None
     except CgroupsUnavailable as exc:
         raise SystemExit(f"component_container: --cgroups is unavailable here: {exc}") from None
+    for stale in cgroups.reclaimed if cgroups is not None else ():
+        logger.warning(f"removed the empty cgroup {stale}, left by a dead container that had this pid")
     try:
         return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups,
                             mitigations=mitigations)

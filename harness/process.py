@@ -101,6 +101,9 @@ class ContainerProcess:
         env.update(extra_env or {})
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = open(self.log_path, "ab", buffering=0)
+        # Wall time before the process exists: whatever is named for its pid
+        # (a cgroup) but older than this belongs to an earlier owner of the pid.
+        self.started_at = time.time()
         # setpriv sets PR_SET_PDEATHSIG in the child and execs the container,
         # so the pid below is the container's own.
         self._popen = subprocess.Popen(

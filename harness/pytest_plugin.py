@@ -92,7 +92,10 @@ class _Leftovers:
                 members = proc.group_members()
                 if members:
                     found.append(f"processes left in group {proc.pgid}: {members}")
-                cgroups = procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
+                # Only cgroups it made: a dead container of an earlier run
+                # that had the same pid may have left one of that name.
+                cgroups = [d for d in procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
+                           if d.stat().st_ctime >= proc.started_at]
                 if cgroups:
                     found.append(f"cgroups left behind: {[str(d) for d in cgroups]}")
         zombies = procfs.zombies_of(os.getpid())

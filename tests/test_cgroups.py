@@ -1,4 +1,6 @@
 """--cgroups: each isolated node born in its own cgroup, with an optional CPU quota."""
+import os
+import subprocess
 import time
 from pathlib import Path
 
@@ -83,3 +85,48 @@ def test_stopping_the_container_removes_its_cgroups(client, container):
     container.stop()
     assert container.exit_status.returncode == 0
     assert not any(d.exists() for d in dirs)
+
+
+def _stale_tree(name: str) -> list[Path]:
+    """What a SIGKILLed container leaves: its root and a node's cgroup in
+    each hierarchy it used, with no process in them."""
+    roots = [cgroup2_mount() / name] + ([v1_cpu_mount() / name] if v1_cpu_mount() else [])
+    for root in roots:
+        (root / "node-7").mkdir(parents=True)
+    return roots
+
+
+def test_an_empty_cgroup_left_under_our_name_is_reclaimed(request):
+    from container.isolated.cgroups import NodeCgroups
+
+    name = f"cloneguard-test-stale-{os.getpid()}"
+    roots = _stale_tree(name)
+    cgroups = NodeCgroups(name)
+    request.addfinalizer(cgroups.close)
+    assert cgroups.reclaimed == [str(r) for r in roots]
+    assert not (roots[0] / "node-7").exists()
+    cg = cgroups.create(7)                # the name a stale node held is free again
+    cgroups.remove(cg)
+    assert cgroups.close() == []
+    assert not any(r.exists() for r in roots)
+
+
+def test_a_cgroup_under_our_name_with_a_live_process_is_refused_not_touched():
+    from container.isolated.cgroups import CgroupsUnavailable, NodeCgroups
+
+    name = f"cloneguard-test-busy-{os.getpid()}"
+    roots = _stale_tree(name)
+    sleeper = subprocess.Popen(["sleep", "60"])
+    try:
+        (roots[0] / "node-7" / "cgroup.procs").write_text(str(sleeper.pid))
+        with pytest.raises(CgroupsUnavailable, match="has processes in"):
+            NodeCgroups(name)
+        assert (roots[0] / "node-7").is_dir()
+        assert f"/{name}/node-7" in Path(f"/proc/{sleeper.pid}/cgroup").read_text()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+        from container.isolated.cgroups import _rmdir
+        for root in roots:
+            for d in sorted((d for d in root.rglob("*") if d.is_dir()), reverse=True) + [root]:
+                _rmdir(d)

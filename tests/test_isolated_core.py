@@ -669,6 +669,39 @@ def test_release_frees_stack_tls_and_pidfd_over_many_cycles(core):
     assert core.children() == []
 
 
+def test_close_lets_a_death_still_being_reported_finish_before_releasing():
+    # A container stopping while a node's death is still in its handler
+    # (the handler publishes CRASHED, destroys the node, then releases the
+    # child): close() must not release that child under the handler's feet.
+    gate, entered, outcome, box = threading.Event(), threading.Event(), [], []
+
+    def on_event(event):
+        if isinstance(event, Death):
+            entered.set()
+            gate.wait(30)
+            try:
+                core.release(box[0])
+                outcome.append("released by its handler")
+            except Exception as exc:
+                outcome.append(repr(exc))
+
+    core = CloneCore(on_event=on_event)
+    try:
+        box.append(core.spawn(lambda: None))
+        assert entered.wait(10)
+        closer = threading.Thread(target=core.close)
+        closer.start()
+        closer.join(1.0)
+        assert closer.is_alive(), "close() did not wait for the death's handler"
+        gate.set()
+        closer.join(30)
+        assert not closer.is_alive()
+        assert outcome == ["released by its handler"]
+    finally:
+        gate.set()
+        core.close()
+
+
 # --------------------------------------------------------------------------
 # contracts
 

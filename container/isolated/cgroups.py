@@ -83,17 +83,41 @@ class NodeCgroups:
             raise CgroupsUnavailable("no cgroup2 hierarchy is mounted (needed for CLONE_INTO_CGROUP)")
         self.name = name or f"cloneguard-{os.getpid()}"
         self.v2_root = v2 / self.name
+        controllers = (v2 / "cgroup.controllers").read_text().split()
+        self._v2_cpu = "cpu" in controllers
+        self._v1_cpu = None if self._v2_cpu else v1_cpu_mount()
+        self.v1_root = self._v1_cpu / self.name if self._v1_cpu else None
+        # A container that was SIGKILLed could not remove its cgroups; one
+        # that had our pid left them under our name.
+        self.reclaimed = self._reclaim_stale()
         try:
             self.v2_root.mkdir(exist_ok=False)
         except OSError as exc:
             raise CgroupsUnavailable(f"cannot create {self.v2_root}: {exc.strerror}") from None
-        controllers = (v2 / "cgroup.controllers").read_text().split()
-        self._v2_cpu = "cpu" in controllers
         if self._v2_cpu:
             (v2 / "cgroup.subtree_control").write_text("+cpu")
             (self.v2_root / "cgroup.subtree_control").write_text("+cpu")
-        self._v1_cpu = None if self._v2_cpu else v1_cpu_mount()
-        self.v1_root = self._v1_cpu / self.name if self._v1_cpu else None
+
+    def _reclaim_stale(self) -> list[str]:
+        """Remove cgroups already named for us that no process is in (left
+        by a dead container that had our pid); refuse, naming them, if a
+        process is in one. Returns the removed roots."""
+        removed = []
+        for root in (self.v2_root, self.v1_root):
+            if root is None or not root.is_dir():
+                continue
+            tree = sorted((d for d in root.rglob("*") if d.is_dir()), key=lambda d: len(d.parts),
+                          reverse=True) + [root]
+            busy = [str(d) for d in tree if (d / "cgroup.procs").read_text().strip()]
+            if busy:
+                raise CgroupsUnavailable(f"{root} already exists and has processes in {busy}")
+            try:
+                for d in tree:
+                    _rmdir(d)
+            except OSError as exc:
+                raise CgroupsUnavailable(f"cannot remove the stale cgroup {root}: {exc.strerror}") from None
+            removed.append(str(root))
+        return removed
 
     def cpu_quota_supported(self) -> bool:
         return self._v2_cpu or self._v1_cpu is not None

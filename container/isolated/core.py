@@ -121,6 +121,7 @@ class _Entry:
         self.child: Child | None = None
         self.spawned = threading.Event()   # spawn() has returned (or failed)
         self.dead = threading.Event()
+        self.death_reported = threading.Event()  # on_event has returned for the death
         self.death: Death | None = None
         self.released = False
 
@@ -398,12 +399,19 @@ class CloneCore:
         for e in live:
             if not e.dead.wait(timeout):
                 raise TimeoutError(f"child {e.child.pid} not reaped after SIGKILL")
+        # A death reported before close() may still be in on_event, which
+        # may release that child itself: let it finish first, so that no
+        # child is released twice (or under its handler's feet).
         with self._lock:
-            left = [e.child for e in self._entries.values()]
-        for child in left:
+            left = list(self._entries.values())
+        for e in left:
+            if not e.death_reported.wait(timeout):
+                print(f"cloneguard: on_event for child {e.child.pid} still running after "
+                      f"{timeout:g} s; releasing it anyway", file=sys.stderr)
+        for e in left:
             try:
-                self.release(child)
-            except ValueError:                  # released meanwhile
+                self.release(e.child)
+            except ValueError:                  # its on_event released it
                 pass
         self._shutdown_monitor()
         self._stopped = True
@@ -458,12 +466,15 @@ class CloneCore:
             entry.death = event
             entry.target = None     # reaped: nothing runs it any more
             entry.dead.set()
-        if self._on_event is not None:
-            try:
+        try:
+            if self._on_event is not None:
                 self._on_event(event)
-            except Exception:
-                print("cloneguard: on_event raised:", file=sys.stderr)
-                traceback.print_exc()
+        except Exception:
+            print("cloneguard: on_event raised:", file=sys.stderr)
+            traceback.print_exc()
+        finally:
+            if kind == KIND_DEATH:
+                entry.death_reported.set()
 
 
 @atexit.register
