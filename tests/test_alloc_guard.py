@@ -182,6 +182,23 @@ CASES = {
             delete(got[0])
             out.update(handed=core.slot_stats(d.alloc_slot)["handed_blocks"] - before)
     """,
+    # Every slot bound to a live child: the next spawn is refused with a
+    # message that says why (no free slot), not just ENOMEM.
+    "slots_exhausted": """
+        with CloneCore(alloc_guard=True) as core:
+            live = []
+            try:
+                while len(live) < 2000:
+                    live.append(core.spawn(lambda: time.sleep(120)))
+            except OSError as exc:
+                out.update(spawned=len(live), errno=exc.errno, message=str(exc))
+            for c in live:
+                core.kill(c)
+            for c in live:
+                core.wait(c, 20)
+                core.release(c)
+            out.update(after=run_child(core, lambda: None).exit_code)
+    """,
 }
 
 BACKENDS = ["glibc", "jemalloc"]
@@ -253,3 +270,11 @@ def test_a_node_never_allocates_from_glibcs_main_arena():
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_operator_new_in_a_child_is_guarded(backend):
     assert run("operator_new", backend)["handed"] == 1
+
+
+def test_when_every_slot_is_taken_a_spawn_is_refused_saying_so():
+    out = run("slots_exhausted", "glibc")
+    assert out["spawned"] == 511 and out["errno"] == 12
+    assert "no allocator slot is free: 0 of 511 are quarantined" in out["message"]
+    assert "511 in use" in out["message"]
+    assert out["after"] == 0          # slots come back as their processes end

@@ -25,6 +25,7 @@ the harness can measure what each measure buys:
 from __future__ import annotations
 
 import atexit
+import errno
 import itertools
 import os
 import signal
@@ -281,7 +282,8 @@ class CloneCore:
             rc = lib.cg_spawn(ffi.cast("void *", id(target)), serial, stack_size,
                               -1 if cgroup_fd is None else cgroup_fd, flags, out)
             if rc < 0:
-                raise OSError(-rc, f"spawn failed: {os.strerror(-rc)}")
+                why = self._no_free_slot() if rc == -errno.ENOMEM else None
+                raise OSError(-rc, f"spawn failed: {why or os.strerror(-rc)}")
             b = out[0]
             entry.child = Child(b.pid, b.pidfd, serial, b.start_ns, stack_size,
                                 cgroup_fd, b)
@@ -372,6 +374,21 @@ class CloneCore:
                 "handed_blocks": out.handed_blocks, "pending_blocks": out.pending_blocks,
                 "pending_bytes": out.pending_bytes,
                 "main_arena_allocs": out.main_arena_allocs}
+
+    def _no_free_slot(self) -> str | None:
+        """Why a spawn found no allocator-guard slot, if that is why: every
+        slot is bound to a live node or quarantined (its node died inside
+        malloc; its arena is never used again)."""
+        counts: dict[str, int] = {}
+        slot = 1                                  # slot 0 is the container's
+        while (stats := self.slot_stats(slot)) is not None:
+            counts[stats["state"]] = counts.get(stats["state"], 0) + 1
+            slot += 1
+        if not counts or counts.get("idle", 0) or counts.get("unused", 0):
+            return None
+        return (f"no allocator slot is free: {counts.get('quarantined', 0)} of {slot - 1} are quarantined "
+                f"(their nodes died inside malloc) and {counts.get('bound', 0)} in use; "
+                "a restart of the container frees the quarantined ones")
 
     def children(self) -> list[Child]:
         """Children spawned and not yet released."""
