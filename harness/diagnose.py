@@ -48,7 +48,7 @@ CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 PY_GDB = Path(sys.base_prefix) / "bin" / f"python{sys.version_info[0]}.{sys.version_info[1]}-gdb.py"
 
 _THREAD = re.compile(r'^Thread \d+ \(Thread 0x[0-9a-f]+ \(LWP (\d+)\)(?: "([^"]*)")?\)')
-_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-f]+ in )?(\S+) \((.*)")
+_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-f]+ in )?(\S.*?) \((.*)")   # a C++ name may hold spaces
 _PY_FILE = re.compile(r'^\s*File "([^"]+)", line (\S+), in (\S+)')
 _MUTEX_ARG = re.compile(r"mutex=(?:mutex@entry=)?(0x[0-9a-f]+)")
 _FUTEX_ARG = re.compile(r"futex=(?:futex@entry=)?(0x[0-9a-f]+)(?: <([^>]+)>)?")
@@ -56,6 +56,18 @@ _AV_ARG = re.compile(r"\bav=(?:av@entry=)?(0x[0-9a-f]+)")
 _MALLOC_FUNCS = ("malloc", "free", "realloc", "calloc", "_int_free", "arena_get", "tcache")
 _MUTEX_FUNCS = ("pthread_mutex_lock", "pthread_mutex_timedlock", "pthread_mutex_clocklock",
                 "__pthread_mutex_cond_lock")
+_LIBC_LOCK_FRAMES = ("___pthread", "__pthread", "pthread_mutex", "lll_", "__GI_", "__lll_")
+# Locks that one process's participants share, by the function that takes
+# them: per-node isolation cannot keep a dead node's hold on them from the rest.
+SHARED_LOCKS = {
+    "TopicPayloadPool": "Fast DDS's payload pool of one topic, shared by every participant in the process "
+                        "(TopicPayloadPoolRegistry)",
+}
+# Loops in other projects' code that wait by spinning, by a frame they run in.
+KNOWN_BUSY_WAITS = {
+    "DomainParticipant::set_listener": "Fast DDS 2.14 busy-waits there, with the lock its participant-listener "
+                                       "callbacks need, for those callbacks to end: eProsima/Fast-DDS#6513",
+}
 _IDLE_FUNCS = ("epoll_wait", "epoll_pwait", "poll", "ppoll", "select", "pselect", "recvfrom",
                "recvmsg", "recv", "read", "__libc_read", "accept", "nanosleep", "clock_nanosleep",
                "sigwait", "sigtimedwait", "pause", "waitid", "wait4", "futex_wait")
@@ -82,6 +94,7 @@ class BlockedOn:
     pid: int = 0          # the waiting thread's process
     where: str = ""       # the waiter: node name / "container"
     note: str = ""        # the next best fact when the owner is not recorded
+    taker: str = ""       # the function that wants the lock (a mutex's caller)
 
     def describe(self) -> str:
         owner = "no owner recorded"
@@ -96,6 +109,9 @@ class BlockedOn:
         elif self.note:
             owner = self.note
         at = f" at {self.address}" if self.address else ""
+        if self.taker:
+            known = next((what for key, what in SHARED_LOCKS.items() if key in self.taker), "")
+            at += f" (taken in {self.taker}{': ' + known if known else ''})"
         who = f"tid {self.tid}" + (f" ({self.where})" if self.where else "")
         return f"{who} waits on the {self.kind}{at}, {owner}"
 
@@ -180,7 +196,8 @@ def parse_threads(text: str, pid: int = 0) -> list[ThreadStack]:
 
 
 def _lock_wait(t: ThreadStack) -> tuple[str, str, str] | None:
-    """(kind, address, symbol) of the lock the thread waits on, or None."""
+    """(kind, address, symbol) of the lock the thread waits on, or None;
+    for a mutex, the symbol is the function that takes it."""
     for i, (fn, raw) in enumerate(zip(t.frames, t.raw)):
         if fn == "take_gil":
             return "GIL", "", ""
@@ -188,7 +205,9 @@ def _lock_wait(t: ThreadStack) -> tuple[str, str, str] | None:
             m = _MUTEX_ARG.search(raw)
             outer = " ".join(t.raw[i + 1:i + 3])
             kind = "jemalloc lock" if "libjemalloc" in outer else "pthread mutex"
-            return kind, m.group(1) if m else "", ""
+            taker = "" if kind == "jemalloc lock" else next(
+                (f for f in t.frames[i + 1:] if not f.startswith(_LIBC_LOCK_FRAMES) and f != "??"), "")
+            return kind, m.group(1) if m else "", taker.split("(")[0]
         if fn.endswith("lll_lock_wait_private") or fn.endswith("lll_lock_wait"):
             outer = t.frames[i + 1:i + 4]
             if any(any(k in o for k in _MALLOC_FUNCS) for o in outer):
@@ -201,6 +220,10 @@ def _where(t: ThreadStack) -> str:
     skip = ("futex", "__GI_", "syscall", "do_futex_wait", "__new_sem_wait", "___sem_", "__pthread_cond",
             "___pthread_cond", "__lll_", "lll_")
     native = next((f for f in t.frames if not f.startswith(skip) and f != "??"), t.frames[0] if t.frames else "?")
+    known = next(((f.split("(")[0], why) for f in t.frames for key, why in KNOWN_BUSY_WAITS.items() if key in f),
+                 None)
+    if known and not native.startswith(known[0]):
+        native += f" in {known[0]} ({known[1]})"
     return native + (f" [Python: {t.python[0]}]" if t.python else "")
 
 
@@ -292,6 +315,7 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
             owner_node=nodes_by_pid.get(owner) if owner else None,
             owner_dead=bool(owner) and (owner in dead_pids or not procfs.alive(owner)),
             pid=t.pid, where=names.get(t.pid, ""), note=note,
+            taker=symbol if kind != "malloc arena lock" else "",
         ))
     return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names)
 

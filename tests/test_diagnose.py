@@ -6,7 +6,7 @@ a drain blocked inside jemalloc, a container thread on glibc's main arena.
 The end-to-end checks (gdb on real hung containers) are the scenarios'
 baselines, whose hangs must come out named.
 """
-from harness.diagnose import Diagnosis, _lock_wait, _state, parse_threads
+from harness.diagnose import BlockedOn, Diagnosis, _lock_wait, _state, parse_threads
 
 HOLDER = """\
 Thread 2 (Thread 0x7f01d2bff6c0 (LWP 3659) "dds.ev.2"):
@@ -58,10 +58,35 @@ Thread 13 (Thread 0x7f320d9ff6c1 (LWP 12817) "python"):
 def test_a_mutex_relocked_after_a_condvar_wait_is_a_mutex_wait():
     threads = parse_threads(HOLDER, pid=1798)
     main = next(t for t in threads if t.tid == 1798)
-    assert _lock_wait(main) == ("pthread mutex", "0x7f4a58257c40", "")
+    assert _lock_wait(main) == ("pthread mutex", "0x7f4a58257c40", "eprosima::fastdds::dds::detail::WaitSetImpl::wait")
     assert main.python[0].startswith("_wait_for_ready_callbacks (executors.py")
     events = next(t for t in threads if t.tid == 3659)
     assert _lock_wait(events) is None and _state(events)[0] == "idle"
+
+
+POOL = """\
+Thread 3 (Thread 0x7f5729ffb6c0 (LWP 24196) "python"):
+#0  futex_wait (private=0, expected=2, futex_word=0x55d08e863088) at ../sysdeps/nptl/futex-internal.h:146
+#1  __GI___lll_lock_wait (futex=futex@entry=0x55d08e863088, private=0) at ./nptl/lowlevellock.c:49
+#2  0x00007f57450aa482 in lll_mutex_lock_optimized (mutex=0x55d08e863088) at ./nptl/pthread_mutex_lock.c:48
+#3  ___pthread_mutex_lock (mutex=0x55d08e863088) at ./nptl/pthread_mutex_lock.c:93
+#4  0x00007f5743745b4b in eprosima::fastrtps::rtps::TopicPayloadPool::release_payload(eprosima::fastrtps::rtps::CacheChange_t&) () from /venv/lib/libfastrtps.so.2.14
+#5  0x00007f5743771278 in eprosima::fastrtps::rtps::RTPSReader::releaseCache(eprosima::fastrtps::rtps::CacheChange_t*) () from /venv/lib/libfastrtps.so.2.14
+"""
+
+
+def test_a_mutex_is_described_by_the_function_that_takes_it_and_a_shared_one_says_so():
+    [t] = parse_threads(POOL, pid=24190)
+    kind, addr, taker = _lock_wait(t)
+    assert (kind, addr, taker) == ("pthread mutex", "0x55d08e863088",
+                                   "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload")
+    b = BlockedOn(tid=24196, kind=kind, address=addr, owner_tid=31910, owner_node=None, owner_dead=True,
+                  where="container", taker=taker)
+    assert b.describe() == (
+        "tid 24196 (container) waits on the pthread mutex at 0x55d08e863088 (taken in "
+        "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload: Fast DDS's payload pool of one "
+        "topic, shared by every participant in the process (TopicPayloadPoolRegistry)), "
+        "owned by tid 31910 (a dead process)")
 
 
 def test_a_lock_taken_inside_jemalloc_is_named_so():
@@ -137,3 +162,22 @@ def test_proc_facts_of_a_live_task_name_its_state_and_group():
     facts = procfs.task_facts(os.getpid())
     assert facts.startswith("state R") or facts.startswith("state S"), facts
     assert f"thread group {os.getpid()}" in facts
+
+
+SET_LISTENER = """\
+Thread 1 (Thread 0x7f7a4d7f26c0 (LWP 3976) "python"):
+#0  0x00007f7ad962ab30 in clock_gettime ()
+#1  0x00007f7ad8eed439 in __GI___clock_gettime (clock_id=<optimized out>, tp=<optimized out>) at ../sysdeps/unix/sysv/linux/clock_gettime.c:42
+#2  0x00007f7ad60cb1c5 in std::chrono::_V2::steady_clock::now() () from /lib/x86_64-linux-gnu/libstdc++.so.6
+#3  0x00007f7ad7688e4e in eprosima::fastdds::dds::DomainParticipant::set_listener(eprosima::fastdds::dds::DomainParticipantListener*, eprosima::fastdds::dds::StatusMask const&, std::chrono::duration<long, std::ratio<1l, 1l> >) () from /venv/lib/libfastrtps.so.2.14
+#5  0x00007f7ad7fd4c84 in rmw_fastrtps_shared_cpp::destroy_participant(CustomParticipantInfo*) () from /venv/lib/librmw_fastrtps_shared_cpp.so
+"""
+
+
+def test_a_known_busy_wait_in_another_project_is_named_with_its_reference():
+    [t] = parse_threads(SET_LISTENER, pid=3976)
+    assert _lock_wait(t) is None
+    state, where = _state(t)
+    assert state == "running"
+    assert where.startswith("clock_gettime in eprosima::fastdds::dds::DomainParticipant::set_listener (")
+    assert "eProsima/Fast-DDS#6513" in where
