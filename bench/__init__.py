@@ -8,6 +8,7 @@
     python -m bench.shutdown           # SIGTERM -> exit
     python -m bench.intra              # intra-process vs DDS latency and throughput
     python -m bench.leaks              # RSS, fds, threads per load cycle (long life)
+    python -m bench.discovery          # how soon a fresh process (a ros2 command) finds a container
     python -m bench.random_kill        # random SIGKILLs of clone children (the core alone)
     python -m bench.alloc_guard        # the allocator guard's cost per malloc/free
 

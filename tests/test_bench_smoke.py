@@ -107,3 +107,17 @@ def test_a_benchmark_runs_as_its_documented_command(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     assert "| mode | n | → LOADED at client: median |" in done.stdout
     assert (tmp_path / "load_latency.md").exists() and (tmp_path / "load_latency.json").exists()
+
+
+def test_the_discovery_benchmark_probes_from_fresh_processes(tmp_path):
+    from bench import discovery
+
+    result = discovery.run(probes=2, nodes=[1], modes=["thread"], settle=0.5, out=tmp_path, quiet=True)
+    assert result.cleanup == []
+    [trials] = result.raw["trials"].values()
+    assert len(trials) == 2
+    # A container that answers its services is found by a fresh participant
+    # (in the probe's 5 s), and the node is seen no later than its service.
+    for t in trials:
+        assert t["service_s"] is not None and t["node_s"] <= t["service_s"]
+    assert (tmp_path / "discovery.md").exists()
