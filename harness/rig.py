@@ -25,9 +25,11 @@ from std_msgs.msg import UInt64
 
 from . import diagnose, firing, procfs
 from .client import ContainerClient, HarnessTimeout
+from .factory import log_tail
 from .process import ContainerProcess
 
 SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
+CRASH_LOG_LINES = 40       # of a container that died in a trial, kept in the report
 
 # Container arguments per profile; scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
@@ -165,6 +167,9 @@ class Rig:
         if not self.proc.alive():
             out.outcome = "crashed"
             out.details["exit_code"] = self.proc.wait(0)
+            # The container's last words (a crash report, a traceback): the
+            # log itself goes when the test's temporary directory does.
+            out.details["log_tail"] = log_tail(self.proc.log_text(), CRASH_LOG_LINES)
         else:
             out.outcome = "hung"
             if diagnose.gdb_available():

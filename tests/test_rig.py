@@ -1,0 +1,15 @@
+"""The scenario rig (harness/rig.py) on a real container."""
+import signal
+
+from harness.rig import Rig
+
+
+def test_a_container_that_died_in_a_trial_is_crashed_with_its_last_log_lines(container_factory):
+    rig = Rig(container_factory, "threads")
+    rig.proc.signal(signal.SIGSEGV)
+    assert rig.proc.wait(timeout=20) is not None
+    out = rig.not_survived("the container is gone")
+    assert out.outcome == "crashed" and out.details["exit_code"] == -signal.SIGSEGV
+    # What it said last stays in the report after its log file is gone.
+    assert "Loaded cloneguard::Heartbeat as /survivor" in out.details["log_tail"]
+    assert rig.proc.log_text().rstrip().endswith(out.details["log_tail"].rstrip())
