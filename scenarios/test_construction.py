@@ -55,9 +55,12 @@ def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, recor
     rig, tracker = tracked("per-node")
     node = tracker.load(RIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
     ok = node.state == State.FAILED and "died during construction" in node.error
+    out = Outcome("survived" if ok else "failed", details={"state": node.state.value, "error": node.error})
     stopped = rig.goes_on()
-    out = Outcome("survived" if ok and stopped is None else "failed",
-                  details={"state": node.state.value, "error": node.error, "why": stopped or ""})
+    if stopped is not None:
+        out = rig.not_survived(stopped, out)     # hung (diagnosed) or crashed
+    elif not ok:
+        out.details["why"] = "not reported Failed with 'died during construction'"
     record_trial(index, seed, out)
     resilience.expect_rate("survived", at_least=1.0)
 
