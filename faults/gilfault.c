@@ -55,14 +55,6 @@ int gilfault_die_in_gil(int where)
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->mutex);
         break;
-    case GILFAULT_DROP_GIL_SIGNALLING:  /* drop_gil, inside pthread_cond_signal
-                                           (gil->cond): the GIL let go, the
-                                           mutex and the condvar's internal
-                                           lock (low bits of __g1_orig_size) held */
-        pthread_mutex_lock(&gil->mutex);
-        _Py_atomic_store_relaxed(&gil->locked, 0);
-        __atomic_fetch_or(&gil->cond.__data.__g1_orig_size, 1u, __ATOMIC_ACQUIRE);
-        break;
     case GILFAULT_SWITCH_MUTEX:         /* drop_gil: switch_mutex taken */
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->switch_mutex);

@@ -269,12 +269,6 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
         if (ws)
             credit(ws, CG_REPAIR_SWITCH_MUTEX, &misc), wake_switch = true;
         if (wm) {
-            /* drop_gil signals gil->cond holding gil->mutex: an owner of the
-               mutex may have died inside pthread_cond_signal, holding the
-               condvar's internal lock, which the next drop_gil would wait
-               for forever (seen: 1 in 300 deep payload trials). */
-            if (cfg->condvar)
-                unstick_cond_lock(&gil->cond, &misc);
             if (ws && (wm == ws || wm == ANON || ws == ANON)) {
                 if (_Py_atomic_load_relaxed(&gil->locked)) {
                     _Py_atomic_store(&gil->locked, 0);
