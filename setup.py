@@ -1,13 +1,18 @@
-# The only reason this file exists: setuptools takes cffi extension modules
-# (and plain C shared libraries) from setup() keywords, not from
-# pyproject.toml. Everything else is there.
-from setuptools import Extension, setup
+# Why this file exists: setuptools takes cffi extension modules (and plain C
+# shared libraries) from setup() keywords, not from pyproject.toml, and the
+# package mapping is computed. Everything else is in pyproject.toml.
+#
+# The container's sources stay in the repository's container/ folder; they
+# install as cloneguard.container, under the project's own namespace
+# (`cloneguard`, shared with the test rig's cloneguard.harness/.faults/.bench,
+# rig/setup.py), never as a bare top-level `container`.
+from setuptools import Extension, find_packages, setup
 from setuptools.command.build_ext import build_ext
 
 # Isolated mode's C (the clone core, the allocator guard) rests on glibc and
 # x86_64 layouts: where it does not build, the rest of the container (thread
 # mode) still installs, and --isolated refuses with the reason.
-ISOLATED_ONLY = {"container.isolated._clonecore", "container.isolated._allocguard"}
+ISOLATED_ONLY = {"cloneguard.container.isolated._clonecore", "cloneguard.container.isolated._allocguard"}
 
 
 class BuildExt(build_ext):
@@ -20,7 +25,11 @@ class BuildExt(build_ext):
             self.warn(f"{ext.name} was not built ({exc}): --isolated will be unavailable")
 
 
+PACKAGE = "cloneguard.container"
+
 setup(
+    packages=[PACKAGE] + [f"{PACKAGE}.{sub}" for sub in find_packages("container")],
+    package_dir={PACKAGE: "container"},
     cmdclass={"build_ext": BuildExt},
     cffi_modules=[
         "container/_build_robust.py:ffibuilder",
@@ -32,7 +41,7 @@ setup(
         # isolated container preloads (container/isolated/allocguard.c). Built
         # here so that it lands beside the package like the cffi modules.
         Extension(
-            "container.isolated._allocguard",
+            "cloneguard.container.isolated._allocguard",
             sources=["container/isolated/allocguard.c"],
             depends=["container/isolated/allocguard.h"],
             extra_compile_args=["-std=gnu11", "-O2", "-Wall", "-fvisibility=hidden", "-fno-builtin"],

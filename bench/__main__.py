@@ -1,8 +1,8 @@
 """Run every benchmark with small counts, then write reports/bench/summary.md.
 
-    python -m bench                              # a few minutes
-    python -m bench --only load_latency crash_latency
-    python -m bench --preset tiny --out /tmp/b   # a smoke run (seconds per benchmark)
+    python -m cloneguard.bench                              # a few minutes
+    python -m cloneguard.bench --only load_latency crash_latency
+    python -m cloneguard.bench --preset tiny --out /tmp/b   # a smoke run (seconds per benchmark)
 
 Each benchmark writes its own <name>.md / <name>.json beside summary.md; the
 summary's table (one row per measure and mode, with the goal and whether it
@@ -84,7 +84,7 @@ def run_all(*, preset: str = "default", only: list[str] | None = None, out=commo
         except Exception as exc:    # the others still run; the summary says what failed
             traceback.print_exc()
             failures[name] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-    command = command or shlex.join(["python", "-m", "bench", "--preset", preset]
+    command = command or shlex.join(["python", "-m", "cloneguard.bench", "--preset", preset]
                                     + (["--only", *only] if only else []))
     text = summary_markdown(results, failures, command)
     path = out / "summary.md"
@@ -97,7 +97,7 @@ def run_all(*, preset: str = "default", only: list[str] | None = None, out=commo
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m cloneguard.bench", description=__doc__.split("\n")[0])
     parser.add_argument("--preset", choices=list(PRESETS), default="default",
                         help="counts to run with (default: %(default)s)")
     parser.add_argument("--only", nargs="+", choices=list(BENCHMARKS), default=None)

@@ -3,8 +3,8 @@
 Only one CloneCore may be open per process, and the benchmark process itself
 runs rclpy clients, so these run here, started by the benchmarks:
 
-    python -m bench._core_worker spawn --n 50     # clone3 vs fork+exec vs fork
-    python -m bench._core_worker kill --n 50      # outside signal -> monitor
+    python -m cloneguard.bench._core_worker spawn --n 50     # clone3 vs fork+exec vs fork
+    python -m cloneguard.bench._core_worker kill --n 50      # outside signal -> monitor
 
 It prints one JSON object (lists of nanoseconds) on stdout. rclpy is
 imported first so the process has the heap and mappings of a container.
@@ -22,7 +22,7 @@ import time
 
 import rclpy  # noqa: F401  (a container-sized process: see the docstring)
 
-from container.isolated.core import CloneCore
+from cloneguard.container.isolated.core import CloneCore
 
 STAMP = "import os,time;os.write(1,b'%d'%time.monotonic_ns())"
 NR_CLOCK_NANOSLEEP = 230     # what time.sleep blocks in (x86_64)
@@ -142,7 +142,7 @@ def kill(n: int) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench._core_worker")
+    parser = argparse.ArgumentParser(prog="python -m cloneguard.bench._core_worker")
     parser.add_argument("what", choices=("spawn", "kill"))
     parser.add_argument("--n", type=int, default=50)
     opts = parser.parse_args(argv)

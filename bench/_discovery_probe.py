@@ -1,7 +1,7 @@
 """One look at a domain as ros2cli's `ros2 component list` takes it, from a
 fresh process (a fresh DDS participant every time, as each ros2 command is):
 
-    python -m bench._discovery_probe CONTAINER_FQN [--timeout S]
+    python -m cloneguard.bench._discovery_probe CONTAINER_FQN [--timeout S]
 
 It creates a node the way ros2cli's DirectNode does (no daemon), then spins
 and polls the ROS graph every 10 ms until the container's node and its

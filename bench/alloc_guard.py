@@ -11,7 +11,7 @@ C (faults/hammer.c), so the figures are the allocator's, not Python's:
 * free() of a node's block by the container (the guard hands it back: one
   CAS), and the owner's later freeing of those blocks, per block.
 
-    python -m bench.alloc_guard [--pairs 2000000] [--blocks 200000] [--repeat 5]
+    python -m cloneguard.bench.alloc_guard [--pairs 2000000] [--blocks 200000] [--repeat 5]
 """
 from __future__ import annotations
 
@@ -36,10 +36,10 @@ SIZES = (64, 4096)
 
 
 def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
-    from container import allocator
+    from cloneguard.container import allocator
     allocator.glibc_arena_per_task()
-    from container.isolated.core import CloneCore
-    from faults._hammer import ffi, lib
+    from cloneguard.container.isolated.core import CloneCore
+    from cloneguard.faults._hammer import ffi, lib
 
     out: dict[str, list[float]] = {}
 
@@ -78,13 +78,13 @@ def main(argv: list[str] | None = None) -> int:
         activate, pairs, blocks, repeat = (int(x) for x in args.worker)
         print(json.dumps(_worker(bool(activate), pairs, blocks, repeat)))
         return 0
-    from container import allocator
+    from cloneguard.container import allocator
     raw = {}
     for label, preload, activate, jemalloc in CONFIGS:
         env = dict(os.environ)
         env["LD_PRELOAD"] = " ".join(([allocator.GUARD_PATH] if preload else [])
                                      + ([allocator.jemalloc_path()] if jemalloc else []))
-        proc = subprocess.run([sys.executable, "-m", "bench.alloc_guard", "--worker", str(int(activate)),
+        proc = subprocess.run([sys.executable, "-m", "cloneguard.bench.alloc_guard", "--worker", str(int(activate)),
                                str(args.pairs), str(args.blocks), str(args.repeat)],
                               capture_output=True, text=True, env=env, cwd=common.REPO_ROOT, timeout=1800)
         if proc.returncode != 0:

@@ -1,7 +1,7 @@
 """Time to start a node: clone child vs thread vs a fork+exec'd process.
 
-    python -m bench.child_start                  # n=20 full starts per mode, 100 raw spawns
-    python -m bench.child_start --n 50 --n-raw 300
+    python -m cloneguard.bench.child_start                  # n=20 full starts per mode, 100 raw spawns
+    python -m cloneguard.bench.child_start --n 50 --n-raw 300
 
 Two different things are compared, and kept apart:
 
@@ -88,7 +88,7 @@ def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: boo
          stats(ms(raw["forkexec_site"]))),
         ("fork+exec `python -I -S -c` (no site: a lower bound) → its first line",
          stats(ms(raw["forkexec_nosite"]))),
-        ("fork+exec of the baseline runner `python -m bench.process_per_node` → its module's first line",
+        ("fork+exec of the baseline runner `python -m cloneguard.bench.process_per_node` → its module's first line",
          stats(ms(full[PROCESS_PER_NODE]["first_line"]))),
         ("os.fork() without exec (reference) → the child's first line", stats(ms(raw["fork_first_line"]))),
     ]
@@ -155,7 +155,7 @@ def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: boo
     summary.append(common.summary_row("child start", "full: LoadNode → LOADED (reference)", common.label("thread"),
                                       st))
     notes = [
-        "Raw figures come from one worker process (python -m bench._core_worker spawn) that imports "
+        "Raw figures come from one worker process (python -m cloneguard.bench._core_worker spawn) that imports "
         "rclpy first (a container-sized heap) and holds a CloneCore; each round does one clone child, "
         "one fork+exec with site, one without, one os.fork. Stamps are CLOCK_MONOTONIC: taken just before "
         "the call, and by the new process/child as its first Python statement (written to shared memory "

@@ -27,16 +27,16 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from harness import domains, procfs, shm
-from harness.process import NO_SHM_PROFILE, REPO_ROOT, ContainerProcess, process_environment, use_loopback_ros
+from cloneguard.harness import domains, procfs, shm
+from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, ContainerProcess, process_environment, use_loopback_ros
 
 # The benchmark's own participant (its clients) runs under the same rules as
 # the containers: UDP on loopback only. Set before any rclpy.init.
 use_loopback_ros()
 
-from harness.client import ContainerClient, HarnessTimeout, Received  # noqa: E402
-from harness.factory import log_tail, wait_ready  # noqa: E402
-from harness.report.env import git_info, host_info, python_version  # noqa: E402
+from cloneguard.harness.client import ContainerClient, HarnessTimeout, Received  # noqa: E402
+from cloneguard.harness.factory import log_tail, wait_ready  # noqa: E402
+from cloneguard.harness.report.env import git_info, host_info, python_version  # noqa: E402
 
 DEFAULT_OUT = REPO_ROOT / "reports" / "bench"
 PACKAGE = "cloneguard"
@@ -245,7 +245,7 @@ def summary_row(benchmark: str, measure: str, mode: str, st: dict | None, unit: 
 # -- command line ----------------------------------------------------------------
 
 def arg_parser(name: str, description: str) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=f"python -m bench.{name}", description=description)
+    parser = argparse.ArgumentParser(prog=f"python -m cloneguard.bench.{name}", description=description)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
                         help="directory for <name>.md and <name>.json (default: reports/bench)")
     parser.add_argument("--keep-logs", action="store_true",
@@ -255,7 +255,7 @@ def arg_parser(name: str, description: str) -> argparse.ArgumentParser:
 
 def command_line(name: str, args: dict) -> str:
     """The command that repeats a run with these parameters."""
-    parts = ["python", "-m", f"bench.{name}"]
+    parts = ["python", "-m", f"cloneguard.bench.{name}"]
     for key, value in args.items():
         flag = "--" + key.replace("_", "-")
         if isinstance(value, bool):
@@ -301,7 +301,7 @@ class NodeProcess:
         env = process_environment(domain_id, fastdds_profile=NO_SHM_PROFILE)
         env["PYTHONUNBUFFERED"] = "1"
         r, w = os.pipe2(os.O_CLOEXEC)
-        argv = [sys.executable, "-m", "bench.process_per_node", "--ready-fd", str(w),
+        argv = [sys.executable, "-m", "cloneguard.bench.process_per_node", "--ready-fd", str(w),
                 "--parent", str(os.getpid()), package, plugin]
         if node_name:
             argv[-2:-2] = ["--node-name", node_name]
@@ -431,14 +431,14 @@ class Session:
         return code
 
     def core_worker(self, what: str, n: int, timeout: float = 600.0) -> dict:
-        """Run ``python -m bench._core_worker`` (its own CloneCore) and return its JSON."""
+        """Run ``python -m cloneguard.bench._core_worker`` (its own CloneCore) and return its JSON."""
         log = self._log_path(f"core-worker-{what}")
         with open(log, "wb") as err:
-            done = subprocess.run([sys.executable, "-m", "bench._core_worker", what, "--n", str(n)],
+            done = subprocess.run([sys.executable, "-m", "cloneguard.bench._core_worker", what, "--n", str(n)],
                                   cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                   stderr=err, timeout=timeout, check=False)
         if done.returncode != 0:
-            raise RuntimeError(f"bench._core_worker {what} exited with {done.returncode}\n"
+            raise RuntimeError(f"cloneguard.bench._core_worker {what} exited with {done.returncode}\n"
                                + log_tail(log.read_text(errors="replace")))
         return json.loads(done.stdout)
 

@@ -41,7 +41,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String, UInt8MultiArray
 
-from container import intra
+from cloneguard.container import intra
 
 HEADER = struct.Struct("<QIB")
 WARMUP, LATENCY, BURST, END = 0, 1, 2, 3

@@ -1,7 +1,7 @@
 """Fault -> CRASHED event latency, for a node's process killed from outside.
 
-    python -m bench.crash_latency                # n=100 per profile and signal
-    python -m bench.crash_latency --n 300 --signals SIGKILL
+    python -m cloneguard.bench.crash_latency                # n=100 per profile and signal
+    python -m cloneguard.bench.crash_latency --n 300 --signals SIGKILL
 
 One isolated container per profile (per-node, shared). Each trial loads a
 cloneguard::Heartbeat, lets it run ``--settle`` s, then the benchmark takes
@@ -18,7 +18,7 @@ its threads wait on, go into the JSON).
 
 The in-container monitor's own detection time is not published (the event
 has no such stamp); it is measured instead on a standalone CloneCore in a
-worker process (python -m bench._core_worker kill): an idle child killed from
+worker process (python -m cloneguard.bench._core_worker kill): an idle child killed from
 outside -> the monitor's detection stamp, and -> the Python on_event call.
 
 Goal: median ≤ 1 ms (fault -> CRASHED).
@@ -33,9 +33,9 @@ import time
 
 from cloneguard_interfaces.msg import ComponentEvent
 
-from harness import diagnose, procfs
-from harness.client import HarnessTimeout
-from harness.factory import log_tail
+from cloneguard.harness import diagnose, procfs
+from cloneguard.harness.client import HarnessTimeout
+from cloneguard.harness.factory import log_tail
 
 from . import common
 from .common import Result, Session, Table, fmt_ms, ms, stats

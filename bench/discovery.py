@@ -1,8 +1,8 @@
 """Being found: how long a fresh ROS process (a `ros2 component` command)
 takes to see a container's node and its services.
 
-    python -m bench.discovery                   # 20 probes per configuration
-    python -m bench.discovery --probes 40 --nodes 0 4 16
+    python -m cloneguard.bench.discovery                   # 20 probes per configuration
+    python -m cloneguard.bench.discovery --probes 40 --nodes 0 4 16
 
 For each mode (thread, isolated per-node, isolated shared) and count of
 loaded cloneguard::Heartbeat nodes, a fresh container is started and loaded,
@@ -21,7 +21,7 @@ import subprocess
 import sys
 import time
 
-from harness.process import process_environment
+from cloneguard.harness.process import process_environment
 
 from . import common
 from .common import Result, Session, Table, fmt_ms, stats
@@ -35,7 +35,7 @@ PROBE_TIMEOUT_S = 5.0
 
 def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
     env = process_environment(running.domain_id)
-    done = subprocess.run([sys.executable, "-m", "bench._discovery_probe", running.proc.fqn,
+    done = subprocess.run([sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn,
                            "--timeout", str(timeout)], cwd=common.REPO_ROOT, env=env,
                           stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout + 30)
     if done.returncode != 0:

@@ -1,8 +1,8 @@
 """Intra-process delivery vs DDS: latency and throughput from 1 KiB to 16 MiB.
 
-    python -m bench.intra                               # 1 KiB, 64 KiB, 1 MiB, 16 MiB
-    python -m bench.intra --sizes 1KiB 16MiB --count 200
-    python -m bench.intra --transports intra-loan dds
+    python -m cloneguard.bench.intra                               # 1 KiB, 64 KiB, 1 MiB, 16 MiB
+    python -m cloneguard.bench.intra --sizes 1KiB 16MiB --count 200
+    python -m cloneguard.bench.intra --transports intra-loan dds
 
 One isolated container (``--isolated --profile per-node``: every node in its
 own clone child, on its own DDS participant). For every size and transport a
@@ -35,7 +35,7 @@ import json
 import re
 import sys
 
-from faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as RIG
 
 from . import common
 from .common import Goal, Result, Session, Table, fmt_ms, fmt_ratio, ratio, stats

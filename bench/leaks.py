@@ -8,7 +8,7 @@ own thread group; node processes are counted apart and must be none at
 rest) are read, then again after ``cycles`` more. The figures are growth
 per cycle.
 
-    python -m bench.leaks [--cycles 300] [--warmup 40] [--modes threads per-node shared cgroups]
+    python -m cloneguard.bench.leaks [--cycles 300] [--warmup 40] [--modes threads per-node shared cgroups]
 
 tests/test_leaks.py runs the same with small counts and asserts the bounds
 (RSS <= LIMIT_MIB_PER_CYCLE per cycle, fds and threads +0).
@@ -20,8 +20,8 @@ import threading
 import time
 from dataclasses import dataclass
 
-from harness import domains, procfs
-from harness.factory import ContainerFactory
+from cloneguard.harness import domains, procfs
+from cloneguard.harness.factory import ContainerFactory
 
 from . import common
 

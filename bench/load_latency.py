@@ -1,7 +1,7 @@
 """LoadNode -> LOADED latency, per container mode.
 
-    python -m bench.load_latency                 # n=30 per mode
-    python -m bench.load_latency --n 100 --modes isolated-per-node thread
+    python -m cloneguard.bench.load_latency                 # n=30 per mode
+    python -m cloneguard.bench.load_latency --n 100 --modes isolated-per-node thread
 
 One container per mode, all started first; then ``n`` rounds, each loading
 one cloneguard::Heartbeat into every container in turn (interleaved, so the
@@ -56,7 +56,7 @@ def registry_lookup(n: int) -> list[int]:
     here in the benchmark process (same venv, module already imported)."""
     import time
 
-    from container import registry
+    from cloneguard.container import registry
 
     out = []
     for _ in range(n + 1):

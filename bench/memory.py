@@ -1,7 +1,7 @@
 """Marginal memory per node, 1 -> 20 cloneguard::Heartbeat nodes.
 
-    python -m bench.memory                       # 1 -> 20 nodes, every mode
-    python -m bench.memory --nodes 40 --settle 2
+    python -m cloneguard.bench.memory                       # 1 -> 20 nodes, every mode
+    python -m cloneguard.bench.memory --nodes 40 --settle 2
 
 Modes, one after the other (so one mode's processes never share pages with
 another's): isolated per-node profile, isolated shared profile, thread mode,
@@ -28,7 +28,7 @@ import statistics
 import sys
 import time
 
-from harness import procfs
+from cloneguard.harness import procfs
 
 from . import common
 from .common import PROCESS_PER_NODE, Result, Session, Table, fmt_ratio, ratio

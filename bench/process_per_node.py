@@ -1,7 +1,7 @@
 """Process-per-node baseline: one component in a fork+exec'd Python process.
 
-    python -m bench.process_per_node [--node-name NAME] [--ready-fd FD] [--parent PID] PACKAGE PLUGIN
-    python -m bench.process_per_node cloneguard cloneguard::Heartbeat
+    python -m cloneguard.bench.process_per_node [--node-name NAME] [--ready-fd FD] [--parent PID] PACKAGE PLUGIN
+    python -m cloneguard.bench.process_per_node cloneguard cloneguard::Heartbeat
 
 It finds the component class the way the container does (the
 ``cloneguard.components`` entry points, ``container.registry``), builds it on
@@ -41,7 +41,7 @@ def _die_with(parent: int) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.process_per_node", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m cloneguard.bench.process_per_node", description=__doc__.split("\n")[0])
     parser.add_argument("package")
     parser.add_argument("plugin")
     parser.add_argument("--node-name", default="")
@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from container.registry import find
+    from cloneguard.container.registry import find
     imported_ns = time.monotonic_ns()
 
     cls = find(opts.package, opts.plugin).load_class()

@@ -22,9 +22,9 @@ progress within ``hang_s``: diagnosed with the harness's gdb diagnosis, then
 the subprocess is killed and a fresh one takes over) / crashed (the
 subprocess died). Only the subprocess can freeze.
 
-    python -m bench.random_kill --kills 300 --victim malloc
-    python -m bench.random_kill --kills 300 --victim malloc --jemalloc
-    python -m bench.random_kill --kills 100 --gil-repair 0
+    python -m cloneguard.bench.random_kill --kills 300 --victim malloc
+    python -m cloneguard.bench.random_kill --kills 300 --victim malloc --jemalloc
+    python -m cloneguard.bench.random_kill --kills 100 --gil-repair 0
 """
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ RING = 5                        # the malloc hammer's ring this bench uses
 
 
 def _victim_malloc() -> None:
-    from faults._hammer import lib as hammer
+    from cloneguard.faults._hammer import lib as hammer
     hammer.hammer_run(RING, int.from_bytes(os.urandom(8), "little") | 1)
 
 
@@ -73,10 +73,10 @@ VICTIMS = {"loop": _victim_loop, "pymalloc": _victim_pymalloc, "malloc": _victim
 
 
 def _serve(args) -> int:
-    from container import allocator
+    from cloneguard.container import allocator
     allocator.glibc_arena_per_task()        # before a second thread starts
-    from container.isolated.core import CloneCore, stop_requested
-    from faults._hammer import lib as hammer
+    from cloneguard.container.isolated.core import CloneCore, stop_requested
+    from cloneguard.faults._hammer import lib as hammer
 
     counter = [0]
     sibling_count = [0]
@@ -166,9 +166,9 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
         max_hangs: int | None = None, diagnose_dir: str | None = None) -> Result:
     """``kills`` random kills in as many fresh subprocesses as needed (fewer
     if ``budget_s`` runs out or ``max_hangs`` hangs were seen)."""
-    from container import allocator
-    from container.isolated.events import Repair
-    from harness import diagnose
+    from cloneguard.container import allocator
+    from cloneguard.container.isolated.events import Repair
+    from cloneguard.harness import diagnose
 
     res = Result({"gil_repair": gil_repair, "condvar_repair": condvar_repair,
                   "victim": victim, "alloc_guard": alloc_guard, "jemalloc": jemalloc})
@@ -186,7 +186,7 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
         if max_hangs is not None and res.hung + res.crashed >= max_hangs:
             break
         run_no += 1
-        argv = [sys.executable, "-m", "bench.random_kill", "--serve",
+        argv = [sys.executable, "-m", "cloneguard.bench.random_kill", "--serve",
                 "--kills", str(kills - res.kills),
                 "--gil-repair", str(int(gil_repair)),
                 "--condvar-repair", str(int(condvar_repair)),

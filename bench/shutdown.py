@@ -1,7 +1,7 @@
 """Container SIGTERM -> exit, with 1, 5 and 20 nodes loaded.
 
-    python -m bench.shutdown                     # 3 repetitions of each
-    python -m bench.shutdown --reps 10 --counts 1 5 20 40 --no-idle-node
+    python -m cloneguard.bench.shutdown                     # 3 repetitions of each
+    python -m cloneguard.bench.shutdown --reps 10 --counts 1 5 20 40 --no-idle-node
 
 For each mode (isolated per-node, isolated shared, thread mode for
 reference) and node count, a fresh container is started, that many
@@ -23,7 +23,7 @@ import signal
 import sys
 import time
 
-from harness import procfs
+from cloneguard.harness import procfs
 
 from . import common
 from .common import Result, Session, Table, fmt_ms, ms, stats

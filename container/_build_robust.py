@@ -16,7 +16,7 @@ ffibuilder.cdef("""
     int rm_unlock(pthread_mutex_t *m);
 """)
 ffibuilder.set_source(
-    "container._robust",
+    "cloneguard.container._robust",
     '#include "robust.c"\n',
     include_dirs=[str(HERE)],
     depends=[str(HERE / "robust.c")],

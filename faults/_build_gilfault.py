@@ -14,7 +14,7 @@ ffibuilder.cdef("""
     int gilfault_die_in_gil(int where);
 """)
 ffibuilder.set_source(
-    "faults._gilfault",
+    "cloneguard.faults._gilfault",
     '#include "gilfault.c"\n',
     include_dirs=[str(HERE)],
     depends=[str(HERE / n) for n in ("gilfault.c", "gilfault.h")],

@@ -16,7 +16,7 @@ ffibuilder.cdef("""
     int64_t hammer_free_many(void **blocks, long n);
 """)
 ffibuilder.set_source(
-    "faults._hammer",
+    "cloneguard.faults._hammer",
     '#include "hammer.c"\n',
     include_dirs=[str(HERE)],
     depends=[str(HERE / "hammer.c")],

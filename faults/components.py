@@ -25,8 +25,8 @@ from rclpy.node import Node
 
 # Imported here, in the container, when the class is looked up: a C library
 # loaded for the first time inside a clone child is best avoided.
-from faults._hammer import lib as hammer
-from harness import firing
+from cloneguard.faults._hammer import lib as hammer
+from cloneguard.harness import firing
 
 
 def announce(fault: str) -> None:
@@ -175,7 +175,7 @@ class DieHoldingContainerLock(_FaultNode):
 
     def __init__(self, **kwargs):
         super().__init__("lock_holder", **kwargs)
-        from container.isolated import board
+        from cloneguard.container.isolated import board
 
         self._board = board.current()
         if self._board is None:
@@ -242,7 +242,7 @@ class IntraDieMidQueueOp(_FaultNode):
         super().__init__("queue_victim", **kwargs)
         from std_msgs.msg import String
 
-        from container import intra
+        from cloneguard.container import intra
 
         self.op = self.declare_parameter("op", "put").value
         if self.op not in ("put", "take"):
@@ -261,7 +261,7 @@ class IntraDieMidQueueOp(_FaultNode):
         self._pub.publish(self._String(data="from the victim"))
 
     def fire(self):
-        from container import seams
+        from cloneguard.container import seams
 
         me = os.getpid()
 
@@ -285,7 +285,7 @@ class PayloadPublisher(Node):
 
         from std_msgs.msg import UInt8MultiArray
 
-        from container import intra
+        from cloneguard.container import intra
 
         self._payload = self.declare_parameter("payload", "malloc").value
         if self._payload not in ("malloc", "loan"):
@@ -329,7 +329,7 @@ class PayloadHolder(Node):
 
         from std_msgs.msg import UInt8MultiArray, UInt64
 
-        from container import intra
+        from cloneguard.container import intra
 
         self._hold_ns = int(self.declare_parameter("hold", 0.05).value * 1e9)
         loaned = self.declare_parameter("loaned", False).value

@@ -2,7 +2,7 @@
 
 ``FAULTS`` (at the end) is the registry: every fault the scenarios inject,
 by the name the reports give it. Scenarios run its trials N times and record
-the outcomes; ``python -m harness reproduce`` runs one until it does not
+the outcomes; ``python -m cloneguard.harness reproduce`` runs one until it does not
 survive (the harness finds the registry through the entry point group
 ``cloneguard.trials``, so the dependency runs one way: faults use the
 harness, never the reverse). Every random choice of a trial comes from its
@@ -18,8 +18,8 @@ from typing import Callable, Protocol
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
-from harness.client import HarnessTimeout
-from harness.rig import Outcome, Rig
+from cloneguard.harness.client import HarnessTimeout
+from cloneguard.harness.rig import Outcome, Rig
 
 from . import PACKAGE as RIG
 from .outside import kill_at

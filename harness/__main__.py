@@ -1,4 +1,4 @@
-"""Command line of the harness: ``python -m harness SUBCOMMAND ...``.
+"""Command line of the harness: ``python -m cloneguard.harness SUBCOMMAND ...``.
 
     compare RUN_A RUN_B [--fail-on-regression] [--test z|wilson] [--alpha A]
     render RUN [-o OUT.html]
@@ -122,7 +122,7 @@ SUBCOMMANDS = [_add_compare, _add_render, _add_merge, _add_reproduce, _add_summa
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m harness", description="cloneguard harness tools")
+    parser = argparse.ArgumentParser(prog="python -m cloneguard.harness", description="cloneguard harness tools")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for add in SUBCOMMANDS:
         add(subparsers)
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (OSError, ValueError) as exc:
-        print(f"python -m harness {args.command}: {exc}", file=sys.stderr)
+        print(f"python -m cloneguard.harness {args.command}: {exc}", file=sys.stderr)
         return 2
 
 

@@ -1,7 +1,7 @@
 """Containers and clients started together, stopped together.
 
 Used by the pytest fixtures (one factory per test) and by the standalone
-commands (``python -m harness reproduce``): every container it starts and
+commands (``python -m cloneguard.harness reproduce``): every container it starts and
 every client it connects is closed by :meth:`stop_all`, and only those.
 """
 from __future__ import annotations

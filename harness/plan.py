@@ -8,7 +8,7 @@ with ``--deep`` (or CLONEGUARD_DEEP=1), exactly N with ``--trials N``.
 ``--shard K/N`` (one of N runs, on other cores, jobs or machines) makes the
 trials ``i`` with ``i % N == K - 1``, with the seeds the unsharded run would
 have given them: the N shards together make exactly the unsharded run's
-trials, none twice, and ``python -m harness merge`` joins their reports. A
+trials, none twice, and ``python -m cloneguard.harness merge`` joins their reports. A
 scenario none of whose trials falls to this shard is skipped.
 
 Fixtures (registered by harness.pytest_plugin)

@@ -1,9 +1,9 @@
-"""``python -m harness reproduce FAULT``: replay a fault until it does not
+"""``python -m cloneguard.harness reproduce FAULT``: replay a fault until it does not
 survive, then stop right there with the container still running, print the
 diagnosis, and say how to attach a debugger.
 
-    python -m harness reproduce sigkill-during-malloc --allocator glibc --seed 7 --trials 200
-    python -m harness reproduce segfault-gil-held --profile shared --trial-seed 123456
+    python -m cloneguard.harness reproduce sigkill-during-malloc --allocator glibc --seed 7 --trials 200
+    python -m cloneguard.harness reproduce segfault-gil-held --profile shared --trial-seed 123456
 
 Every fault the scenarios inject can be replayed: the faults come from the
 registry the test rig's faults package declares (entry point group
@@ -17,10 +17,10 @@ import tempfile
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from harness import domains
-from harness.factory import ContainerFactory
-from harness.process import use_loopback_ros
-from harness.rig import PROFILES, Rig
+from cloneguard.harness import domains
+from cloneguard.harness.factory import ContainerFactory
+from cloneguard.harness.process import use_loopback_ros
+from cloneguard.harness.rig import PROFILES, Rig
 
 REGISTRY_GROUP = "cloneguard.trials"
 

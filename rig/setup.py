@@ -1,11 +1,16 @@
 # The test rig's packages live in the repository's top-level folders
-# (harness/, faults/, bench/), one level up from this file; setuptools takes
-# package_dir and cffi_modules from setup() keywords. Everything else is in
-# rig/pyproject.toml.
+# (harness/, faults/, bench/), one level up from this file, and install under
+# the project's namespace beside the product's cloneguard.container:
+# cloneguard.harness, cloneguard.faults, cloneguard.bench. setuptools takes
+# the computed package mapping and cffi_modules from setup() keywords;
+# everything else is in rig/pyproject.toml.
 from setuptools import find_packages, setup
 
+FOLDERS = ("harness", "faults", "bench")
+
 setup(
-    packages=find_packages(where="..", include=["harness*", "faults*", "bench*"]),
-    package_dir={"": ".."},
+    packages=[f"cloneguard.{top}{'.' + sub if sub else ''}"
+              for top in FOLDERS for sub in ["", *find_packages(f"../{top}")]],
+    package_dir={f"cloneguard.{top}": f"../{top}" for top in FOLDERS},
     cffi_modules=["../faults/_build_hammer.py:ffibuilder", "../faults/_build_gilfault.py:ffibuilder"],
 )

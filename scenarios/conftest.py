@@ -6,7 +6,7 @@ fixtures come from the harness's pytest plugin (harness/plan.py).
 """
 import pytest
 
-from harness.rig import Rig
+from cloneguard.harness.rig import Rig
 
 
 @pytest.fixture

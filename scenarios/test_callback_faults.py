@@ -7,9 +7,9 @@ its signal, and everything else goes on.
 """
 import pytest
 
-from faults import PACKAGE as RIG
-from faults.trials import CALLBACK_FAULTS, FAULTS, callback_fault
-from harness.rig import Outcome
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults.trials import CALLBACK_FAULTS, FAULTS, callback_fault
+from cloneguard.harness.rig import Outcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])

@@ -6,10 +6,10 @@ import signal
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from faults import PACKAGE as RIG
-from harness import procfs
-from harness.rig import Outcome
-from harness.tracker import NodeTracker, State
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness import procfs
+from cloneguard.harness.rig import Outcome
+from cloneguard.harness.tracker import NodeTracker, State
 
 DROP = {"cloneguard.fault.drop_loaded_event": True}
 

@@ -1,9 +1,9 @@
 """Callbacks that raise or never return."""
 import pytest
 
-from faults import PACKAGE as RIG
-from faults.trials import FAULTS
-from harness.rig import Outcome
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.rig import Outcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])

@@ -9,7 +9,7 @@ holds its messages.
 """
 import pytest
 
-from faults.trials import FAULTS
+from cloneguard.faults.trials import FAULTS
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])

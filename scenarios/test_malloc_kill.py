@@ -12,8 +12,8 @@ baselines run the same fault with the guard switched off.
 """
 import pytest
 
-from faults.trials import FAULTS
-from faults.trials import MALLOC_ALLOCATORS as ALLOCATORS
+from cloneguard.faults.trials import FAULTS
+from cloneguard.faults.trials import MALLOC_ALLOCATORS as ALLOCATORS
 # Guarded: 299/300 with glibc and with jemalloc in deep runs
 # (docs/evidence.md). 28 of 30 is a floor a 99% rate breaks once in ~300
 # runs (binomial tail), and that the unguarded allocators miss by far.

@@ -1,7 +1,7 @@
 """SIGKILL of one node's process from outside, at a random instant."""
 import pytest
 
-from faults.trials import FAULTS
+from cloneguard.faults.trials import FAULTS
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])

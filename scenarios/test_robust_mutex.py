@@ -1,7 +1,7 @@
 """A node dies holding a lock of the container's (a robust mutex)."""
 import pytest
 
-from faults.trials import FAULTS
+from cloneguard.faults.trials import FAULTS
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])

@@ -2,10 +2,10 @@
 after a graceful stop, and after a SIGKILL only the orphans are removed."""
 import signal
 
-from faults.outside import sigkill_container
-from harness import procfs, shm
-from harness.process import SHM_PROFILE
-from harness.rig import Outcome, Rig
+from cloneguard.faults.outside import sigkill_container
+from cloneguard.harness import procfs, shm
+from cloneguard.harness.process import SHM_PROFILE
+from cloneguard.harness.rig import Outcome, Rig
 
 
 def test_no_shm_profile_creates_no_segment(rig_factory, resilience, record_trial, trial_plan):

@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import Bundle, RuleBasedStateMachine, consumes, invariant, rule, run_state_machine_as_test
 
-from harness.plan import trial_count
-from harness.rig import Outcome
+from cloneguard.harness.plan import trial_count
+from cloneguard.harness.rig import Outcome
 
 PLUGINS = ["cloneguard::Talker", "cloneguard::Listener", "cloneguard::Heartbeat", "cloneguard::EchoService"]
 

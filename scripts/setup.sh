@@ -57,4 +57,4 @@ ACTIVATE
 fi
 echo "== cloneguard-testrig: harness, faults, benchmarks (editable, beside the product)"
 "${PIP[@]}" install --no-build-isolation --no-deps -e rig
-.venv/bin/python -c "import container, harness, faults; print('cloneguard and its test rig are set up in .venv')"
+.venv/bin/python -c "import cloneguard.container, cloneguard.harness, cloneguard.faults; print('cloneguard and its test rig are set up in .venv')"

@@ -5,8 +5,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
-from container import intra
-from harness.domains import lease
+from cloneguard.container import intra
+from cloneguard.harness.domains import lease
 
 
 @contextmanager

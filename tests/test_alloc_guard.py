@@ -16,15 +16,15 @@ from pathlib import Path
 
 import pytest
 
-from container import allocator
+from cloneguard.container import allocator
 
 REPO = Path(__file__).resolve().parent.parent
 
 PRELUDE = textwrap.dedent("""
     import ctypes, json, signal, sys, time
-    from container import allocator
+    from cloneguard.container import allocator
     allocator.glibc_arena_per_task()          # before any thread (no-op on jemalloc)
-    from container.isolated.core import CloneCore
+    from cloneguard.container.isolated.core import CloneCore
 
     libc = ctypes.CDLL(None)
     libc.malloc.restype = ctypes.c_void_p
@@ -70,7 +70,7 @@ CASES = {
     # it freed afterwards are leaked and counted exactly, and later children
     # get other slots.
     "quarantine": """
-        from faults._hammer import lib as hammer
+        from cloneguard.faults._hammer import lib as hammer
         with CloneCore(alloc_guard=True) as core:
             for attempt in range(5):
                 blocks, sizes, started = [], [], []
@@ -146,7 +146,7 @@ CASES = {
     # frees one block in eight of it: never a block from glibc's main arena
     # (which it would take the container's lock for).
     "no_main_arena": """
-        from faults._hammer import lib as hammer
+        from cloneguard.faults._hammer import lib as hammer
         with CloneCore(alloc_guard=True) as core:
             started = []
             def busy():

@@ -24,7 +24,7 @@ BAD_REQUESTS = [
     pytest.param(dict(package_name=PKG, plugin_name=""), "Failed to find class", id="empty-plugin"),
     pytest.param(dict(package_name="nope", plugin_name=TALKER), "Could not find requested resource", id="unknown-package"),
     pytest.param(dict(package_name=PKG, plugin_name="cloneguard::Nope"), "Failed to find class", id="unknown-plugin"),
-    pytest.param(dict(package_name=PKG, plugin_name="container.components.talker:Talker"),
+    pytest.param(dict(package_name=PKG, plugin_name="cloneguard.container.components.talker:Talker"),
                  "Failed to find class", id="module-path-is-not-a-plugin"),
     pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_name="bad name"),
                  "Couldn't parse remap rule: '-r __node:=bad name'", id="invalid-node-name"),

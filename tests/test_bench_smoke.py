@@ -6,9 +6,9 @@ import sys
 
 import pytest
 
-from bench import __main__ as bench_all
-from bench import common
-from harness.process import REPO_ROOT
+from cloneguard.bench import __main__ as bench_all
+from cloneguard.bench import common
+from cloneguard.harness.process import REPO_ROOT
 
 # The tables each benchmark writes, with the "tiny" preset's parameters.
 EXPECTED_TABLES = {
@@ -73,7 +73,7 @@ def test_report_files_hold_the_expected_tables(tiny_run, name):
     data = json.loads((out / f"{name}.json").read_text())
     md = (out / f"{name}.md").read_text()
     assert data["name"] == name
-    assert data["command"].startswith(f"python -m bench.{name} ")
+    assert data["command"].startswith(f"python -m cloneguard.bench.{name} ")
     for key in ("kernel", "cpu_model", "glibc", "date"):
         assert data["host"][key], key
     assert f"`{data['command']}`" in md and "Host: kernel " in md
@@ -101,7 +101,7 @@ def test_summary_has_a_row_per_measure(tiny_run):
 
 def test_a_benchmark_runs_as_its_documented_command(tmp_path):
     done = subprocess.run(
-        [sys.executable, "-m", "bench.load_latency", "--n", "1", "--modes", "thread", "--out", str(tmp_path)],
+        [sys.executable, "-m", "cloneguard.bench.load_latency", "--n", "1", "--modes", "thread", "--out", str(tmp_path)],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=60,
     )
     assert done.returncode == 0, done.stderr[-3000:]
@@ -110,7 +110,7 @@ def test_a_benchmark_runs_as_its_documented_command(tmp_path):
 
 
 def test_the_discovery_benchmark_probes_from_fresh_processes(tmp_path):
-    from bench import discovery
+    from cloneguard.bench import discovery
 
     result = discovery.run(probes=2, nodes=[1], modes=["thread"], settle=0.5, out=tmp_path, quiet=True)
     assert result.cleanup == []

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
-from faults import PACKAGE as RIG
+from cloneguard.container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
+from cloneguard.faults import PACKAGE as RIG
 
 PKG = "cloneguard"
 CG_ARGS = ["--isolated", "--cgroups"]
@@ -97,7 +97,7 @@ def _stale_tree(name: str) -> list[Path]:
 
 
 def test_an_empty_cgroup_left_under_our_name_is_reclaimed(request):
-    from container.isolated.cgroups import NodeCgroups
+    from cloneguard.container.isolated.cgroups import NodeCgroups
 
     name = f"cloneguard-test-stale-{os.getpid()}"
     roots = _stale_tree(name)
@@ -112,7 +112,7 @@ def test_an_empty_cgroup_left_under_our_name_is_reclaimed(request):
 
 
 def test_a_cgroup_under_our_name_with_a_live_process_is_refused_not_touched():
-    from container.isolated.cgroups import CgroupsUnavailable, NodeCgroups
+    from cloneguard.container.isolated.cgroups import CgroupsUnavailable, NodeCgroups
 
     name = f"cloneguard-test-busy-{os.getpid()}"
     roots = _stale_tree(name)
@@ -126,7 +126,7 @@ def test_a_cgroup_under_our_name_with_a_live_process_is_refused_not_touched():
     finally:
         sleeper.kill()
         sleeper.wait()
-        from container.isolated.cgroups import _rmdir
+        from cloneguard.container.isolated.cgroups import _rmdir
         for root in roots:
             for d in sorted((d for d in root.rglob("*") if d.is_dir()), reverse=True) + [root]:
                 _rmdir(d)

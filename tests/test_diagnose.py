@@ -6,7 +6,7 @@ a drain blocked inside jemalloc, a container thread on glibc's main arena.
 The end-to-end checks (gdb on real hung containers) are the scenarios'
 baselines, whose hangs must come out named.
 """
-from harness.diagnose import BlockedOn, Diagnosis, _lock_wait, _state, parse_threads
+from cloneguard.harness.diagnose import BlockedOn, Diagnosis, _lock_wait, _state, parse_threads
 
 HOLDER = """\
 Thread 2 (Thread 0x7f01d2bff6c0 (LWP 3659) "dds.ev.2"):
@@ -104,7 +104,7 @@ def test_a_glibc_arena_lock_is_named_by_its_arena_and_idle_and_running_threads_a
 
 
 def test_without_a_lock_the_summary_says_what_the_main_threads_do():
-    from harness.diagnose import ThreadState
+    from cloneguard.harness.diagnose import ThreadState
     d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container", 11: "/drain"},
                   states=[ThreadState(10, 10, "idle", "epoll_wait"),
                           ThreadState(11, 11, "running", "drain_some [Python: _drain (components.py:225)]")])
@@ -113,7 +113,7 @@ def test_without_a_lock_the_summary_says_what_the_main_threads_do():
 
 
 def test_a_thread_that_burns_cpu_while_nothing_progresses_is_called_spinning():
-    from harness.diagnose import ThreadState
+    from cloneguard.harness.diagnose import ThreadState
     d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container"},
                   states=[ThreadState(10, 10, "idle", "epoll_wait"),
                           ThreadState(12, 10, "running", "process_data_message", cpu_percent=97)])
@@ -128,7 +128,7 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
 
     import pytest
 
-    from harness.diagnose import diagnose, gdb_available
+    from cloneguard.harness.diagnose import diagnose, gdb_available
     if not gdb_available():
         pytest.skip("no gdb here")
     code = "import threading, time\nthreading.Thread(target=lambda: [None for _ in iter(int, 1)], daemon=True).start()\n" \
@@ -148,7 +148,7 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
 
 
 def test_an_owner_in_no_process_looked_into_is_described_from_proc():
-    from harness.diagnose import BlockedOn
+    from cloneguard.harness.diagnose import BlockedOn
     b = BlockedOn(tid=5, kind="GIL", address="", owner_tid=77, owner_node=None, owner_dead=False,
                   where="container", note="tid 77: state D (disk sleep), thread group 70")
     assert b.describe() == ("tid 5 (container) waits on the GIL, owned by tid 77 "
@@ -158,7 +158,7 @@ def test_an_owner_in_no_process_looked_into_is_described_from_proc():
 def test_proc_facts_of_a_live_task_name_its_state_and_group():
     import os
 
-    from harness import procfs
+    from cloneguard.harness import procfs
     facts = procfs.task_facts(os.getpid())
     assert facts.startswith("state R") or facts.startswith("state S"), facts
     assert f"thread group {os.getpid()}" in facts

@@ -1,7 +1,7 @@
 """The fault components' firing line has one definition (harness/firing.py)."""
 import pytest
 
-from harness import firing
+from cloneguard.harness import firing
 
 
 def test_a_line_reads_back_as_written():

@@ -4,7 +4,7 @@ global ROS arguments, true with them (and a warning); not a boolean: refused."""
 import pytest
 from std_msgs.msg import String
 
-from container.options import FORWARD_GLOBAL_WARNING
+from cloneguard.container.options import FORWARD_GLOBAL_WARNING
 
 GLOBAL_REMAP = ["--ros-args", "-r", "chatter:=global_chatter"]
 MODES = {"threads": [], "per-node": ["--isolated"], "shared": ["--isolated", "--profile", "shared"]}

@@ -14,9 +14,9 @@ import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 
-from container.isolated.cgroups import cgroup2_mount
-from faults import PACKAGE as RIG
-from harness.process import default_container_exe
+from cloneguard.container.isolated.cgroups import cgroup2_mount
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness.process import default_container_exe
 
 PKG = "cloneguard"
 MODES = {

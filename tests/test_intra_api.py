@@ -1,4 +1,4 @@
-"""container.intra's component API in one process: two nodes, one executor.
+"""cloneguard.container.intra's component API in one process: two nodes, one executor.
 
 Real rclpy and Fast DDS (loopback profile, a leased domain); endpoints are
 made with ``intra_process=True`` (in a container, LoadNode's
@@ -13,8 +13,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ros_support import ros_nodes
 from std_msgs.msg import String, UInt8MultiArray
 
-from container import intra
-from container.intra.api import LoanedMessage
+from cloneguard.container import intra
+from cloneguard.container.intra.api import LoanedMessage
 
 
 @pytest.fixture

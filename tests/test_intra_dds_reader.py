@@ -1,4 +1,4 @@
-"""container.intra.dds_reader: a DDS subscription that sees publisher gids.
+"""cloneguard.container.intra.dds_reader: a DDS subscription that sees publisher gids.
 
 Real rclpy on real Fast DDS (the harness plugin's loopback-only UDP profile,
 intraprocess delivery off, no shared memory), two nodes in this process on
@@ -16,7 +16,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String, UInt8MultiArray
 
-from container.intra.dds_reader import GID_SIZE, GidFilteredReader, publisher_gid
+from cloneguard.container.intra.dds_reader import GID_SIZE, GidFilteredReader, publisher_gid
 
 # Reliable and keeping everything: a test that counts messages must not lose
 # any to history depth.

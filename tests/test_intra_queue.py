@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from container import seams
-from container.intra.bus import Bus, PublisherEntry, SubscriptionEntry
-from container.intra.pool import MIN_BLOCK, LoanPool, size_class
-from container.intra.queue import MessageQueue
-from container.isolated.core import CloneCore
+from cloneguard.container import seams
+from cloneguard.container.intra.bus import Bus, PublisherEntry, SubscriptionEntry
+from cloneguard.container.intra.pool import MIN_BLOCK, LoanPool, size_class
+from cloneguard.container.intra.queue import MessageQueue
+from cloneguard.container.isolated.core import CloneCore
 
 
 @pytest.fixture

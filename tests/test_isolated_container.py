@@ -8,8 +8,8 @@ from cloneguard_interfaces.msg import ComponentEvent
 from cloneguard_interfaces.srv import Echo
 from std_msgs.msg import String, UInt64
 
-from faults import PACKAGE as RIG
-from harness import procfs
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness import procfs
 
 PKG = "cloneguard"
 PROFILES = [

@@ -6,8 +6,8 @@ import time
 import pytest
 from ros_support import ros_nodes
 
-from container.isolated.core import CloneCore
-from container.isolated.host import _robust_context_lock
+from cloneguard.container.isolated.core import CloneCore
+from cloneguard.container.isolated.host import _robust_context_lock
 
 
 @pytest.fixture

@@ -26,10 +26,10 @@ from pathlib import Path
 
 import pytest
 
-from container.isolated.assumptions import IsolationUnavailable, self_check
-from container.isolated.core import (CloneCore, Death, StopRequested, in_child,
+from cloneguard.container.isolated.assumptions import IsolationUnavailable, self_check
+from cloneguard.container.isolated.core import (CloneCore, Death, StopRequested, in_child,
                                      stop_requested)
-from container.robust import MutexNotRecoverable, RobustMutex
+from cloneguard.container.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)
 SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 1   # KCMP_VM is 1 (0 is KCMP_FILE)
@@ -232,7 +232,7 @@ def test_child_uses_the_parents_mangled_pointers(core):
 
 def test_child_thread_descriptor_is_initialised(core):
     """The child's struct pthread holds what glibc's start_thread would give."""
-    from container.isolated._clonecore import ffi, lib
+    from cloneguard.container.isolated._clonecore import ffi, lib
     lay = self_check().layout
 
     def fields():
@@ -572,7 +572,7 @@ def test_parent_request_stop(core, rec):
 
 CONTAINER_SCRIPT = textwrap.dedent("""
     import time
-    from container.isolated.core import CloneCore
+    from cloneguard.container.isolated.core import CloneCore
     core = CloneCore()
     child = core.spawn(lambda: time.sleep(3600))
     print(child.pid, flush=True)
@@ -726,7 +726,7 @@ def test_api_contracts(core):
 
 
 def test_mitigations_are_chosen_per_core():
-    from container.isolated.core import Mitigations
+    from cloneguard.container.isolated.core import Mitigations
     with pytest.raises(TypeError, match="unknown mitigation"):
         CloneCore(gil_repairs=False)
     with pytest.raises(ValueError, match="jemalloc_arena"):

@@ -16,7 +16,7 @@ import threading
 
 import pytest
 
-from container.isolated.core import CloneCore
+from cloneguard.container.isolated.core import CloneCore
 
 libc = ctypes.CDLL(None, use_errno=True)
 

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import pytest
 
-from bench import random_kill as killbench
-from container.isolated.core import CloneCore, Repair
-from faults._gilfault import lib as gilfault
+from cloneguard.bench import random_kill as killbench
+from cloneguard.container.isolated.core import CloneCore, Repair
+from cloneguard.faults._gilfault import lib as gilfault
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -198,7 +198,7 @@ def test_without_condvar_repair_random_kills_hang():
 
 FREEZE_SCRIPT = textwrap.dedent("""
     import ctypes, sys, threading, time
-    from container.isolated.core import CloneCore
+    from cloneguard.container.isolated.core import CloneCore
     count = [0]
     def counter():
         while True:

@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from container.isolated.core import allocator, thread_arena
+from cloneguard.container.isolated.core import allocator, thread_arena
 
 REPO = Path(__file__).resolve().parent.parent
 JEMALLOC = Path("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2")
 
 SCRIPT = textwrap.dedent("""
     import ctypes, json, sys
-    from container.isolated.core import CloneCore, allocator, thread_arena, thread_tcache
+    from cloneguard.container.isolated.core import CloneCore, allocator, thread_arena, thread_tcache
 
     def narenas():
         mallctl = ctypes.CDLL(None).mallctl

@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from container.isolated.core import CloneCore
+from cloneguard.container.isolated.core import CloneCore
 
 libc = ctypes.CDLL(None, use_errno=True)
 

@@ -14,7 +14,7 @@ every node a Context of its own, which goes with its process.
 """
 import pytest
 
-from bench import leaks
+from cloneguard.bench import leaks
 
 
 @pytest.mark.timeout(300)

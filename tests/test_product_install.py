@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from faults import PACKAGE as RIG
-from harness import domains
-from harness.factory import ContainerFactory
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness import domains
+from cloneguard.harness.factory import ContainerFactory
 
 REPO = Path(__file__).resolve().parent.parent
 OURS = ("cloneguard-", "cloneguard_testrig-", "__editable__.cloneguard")
@@ -49,7 +49,7 @@ def product(tmp_path_factory) -> tuple[Path, Path]:
     deps = root / "deps"
     deps.mkdir()
     for entry in Path(sysconfig.get_paths()["purelib"]).iterdir():
-        if not entry.name.startswith(OURS) and entry.name not in ("container", "harness", "faults", "bench"):
+        if not entry.name.startswith(OURS) and entry.name != "cloneguard":
             (deps / entry.name).symlink_to(entry)
     site = Path(_run(str(venv / "bin" / "python"), "-c",
                      "import sysconfig; print(sysconfig.get_paths()['purelib'])").stdout.strip())
@@ -66,7 +66,11 @@ def test_the_product_wheel_holds_only_the_container(product):
         tops = {n.split("/")[0] for n in names}
         [entry_points] = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
         declared = zf.read(entry_points).decode()
-    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"container"}, tops
+    # One top-level name, the project's namespace (no bare `container`),
+    # holding only the container.
+    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"cloneguard"}, tops
+    assert {n.split("/")[1] for n in names if n.startswith("cloneguard/")} == {"container"}, names
+    assert "cloneguard/__init__.py" not in names    # a namespace the rig's distribution shares
     # Besides the package, only the ament index entries (ament/README.md).
     data = sorted(n.split(".data/data/")[1] for n in names if ".data/" in n)
     assert data == ["lib/cloneguard/cloneguard-python-components.not-a-library",
@@ -74,15 +78,15 @@ def test_the_product_wheel_holds_only_the_container(product):
                     "share/ament_index/resource_index/packages/cloneguard",
                     "share/ament_index/resource_index/rclcpp_components/cloneguard"], data
     assert "faults" not in declared and "bench" not in declared and "pytest11" not in declared, declared
-    assert any(n.startswith("container/isolated/_clonecore") for n in names)
+    assert any(n.startswith("cloneguard/container/isolated/_clonecore") for n in names)
 
 
 def test_a_product_install_serves_loads_and_refuses_every_fault_component(product, tmp_path):
     _, venv = product
     python = venv / "bin" / "python"
     # The rig is not importable there at all.
-    probe = subprocess.run([str(python), "-c", "import faults"], capture_output=True, text=True, cwd="/")
-    assert probe.returncode != 0 and "No module named 'faults'" in probe.stderr
+    probe = subprocess.run([str(python), "-c", "import cloneguard.faults"], capture_output=True, text=True, cwd="/")
+    assert probe.returncode != 0 and "No module named 'cloneguard.faults'" in probe.stderr
     exe = venv / "bin" / "component_container"
     assert exe.exists()
     # Where launch looks for it (<prefix>/lib/<package>), installed executable.

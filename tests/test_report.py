@@ -16,13 +16,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from harness.__main__ import main as harness_main
-from harness.report import charts, collect, stats
-from harness.report.compare import compare_reports, format_comparison, match_scenarios
-from harness.report.model import (
+from cloneguard.harness.__main__ import main as harness_main
+from cloneguard.harness.report import charts, collect, stats
+from cloneguard.harness.report.compare import compare_reports, format_comparison, match_scenarios
+from cloneguard.harness.report.model import (
     Hang, Report, RunInfo, Scenario, Trial, load_report, resolve_report_path,
 )
-from harness.report.render import render_html, scenario_status
+from cloneguard.harness.report.render import render_html, scenario_status
 
 pytest_plugins = ["pytester"]
 
@@ -108,9 +108,9 @@ def plugin_args() -> list[str]:
     entry point's name when one is installed (so autoloading does not
     register the module a second time), else by module name."""
     for ep in entry_points(group="pytest11"):
-        if ep.value == "harness.report.collect":
+        if ep.value == "cloneguard.harness.report.collect":
             return ["-p", ep.name]
-    return ["-p", "harness.report.collect"]
+    return ["-p", "cloneguard.harness.report.collect"]
 
 
 STACKS = 'Thread 1 "<main>":\n  #0 futex_wait (lock=0x7f00) at futex.c:12\n  #1 if (a && b > c) <lock>'
@@ -507,11 +507,11 @@ def test_render_regenerates_html(tmp_path, capsys):
 def test_python_dash_m_harness(tmp_path):
     a = save(tmp_path, "a", [make_scenario("t::x", 20, 20)])
     b = save(tmp_path, "b", [make_scenario("t::x", 2, 20)])
-    done = subprocess.run([sys.executable, "-m", "harness", "compare", str(a), str(b), "--fail-on-regression"],
+    done = subprocess.run([sys.executable, "-m", "cloneguard.harness", "compare", str(a), str(b), "--fail-on-regression"],
                           cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 1, done.stderr
     assert "WORSE (significant)" in done.stdout
-    helped = subprocess.run([sys.executable, "-m", "harness", "--help"], cwd=REPO,
+    helped = subprocess.run([sys.executable, "-m", "cloneguard.harness", "--help"], cwd=REPO,
                             capture_output=True, text=True, timeout=60)
     assert helped.returncode == 0 and "compare" in helped.stdout and "render" in helped.stdout
 

@@ -28,9 +28,9 @@ from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule, run_state_machine_as_test
 
-from container.isolated.cgroups import cgroup2_mount
-from harness import fuzz, procfs
-from harness.plan import long_run
+from cloneguard.container.isolated.cgroups import cgroup2_mount
+from cloneguard.harness import fuzz, procfs
+from cloneguard.harness.plan import long_run
 from rclpy.context import Context
 
 MODES = {

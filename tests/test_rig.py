@@ -1,7 +1,7 @@
 """The scenario rig (harness/rig.py) on a real container."""
 import signal
 
-from harness.rig import Rig
+from cloneguard.harness.rig import Rig
 
 
 def test_a_container_that_died_in_a_trial_is_crashed_with_its_last_log_lines(container_factory):

@@ -10,16 +10,16 @@ import json
 
 import pytest
 
-from harness.__main__ import main as harness_main
-from harness.report.merge import MergeError, merge_reports
-from harness.report.model import load_report
+from cloneguard.harness.__main__ import main as harness_main
+from cloneguard.harness.report.merge import MergeError, merge_reports
+from cloneguard.harness.report.model import load_report
 
 from test_report import plugin_args
 
 pytest_plugins = ["pytester"]
 
 CELLS = '''
-from harness.rig import Outcome
+from cloneguard.harness.rig import Outcome
 
 def by_seed(seed, index):
     return Outcome("survived" if seed % 7 else "hung", details={"index": index})

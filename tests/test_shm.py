@@ -1,4 +1,4 @@
-"""harness.shm: which Fast DDS files are orphans, on files made by the test.
+"""cloneguard.harness.shm: which Fast DDS files are orphans, on files made by the test.
 
 Most cases build fake segments in a temporary directory (every function of
 harness.shm takes the directory to look in). The cases about Fast DDS's port
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from harness import shm
+from cloneguard.harness import shm
 
 PARTICIPANT = "fastrtps_0123456789abcdef"
 

@@ -3,8 +3,8 @@ import signal
 
 import pytest
 
-from harness import shm
-from harness.process import SHM_PROFILE
+from cloneguard.harness import shm
+from cloneguard.harness.process import SHM_PROFILE
 
 PKG = "cloneguard"
 

@@ -5,8 +5,8 @@ import signal
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from harness import procfs
-from harness.tracker import NodeTracker, State
+from cloneguard.harness import procfs
+from cloneguard.harness.tracker import NodeTracker, State
 
 PKG = "cloneguard"
 DROP = {"cloneguard.fault.drop_loaded_event": True}

@@ -1,12 +1,12 @@
-"""container.intra's wakers: a post wakes the guard condition's executor, and
+"""cloneguard.container.intra's wakers: a post wakes the guard condition's executor, and
 a closed waker stays safe for the publishers that still hold it."""
 import threading
 
 import pytest
 from ros_support import ros_nodes
 
-from container.intra._rclglue import ffi
-from container.intra.waker import Waker
+from cloneguard.container.intra._rclglue import ffi
+from cloneguard.container.intra.waker import Waker
 
 
 @pytest.fixture

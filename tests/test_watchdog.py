@@ -1,7 +1,7 @@
 """The watchdog ends a container whose executor stopped making progress."""
 import pytest
 
-from faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as RIG
 
 
 def _hang_until_the_watchdog_ends_it(client, container, mode: str) -> str:

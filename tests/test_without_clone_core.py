@@ -10,12 +10,12 @@ import sys
 import pytest
 from std_msgs.msg import String
 
-from harness.factory import ContainerFactory
+from cloneguard.harness.factory import ContainerFactory
 
 WITHOUT_CORE = f"""#!{sys.executable}
 import sys
-sys.modules["container.isolated._clonecore"] = None   # import fails: not built here
-from container.cli import main
+sys.modules["cloneguard.container.isolated._clonecore"] = None   # import fails: not built here
+from cloneguard.container.cli import main
 sys.exit(main())
 """
 

@@ -10,7 +10,7 @@ messages that came by reference.
 from rclpy.node import Node
 from std_msgs.msg import String, UInt64
 
-from container import intra
+from cloneguard.container import intra
 
 
 class Listener(Node):

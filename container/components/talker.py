@@ -8,7 +8,7 @@ nodes by reference, and to DDS only for subscribers outside the container.
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from container import intra
+from cloneguard.container import intra
 
 from . import checks
 

@@ -57,7 +57,7 @@ def _include_dirs() -> list[str]:
     if missing:
         raise RuntimeError(
             f"ROS 2 headers not found in {PREFIX} ({', '.join(missing)}): build "
-            "container.intra._rclglue with the venv's python after "
+            "cloneguard.container.intra._rclglue with the venv's python after "
             "`pip install -r scripts/requirements.txt`")
     return dirs
 
@@ -105,7 +105,7 @@ int cgw_close(struct cgw_waker *w, int timeout_ms);
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
-    "container.intra._rclglue",
+    "cloneguard.container.intra._rclglue",
     '#include "rclglue.c"\n#include "waker.h"\n',
     sources=["container/intra/waker.c"],
     include_dirs=[str(HERE), *_include_dirs()],

@@ -1,6 +1,6 @@
 """The component API: publishers and subscriptions that skip DDS inside a container.
 
-    from container import intra
+    from cloneguard.container import intra
 
     self.pub = intra.create_publisher(self, String, "chatter", 10)
     self.sub = intra.create_subscription(self, String, "chatter", self.on_msg, 10)

@@ -23,7 +23,7 @@ from typing import Callable
 
 from rclpy.logging import get_logger
 
-from container.robust import RobustMutex
+from cloneguard.container.robust import RobustMutex
 
 from .pool import LoanPool
 from .queue import MessageQueue

@@ -22,7 +22,7 @@ from __future__ import annotations
 import mmap
 from dataclasses import dataclass
 
-from container.robust import RobustMutex
+from cloneguard.container.robust import RobustMutex
 
 MIN_BLOCK = 64 * 1024
 MAX_BLOCK = 1 << 30

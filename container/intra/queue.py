@@ -23,8 +23,8 @@ from __future__ import annotations
 
 from typing import Callable
 
-from container import seams
-from container.robust import RobustMutex
+from cloneguard.container import seams
+from cloneguard.container.robust import RobustMutex
 
 
 class MessageQueue:

@@ -143,7 +143,7 @@ int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
-    "container.isolated._clonecore",
+    "cloneguard.container.isolated._clonecore",
     '#include "clonecore.c"\n',
     # setuptools wants sources relative to the repo root (where setup.py and
     # the __main__ build below run).

@@ -212,7 +212,7 @@ def self_check(*, glibc_version: str | None = None,
         raise IsolationUnavailable("; ".join(ck.failed))
 
     try:
-        from container.isolated._clonecore import ffi, lib
+        from cloneguard.container.isolated._clonecore import ffi, lib
     except ImportError as e:
         raise IsolationUnavailable(f"C core not built: {e}") from e
 
@@ -247,7 +247,7 @@ def check_multithreaded() -> None:
     locks (and x86 atomics their lock prefix) once it knows of a second thread.
     Call after the monitor thread has started.
     """
-    from container.isolated._clonecore import ffi, lib
+    from cloneguard.container.isolated._clonecore import ffi, lib
 
     tp = lib.cg_thread_pointer()
     mt = ffi.cast("int32_t *", tp + TCBHEAD["multiple_threads"])[0]

@@ -35,9 +35,9 @@ import traceback
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, Literal
 
-from container.isolated import assumptions
-from container.isolated.assumptions import IsolationUnavailable
-from container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD,
+from cloneguard.container.isolated import assumptions
+from cloneguard.container.isolated.assumptions import IsolationUnavailable
+from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD,
                                        CoreEvent, Death, Repair, StopRequested,
                                        decode)
 
@@ -128,7 +128,7 @@ class _Entry:
 
 
 def _lib():
-    from container.isolated._clonecore import ffi, lib
+    from cloneguard.container.isolated._clonecore import ffi, lib
     return ffi, lib
 
 
@@ -175,7 +175,7 @@ def thread_tcache() -> bool | None:
 def _resolve_guard(m: Mitigations) -> Mitigations:
     """alloc_guard None -> whether the guard is preloaded; True where it
     cannot work -> IsolationUnavailable."""
-    from container import allocator
+    from cloneguard.container import allocator
     loaded = allocator.guard_loaded()
     if m.alloc_guard is None:
         m = replace(m, alloc_guard=loaded)
@@ -187,7 +187,7 @@ def _resolve_guard(m: Mitigations) -> Mitigations:
     if not allocator.jemalloc_active() and not allocator.own_arenas():
         raise IsolationUnavailable(
             "the allocator guard under glibc malloc needs an arena per task: call "
-            "container.allocator.glibc_arena_per_task() before a second thread starts")
+            "cloneguard.container.allocator.glibc_arena_per_task() before a second thread starts")
     return m
 
 

@@ -5,7 +5,7 @@
     stats     Wilson intervals, the z-test, latency summaries
     render    report.html (self-contained: inline CSS and SVG)
     charts    the SVG charts
-    compare   comparison of two runs (``python -m harness compare``)
+    compare   comparison of two runs (``python -m cloneguard.harness compare``)
     env       host and git facts for the run metadata
 
 Only ``collect`` imports pytest; the rest is the standard library.

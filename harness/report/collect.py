@@ -13,7 +13,7 @@ Options
     --run-label TEXT    a label shown in the report
     --shard K/N         run shard K of N of the scenarios' trials (see
                         harness/plan.py); merge the shards' reports with
-                        ``python -m harness merge``
+                        ``python -m cloneguard.harness merge``
 """
 from __future__ import annotations
 
@@ -305,7 +305,7 @@ class ReportSession:
         shard = self.config.getoption("--shard", default=None)
         tr.write_line(f"{len(records)} scenario(s), {total} trial(s){where}: {detail}"
                       + (f"; {unmet} expectation(s) not met" if unmet else "")
-                      + (f"; shard {shard}: expectations are judged by `python -m harness merge`"
+                      + (f"; shard {shard}: expectations are judged by `python -m cloneguard.harness merge`"
                          if shard else ""))
         tr.write_line(f"report: {self.written / REPORT_HTML}")
         tr.write_line(f"data:   {self.written / 'report.json'}")
@@ -359,7 +359,7 @@ def pytest_addoption(parser):
     group.addoption(
         "--shard", default=None, metavar="K/N",
         help="run shard K of N of every scenario's trials (trial i where i %% N == K-1; seeds "
-             "are drawn as in the unsharded run); merge the shards with `python -m harness merge`",
+             "are drawn as in the unsharded run); merge the shards with `python -m cloneguard.harness merge`",
     )
 
 

@@ -452,7 +452,7 @@ def render_html(report: Report) -> str:
         '<h2 id="scenarios">Scenarios</h2>',
         "".join(_scenario(s, ids[i]) for i, s in enumerate(report.scenarios)) or "<p>No scenarios ran.</p>",
         f'<footer>cloneguard crash-resilience report · run <span class="mono">{e(report.run.id)}</span> · '
-        "data in report.json · re-render with <code>python -m harness render</code></footer>",
+        "data in report.json · re-render with <code>python -m cloneguard.harness render</code></footer>",
     ]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             '<meta name="viewport" content="width=device-width, initial-scale=1">'

@@ -2,7 +2,7 @@
 trials (survived, rate, 95% interval, expectation) and every trial that did
 not survive with its diagnosis, for docs and closing notes.
 
-    python -m harness summary reports/deep [--hang-chars 240]
+    python -m cloneguard.harness summary reports/deep [--hang-chars 240]
 """
 from __future__ import annotations
 
