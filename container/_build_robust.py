@@ -23,6 +23,3 @@ ffibuilder.set_source(
     libraries=["pthread"],
     extra_compile_args=["-std=gnu11", "-Wall"],
 )
-
-if __name__ == "__main__":
-    ffibuilder.compile(tmpdir=str(HERE.parent), verbose=False)

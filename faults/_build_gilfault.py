@@ -24,6 +24,3 @@ ffibuilder.set_source(
     define_macros=[("_CFFI_NO_LIMITED_API", None)],
     py_limited_api=False,
 )
-
-if __name__ == "__main__":
-    ffibuilder.compile(tmpdir=str(HERE.parent), verbose=False)

@@ -22,6 +22,3 @@ ffibuilder.set_source(
     depends=[str(HERE / "hammer.c")],
     extra_compile_args=["-O2", "-std=gnu11"],
 )
-
-if __name__ == "__main__":
-    ffibuilder.compile(tmpdir=str(HERE.parent), verbose=False)

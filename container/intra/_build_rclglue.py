@@ -23,8 +23,8 @@ as for rclpy; in practice rclpy (imported first by dds_reader) has loaded
 them all already, and the loader reuses an already loaded librcl.so by its
 soname, so there is one librcl in the process, shared with rclpy.
 
-Built by setup.py (``cffi_modules``); ``python container/intra/_build_rclglue.py``
-also builds it in place for quick iteration.
+Built by setup.py (``cffi_modules``); after an edit of the C,
+``pip install --no-build-isolation --no-deps -e .`` rebuilds it in place.
 """
 
 import sys
@@ -109,25 +109,14 @@ ffibuilder.set_source(
     '#include "rclglue.c"\n#include "waker.h"\n',
     sources=["container/intra/waker.c"],
     include_dirs=[str(HERE), *_include_dirs()],
-    # setuptools wants paths relative to the repo root (where setup.py and
-    # the __main__ build below run).
+    # setuptools wants paths relative to the repo root (where setup.py runs).
     depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h", "waker.c", "waker.h")],
     libraries=["rcl", "rmw", "rcutils"],
     library_dirs=[str(LIB_DIR)],
     extra_compile_args=["-std=gnu11", "-Wall"],
     extra_link_args=[f"-Wl,-rpath,{LIB_DIR}"],
-    # Tied to CPython 3.11 by the ROS wheels anyway. Not abi3, so that the
-    # setup.py build and the __main__ build below both produce
-    # _rclglue.cpython-311-*.so: an abi3 file would be shadowed by a stale
-    # cpython-311 one.
+    # Tied to CPython 3.11 by the ROS wheels anyway. Not abi3, so that every
+    # build produces _rclglue.cpython-311-*.so: an abi3 file would be
+    # shadowed by a stale cpython-311 one.
     py_limited_api=False,
 )
-
-if __name__ == "__main__":
-    import os
-
-    # Run as a script, this directory is sys.path[0], and its queue.py would
-    # shadow the stdlib's queue for setuptools (imported by compile()).
-    sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
-    os.chdir(HERE.parent.parent)  # the repo root: the module lands in place
-    ffibuilder.compile(verbose=True)
