@@ -1,14 +1,16 @@
 """cffi (API mode) builder for container.isolated._clonecore.
 
-The C lives next to this file: clonecore.c (the generated module just
-#includes it, so compiler messages point at clonecore.c lines) and
-gilrepair.c (compiled on its own with Py_BUILD_CORE: it reads CPython's
-internal GIL state; see there).  clonecore.h is what the two share.  The cdef
-below mirrors the public part of both: keep them in step (a mismatch is a
-compile error in the generated module).
+The C lives next to this file, one job per file (core.h lists them): the
+generated module includes core.h, the declarations Python's calls need, and
+links the core's files as further sources; gilrepair.c is among them,
+compiled with Py_BUILD_CORE (it reads CPython's internal GIL state; see
+there), sharing only clonecore.h with the rest.  The cdef below mirrors the
+public part of all of them: keep them in step (a mismatch is a compile error
+in the generated module).  Built with -fvisibility=hidden: the module
+exports its PyInit function only.
 
-Built by setup.py (``cffi_modules``); ``python container/isolated/_build_core.py``
-also builds it in place for quick iteration.
+Built by setup.py (``cffi_modules``); after an edit of the C,
+``pip install --no-build-isolation --no-deps -e .`` rebuilds it in place.
 """
 
 from pathlib import Path
@@ -16,6 +18,7 @@ from pathlib import Path
 from cffi import FFI
 
 HERE = Path(__file__).resolve().parent
+SOURCES = ("clonecore.c", "monitor.c", "child.c", "crash.c", "contexts.c", "probes.c", "gilrepair.c")
 
 CDEF = r"""
 struct cg_layout {
@@ -144,23 +147,16 @@ ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "cloneguard.container.isolated._clonecore",
-    '#include "clonecore.c"\n',
-    # setuptools wants sources relative to the repo root (where setup.py and
-    # the __main__ build below run).
-    sources=["container/isolated/gilrepair.c"],
+    '#include "core.h"\n',
+    # setuptools wants sources relative to the repo root (where setup.py runs).
+    sources=[f"container/isolated/{n}" for n in SOURCES],
     include_dirs=[str(HERE)],
-    depends=[f"container/isolated/{n}" for n in ("clonecore.c", "clonecore.h", "gilrepair.c", "allocguard.h")],
+    depends=[f"container/isolated/{n}" for n in ("core.h", "clonecore.h", "allocguard.h")],
     libraries=["dl", "pthread"],
-    extra_compile_args=["-std=gnu11", "-Wall", "-Wno-unused-function"],
+    extra_compile_args=["-std=gnu11", "-Wall", "-Wno-unused-function", "-fvisibility=hidden"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would
     # otherwise define Py_LIMITED_API (the macro covers ffibuilder.compile(),
     # the keyword a setuptools build).
     define_macros=[("_CFFI_NO_LIMITED_API", None)],
     py_limited_api=False,
 )
-
-if __name__ == "__main__":
-    import os
-
-    os.chdir(HERE.parent.parent)  # the repo root: the module lands in place
-    ffibuilder.compile(verbose=True)

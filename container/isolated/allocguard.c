@@ -758,7 +758,7 @@ static void make_address_map(unsigned arena)
 }
 
 /* ---------------------------------------------------------------------- */
-/* Control, for clonecore.c.                                               */
+/* Control, for the clone core.                                            */
 
 static void after_fork_child(void)
 {
@@ -855,7 +855,7 @@ EXPORT int cga_slot_new(void)
     return -ENOSPC;
 }
 
-/* Called with a new context's thread pointer current (clonecore.c borrows
+/* Called with a new context's thread pointer current (contexts.c borrows
    its TLS block on a container thread): make this "task" slot s's and set
    up its allocator state (jemalloc's thread data and cache, glibc's arena
    and cache) now, in the container, so the node process never runs that

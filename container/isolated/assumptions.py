@@ -1,8 +1,8 @@
 """Every assumption the isolated core rests on, in one place, each one checked.
 
-The C core (clonecore.c) builds a glibc thread descriptor by hand for a task
-glibc did not create.  That is only sound on a platform we have looked at, with
-the struct pthread layout we believe in.  This module says which platforms
+The C core (core.h lists its files) builds a glibc thread descriptor by hand
+for a task glibc did not create.  That is only sound on a platform we have
+looked at, with the struct pthread layout we believe in.  This module says which platforms
 those are, finds every layout value at run time (from glibc's own debugger
 descriptors, the kernel's view of the calling thread, and exported symbols)
 and checks each one against the live calling thread before any child exists.

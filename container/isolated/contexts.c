@@ -1,0 +1,211 @@
+/*
+ * contexts.c - TLS blocks for children, and the allocator guard's contexts.
+ *
+ * glibc gives each pthread a TLS block with its struct pthread at the thread
+ * pointer; a child gets one too, from glibc's own _dl_allocate_tls, filled in
+ * here by the parent with what pthread_create would have set (offsets from
+ * g_layout).  With the allocator guard (allocguard.c, preloaded), a TLS block
+ * is bound to an allocator slot for good: the pair is a context (core.h),
+ * pooled and reused by the next child unless its child died inside the
+ * allocator.  Runs on container threads, never in a child.
+ */
+#include "core.h"
+
+#include <asm/prctl.h>
+#include <dlfcn.h>
+#include <errno.h>
+#include <pthread.h>
+#include <signal.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+static void *(*dl_allocate_tls)(void *);
+static void (*dl_deallocate_tls)(void *, bool);
+
+/* The allocator guard's entry points (allocguard.h), when it is preloaded. */
+static struct {
+    cga_activate_fn activate;
+    cga_slot_new_fn slot_new;
+    cga_warm_fn warm;
+    cga_slot_bind_fn slot_bind;
+    cga_child_start_fn child_start;
+    cga_slot_retire_fn slot_retire;
+    cga_slot_stats_fn slot_stats;
+} G;
+
+static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
+static struct cg_ctx *g_pool;          /* idle contexts, most recent first */
+static void ctx_put(struct cg_ctx *x);
+
+/* ---------------------------------------------------------------------- */
+/* TLS blocks.                                                              */
+
+int tls_init(void)
+{
+    dl_allocate_tls = (void *(*)(void *))dlvsym(RTLD_DEFAULT,
+                                 "_dl_allocate_tls", "GLIBC_PRIVATE");
+    dl_deallocate_tls = (void (*)(void *, bool))dlvsym(RTLD_DEFAULT,
+                                 "_dl_deallocate_tls", "GLIBC_PRIVATE");
+    return dl_allocate_tls && dl_deallocate_tls ? 0 : -ENOSYS;
+}
+
+/* What a child may leave behind in its struct pthread that the next child
+   in the same TLS block must not inherit. */
+void tls_reset(char *tcb)
+{
+    /* Empty robust list: list points at the head itself. */
+    AT(tcb, g_layout.robust_head, void *) = tcb + g_layout.robust_head;
+    AT(tcb, g_layout.robust_head + 8, long) = g_layout.robust_futex_offset;
+    AT(tcb, g_layout.robust_head + 16, void *) = NULL;
+    /* No pthread_cleanup record (one is left by a death in a condvar wait,
+       and gilrepair.c reads it). */
+    AT(tcb, g_layout.cleanup, void *) = NULL;
+}
+
+char *tls_new(void)
+{
+    char *tcb = dl_allocate_tls(NULL);   /* struct pthread zeroed, dtv set */
+    if (!tcb)
+        return NULL;
+    char *me = (char *)cg_thread_pointer();
+
+    AT(tcb, g_layout.tcb, void *) = tcb;        /* THREAD_SELF reads these */
+    AT(tcb, g_layout.self, void *) = tcb;
+    /* x86 catomic_* skip the lock prefix when this is 0: must be 1. */
+    AT(tcb, g_layout.multiple_threads, int) = 1;
+    /* The canary only needs to be stable per task, but pointer_guard must
+       equal every other thread's: mangled pointers (setjmp buffers, atexit
+       and dl handlers) are shared. */
+    AT(tcb, g_layout.stack_guard, uintptr_t) = AT(me, g_layout.stack_guard, uintptr_t);
+    AT(tcb, g_layout.pointer_guard, uintptr_t) = AT(me, g_layout.pointer_guard, uintptr_t);
+    /* Not on GL(dl_stack_used): an empty self-linked list keeps list_del
+       (fork in a child) harmless. */
+    AT(tcb, g_layout.list, void *) = tcb + g_layout.list;
+    AT(tcb, g_layout.list + 8, void *) = tcb + g_layout.list;
+    /* pthread_getspecific for keys < 32 goes through specific[0]. */
+    AT(tcb, g_layout.specific, void *) = tcb + g_layout.specific_1stblock;
+    /* rseq is not registered for the child: RSEQ_CPU_ID_REGISTRATION_FAILED
+       makes sched_getcpu fall back to the syscall. */
+    AT(tcb, g_layout.rseq_cpu_id, int32_t) = -2;
+    tls_reset(tcb);
+    /* tid is written by the kernel (CLONE_{CHILD,PARENT}_SETTID). */
+    return tcb;
+}
+
+/* The child's TLS block, after it ended or never started: back to the pool
+   with its context, kept for good when it died inside the allocator, freed
+   when there is no guard. */
+void tls_give_back(struct cg_child *c)
+{
+    if (c->ctx) {
+        if (c->quarantined) {
+            free(c->ctx);                /* the TLS block itself stays */
+        } else {
+            G.slot_retire(c->ctx->slot, c->ctx->tcb); /* idle (again, if reaped) */
+            ctx_put(c->ctx);
+        }
+        c->ctx = NULL;
+    } else if (c->tcb) {
+        dl_deallocate_tls(c->tcb, true);
+    }
+    c->tcb = NULL;
+}
+
+/* ---------------------------------------------------------------------- */
+/* The allocator guard's contexts.                                         */
+
+int guard_start(void)
+{
+    if (G.activate)
+        return 0;                        /* one activation per process */
+#define FIND(field, name) G.field = (void *)dlsym(RTLD_DEFAULT, name)
+    FIND(activate, "cga_activate");
+    FIND(slot_new, "cga_slot_new");
+    FIND(warm, "cga_warm");
+    FIND(slot_bind, "cga_slot_bind");
+    FIND(child_start, "cga_child_start");
+    FIND(slot_retire, "cga_slot_retire");
+    FIND(slot_stats, "cga_slot_stats");
+#undef FIND
+    if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
+        !G.child_start || !G.slot_retire || !G.slot_stats) {
+        memset(&G, 0, sizeof G);
+        return -ENOENT;                  /* not preloaded */
+    }
+    int r = G.activate(getpid());
+    if (r < 0 && r != -EALREADY) {
+        memset(&G, 0, sizeof G);
+        return r;
+    }
+    return 0;
+}
+
+/* Run cga_warm(slot) as the context's own task would: with its TLS block as
+   this thread's, for the few calls that set up its allocator state.  All
+   signals stay blocked meanwhile (no handler may run on a borrowed TLS);
+   nothing here touches TLS itself across the switch. */
+static __attribute__((noinline)) int ctx_warm(struct cg_ctx *x)
+{
+    sigset_t all, old;
+    sigfillset(&all);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
+    uintptr_t mine = cg_thread_pointer();
+    syscall(SYS_arch_prctl, ARCH_SET_FS, (unsigned long)x->tcb);
+    int r = G.warm(x->slot);
+    syscall(SYS_arch_prctl, ARCH_SET_FS, (unsigned long)mine);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
+    return r;
+}
+
+struct cg_ctx *ctx_take(void)
+{
+    pthread_mutex_lock(&g_pool_lock);
+    struct cg_ctx *x = g_pool;
+    if (x)
+        g_pool = x->next;
+    pthread_mutex_unlock(&g_pool_lock);
+    if (x)
+        return x;
+    x = calloc(1, sizeof *x);
+    if (!x)
+        return NULL;
+    x->tcb = tls_new();
+    x->slot = x->tcb ? G.slot_new() : -ENOMEM;
+    if (x->slot < 0 || ctx_warm(x) < 0) {
+        /* A slot made and not warmed stays unused: never handed out. */
+        if (x->tcb)
+            dl_deallocate_tls(x->tcb, true);
+        free(x);
+        return NULL;
+    }
+    return x;
+}
+
+static void ctx_put(struct cg_ctx *x)
+{
+    pthread_mutex_lock(&g_pool_lock);
+    x->next = g_pool;
+    g_pool = x;
+    pthread_mutex_unlock(&g_pool_lock);
+}
+
+/* What an allocator slot holds (allocguard.h); -ENOENT without the guard. */
+int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out)
+{
+    return G.slot_stats ? G.slot_stats(slot, out) : -ENOENT;
+}
+
+
+bool guard_active(void) { return G.activate != NULL; }
+
+/* The calling container thread hands the slot to the child it spawns. */
+void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
+
+/* In the child: threads it creates find its slot by its pid. */
+void guard_child_start(void) { G.child_start(); }
+
+/* Every task of the child is gone: 1 if it died inside the allocator (the
+   slot is quarantined), 0 if the slot is idle again. */
+int guard_retire(struct cg_ctx *x) { return G.slot_retire(x->slot, x->tcb); }

@@ -1,0 +1,213 @@
+/*
+ * core.h - what the clone core's C files share among themselves (gilrepair.c
+ * shares only clonecore.h).  The core, file by file:
+ *
+ *   clonecore.c  the calls Python makes: start/stop the core, spawn a child,
+ *                ask it to stop, release or abandon it once reaped
+ *   monitor.c    the monitor thread: performs every clone3, waits on pidfds,
+ *                repairs (gilrepair.c) and reaps, reports on the event pipe
+ *   child.c      how a child is born (the clone3 trampoline) and what it runs
+ *                before and after the Python target (child_main)
+ *   crash.c      the child's crash report, from its own signal stack
+ *   contexts.c   TLS blocks (struct pthread) for children, and the allocator
+ *                guard's contexts that keep one bound to a slot across children
+ *   probes.c     small helpers assumptions.py uses to discover and check the
+ *                layout, and the allocator in use
+ *
+ * x86_64 and glibc only.  Everything layout-dependent comes from
+ * assumptions.py through struct cg_layout (g_layout), checked against a live
+ * thread before anything here runs.  The extension is built with
+ * -fvisibility=hidden: nothing declared here is visible outside it.
+ */
+#ifndef CLONEGUARD_CORE_H
+#define CLONEGUARD_CORE_H
+
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE
+#endif
+#include <Python.h>
+#include <resolv.h>
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#include "allocguard.h"
+#include "clonecore.h"
+
+#if !defined(__x86_64__)
+#error "the clone core is x86_64 only (clone3 trampoline and TLS layout)"
+#endif
+
+/* ---------------------------------------------------------------------- */
+/* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
+
+struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
+    long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
+    long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
+    long rseq_cpu_id;        /* __rseq_offset + offsetof(struct rseq, cpu_id) */
+    long resp_tls;           /* &__resp (initial-exec TLS in libc) - tp */
+    long robust_futex_offset;/* robust_list_head.futex_offset glibc uses */
+    long cleanup;            /* struct pthread.cleanup (pthread_cleanup_push) */
+    long cond_cleanup;       /* address of glibc's condvar-wait cleanup
+                                routine (cg_probe_condwait), 0: unknown */
+};
+
+struct cg_config {           /* per CloneCore; see core.Mitigations */
+    int gil_repair;
+    int condvar_repair;
+    int crash_report;
+    int jemalloc_own_arena;  /* without alloc_guard: arenas.create in the child */
+    int jemalloc_tcache;
+    int alloc_guard;         /* allocguard.c is preloaded: use it (see there) */
+};
+
+enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3 };
+struct cg_event {            /* one record on the event pipe: 40 bytes */
+    uint32_t kind;
+    int32_t pid;
+    int32_t status;          /* death: si_status; stop: CG_STOP_* */
+    int32_t code;            /* death: si_code (CLD_EXITED/KILLED/DUMPED),
+                                0 if someone else reaped the child;
+                                stop: the signal (0: asked by the parent) */
+    uint64_t serial;
+    int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
+    uint32_t repairs;        /* death: CG_REPAIR_* (clonecore.h) */
+    uint32_t alloc;          /* death: its allocator slot (low 16 bits, 0:
+                                none) | CG_ALLOC_QUARANTINED */
+};
+#define CG_ALLOC_QUARANTINED (1u << 31)
+
+enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
+enum { CG_RUNNING = 0, CG_REAPED = 1 };
+enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
+#define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
+
+struct cg_child {            /* control block, lives in container memory */
+    /* read by Python */
+    int pid;
+    int pidfd;
+    uint64_t serial;         /* Python's name for the child */
+    int64_t start_ns;
+    int state;               /* CG_RUNNING / CG_REAPED (atomic) */
+    int stop_requested;      /* CG_STOP_* (atomic; child, parent, monitor) */
+    int py_phase;            /* CG_PY_* (atomic; written by the child) */
+    int stop_signal;         /* the signal that asked (atomic), 0: parent */
+    int arena;               /* jemalloc arena the child bound to, -1: none */
+    /* set up before the clone */
+    PyObject *target;        /* borrowed: Python keeps it alive until reaped */
+    PyThreadState *tstate;   /* made by cg_spawn, deleted by cg_release */
+    int flags;
+    int cgroup_fd;           /* -1: stay in the container's cgroup */
+    int parent_tgid;
+    char *map;               /* guard page + stack */
+    size_t map_len, stack_size;
+    char *alt;               /* guard page + signal stack (crash reports) */
+    size_t alt_len;
+    char *tcb;               /* from _dl_allocate_tls (or ctx->tcb) */
+    struct cg_ctx *ctx;      /* with the allocator guard: its context */
+    /* monitor-only */
+    int stop_reported;
+    int repair_done;         /* gilrepair has looked at this dead child */
+    uint32_t repairs;        /* what it repaired for it */
+    int quarantined;         /* it died inside the allocator */
+    struct cg_child *next;
+    /* the child's own resolver state, as start_thread gives each thread */
+    struct __res_state res;
+};
+
+/* A pthread_cond_wait that is blocked, seen from outside: glibc 2.36 pushes
+   a cleanup record (struct pthread.cleanup) whose argument says which
+   condvar, which mutex and which position it waits at, and it holds a
+   reference on its condvar group meanwhile.  gilrepair.c relies on all of
+   that for dead waiters; cg_probe_condwait (probes.c) checks it on a live pthread at start-up. */
+struct cg_condwait_probe {
+    uintptr_t routine;       /* the cleanup routine the waiter pushed */
+    int found;               /* TCB+cleanup became non-NULL while it waited */
+    int buf_on_stack;        /* the record lies on the waiter's stack */
+    int cbuf_matches;        /* its argument names our cond and mutex */
+    int wseq_matches;        /* argument.wseq + 2 == cond.__wseq (1 waiter) */
+    int holds_ref;           /* cond.__g_refs[group] == 2 while it waits */
+    int routine_in_libc;
+    int cleared_after;       /* TCB+cleanup is back to what it was before */
+};
+
+/* With the guard, a child runs in a *context*: a TLS block (struct pthread
+   + static TLS) and the allocator slot bound to it, whose thread cache,
+   arena binding and (glibc) arena live in that TLS block.  A context whose
+   child ended outside the allocator is reused by the next child, with all
+   of that in place; one whose child died inside the allocator is never
+   touched again (its TLS block stays allocated: jemalloc keeps a list of
+   every thread's data, this one included).  contexts.c. */
+struct cg_ctx {
+    char *tcb;
+    int slot;
+    struct cg_ctx *next;
+};
+
+#define AT(base, off, type) (*(type *)((char *)(base) + (off)))
+
+/* ---- Called from Python (the cdef in _build_core.py mirrors these) ---- */
+
+/* clonecore.c */
+int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
+             int *event_fd);
+int cg_stop(void);
+int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
+             int flags, struct cg_child **out);
+int cg_request_stop(struct cg_child *c);
+int cg_release(struct cg_child *c);
+int cg_abandon(struct cg_child *c);
+/* child.c */
+int cg_self_stop_requested(void);
+/* contexts.c */
+int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
+/* probes.c */
+uintptr_t cg_thread_pointer(void);
+uintptr_t cg_robust_list_head(void);
+long cg_gettid(void);
+void *cg_lookup(const char *name, const char *version);
+long cg_mutex_futex_offset(void);
+int cg_probe_clone3(void);
+int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
+int cg_allocator(char *buf, size_t len);
+int cg_jemalloc_thread_tcache(void);
+int cg_jemalloc_thread_arena(void);
+
+/* ---- Among the core's files ------------------------------------------- */
+
+/* clonecore.c: set by cg_start, read-only afterwards. */
+extern struct cg_layout g_layout;
+extern struct cg_config g_cfg;
+/* jemalloc's mallctl when jemalloc is the process's malloc, else NULL. */
+typedef int (*mallctl_fn)(const char *, void *, size_t *, void *, size_t);
+extern mallctl_fn g_mallctl;
+
+/* monitor.c */
+int monitor_start(int *event_fd);
+int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
+int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
+void monitor_wake(void);                  /* async-signal-safe */
+
+/* child.c */
+long child_clone(struct cg_child *c);     /* on the monitor thread: pid or -errno */
+
+/* crash.c */
+void crash_report_prepare(void);          /* in cg_start, never in a handler */
+void crash_handlers_install(struct cg_child *c);   /* in the child */
+
+/* contexts.c */
+int tls_init(void);                       /* find glibc's TLS allocator */
+char *tls_new(void);
+void tls_reset(char *tcb);
+void tls_give_back(struct cg_child *c);
+int guard_start(void);                    /* -ENOENT: the guard is not preloaded */
+bool guard_active(void);
+struct cg_ctx *ctx_take(void);
+void guard_bind(struct cg_ctx *x);
+void guard_child_start(void);             /* in the child */
+int guard_retire(struct cg_ctx *x);       /* 1: it died inside the allocator */
+
+/* probes.c */
+mallctl_fn find_mallctl(void);
+
+#endif

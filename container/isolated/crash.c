@@ -1,0 +1,167 @@
+/*
+ * crash.c - a child's crash report: on SIGSEGV, SIGBUS, SIGILL, SIGFPE or
+ * SIGABRT, one report on fd 2 (the signal, the address, the native stack,
+ * the Python stack) from the child's own signal stack, then the same death
+ * as without it.  Installed by the child itself (child_main); runs in the
+ * crashing task, on memory the container shares, so it stays small and
+ * async-signal-safe but for the two calls named at on_crash.
+ */
+#include "core.h"
+
+#include <errno.h>
+#include <execinfo.h>
+#include <signal.h>
+#include <string.h>
+#include <sys/syscall.h>
+#include <time.h>
+#include <ucontext.h>
+#include <unistd.h>
+
+/* The signal a crash report is about (for its watchdog, on the same thread).
+   initial-exec: a plain %fs-relative access, no __tls_get_addr. */
+static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));
+
+static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
+
+struct out { char b[256]; size_t n; };
+
+static void out_s(struct out *o, const char *s)
+{
+    while (*s && o->n < sizeof o->b)
+        o->b[o->n++] = *s++;
+}
+
+static void out_u(struct out *o, unsigned long v, unsigned base)
+{
+    char tmp[24];
+    int i = 0;
+    if (base == 16)
+        out_s(o, "0x");
+    do
+        tmp[i++] = "0123456789abcdef"[v % base];
+    while ((v /= base) && i < (int)sizeof tmp);
+    while (i && o->n < sizeof o->b)
+        o->b[o->n++] = tmp[--i];
+}
+
+static void out_flush(struct out *o)
+{
+    size_t done = 0;
+    while (done < o->n) {
+        ssize_t w = write(2, o->b + done, o->n - done);
+        if (w <= 0 && errno != EINTR)
+            break;
+        if (w > 0)
+            done += (size_t)w;
+    }
+    o->n = 0;
+}
+
+/* The report did not finish within 2 s (the symboliser waits for the
+   dynamic linker's lock, say): die of the signal we were reporting.  It is
+   SIG_DFL again (SA_RESETHAND) and blocked while its handler runs. */
+static void on_crash_timeout(int unused)
+{
+    (void)unused;
+    int sig = cg_crash_sig;
+    sigset_t s;
+    sigemptyset(&s);
+    sigaddset(&s, sig);
+    syscall(SYS_tgkill, getpid(), syscall(SYS_gettid), sig);
+    sigprocmask(SIG_UNBLOCK, &s, NULL);
+}
+
+/* One report on fd 2, then the same death as without us: the handler was
+   installed SA_RESETHAND, so the disposition is SIG_DFL again, and the
+   signal is re-sent to this thread; it is delivered (and kills the child)
+   as the handler returns.  A fault inside here kills at once (SIG_DFL).
+   Everything used is async-signal-safe, except backtrace (its unwinder was
+   loaded by cg_start; on glibc 2.35+ it finds FDEs without locks) and
+   backtrace_symbols_fd (dladdr, which takes the loader's lock: hence the
+   watchdog timer). */
+static void on_crash(int sig, siginfo_t *si, void *uc_)
+{
+    ucontext_t *uc = uc_;
+    int saved = errno;
+    cg_crash_sig = sig;
+    pid_t pid = getpid(), tid = (pid_t)syscall(SYS_gettid);
+
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_crash_timeout;
+    sigaction(SIGALRM, &sa, NULL);
+    struct sigevent sev;
+    memset(&sev, 0, sizeof sev);
+    sev.sigev_notify = SIGEV_THREAD_ID;
+    sev.sigev_signo = SIGALRM;
+    sev._sigev_un._tid = tid;   /* sigev_notify_thread_id */
+    int timer;
+    if (syscall(SYS_timer_create, CLOCK_MONOTONIC, &sev, &timer) == 0) {
+        struct itimerspec its = {{0, 0}, {2, 0}};
+        syscall(SYS_timer_settime, timer, 0, &its, NULL);
+    }
+
+    struct out o = {.n = 0};
+    const char *abbrev = sigabbrev_np(sig);
+    out_s(&o, "cloneguard: pid ");
+    out_u(&o, (unsigned long)pid, 10);
+    out_s(&o, " caught SIG");
+    out_s(&o, abbrev ? abbrev : "?");
+    out_s(&o, " at ");
+    if (si->si_code > 0)                 /* raised by a fault */
+        out_u(&o, (uintptr_t)si->si_addr, 16);
+    else                                 /* sent: there is no address */
+        out_s(&o, "-");
+    out_s(&o, " (pc ");
+    out_u(&o, (unsigned long)uc->uc_mcontext.gregs[REG_RIP], 16);
+    out_s(&o, ")\ncloneguard: si_code ");
+    if (si->si_code < 0) {
+        out_s(&o, "-");
+        out_u(&o, (unsigned long)-si->si_code, 10);
+    } else {
+        out_u(&o, (unsigned long)si->si_code, 10);
+    }
+    if (si->si_code <= 0) {
+        out_s(&o, " (sent by pid ");
+        out_u(&o, (unsigned long)si->si_pid, 10);
+        out_s(&o, ")");
+    }
+    if (tid != pid) {
+        out_s(&o, ", thread ");
+        out_u(&o, (unsigned long)tid, 10);
+    }
+    out_s(&o, "\ncloneguard: native stack:\n");
+    out_flush(&o);
+    void *frames[64];
+    int n = backtrace(frames, 64);
+    backtrace_symbols_fd(frames, n, 2);
+    out_s(&o, "cloneguard: Python ");
+    out_flush(&o);
+    cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
+
+    syscall(SYS_tgkill, pid, tid, sig);
+    errno = saved;
+}
+
+void crash_handlers_install(struct cg_child *c)
+{
+    stack_t ss = {.ss_sp = c->alt + (size_t)sysconf(_SC_PAGESIZE),
+                  .ss_size = c->alt_len - (size_t)sysconf(_SC_PAGESIZE),
+                  .ss_flags = 0};
+    if (sigaltstack(&ss, NULL) < 0)
+        return;
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_sigaction = on_crash;
+    sa.sa_flags = SA_SIGINFO | SA_ONSTACK | SA_RESETHAND;
+    sigemptyset(&sa.sa_mask);
+    for (size_t i = 0; i < sizeof crash_signals / sizeof crash_signals[0]; i++)
+        sigaction(crash_signals[i], &sa, NULL);
+}
+
+void crash_report_prepare(void)
+{
+    /* The first backtrace() dlopens libgcc_s: never in a handler. */
+    void *warm[4];
+    backtrace(warm, 4);
+}

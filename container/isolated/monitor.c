@@ -1,0 +1,307 @@
+/*
+ * monitor.c - the monitor thread: one per core (cg_start), the only thread
+ * that performs clone3 (PR_SET_PDEATHSIG fires when the *spawning thread*
+ * dies, so children die with the monitor, i.e. with the container).  It
+ * waits on the children's pidfds with epoll, and after a death, before
+ * reaping, calls gilrepair.c to undo what the dead task left in CPython's
+ * GIL; then it reports to Python through a pipe of fixed-size records
+ * (struct cg_event).  It never takes the GIL.  It alone touches the child
+ * list (g_children) and cg_child.stop_reported.
+ *
+ * Other threads talk to it through commands (spawn, stop) written as
+ * pointers to a pipe, and through an eventfd that says "a stop flag was set"
+ * (monitor_wake, from any thread or signal handler).
+ */
+#include "core.h"
+
+#include <errno.h>
+#include <fcntl.h>
+#include <linux/futex.h>
+#include <pthread.h>
+#include <signal.h>
+#include <string.h>
+#include <sys/epoll.h>
+#include <sys/eventfd.h>
+#include <sys/syscall.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+static int g_epfd = -1, g_wakefd = -1, g_cmd[2] = {-1, -1}, g_ev[2] = {-1, -1};
+static pthread_t g_monitor;
+static struct cg_child *g_children;   /* monitor-only */
+static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
+
+static int64_t mono_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+enum { CMD_SPAWN = 1, CMD_STOP = 2 };
+struct cg_cmd {              /* lives on the caller's stack */
+    int op;
+    struct cg_child *child;
+    int result;
+    uint32_t done;           /* futex word */
+};
+
+static void cmd_finish(struct cg_cmd *cmd, int result)
+{
+    cmd->result = result;
+    __atomic_store_n(&cmd->done, 1, __ATOMIC_RELEASE);
+    /* The caller may already have returned; a wake on a stale address is a
+       harmless spurious wake-up. */
+    syscall(SYS_futex, &cmd->done, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
+}
+
+static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
+{
+    /* 8-byte writes to a pipe are atomic: no lock to be left held. */
+    ssize_t n;
+    do
+        n = write(g_cmd[1], &cmd, sizeof cmd);
+    while (n < 0 && errno == EINTR);
+    if (n != sizeof cmd)
+        return -EPIPE;
+    while (__atomic_load_n(&cmd->done, __ATOMIC_ACQUIRE) == 0)
+        syscall(SYS_futex, &cmd->done, FUTEX_WAIT_PRIVATE, 0, NULL, NULL, 0);
+    return cmd->result;
+}
+
+static void emit(uint32_t kind, const struct cg_child *c, int status,
+                 int code, int64_t t, uint32_t repairs)
+{
+    uint32_t alloc = 0;
+    if (c && c->ctx)
+        alloc = (uint32_t)c->ctx->slot | (c->quarantined ? CG_ALLOC_QUARANTINED : 0);
+    struct cg_event ev = {kind, c ? c->pid : 0, status, code,
+                          c ? c->serial : 0, t, repairs, alloc};
+    const char *p = (const char *)&ev;
+    size_t left = sizeof ev;
+    while (left) {   /* blocks if Python lags >2048 records behind */
+        ssize_t n = write(g_ev[1], p, left);
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n < 0)
+            return;
+        p += n, left -= (size_t)n;
+    }
+}
+
+static void report_stop(struct cg_child *c, int64_t t)
+{
+    int s = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
+    if (s != CG_STOP_NONE && !c->stop_reported) {
+        c->stop_reported = 1;
+        emit(CG_EV_STOP, c, s, __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE),
+             t, 0);
+    }
+}
+
+static int do_spawn(struct cg_child *c)
+{
+    c->start_ns = mono_ns();
+    long pid = child_clone(c);
+    if (pid < 0)
+        return (int)pid;
+    c->pid = (int)pid;
+
+    struct epoll_event ev = {.events = EPOLLIN, .data.ptr = c};
+    if (epoll_ctl(g_epfd, EPOLL_CTL_ADD, c->pidfd, &ev) < 0) {
+        int err = errno;   /* cannot watch it: do not let it run */
+        siginfo_t si;
+        syscall(SYS_pidfd_send_signal, c->pidfd, SIGKILL, NULL, 0);
+        waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si, WEXITED | __WALL);
+        close(c->pidfd);
+        return -err;
+    }
+    c->next = g_children;
+    g_children = c;
+    return 0;
+}
+
+/* Dead but not yet reaped (or reaped by someone else): its tid cannot have
+   been reused. */
+static bool child_is_dead(struct cg_child *c)
+{
+    siginfo_t si;
+    memset(&si, 0, sizeof si);
+    if (waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
+               WEXITED | __WALL | WNOHANG | WNOWAIT) < 0)
+        return errno == ECHILD;
+    return si.si_pid != 0;
+}
+
+/* Undo what dead children left in the GIL (gilrepair.c): every dead child
+   not looked at yet, so that one repair never waits for a lock or a
+   condvar reference another dead child holds. */
+static void repair_after_death(struct cg_child *reaped)
+{
+    if (!g_cfg.gil_repair && !g_cfg.condvar_repair)
+        return;
+    struct cg_dead d[32];
+    struct cg_child *who[32];
+    int n = 0;
+    for (struct cg_child *c = g_children; c && n < 32; c = c->next)
+        if (!c->repair_done && (c == reaped || child_is_dead(c))) {
+            d[n] = (struct cg_dead){c->pid, c->tcb, c->map, c->map + c->map_len, 0};
+            who[n++] = c;
+        }
+    struct cg_repair_cfg cfg = {g_cfg.gil_repair, g_cfg.condvar_repair, g_layout.cleanup,
+                                (uintptr_t)g_layout.cond_cleanup};
+    uint32_t misc = cg_gil_repair(d, n, &cfg);
+    for (int i = 0; i < n; i++) {
+        who[i]->repairs |= d[i].repairs;
+        who[i]->repair_done = 1;
+    }
+    reaped->repairs |= misc;
+}
+
+static void reap(struct cg_child *c, int64_t t)
+{
+    siginfo_t si;
+    memset(&si, 0, sizeof si);
+    /* WNOWAIT: look, repair, and only then reap (the pid stays ours). */
+    int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
+                   WEXITED | __WALL | WNOHANG | WNOWAIT);
+    if (r == 0 && si.si_pid == 0)
+        return;                  /* readable but not yet waitable */
+    if (r < 0 && errno != ECHILD)
+        return;
+    /* ECHILD: something else in the container reaped it (a waitpid(-1)).
+       It is dead, the status is lost: report code 0. */
+    int status = r == 0 ? si.si_status : -1;
+    int code = r == 0 ? si.si_code : 0;
+
+    repair_after_death(c);
+    /* Every task of the child is gone: whether it died inside the allocator
+       is settled now (before anything hears of the death). */
+    if (c->ctx)
+        c->quarantined = guard_retire(c->ctx);
+    if (r == 0) {
+        siginfo_t gone;
+        memset(&gone, 0, sizeof gone);
+        waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &gone, WEXITED | __WALL | WNOHANG);
+    }
+    report_stop(c, t);           /* never after the death record */
+    epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
+    for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
+        if (*p == c) {
+            *p = c->next;
+            break;
+        }
+    __atomic_store_n(&c->state, CG_REAPED, __ATOMIC_RELEASE);
+    emit(CG_EV_DEATH, c, status, code, t, c->repairs);
+}
+
+static void *monitor_main(void *unused)
+{
+    (void)unused;
+    struct epoll_event evs[32];
+    for (;;) {
+        int n = epoll_wait(g_epfd, evs, 32, -1);
+        if (n < 0)
+            continue;                    /* EINTR; all signals are blocked */
+        int64_t t = mono_ns();
+        /* Commands and stop notices first, deaths second: a stop notice of
+           a child must reach Python before its death record. */
+        for (int i = 0; i < n; i++) {
+            if (evs[i].data.ptr == &TAG_WAKE) {
+                uint64_t v;
+                if (read(g_wakefd, &v, sizeof v) < 0) { /* EAGAIN */ }
+                for (struct cg_child *c = g_children; c; c = c->next)
+                    report_stop(c, t);
+            } else if (evs[i].data.ptr == &TAG_CMD) {
+                struct cg_cmd *cmd;
+                if (read(g_cmd[0], &cmd, sizeof cmd) != sizeof cmd)
+                    continue;
+                if (cmd->op == CMD_SPAWN) {
+                    cmd_finish(cmd, do_spawn(cmd->child));
+                } else if (cmd->op == CMD_STOP) {
+                    if (g_children) {
+                        cmd_finish(cmd, -EBUSY);
+                    } else {
+                        emit(CG_EV_CLOSED, NULL, 0, 0, t, 0);
+                        cmd_finish(cmd, 0);
+                        return NULL;
+                    }
+                }
+            }
+        }
+        for (int i = 0; i < n; i++)
+            if (evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
+                reap(evs[i].data.ptr, t);
+    }
+}
+
+static void close_fds(void)
+{
+    int *fds[] = {&g_epfd, &g_wakefd, &g_cmd[0], &g_cmd[1], &g_ev[1]};
+    for (size_t i = 0; i < sizeof fds / sizeof fds[0]; i++)
+        if (*fds[i] >= 0)
+            close(*fds[i]), *fds[i] = -1;
+}
+
+/* Start the monitor.  *event_fd receives the read end of the event pipe,
+   which Python owns (and closes after cg_stop). */
+int monitor_start(int *event_fd)
+{
+    g_epfd = epoll_create1(EPOLL_CLOEXEC);
+    g_wakefd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
+    if (g_epfd < 0 || g_wakefd < 0 || pipe2(g_cmd, O_CLOEXEC) < 0 ||
+        pipe2(g_ev, O_CLOEXEC) < 0) {
+        int err = errno;
+        close_fds();
+        return -err;
+    }
+    struct epoll_event e1 = {.events = EPOLLIN, .data.ptr = &TAG_CMD};
+    struct epoll_event e2 = {.events = EPOLLIN, .data.ptr = &TAG_WAKE};
+    epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_cmd[0], &e1);
+    epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_wakefd, &e2);
+
+    /* The monitor runs with every signal blocked (process-directed signals
+       go to other threads); children inherit that mask and clear it. */
+    sigset_t all, old;
+    sigfillset(&all);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
+    int err = pthread_create(&g_monitor, NULL, monitor_main, NULL);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
+    if (err) {
+        close(g_ev[0]);
+        g_ev[0] = -1;
+        close_fds();
+        return -err;
+    }
+    *event_fd = g_ev[0];
+    g_ev[0] = -1;
+    return 0;
+}
+
+/* Stop the monitor: -EBUSY while any child is unreaped. */
+int monitor_stop(void)
+{
+    struct cg_cmd cmd = {CMD_STOP, NULL, 0, 0};
+    int r = submit(&cmd);
+    if (r != 0)
+        return r;
+    pthread_join(g_monitor, NULL);
+    close_fds();
+    return 0;
+}
+
+/* Have the monitor clone3 the child (from any thread; blocks until done). */
+int monitor_spawn(struct cg_child *c)
+{
+    struct cg_cmd cmd = {CMD_SPAWN, c, 0, 0};
+    return submit(&cmd);
+}
+
+/* A stop flag was set: the monitor reports it.  An eventfd write is
+   async-signal-safe; the counter cannot overflow in practice. */
+void monitor_wake(void)
+{
+    uint64_t one = 1;
+    if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */ }
+}
