@@ -16,7 +16,9 @@ import sys
 import traceback
 from pathlib import Path
 
-from . import child_start, common, crash_latency, intra, load_latency, memory, shutdown
+from . import child_start, crash_latency, intra, load_latency, memory, shutdown
+from .cli import DEFAULT_OUT, command_line
+from .results import SUMMARY_COLUMNS, Table, host, host_line
 
 BENCHMARKS = {
     "child_start": child_start,
@@ -48,15 +50,15 @@ PRESETS = {
 
 
 def summary_markdown(results: dict, failures: dict, command: str) -> str:
-    table = common.Table("Benchmarks", common.SUMMARY_COLUMNS)
+    table = Table("Benchmarks", SUMMARY_COLUMNS)
     for name in BENCHMARKS:
         if name in results:
             for row in results[name].summary:
-                table.add(*(row[c] for c in common.SUMMARY_COLUMNS))
-    host = next(iter(results.values())).host if results else common.host()
+                table.add(*(row[c] for c in SUMMARY_COLUMNS))
+    info = next(iter(results.values())).host if results else host()
     out = ["# Benchmarks: summary", "",
            f"Command (from the repository root, venv active): `{command}`", "",
-           f"Host: {common.host_line(host)}", "",
+           f"Host: {host_line(info)}", "",
            "Medians and p90 measured side by side in one run on this host; ratios are of medians. "
            "Details, methods and the exact command of each: the `<benchmark>.md` files beside this one.", "",
            table.markdown(), ""]
@@ -68,7 +70,7 @@ def summary_markdown(results: dict, failures: dict, command: str) -> str:
     return "\n".join(out)
 
 
-def run_all(*, preset: str = "default", only: list[str] | None = None, out=common.DEFAULT_OUT,
+def run_all(*, preset: str = "default", only: list[str] | None = None, out=DEFAULT_OUT,
             keep_logs: bool = False, quiet: bool = False, command: str | None = None):
     """Run the benchmarks; return (results by name, failures by name, summary path)."""
     out = Path(out)
@@ -78,7 +80,7 @@ def run_all(*, preset: str = "default", only: list[str] | None = None, out=commo
             continue
         params = dict(PRESETS[preset][name])
         if not quiet:
-            print(f"\n=== {name}: {common.command_line(name, params)}\n", flush=True)
+            print(f"\n=== {name}: {command_line(name, params)}\n", flush=True)
         try:
             results[name] = module.run(out=out, keep_logs=keep_logs, quiet=quiet, **params)
         except Exception as exc:    # the others still run; the summary says what failed
@@ -101,7 +103,7 @@ def main(argv=None) -> int:
     parser.add_argument("--preset", choices=list(PRESETS), default="default",
                         help="counts to run with (default: %(default)s)")
     parser.add_argument("--only", nargs="+", choices=list(BENCHMARKS), default=None)
-    parser.add_argument("--out", type=Path, default=common.DEFAULT_OUT)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--keep-logs", action="store_true")
     opts = parser.parse_args(argv)
     results, failures, _ = run_all(preset=opts.preset, only=opts.only, out=opts.out, keep_logs=opts.keep_logs)

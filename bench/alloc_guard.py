@@ -21,7 +21,10 @@ import statistics
 import subprocess
 import sys
 
-from . import common
+from cloneguard.harness.process import REPO_ROOT
+
+from .cli import arg_parser, command_line, finish
+from .results import Result, Table
 
 CONFIGS = [
     # (label, preload guard, activate guard, jemalloc)
@@ -68,7 +71,7 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = common.arg_parser("alloc_guard", __doc__.splitlines()[0])
+    parser = arg_parser("alloc_guard", __doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=2_000_000)
     parser.add_argument("--blocks", type=int, default=200_000)
     parser.add_argument("--repeat", type=int, default=5)
@@ -86,18 +89,18 @@ def main(argv: list[str] | None = None) -> int:
                                      + ([allocator.jemalloc_path()] if jemalloc else []))
         proc = subprocess.run([sys.executable, "-m", "cloneguard.bench.alloc_guard", "--worker", str(int(activate)),
                                str(args.pairs), str(args.blocks), str(args.repeat)],
-                              capture_output=True, text=True, env=env, cwd=common.REPO_ROOT, timeout=1800)
+                              capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=1800)
         if proc.returncode != 0:
             raise SystemExit(f"worker ({label}) failed:\n{proc.stderr[-3000:]}")
         raw[label] = json.loads(proc.stdout.strip().splitlines()[-1])
     measures = list(next(iter(raw.values())))
-    table = common.Table("ns per operation (median of the repeats)", ["measure", *[c[0] for c in CONFIGS]])
+    table = Table("ns per operation (median of the repeats)", ["measure", *[c[0] for c in CONFIGS]])
     for m in measures:
         table.add(m, *[f"{statistics.median(raw[c[0]][m]):.1f}" for c in CONFIGS])
-    result = common.Result(
+    result = Result(
         name="alloc_guard", title="Allocator guard: cost per malloc/free",
-        command=common.command_line("alloc_guard", {"pairs": args.pairs, "blocks": args.blocks,
-                                                    "repeat": args.repeat}),
+        command=command_line("alloc_guard", {"pairs": args.pairs, "blocks": args.blocks,
+                                             "repeat": args.repeat}),
         params=vars(args) | {"out": str(args.out)}, tables=[table], goals=[],
         notes=["Loops in C (faults/hammer.c: hammer_pairs, hammer_alloc_many, hammer_free_many), "
                "each configuration in a fresh process with its own LD_PRELOAD.",
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                "divided by the number of blocks it frees then; without the guard nothing was handed "
                "back, and the row is one malloc/free pair spread over that many blocks."],
         summary=[], raw=raw, cleanup=[])
-    common.finish(result, args.out)
+    finish(result, args.out)
     return 0
 
 

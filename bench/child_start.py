@@ -24,8 +24,13 @@ from __future__ import annotations
 
 import sys
 
-from . import common
-from .common import PROCESS_PER_NODE, Result, Session, Table, fmt_ms, fmt_ratio, ms, ratio, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, fmt_ratio, ms, ratio, stats
+from .goals import goal_at_least_ratio
+from .loads import timed_load, timed_unload
+from .modes import PROCESS_PER_NODE, label
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "child_start"
 TITLE = "Child start: time to start a node"
@@ -40,8 +45,8 @@ def measure_full(session: Session, n: int) -> dict:
     ppn = {"cold": None, "ready": [], "first_line": [], "imports": [], "context": [], "build": []}
     for i in range(n + 1):
         for mode in CONTAINER_MODES:
-            trial = common.timed_load(running[mode], node_name=f"hb{i}")
-            common.timed_unload(running[mode], trial.unique_id)
+            trial = timed_load(running[mode], node_name=f"hb{i}")
+            timed_unload(running[mode], trial.unique_id)
             if i == 0:
                 data[mode]["cold"] = trial.loaded_ns
             else:
@@ -66,7 +71,7 @@ def measure_full(session: Session, n: int) -> dict:
     return data
 
 
-def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: bool = False,
+def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = False,
         quiet: bool = False) -> Result:
     params = {"n": n, "n_raw": n_raw, "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
@@ -105,7 +110,7 @@ def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: boo
                    ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"])
     for mode in CONTAINER_MODES:
         st = mode_stats[mode]
-        t_full.add(f"{common.label(mode)}: LoadNode sent → LOADED at client", st["n"], fmt_ms(st["median"]),
+        t_full.add(f"{label(mode)}: LoadNode sent → LOADED at client", st["n"], fmt_ms(st["median"]),
                    fmt_ms(st["p90"]), fmt_ms(full[mode]["cold"] / 1e6),
                    fmt_ratio(ratio(ppn_ready["median"], st["median"])))
     t_full.add("process per node: fork+exec → ready line read from its pipe", ppn_ready["n"],
@@ -122,38 +127,38 @@ def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: boo
     r_pernode = ratio(ppn_ready["median"], mode_stats["isolated-per-node"]["median"])
     r_shared = ratio(ppn_ready["median"], mode_stats["isolated-shared"]["median"])
     goals = [
-        common.goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw)",
-                                   "raw: fork+exec `python -c` (site on) ÷ clone child, to first line",
-                                   r_raw, GOAL_RATIO),
-        common.goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw, strict)",
-                                   "raw: fork+exec `python -I -S -c` ÷ clone child, to first line",
-                                   r_raw_strict, GOAL_RATIO),
-        common.goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
-                                   "full: process-per-node spawn → ready ÷ isolated per-node LoadNode → LOADED",
-                                   r_pernode, GOAL_RATIO),
-        common.goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
-                                   "full: process-per-node spawn → ready ÷ isolated shared LoadNode → LOADED",
-                                   r_shared, GOAL_RATIO),
+        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw)",
+                            "raw: fork+exec `python -c` (site on) ÷ clone child, to first line",
+                            r_raw, GOAL_RATIO),
+        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw, strict)",
+                            "raw: fork+exec `python -I -S -c` ÷ clone child, to first line",
+                            r_raw_strict, GOAL_RATIO),
+        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
+                            "full: process-per-node spawn → ready ÷ isolated per-node LoadNode → LOADED",
+                            r_pernode, GOAL_RATIO),
+        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
+                            "full: process-per-node spawn → ready ÷ isolated shared LoadNode → LOADED",
+                            r_shared, GOAL_RATIO),
     ]
     med = lambda st: f"{fmt_ms(st['median'])} ms"  # noqa: E731
     fe = stats(ms(raw["forkexec_site"]))
     summary = [
-        common.summary_row("child start", "raw spawn → running Python: clone child vs fork+exec `python -c`",
-                           "isolated (CloneCore.spawn)", clone,
-                           median=f"{med(clone)} vs {med(fe)} ({fmt_ratio(r_raw)})",
-                           p90=f"{fmt_ms(clone['p90'])} vs {fmt_ms(fe['p90'])} ms",
-                           goal="≥ 100× faster", verdict=goals[0].verdict),
+        summary_row("child start", "raw spawn → running Python: clone child vs fork+exec `python -c`",
+                    "isolated (CloneCore.spawn)", clone,
+                    median=f"{med(clone)} vs {med(fe)} ({fmt_ratio(r_raw)})",
+                    p90=f"{fmt_ms(clone['p90'])} vs {fmt_ms(fe['p90'])} ms",
+                    goal="≥ 100× faster", verdict=goals[0].verdict),
     ]
     for mode, r, g in (("isolated-per-node", r_pernode, goals[2]), ("isolated-shared", r_shared, goals[3])):
         st = mode_stats[mode]
-        summary.append(common.summary_row(
-            "child start", "full: LoadNode → LOADED vs process-per-node spawn → ready", common.label(mode), st,
+        summary.append(summary_row(
+            "child start", "full: LoadNode → LOADED vs process-per-node spawn → ready", label(mode), st,
             median=f"{med(st)} vs {med(ppn_ready)} ({fmt_ratio(r)})",
             p90=f"{fmt_ms(st['p90'])} vs {fmt_ms(ppn_ready['p90'])} ms",
             goal="≥ 100× faster", verdict=g.verdict))
     st = mode_stats["thread"]
-    summary.append(common.summary_row("child start", "full: LoadNode → LOADED (reference)", common.label("thread"),
-                                      st))
+    summary.append(summary_row("child start", "full: LoadNode → LOADED (reference)", label("thread"),
+                               st))
     notes = [
         "Raw figures come from one worker process (python -m cloneguard.bench._core_worker spawn) that imports "
         "rclpy first (a container-sized heap) and holds a CloneCore; each round does one clone child, "
@@ -173,13 +178,13 @@ def run(*, n: int = 20, n_raw: int = 100, out=common.DEFAULT_OUT, keep_logs: boo
         "points) and builds it on its own rclpy Context, as the per-node profile does in its child.",
         "Every load is of cloneguard::Heartbeat and is unloaded (or the runner stopped) before the next.",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, {"n": n, "n_raw": n_raw}), params,
+    result = Result(NAME, TITLE, command_line(NAME, {"n": n, "n_raw": n_raw}), params,
                     [t_raw, t_full], goals, notes, summary, {"raw_ns": raw, "full_ns": full}, problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--n", type=int, default=20, help="full starts per mode (default: %(default)s)")
     parser.add_argument("--n-raw", type=int, default=100, help="raw spawns of each kind (default: %(default)s)")
     opts = parser.parse_args(argv)

@@ -37,8 +37,13 @@ from cloneguard.harness import diagnose, procfs
 from cloneguard.harness.client import HarnessTimeout
 from cloneguard.harness.factory import log_tail
 
-from . import common
-from .common import Result, Session, Table, fmt_ms, ms, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, ms, stats
+from .goals import goal_at_most
+from .loads import event_received, stamp_ns, timed_load
+from .modes import label
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "crash_latency"
 TITLE = "Crash latency: fault → CRASHED event"
@@ -71,7 +76,7 @@ def log_stamps(text: str) -> dict[tuple[str, int], int]:
 
 
 def _load(running, i: int):
-    return common.timed_load(running, node_name=f"victim{i}", timeout=LOAD_TIMEOUT_S)
+    return timed_load(running, node_name=f"victim{i}", timeout=LOAD_TIMEOUT_S)
 
 
 def _crash(running, trial, sig: signal.Signals, settle: float) -> dict:
@@ -82,8 +87,8 @@ def _crash(running, trial, sig: signal.Signals, settle: float) -> dict:
     t_wall = time.time_ns()
     t_mono = time.monotonic_ns()
     os.kill(trial.pid, sig)
-    item = common.event_received(running.client, ComponentEvent.CRASHED, trial.unique_id, EVENT_TIMEOUT_S)
-    return {"stamp_ns": common.stamp_ns(item.msg) - t_wall, "client_ns": item.at_ns - t_mono,
+    item = event_received(running.client, ComponentEvent.CRASHED, trial.unique_id, EVENT_TIMEOUT_S)
+    return {"stamp_ns": stamp_ns(item.msg) - t_wall, "client_ns": item.at_ns - t_mono,
             "exit_signal": item.msg.exit_signal, "pid": trial.pid, "unique_id": trial.unique_id,
             "kill_wall_ns": t_wall}
 
@@ -136,7 +141,7 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
                             data[p][last[p]]["hung_after"] += 1
                         fresh(p)
                 else:
-                    raise AssertionError(f"{common.label(p)}: a fresh container did not answer LoadNode either")
+                    raise AssertionError(f"{label(p)}: a fresh container did not answer LoadNode either")
                 try:
                     r = _crash(running[p], trial, signal.Signals[s], settle)
                 except HarnessTimeout as exc:
@@ -167,7 +172,7 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
 
 
 def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int = 25,
-        profiles: list[str] = PROFILES, signals: list[str] = SIGNALS, out=common.DEFAULT_OUT,
+        profiles: list[str] = PROFILES, signals: list[str] = SIGNALS, out=DEFAULT_OUT,
         keep_logs: bool = False, quiet: bool = False) -> Result:
     params = {"n": n, "n_monitor": n_monitor, "settle": settle, "recycle": recycle,
               "profiles": list(profiles), "signals": list(signals), "out": str(out)}
@@ -188,13 +193,13 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         for s in signals:
             d = data[p][s]
             st, cl = stats(ms(d["stamp"])), stats(ms(d["client"]))
-            g = common.goal_at_most("median ≤ 1 ms", f"{common.label(p)}, {s}: kill → CRASHED stamp",
-                                    st["median"], GOAL_MS, "ms")
+            g = goal_at_most("median ≤ 1 ms", f"{label(p)}, {s}: kill → CRASHED stamp",
+                             st["median"], GOAL_MS, "ms")
             goals.append(g)
-            table.add(common.label(p), s, st["n"], d["lost"], d["hung_after"], fmt_ms(st["median"]),
+            table.add(label(p), s, st["n"], d["lost"], d["hung_after"], fmt_ms(st["median"]),
                       fmt_ms(st["p90"]), fmt_ms(st["max"]), fmt_ms(cl["median"]), fmt_ms(cl["p90"]), g.verdict)
-            summary.append(common.summary_row("crash latency", f"outside {s} → CRASHED (event stamp)",
-                                              common.label(p), st, goal="median ≤ 1 ms", verdict=g.verdict))
+            summary.append(summary_row("crash latency", f"outside {s} → CRASHED (event stamp)",
+                                       label(p), st, goal="median ≤ 1 ms", verdict=g.verdict))
     steps = Table("On the container's side: its CRASHED stamp and the rcutils stamps of the log lines it "
                   "writes about the death (ms from os.kill(); medians)", [
                       "profile", "signal", "n", "CRASHED stamped (published)",
@@ -203,7 +208,7 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         for s in signals:
             d = data[p][s]
             leak, died, st = stats(ms(d["leak_logged"])), stats(ms(d["died_logged"])), stats(ms(d["stamp"]))
-            steps.add(common.label(p), s, st["n"], fmt_ms(st["median"]), fmt_ms(died["median"]),
+            steps.add(label(p), s, st["n"], fmt_ms(st["median"]), fmt_ms(died["median"]),
                       fmt_ms(leak["median"]))
     tables = [table, steps]
     if monitor:
@@ -214,8 +219,8 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
             det, ev = stats(ms(monitor[f"{s}_monitor"])), stats(ms(monitor[f"{s}_on_event"]))
             mt.add(s, det["n"], fmt_ms(det["median"]), fmt_ms(det["p90"]), fmt_ms(det["max"]),
                    fmt_ms(ev["median"]), fmt_ms(ev["p90"]))
-            summary.append(common.summary_row("crash latency", f"outside {s} → monitor detected (standalone core)",
-                                              "CloneCore", det, goal="(reference)"))
+            summary.append(summary_row("crash latency", f"outside {s} → monitor detected (standalone core)",
+                                       "CloneCore", det, goal="(reference)"))
         tables.append(mt)
     gap = ""
     if monitor and "SIGKILL" in signals:
@@ -224,7 +229,7 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         if on_event is not None and None not in stamped:
             gap = (f" For SIGKILL, a standalone core reaches on_event {fmt_ms(on_event)} ms after the kill; "
                    f"the container stamps CRASHED at {' / '.join(fmt_ms(t) for t in stamped)} ms "
-                   f"({' / '.join(common.label(p).split(', ')[1] for p in profiles)}), so about "
+                   f"({' / '.join(label(p).split(', ')[1] for p in profiles)}), so about "
                    f"{' / '.join(fmt_ms(t - on_event) for t in stamped)} ms go between the core's listener "
                    "and the publish.")
     lost = sum(data[p][s]["lost"] for p in profiles for s in signals)
@@ -249,19 +254,19 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         f"{wrong}.",
     ]
     for k in stuck:
-        notes.append(f"Stuck container ({common.label(k['profile'])}, {k['what']}): {k['error']}"
+        notes.append(f"Stuck container ({label(k['profile'])}, {k['what']}): {k['error']}"
                      + (f"; gdb: {k['diagnosis']}" if k.get("diagnosis") else "")
                      + " (log tail and stacks in the JSON).")
-    result = Result(NAME, TITLE, common.command_line(NAME, {
+    result = Result(NAME, TITLE, command_line(NAME, {
         "n": n, "n_monitor": n_monitor, "settle": settle, "recycle": recycle,
         "profiles": list(profiles), "signals": list(signals)}),
         params, tables, goals, notes, summary, {"container_ns": data, "stuck": stuck, "monitor_ns": monitor},
         problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--n", type=int, default=100, help="trials per profile and signal (default: %(default)s)")
     parser.add_argument("--n-monitor", type=int, default=50,
                         help="standalone CloneCore trials per signal; 0: skip (default: %(default)s)")

@@ -21,10 +21,14 @@ import subprocess
 import sys
 import time
 
-from cloneguard.harness.process import process_environment
+from cloneguard.harness.process import REPO_ROOT, process_environment
 
-from . import common
-from .common import Result, Session, Table, fmt_ms, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, stats
+from .loads import timed_load
+from .modes import MODES, label
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "discovery"
 TITLE = "Being found: a fresh process sees the container's node and services"
@@ -36,7 +40,7 @@ PROBE_TIMEOUT_S = 5.0
 def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
     env = process_environment(running.domain_id)
     done = subprocess.run([sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn,
-                           "--timeout", str(timeout)], cwd=common.REPO_ROOT, env=env,
+                           "--timeout", str(timeout)], cwd=REPO_ROOT, env=env,
                           stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout + 30)
     if done.returncode != 0:
         raise RuntimeError(f"discovery probe exited with {done.returncode}: {done.stderr[-2000:]}")
@@ -44,7 +48,7 @@ def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
 
 
 def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAULT_MODES,
-        settle: float = 2.0, out=common.DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+        settle: float = 2.0, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
     nodes, modes = list(nodes), list(modes)
     params = {"probes": probes, "nodes": nodes, "modes": modes, "settle": settle, "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
@@ -55,7 +59,7 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
                 running = session.start(mode)
                 try:
                     for i in range(count):
-                        common.timed_load(running, node_name=f"n{i}")
+                        timed_load(running, node_name=f"n{i}")
                     time.sleep(settle)      # the container's own discovery traffic has settled
                     data[f"{mode}|{count}"] = [probe(running) for _ in range(probes)]
                 finally:
@@ -75,10 +79,10 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
             svc_st = stats([t["service_s"] * 1e3 for t in trials if t["service_s"] is not None])
             within = sum(t["service_s"] is not None and t["service_s"] <= ROS2CLI_SPIN_S for t in trials)
             missing = sum(t["service_s"] is None for t in trials)
-            table.add(common.label(mode), count, len(trials), fmt_ms(node_st["median"]), fmt_ms(svc_st["median"]),
+            table.add(label(mode), count, len(trials), fmt_ms(node_st["median"]), fmt_ms(svc_st["median"]),
                       fmt_ms(svc_st["p90"]), fmt_ms(svc_st["max"]), f"{within}/{len(trials)}", missing)
-            summary.append(common.summary_row("discovery", f"fresh process → list_nodes seen, {count} nodes",
-                                              common.label(mode), svc_st, goal="as thread mode"))
+            summary.append(summary_row("discovery", f"fresh process → list_nodes seen, {count} nodes",
+                                       label(mode), svc_st, goal="as thread mode"))
     notes = [
         "Each probe is a new process with a new DDS participant (the ROS environment and Fast DDS profile "
         "the harness uses: UDP on loopback, unicast discovery to the first 32 participant ids); it polls "
@@ -87,16 +91,16 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
         "'seen within' is the share of such calls that list the container.",
         f"The container is loaded, then left {settle:g} s before the first probe.",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, {"probes": probes, "nodes": nodes, "modes": modes}),
+    result = Result(NAME, TITLE, command_line(NAME, {"probes": probes, "nodes": nodes, "modes": modes}),
                     params, [table], [], notes, summary, {"trials": data}, problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--probes", type=int, default=20)
     parser.add_argument("--nodes", type=int, nargs="+", default=[0, 4])
-    parser.add_argument("--modes", nargs="+", choices=list(common.MODES), default=DEFAULT_MODES)
+    parser.add_argument("--modes", nargs="+", choices=list(MODES), default=DEFAULT_MODES)
     parser.add_argument("--settle", type=float, default=2.0)
     args = parser.parse_args(argv)
     result = run(probes=args.probes, nodes=args.nodes, modes=args.modes, settle=args.settle,

@@ -36,9 +36,13 @@ import re
 import sys
 
 from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness.factory import log_tail
 
-from . import common
-from .common import Goal, Result, Session, Table, fmt_ms, fmt_ratio, ratio, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, fmt_ratio, ratio, stats
+from .goals import Goal, goal_at_least_ratio
+from .results import Result, Table, summary_row
+from .session import Running, Session
 
 NAME = "intra"
 TITLE = "Intra-process delivery vs DDS: latency and throughput, 1 KiB … 16 MiB"
@@ -92,7 +96,7 @@ def plan(size: int, transport: str, p: dict) -> dict:
             "sink_timeout": 30.0 + duration + 60.0, "wait": 30.0 + duration + 75.0}
 
 
-def run_pair(running: common.Running, index: int, pl: dict, p: dict) -> dict:
+def run_pair(running: Running, index: int, pl: dict, p: dict) -> dict:
     """Load a sink and a source, wait for both reports, unload them."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
@@ -153,7 +157,7 @@ def measure(session: Session, sizes: list[int], transports: list[str], p: dict) 
                 index += 1
                 data[(size, transport)] = run_pair(running, index, plan(size, transport, p), p)
                 if not running.proc.alive():
-                    raise RuntimeError("the container exited:\n" + common.log_tail(running.proc.log_text()))
+                    raise RuntimeError("the container exited:\n" + log_tail(running.proc.log_text()))
     finally:
         session.stop(running)
     return data
@@ -205,7 +209,7 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
         transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS), count: int = 100, warmup: int = 5,
         period: float = 0.02, large_period: float = 0.1, dds_large_period: float = 0.5, dds_large_count: int = 20,
         burst: int = 1000, burst_bytes: int = 256 * MIB, burst_seconds: float = 3.0, settle: float = 0.5,
-        out=common.DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+        out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
     sizes_b = [parse_size(s) for s in sizes]
     p = {"count": count, "warmup": warmup, "period": period, "large_period": large_period,
          "dds_large_period": dds_large_period, "dds_large_count": dds_large_count, "burst": burst,
@@ -273,7 +277,7 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
                          f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}", fmt_ratio(r), None,
                          f"not judged (the goal is at {size_name(GOAL_LARGE)})")
             else:
-                g = common.goal_at_least_ratio(
+                g = goal_at_least_ratio(
                     f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
                     f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)", r, DDS_GOAL_RATIO)
                 if g.met:
@@ -302,11 +306,11 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
                                     for i, g in dds_goal.items())
             if data[(size, t)]["error"]:
                 verdict = "failed: " + data[(size, t)]["error"]
-            summary.append(common.summary_row("intra-process", f"publish → callback latency, {size_name(size)}",
-                                              f"isolated per-node, {TRANSPORTS[t][0]}", f["latency"],
-                                              goal=goal, verdict=verdict))
+            summary.append(summary_row("intra-process", f"publish → callback latency, {size_name(size)}",
+                                       f"isolated per-node, {TRANSPORTS[t][0]}", f["latency"],
+                                       goal=goal, verdict=verdict))
         f = fig[(large, t)]
-        summary.append(common.summary_row(
+        summary.append(summary_row(
             "intra-process", f"burst throughput, {size_name(large)}", f"isolated per-node, {TRANSPORTS[t][0]}",
             {"n": f["burst_received"]}, median=f"{_fmt(f['msgs_s'])} msgs/s = {_fmt(f['mib_s'])} MiB/s",
             p90=""))
@@ -344,11 +348,11 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
         "'sent over DDS (source)' is the intra publisher's own DDS publish count: 0 means intra-process "
         "delivery never touched DDS (no subscriber outside the container).",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, args), {**args, "out": str(out)}, [table, ratios],
+    result = Result(NAME, TITLE, command_line(NAME, args), {**args, "out": str(out)}, [table, ratios],
                     goals, notes, summary,
                     {"pairs": [{"size": s, "transport": t, **d, "figures": fig[(s, t)]}
                                for (s, t), d in data.items()]}, problems)
-    common.finish(result, out, quiet=quiet)
+    finish(result, out, quiet=quiet)
     failed = [f"{size_name(s)} {t}: {d['error']}" for (s, t), d in data.items() if d["error"]]
     if failed:      # the report is written (with the failures in it); the run still failed
         raise RuntimeError(f"{len(failed)} of {len(data)} pairs failed: " + "; ".join(failed))
@@ -356,7 +360,7 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="payload sizes (default: %(default)s)")
     parser.add_argument("--transports", nargs="+", choices=list(TRANSPORTS), default=list(TRANSPORTS))
     parser.add_argument("--count", type=int, default=100, help="latency messages per pair (default: %(default)s)")

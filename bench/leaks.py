@@ -22,8 +22,14 @@ from dataclasses import dataclass
 
 from cloneguard.harness import domains, procfs
 from cloneguard.harness.factory import ContainerFactory
+from cloneguard.harness.process import use_loopback_ros
 
-from . import common
+from .cli import arg_parser, command_line, finish
+from .results import Result, Table
+
+# The benchmark's own participant (the factory's clients) runs under the same
+# rules as the containers: UDP on loopback only. Set before any rclpy.init.
+use_loopback_ros()
 
 MODES = {
     "threads": [],
@@ -111,14 +117,14 @@ def measure(mode: str, cycles: int, warmup: int, log_dir) -> Growth:
 
 def main(argv: list[str] | None = None) -> int:
     import tempfile
-    parser = common.arg_parser("leaks", __doc__.splitlines()[0])
+    parser = arg_parser("leaks", __doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=40)
     parser.add_argument("--modes", nargs="+", choices=sorted(MODES), default=list(MODES))
     args = parser.parse_args(argv)
-    table = common.Table("Growth at rest, per cycle (one load+unload and one failed construction)",
-                         ["mode", "cycles", "RSS before", "RSS after", "RSS per cycle", "fds", "threads",
-                          "node processes at rest", "goal", "verdict"])
+    table = Table("Growth at rest, per cycle (one load+unload and one failed construction)",
+                  ["mode", "cycles", "RSS before", "RSS after", "RSS per cycle", "fds", "threads",
+                   "node processes at rest", "goal", "verdict"])
     raw, goals = {}, []
     with tempfile.TemporaryDirectory(prefix="cloneguard-leaks-") as logs:
         for mode in args.modes:
@@ -129,15 +135,15 @@ def main(argv: list[str] | None = None) -> int:
                       f"{g.rss_mib_per_cycle:+.4f} MiB", f"{g.fds:+d}", f"{g.threads:+d}",
                       g.after.node_processes, f"≤ {LIMIT_MIB_PER_CYCLE} MiB, fds/threads +0",
                       "met" if ok else "missed")
-    result = common.Result(
+    result = Result(
         name="leaks", title="Long life: growth per load cycle",
-        command=common.command_line("leaks", {"cycles": args.cycles, "warmup": args.warmup, "modes": args.modes}),
+        command=command_line("leaks", {"cycles": args.cycles, "warmup": args.warmup, "modes": args.modes}),
         params={"cycles": args.cycles, "warmup": args.warmup, "modes": args.modes},
         tables=[table], goals=goals,
         notes=["RSS is the container's (VmRSS of its pid): its node processes share its address space.",
                "Threads and fds are the container's own thread group's; node processes are counted apart."],
         summary=[], raw=raw, cleanup=[])
-    common.finish(result, args.out)
+    finish(result, args.out)
     return 0
 
 

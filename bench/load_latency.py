@@ -18,8 +18,13 @@ from __future__ import annotations
 
 import sys
 
-from . import common
-from .common import MODES, Result, Session, Table, fmt_ms, ms, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, ms, stats
+from .goals import goal_at_most
+from .loads import timed_load, timed_unload
+from .modes import HEARTBEAT, MODES, PACKAGE
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "load_latency"
 TITLE = "LoadNode → LOADED latency"
@@ -34,8 +39,8 @@ def measure(session: Session, modes: list[str], n: int) -> dict:
             for mode in modes}
     for i in range(n + 1):
         for mode in modes:
-            trial = common.timed_load(running[mode], node_name=f"hb{i}")
-            unload = common.timed_unload(running[mode], trial.unique_id)
+            trial = timed_load(running[mode], node_name=f"hb{i}")
+            unload = timed_unload(running[mode], trial.unique_id)
             d = data[mode]
             if i == 0:
                 d["cold"] = {"loaded": trial.loaded_ns, "round_trip": trial.round_trip_ns,
@@ -61,12 +66,12 @@ def registry_lookup(n: int) -> list[int]:
     out = []
     for _ in range(n + 1):
         t0 = time.monotonic_ns()
-        registry.find(common.PACKAGE, common.HEARTBEAT).load_class()
+        registry.find(PACKAGE, HEARTBEAT).load_class()
         out.append(time.monotonic_ns() - t0)
     return out[1:]
 
 
-def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=common.DEFAULT_OUT,
+def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
         keep_logs: bool = False, quiet: bool = False) -> Result:
     params = {"n": n, "modes": list(modes), "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
@@ -85,14 +90,14 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=common.DEFAULT_OUT
     for mode in modes:
         d = data[mode]
         loaded, rt, pub, unl = (stats(ms(d[k])) for k in ("loaded", "round_trip", "published", "unload"))
-        goal = common.goal_at_most("median ≤ 20 ms", f"{MODES[mode][0]}: request → LOADED at client",
-                                   loaded["median"], GOAL_MS, "ms")
+        goal = goal_at_most("median ≤ 20 ms", f"{MODES[mode][0]}: request → LOADED at client",
+                            loaded["median"], GOAL_MS, "ms")
         goals.append(goal)
         table.add(MODES[mode][0], loaded["n"], fmt_ms(loaded["median"]), fmt_ms(loaded["p90"]),
                   fmt_ms(rt["median"]), fmt_ms(rt["p90"]), fmt_ms(pub["median"]),
                   fmt_ms(d["cold"]["loaded"] / 1e6), fmt_ms(unl["median"]), goal.verdict)
-        summary.append(common.summary_row("load latency", "LoadNode sent → LOADED at client", MODES[mode][0],
-                                          loaded, goal="median ≤ 20 ms", verdict=goal.verdict))
+        summary.append(summary_row("load latency", "LoadNode sent → LOADED at client", MODES[mode][0],
+                                   loaded, goal="median ≤ 20 ms", verdict=goal.verdict))
     lk = stats(ms(lookup))
     notes = [
         f"Part of every LoadNode, in every mode: finding the class (container.registry.find scans the "
@@ -117,13 +122,13 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=common.DEFAULT_OUT
         "Containers launched as the harness does (ContainerProcess: setpriv --pdeathsig, no-SHM Fast "
         "DDS profile), each on its own ROS domain (harness.domains.lease()).",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, {"n": n, "modes": list(modes)}), params,
+    result = Result(NAME, TITLE, command_line(NAME, {"n": n, "modes": list(modes)}), params,
                     [table], goals, notes, summary, {"ns": data, "registry_lookup_ns": lookup}, problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--n", type=int, default=30, help="warm loads per mode (default: %(default)s)")
     parser.add_argument("--modes", nargs="+", choices=list(MODES), default=DEFAULT_MODES)
     opts = parser.parse_args(argv)

@@ -30,8 +30,13 @@ import time
 
 from cloneguard.harness import procfs
 
-from . import common
-from .common import PROCESS_PER_NODE, Result, Session, Table, fmt_ratio, ratio
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ratio, ratio
+from .goals import goal_at_least_ratio
+from .loads import timed_load
+from .modes import PROCESS_PER_NODE, label
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "memory"
 TITLE = "Memory: marginal footprint per node"
@@ -131,7 +136,7 @@ def measure_container(session: Session, mode: str, nodes: int, settle: float) ->
         def pids():
             return [running.proc.pid] + [p for p in running.proc.group_members() if p != running.proc.pid]
         for i in range(1, nodes + 1):
-            common.timed_load(running, node_name=f"hb{i}")
+            timed_load(running, node_name=f"hb{i}")
             if i in checkpoints(nodes):
                 points[i] = sample(pids, settle)
     finally:
@@ -158,7 +163,7 @@ def measure_process_per_node(session: Session, nodes: int, settle: float) -> dic
 
 
 def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODES,
-        out=common.DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+        out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
     if nodes < 2:
         raise ValueError("--nodes must be at least 2 (the marginal is taken from 1 to N)")
     params = {"nodes": nodes, "settle": settle, "modes": list(modes), "out": str(out)}
@@ -189,21 +194,21 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
     for mode in modes:
         points = data[mode]
         m_pss = marginal(points, "pss_kb")
-        table.add(common.label(mode), points[nodes]["processes"], points[nodes]["address_spaces"],
+        table.add(label(mode), points[nodes]["processes"], points[nodes]["address_spaces"],
                   f"{mib(points[1]['pss_kb']):.1f}", f"{mib(points[nodes]['pss_kb']):.1f}",
                   f"{mib(m_pss):.2f}", f"{mib(marginal(points, 'uss_kb')):.2f}",
                   f"{marginal(points, 'pte_kb'):.0f}", fmt_ratio(ratio(ppn_marginal, m_pss)))
-        curve.add(common.label(mode), *[f"{mib(points[c]['pss_kb']):.1f}" for c in checkpoints(nodes)])
+        curve.add(label(mode), *[f"{mib(points[c]['pss_kb']):.1f}" for c in checkpoints(nodes)])
         goal_text, verdict = "", ""
         if mode.startswith("isolated") and ppn_marginal is not None:
-            g = common.goal_at_least_ratio("isolated ≥ 20× smaller per node than process-per-node",
-                                           f"{common.label(mode)}: marginal PSS per node",
-                                           ratio(ppn_marginal, m_pss), GOAL_RATIO)
+            g = goal_at_least_ratio("isolated ≥ 20× smaller per node than process-per-node",
+                                    f"{label(mode)}: marginal PSS per node",
+                                    ratio(ppn_marginal, m_pss), GOAL_RATIO)
             goals.append(g)
             goal_text = "≥ 20× smaller than process-per-node"
             verdict = f"met ({g.measured})" if g.met else g.verdict
-        summary.append(common.summary_row(
-            "memory", f"marginal PSS per node, 1 → {nodes} nodes", common.label(mode), None,
+        summary.append(summary_row(
+            "memory", f"marginal PSS per node, 1 → {nodes} nodes", label(mode), None,
             median=f"{mib(m_pss):.2f} MiB", p90="", goal=goal_text or "(reference)", verdict=verdict))
     mid = 10
     if mid in checkpoints(nodes) and nodes > mid:
@@ -212,7 +217,7 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
             pts = data[mode]
             first = (pts[mid]["pss_kb"] - pts[1]["pss_kb"]) / (mid - 1)
             last = (pts[nodes]["pss_kb"] - pts[mid]["pss_kb"]) / (nodes - mid)
-            halves.append(f"{common.label(mode)} {mib(first):.2f} → {mib(last):.2f}")
+            halves.append(f"{label(mode)} {mib(first):.2f} → {mib(last):.2f}")
         curve_note = (f"Marginal PSS per node from 1 → {mid} vs {mid} → {nodes} nodes (MiB): " + "; ".join(halves)
                       + ". (Not linear where the two differ: the marginal over 1 → N is then an average; "
                       "this benchmark does not break the growth down.)")
@@ -240,15 +245,15 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
         "participant and only their executors run in the children. Every clone child also has its own "
         "stack mapping (8 MiB reserved, only touched pages count).",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, {"nodes": nodes, "settle": settle,
-                                                            "modes": list(modes)}),
+    result = Result(NAME, TITLE, command_line(NAME, {"nodes": nodes, "settle": settle,
+                                                     "modes": list(modes)}),
                     params, [table, curve], goals, notes, summary,
                     {"points": {m: {str(k): v for k, v in pts.items()} for m, pts in data.items()}}, problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--nodes", type=int, default=20, help="nodes at the end (default: %(default)s)")
     parser.add_argument("--settle", type=float, default=1.0,
                         help="seconds to wait before sampling (default: %(default)s)")

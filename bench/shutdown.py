@@ -25,8 +25,13 @@ import time
 
 from cloneguard.harness import procfs
 
-from . import common
-from .common import Result, Session, Table, fmt_ms, ms, stats
+from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import fmt_ms, ms, stats
+from .goals import Goal, goal_at_most
+from .loads import timed_load
+from .modes import HEARTBEAT, LISTENER, label
+from .results import Result, Table, summary_row
+from .session import Session
 
 NAME = "shutdown"
 TITLE = "Shutdown: container SIGTERM → exit"
@@ -40,7 +45,7 @@ def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) 
     running = session.start(mode)
     try:
         for i in range(count):
-            common.timed_load(running, node_name=f"n{i}", plugin=plugin)
+            timed_load(running, node_name=f"n{i}", plugin=plugin)
         time.sleep(settle)
         members = len(running.proc.group_members())
         pidfd = os.pidfd_open(running.proc.pid)
@@ -66,14 +71,14 @@ def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) 
 
 def configs(modes: list[str], counts: list[int], idle_node: bool) -> list[tuple[str, str, int]]:
     """(mode, plugin, count) in the order they are run in each repetition."""
-    out = [(mode, common.HEARTBEAT, count) for count in counts for mode in modes]
+    out = [(mode, HEARTBEAT, count) for count in counts for mode in modes]
     if idle_node and "isolated-per-node" in modes:
-        out.append(("isolated-per-node", common.LISTENER, max(counts)))
+        out.append(("isolated-per-node", LISTENER, max(counts)))
     return out
 
 
 def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
-        modes: list[str] = DEFAULT_MODES, idle_node: bool = True, out=common.DEFAULT_OUT,
+        modes: list[str] = DEFAULT_MODES, idle_node: bool = True, out=DEFAULT_OUT,
         keep_logs: bool = False, quiet: bool = False) -> Result:
     counts, modes = list(counts), list(modes)
     params = {"reps": reps, "counts": counts, "settle": settle, "modes": modes, "idle_node": idle_node,
@@ -94,7 +99,7 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
         "vs goal (≤ 1 s with 20 isolated nodes)"])
     goals, summary = [], []
     top = max(counts)
-    for mode, plugin, count in sorted(plan, key=lambda c: (modes.index(c[0]), c[1] != common.HEARTBEAT, c[2])):
+    for mode, plugin, count in sorted(plan, key=lambda c: (modes.index(c[0]), c[1] != HEARTBEAT, c[2])):
         trials = data[f"{mode}|{plugin}|{count}"]
         ex = stats(ms([t["exit_ns"] for t in trials if t["exit_ns"] is not None]))
         ge = stats(ms([t["group_empty_ns"] for t in trials if t["group_empty_ns"] is not None]))
@@ -106,25 +111,25 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
             # a container that never exited counts with the timeout (a lower bound)
             value = stats([t["exit_ns"] / 1e6 if t["exit_ns"] is not None else EXIT_TIMEOUT_S * 1e3
                            for t in trials])["median"]
-            g = common.goal_at_most(f"≤ 1 s with {GOAL_NODES} isolated nodes",
-                                    f"{common.label(mode)}, {what}: SIGTERM → exit (median)",
-                                    value, GOAL_MS, "ms")
+            g = goal_at_most(f"≤ 1 s with {GOAL_NODES} isolated nodes",
+                             f"{label(mode)}, {what}: SIGTERM → exit (median)",
+                             value, GOAL_MS, "ms")
             goals.append(g)
             verdict = g.verdict
-        table.add(common.label(mode), what, max(t["processes"] for t in trials), ex["n"],
+        table.add(label(mode), what, max(t["processes"] for t in trials), ex["n"],
                   fmt_ms(ex["median"]), fmt_ms(ex["p90"]), fmt_ms(ex["max"]), fmt_ms(ge["median"]),
                   " ".join(sorted({str(t["code"]) for t in trials})), f"{timeouts} / {forced}",
                   " ".join(str(t["children_sigkilled"]) for t in trials) if mode.startswith("isolated") else "",
                   verdict)
         if count == top:
-            summary.append(common.summary_row(
-                "shutdown", f"SIGTERM → exit, {what}", common.label(mode), ex,
+            summary.append(summary_row(
+                "shutdown", f"SIGTERM → exit, {what}", label(mode), ex,
                 goal=f"≤ 1 s at {GOAL_NODES}" if mode.startswith("isolated") else "(reference)",
                 verdict=verdict or ("" if not mode.startswith("isolated") else
                                     f"not judged: the goal is at {GOAL_NODES} nodes")))
     if GOAL_NODES not in counts:
-        goals.append(common.Goal(f"≤ 1 s with {GOAL_NODES} isolated nodes", "SIGTERM → exit (median)", "–", None,
-                                 f"not measured: {GOAL_NODES} is not among --counts"))
+        goals.append(Goal(f"≤ 1 s with {GOAL_NODES} isolated nodes", "SIGTERM → exit (median)", "–", None,
+                          f"not measured: {GOAL_NODES} is not among --counts"))
     notes = [
         "SIGTERM goes to the container process only (os.kill, not its group); the exit is seen through "
         "a pidfd (select), the empty group by polling /proc after reaping the container. 'Processes "
@@ -141,14 +146,14 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
         "A container that does not exit within 20 s is counted as timed out; every container is "
         "stopped with ContainerProcess.stop() afterwards ('forced': it needed SIGKILL).",
     ]
-    result = Result(NAME, TITLE, common.command_line(NAME, {"reps": reps, "counts": counts, "settle": settle,
-                                                            "modes": modes, "no_idle_node": not idle_node}),
+    result = Result(NAME, TITLE, command_line(NAME, {"reps": reps, "counts": counts, "settle": settle,
+                                                     "modes": modes, "no_idle_node": not idle_node}),
                     params, [table], goals, notes, summary, {"trials": data}, problems)
-    return common.finish(result, out, quiet=quiet)
+    return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
-    parser = common.arg_parser(NAME, TITLE)
+    parser = arg_parser(NAME, TITLE)
     parser.add_argument("--reps", type=int, default=3, help="containers per mode and count (default: %(default)s)")
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20])
     parser.add_argument("--settle", type=float, default=0.5)

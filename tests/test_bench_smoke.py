@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from cloneguard.bench import __main__ as bench_all
-from cloneguard.bench import common
+from cloneguard.bench.results import SUMMARY_COLUMNS
 from cloneguard.harness.process import REPO_ROOT
 
 # The tables each benchmark writes, with the "tiny" preset's parameters.
@@ -86,14 +86,14 @@ def test_report_files_hold_the_expected_tables(tiny_run, name):
             assert list(row) == table["columns"]
     for goal in data["goals"]:
         assert goal["verdict"] and goal["goal"]
-    assert data["summary"] and all(list(r) == common.SUMMARY_COLUMNS for r in data["summary"])
+    assert data["summary"] and all(list(r) == SUMMARY_COLUMNS for r in data["summary"])
     assert data["cleanup"] == []
 
 
 def test_summary_has_a_row_per_measure(tiny_run):
     _, results, _, summary = tiny_run
     text = summary.read_text()
-    assert "| " + " | ".join(common.SUMMARY_COLUMNS) + " |" in text
+    assert "| " + " | ".join(SUMMARY_COLUMNS) + " |" in text
     for r in results.values():
         for row in r.summary:
             assert f"| {row['benchmark']} | {row['measure']} | {row['mode']} |" in text
