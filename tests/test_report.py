@@ -17,7 +17,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cloneguard.harness.__main__ import main as harness_main
-from cloneguard.harness.report import charts, collect, stats
+from cloneguard.harness.plan import ENV_DEEP
+from cloneguard.harness.report import charts, paths, stats
 from cloneguard.harness.report.compare import compare_reports, format_comparison, match_scenarios
 from cloneguard.harness.report.model import (
     Hang, Report, RunInfo, Scenario, Trial, load_report, resolve_report_path,
@@ -161,8 +162,8 @@ def report_root(tmp_path, monkeypatch):
     """The plugin's default reports root, moved into tmp_path, and no
     report directory named through the environment."""
     root = tmp_path / "reports-root"
-    monkeypatch.setattr(collect, "default_reports_root", lambda: root)
-    monkeypatch.delenv(collect.ENV_REPORT_DIR, raising=False)
+    monkeypatch.setattr(paths, "default_reports_root", lambda: root)
+    monkeypatch.delenv(paths.ENV_REPORT_DIR, raising=False)
     return root
 
 
@@ -248,7 +249,7 @@ def test_default_directory_and_latest_link(pytester, report_root):
     runs = sorted(p for p in report_root.iterdir() if p.name != "latest")
     assert len(runs) == 1
     run_dir = runs[0]
-    assert collect.new_run_id().split("T")[0].isdigit()
+    assert paths.new_run_id().split("T")[0].isdigit()
     assert len(run_dir.name) == len("20261122T031500Z-a1b2") and run_dir.name[8] == "T"
     assert (run_dir / "junit.xml").is_file()  # pytest's writer, redirected before it configured
     assert json.loads((run_dir / "report.json").read_text())["run"]["junit_writer"] == "pytest"
@@ -291,7 +292,7 @@ def test_resilience_outside_scenarios_still_reports(pytester, report_root):
 
 def test_report_dir_from_environment_and_user_junit(pytester, tmp_path, report_root, monkeypatch):
     out = tmp_path / "from-env"
-    monkeypatch.setenv(collect.ENV_REPORT_DIR, str(out))
+    monkeypatch.setenv(paths.ENV_REPORT_DIR, str(out))
     user_xml = tmp_path / "mine.xml"
     result = run_session(pytester, f"--junitxml={user_xml}", "scenarios")
     result.assert_outcomes(passed=3, failed=1)
@@ -304,7 +305,7 @@ def test_report_dir_from_environment_and_user_junit(pytester, tmp_path, report_r
 
 
 def test_deep_mode_and_broken_scenario_file(pytester, tmp_path, report_root, monkeypatch):
-    monkeypatch.setenv(collect.ENV_DEEP, "1")
+    monkeypatch.setenv(ENV_DEEP, "1")
     out = tmp_path / "run"
     result = run_session(pytester, "--report-dir", str(out), "--continue-on-collection-errors", "scenarios", files={
         "test_ok.py": "def test_ok(resilience):\n    resilience.trial('survived')\n",
@@ -358,15 +359,15 @@ def test_update_latest_falls_back_to_a_text_file(tmp_path, monkeypatch):
     (tmp_path / "run-a").mkdir()
     (tmp_path / "run-b").mkdir()
     Report(RunInfo(id="run-b")).save_json(tmp_path / "run-b")
-    collect.update_latest(tmp_path, "run-a")
-    collect.update_latest(tmp_path, "run-b")
+    paths.update_latest(tmp_path, "run-a")
+    paths.update_latest(tmp_path, "run-b")
     assert os.readlink(tmp_path / "latest") == "run-b"
 
     def no_symlinks(*args, **kwargs):
         raise OSError("symlinks not supported here")
 
     monkeypatch.setattr(os, "symlink", no_symlinks)
-    collect.update_latest(tmp_path, "run-b")
+    paths.update_latest(tmp_path, "run-b")
     latest = tmp_path / "latest"
     assert not latest.is_symlink() and latest.read_text().strip() == "run-b"
     assert load_report(latest).run.id == "run-b"

@@ -1,6 +1,8 @@
 """Crash-resilience reports of scenario runs.
 
-    collect   the pytest plugin: the ``resilience`` fixture and the report writer
+    collect   the pytest plugin: its options and hooks, the ``resilience`` fixture
+    session   the report session: every test's outcome, the report written at the end
+    paths     where reports go: the reports root, a run's directory name, ``latest``
     model     the report's data and report.json
     stats     Wilson intervals, the z-test, latency summaries
     render    report.html (self-contained: inline CSS and SVG)
@@ -8,7 +10,8 @@
     compare   comparison of two runs (``python -m cloneguard.harness compare``)
     env       host and git facts for the run metadata
 
-Only ``collect`` imports pytest; the rest is the standard library.
+Only ``collect``, ``session`` and ``record`` import pytest; the rest is the
+standard library.
 """
 from .model import Report, Scenario, load_report
 

@@ -16,7 +16,7 @@ The record lives in the process that runs the test (a pytest-xdist worker,
 or the one pytest process). When the test's teardown report is made, the
 record rides on it (``report.cloneguard_record``, plain JSON data, which
 xdist carries to the controller like the rest of the report); the report
-session (collect.py) takes it from there.
+session (session.py) takes it from there.
 """
 from __future__ import annotations
 
