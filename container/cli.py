@@ -30,6 +30,7 @@ from rclpy.utilities import remove_ros_args
 from . import allocator, options
 from .hosting import ThreadHost
 from .isolated import profiles
+from .isolated.node_watchdog import NodeWatchdog
 from .manager import ComponentManager
 from .restart import POLICIES, RestartPolicy
 from .stop_signals import StopSignals
@@ -44,7 +45,8 @@ WATCHDOG_MAX_S = 86400.0
 # Mitigations that can be switched off, to measure what each one buys.
 # Options that mean something only with --isolated (refused without it).
 ISOLATED_ONLY = ("--jemalloc-arenas", "--no-gil-repair", "--no-condvar-repair", "--no-crash-report",
-                 "--shared-arenas", "--no-alloc-guard", "--cgroups", "--restart-policy", "--profile")
+                 "--shared-arenas", "--no-alloc-guard", "--cgroups", "--restart-policy", "--profile",
+                 "--node-watchdog")
 MITIGATION_SWITCHES = {
     "--no-gil-repair": "for measurement, do not release the GIL a dead child held",
     "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
@@ -116,6 +118,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "--watchdog", type=_watchdog_seconds, default=None, metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
+    )
+    parser.add_argument(
+        "--node-watchdog", type=_watchdog_seconds, default=0.0, metavar="SECONDS",
+        help="isolated mode: abort (SIGABRT, with its stacks) a node whose callback has run "
+        "longer than SECONDS and report it CRASHED; the other nodes go on (default: 0, off)",
     )
     parser.add_argument(
         "--profile", choices=profiles.PROFILES, default=profiles.DEFAULT,
@@ -228,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         on_tick = host.board.snapshot if opts.isolated else None
         watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick)
         manager.watchdog = watchdog
+    node_watchdog = NodeWatchdog(node, host, opts.node_watchdog) if opts.node_watchdog > 0 else None
     failure: list[BaseException] = []
     spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
     spinner.start()
@@ -247,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     # Stop serving first, then stop the nodes, then tear down our own DDS side.
     if watchdog is not None:
         watchdog.close()
+    if node_watchdog is not None:
+        node_watchdog.close()
     services.shutdown()
     server.join()
     executor.shutdown()

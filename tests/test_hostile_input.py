@@ -168,18 +168,19 @@ def _run(args, env_extra=None):
     return subprocess.run([default_container_exe(), *args], capture_output=True, timeout=60, env=env)
 
 
+@pytest.mark.parametrize("flag", ["--watchdog", "--node-watchdog"])
 @pytest.mark.parametrize("value", ["-1", "nan", "inf", "1e400", "abc", "86401"])
-def test_a_bad_watchdog_value_is_one_line_and_exit_2(value):
-    proc = _run(["--watchdog", value])
+def test_a_bad_watchdog_value_is_one_line_and_exit_2(flag, value):
+    proc = _run(["--isolated", flag, value])
     err = proc.stderr.decode()
     assert proc.returncode == 2
-    assert err.count("\n") == 1 and "--watchdog" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and flag in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("args", [
     ["--jemalloc-arenas", "own"], ["--no-gil-repair"], ["--no-condvar-repair"], ["--no-crash-report"],
     ["--shared-arenas"], ["--no-alloc-guard"], ["--cgroups"], ["--restart-policy", "on-crash"],
-    ["--profile=shared"]], ids=lambda a: a[0])
+    ["--profile=shared"], ["--node-watchdog", "5"]], ids=lambda a: a[0])
 def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
     proc = _run(args)
     err = proc.stderr.decode()

@@ -44,3 +44,39 @@ def test_an_idle_container_is_not_a_stalled_one(client, container):
         assert client.list()              # still answering
         time.sleep(0.5)
     assert container.alive()
+
+
+# --------------------------------------------------------------------------
+# the node watchdog (isolated mode): a hung callback ends its node alone
+# --------------------------------------------------------------------------
+NODE_WATCHDOG = ["--isolated", "--node-watchdog", "1.5"]
+
+
+@pytest.mark.parametrize("container_args", [NODE_WATCHDOG])
+@pytest.mark.parametrize("mode", ["sleep", "spin"])
+def test_a_node_whose_callback_hangs_is_aborted_alone_with_its_stacks(client, container, mode):
+    from cloneguard_interfaces.msg import ComponentEvent
+
+    beating = client.load_ok("cloneguard", "cloneguard::Heartbeat")
+    hung = client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
+    crash = client.wait_for_event(ComponentEvent.CRASHED, unique_id=hung.unique_id, timeout=15)
+    assert crash.exit_signal == 6, crash                     # SIGABRT, sent by the container
+    assert "longer than --node-watchdog 1.5 s" in crash.error_message, crash.error_message
+    # Its crash report says where it hung; the rest of the container goes on.
+    log = container.log_text()
+    assert "caught SIGABRT" in log and "faults/components.py" in log and "in fire" in log
+    assert [uid for uid, _ in client.list()] == [beating.unique_id]
+    assert container.alive()
+
+
+@pytest.mark.parametrize("container_args", [NODE_WATCHDOG])
+def test_idle_and_busy_nodes_are_not_aborted(client, container):
+    import time
+
+    # A listener with nothing to hear runs no callback; a heartbeat runs
+    # short ones all the time: neither is a hung callback.
+    client.load_ok("cloneguard", "cloneguard::Listener")
+    client.load_ok("cloneguard", "cloneguard::Heartbeat")
+    time.sleep(4)                        # > twice the limit
+    assert len(client.list()) == 2
+    assert "node watchdog" in container.log_text() and "aborting" not in container.log_text()

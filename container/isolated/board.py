@@ -2,8 +2,10 @@
 the container reads, in container memory behind one robust mutex.
 
 Each child, after every callback its executor runs, takes the board's lock
-and updates its own slot (count, time). The container reads the board from
-its watchdog tick. It is the state a child can be holding a container lock
+and updates its own slot (count, time); before each callback it stamps the
+slot's ``busy_ns``. The container reads the board from its watchdog tick
+(which finds a lock a dead child left on it) and from the node watchdog
+(``node_watchdog.py``: a callback running too long). It is the state a child can be holding a container lock
 over when it dies, so it is built to be repaired:
 
 * every slot update is bracketed by a sequence number made odd before the
@@ -34,6 +36,8 @@ class _Slot(ctypes.Structure):
         ("pid", ctypes.c_int32),
         ("beats", ctypes.c_uint64),      # callbacks run so far
         ("last_ns", ctypes.c_int64),     # CLOCK_MONOTONIC of the last one
+        ("busy_ns", ctypes.c_int64),     # CLOCK_MONOTONIC the running callback
+                                         # started at; 0 between callbacks
     ]
 
 
@@ -43,6 +47,7 @@ class SlotView:
     pid: int
     beats: int
     last_ns: int
+    busy_ns: int        # when its running callback started; 0: none runs
 
 
 @dataclass(frozen=True)
@@ -81,7 +86,7 @@ class ProgressBoard:
             self._index[unique_id] = slot
         with self.mutex:
             s = self._slots[slot]
-            s.seq, s.unique_id, s.pid, s.beats, s.last_ns = 0, unique_id, 0, 0, 0
+            s.seq, s.unique_id, s.pid, s.beats, s.last_ns, s.busy_ns = 0, unique_id, 0, 0, 0, 0
         return slot
 
     def set_pid(self, slot: int, pid: int) -> None:
@@ -101,19 +106,27 @@ class ProgressBoard:
     def snapshot(self) -> list[SlotView]:
         with self.mutex:
             return [
-                SlotView(s.unique_id, s.pid, s.beats, s.last_ns)
+                SlotView(s.unique_id, s.pid, s.beats, s.last_ns, s.busy_ns)
                 for s in self._slots if s.unique_id
             ]
 
     # -- child side ---------------------------------------------------------------
 
+    def busy(self, slot: int) -> None:
+        """A callback of ``slot``'s node starts (called in the node's child).
+        One aligned 8-byte store, whole to any reader: no lock, so that a
+        callback never waits for the board to start."""
+        self._slots[slot].busy_ns = time.monotonic_ns()
+
     def beat(self, slot: int) -> None:
-        """Record one callback for ``slot`` (called in the node's child)."""
+        """Record one finished callback for ``slot`` (called in the node's
+        child)."""
         with self.mutex:
             s = self._slots[slot]
             s.seq += 1
             s.beats += 1
             s.last_ns = time.monotonic_ns()
+            s.busy_ns = 0
             s.seq += 1
 
     def begin_torn_write(self, slot: int) -> None:

@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import (ConditionReachedException, ExternalShutdownException, ShutdownException,
+                             SingleThreadedExecutor, TimeoutException)
 from rclpy.signals import SignalHandlerOptions
 
 from .. import factory, intra, options, repairs
@@ -104,6 +105,7 @@ class _NodeProcess:
     stopped_by: object = None          # the outside signal that asked it to stop
     cgroup: object = None              # NodeCgroup, with --cgroups
     error: str = ""                    # why construction failed in the child
+    aborted: str = ""                  # why the container aborted it (node watchdog)
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
@@ -226,12 +228,24 @@ class IsolatedHost:
     # -- what runs in the child -------------------------------------------------
 
     def _spin_until_stopped(self, proc: _NodeProcess) -> None:
-        """The child's loop: one callback at a time until asked to stop,
-        recording progress on the board after each."""
+        """The child's loop: one callback at a time until asked to stop, as
+        the executor's spin_once runs them, stamping the board when each
+        starts and recording progress when it ends."""
         self.board.set_pid(proc.slot, os.getpid())
+        executor = proc.executor
         while not stop_requested():
-            proc.executor.spin_once(timeout_sec=None)
-            self.board.beat(proc.slot)
+            try:
+                handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=None)
+            except (ShutdownException, ExternalShutdownException, TimeoutException, ConditionReachedException):
+                continue
+            self.board.busy(proc.slot)
+            try:
+                handler()
+            finally:
+                self.board.beat(proc.slot)
+            if handler.exception() is not None:
+                raise handler.exception()
+            handler.result()
 
     def _spin_target(self, proc: _NodeProcess):
         def run():
@@ -371,6 +385,22 @@ class IsolatedHost:
         if state == "running":
             self._crashed(proc, event)
 
+    def abort(self, unique_id: int, why: str) -> bool:
+        """End a running node's process with SIGABRT: its crash report (the
+        native and Python stacks of what it was doing) goes to the log, and
+        its death is reported as any crash is, with ``why`` added. False if
+        no running node has that id."""
+        with self._lock:
+            proc = next((p for p in self._by_pid.values()
+                         if p.unique_id == unique_id and p.state == "running"), None)
+            if proc is None or proc.aborted:
+                return False
+            proc.aborted = why
+        self._log.error(f"{proc.full_name} (unique_id {unique_id}, pid {proc.child.pid}): {why}; "
+                        "aborting its process (SIGABRT), its stacks follow")
+        self._core.kill(proc.child, signal.SIGABRT)
+        return True
+
     def _board_repaired(self, repair) -> None:
         # Runs in whichever process locked the board next (maybe a child).
         self._log.warning(
@@ -387,6 +417,8 @@ class IsolatedHost:
         reason = _describe(death)
         if proc.stopped_by is not None:
             reason += f" after an outside {proc.stopped_by.name}"
+        if proc.aborted:
+            reason += f" by the container: {proc.aborted}"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
         if self.on_death is not None:
