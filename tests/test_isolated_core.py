@@ -28,7 +28,7 @@ import pytest
 
 from cloneguard.container.isolated.assumptions import IsolationUnavailable, self_check
 from cloneguard.container.isolated.core import (CloneCore, Death, StopRequested, in_child,
-                                     stop_requested)
+                                                stop_requested)
 from cloneguard.container.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)

@@ -80,6 +80,7 @@ struct cg_event {            /* one record on the event pipe: 40 bytes */
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
 enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
+#define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
 
 struct cg_child {            /* control block, lives in container memory */
@@ -111,6 +112,9 @@ struct cg_child {            /* control block, lives in container memory */
     uint32_t repairs;        /* what it repaired for it */
     int quarantined;         /* it died inside the allocator */
     struct cg_child *next;
+    /* written by its crash report (crash.c), read by Python once reaped */
+    int crash_nframes;       /* 0: none; -1: being written; else how many */
+    void *crash_frames[CG_CRASH_FRAMES];   /* the crashing task's native stack */
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -159,6 +163,8 @@ int cg_release(struct cg_child *c);
 int cg_abandon(struct cg_child *c);
 /* child.c */
 int cg_self_stop_requested(void);
+/* crash.c */
+void cg_write_native_stack(void *const *frames, int n, int fd);
 /* contexts.c */
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 /* probes.c */

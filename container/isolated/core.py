@@ -37,9 +37,9 @@ from typing import Any, Callable, Literal
 
 from cloneguard.container.isolated import assumptions
 from cloneguard.container.isolated.assumptions import IsolationUnavailable
-from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD,
-                                       CoreEvent, Death, Repair, StopRequested,
-                                       decode)
+from cloneguard.container.isolated.crash_reports import NativeStacks
+from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD, CoreEvent, Death, Repair,
+                                                  StopRequested, decode)
 
 __all__ = ["CloneCore", "Child", "Death", "StopRequested", "CoreEvent",
            "Repair", "Mitigations", "IsolationUnavailable", "stop_requested",
@@ -242,6 +242,7 @@ class CloneCore:
         self._spawning = 0
         self._closed = False        # spawn refused
         self._stopped = False       # monitor stopped
+        self._native_stacks = NativeStacks(lib, ffi)
         try:
             assumptions.check_multithreaded()
         except IsolationUnavailable:
@@ -390,6 +391,11 @@ class CloneCore:
                 f"(their nodes died inside malloc) and {counts.get('bound', 0)} in use; "
                 "a restart of the container frees the quarantined ones")
 
+    def flush_crash_reports(self, timeout: float | None = None) -> bool:
+        """Wait until the native stacks of every crash reported so far are
+        written (crash_reports.py); False on timeout."""
+        return self._native_stacks.flush(timeout)
+
     def children(self) -> list[Child]:
         """Children spawned and not yet released."""
         with self._lock:
@@ -433,6 +439,9 @@ class CloneCore:
         self._shutdown_monitor()
         self._stopped = True
         self._listener.join()                   # it closes the event fd
+        if not self._native_stacks.flush(timeout):
+            print(f"cloneguard: a crashed child's native stack was not written within {timeout:g} s "
+                  "(the dynamic loader's lock is taken?)", file=sys.stderr)
 
     def __enter__(self) -> "CloneCore":
         return self
@@ -479,7 +488,10 @@ class CloneCore:
         if entry is None:
             return
         entry.spawned.wait()        # never report a child before spawn() returns
+        frames = ()
         if kind == KIND_DEATH:
+            # Before anything can release the child's control block.
+            frames = self._native_stacks.frames_of(entry.child._block)
             entry.death = event
             entry.target = None     # reaped: nothing runs it any more
             entry.dead.set()
@@ -490,6 +502,8 @@ class CloneCore:
             print("cloneguard: on_event raised:", file=sys.stderr)
             traceback.print_exc()
         finally:
+            if frames:              # after its CRASHED, as it were
+                self._native_stacks.submit(event.pid, frames)
             if kind == KIND_DEATH:
                 entry.death_reported.set()
 

@@ -1,10 +1,19 @@
 /*
  * crash.c - a child's crash report: on SIGSEGV, SIGBUS, SIGILL, SIGFPE or
- * SIGABRT, one report on fd 2 (the signal, the address, the native stack,
- * the Python stack) from the child's own signal stack, then the same death
- * as without it.  Installed by the child itself (child_main); runs in the
- * crashing task, on memory the container shares, so it stays small and
- * async-signal-safe but for the two calls named at on_crash.
+ * SIGABRT, one report on fd 2 (the signal, the address, the Python stack)
+ * from the child's own signal stack, then the same death as without it.
+ * Installed by the child itself (child_main); runs in the crashing task, on
+ * memory the container shares, so it stays small and async-signal-safe but
+ * for the calls named at on_crash.
+ *
+ * The native stack is unwound in the child, but its frames are symbolized by
+ * the container, after it has reported the death: the child leaves the raw
+ * addresses in its control block (cg_child.crash_frames; one address space,
+ * so they mean the same there) and the container writes them out with
+ * cg_write_native_stack.  Symbolizing (dladdr, one linear scan of a
+ * library's symbols per frame) took ~0.5 ms of the ~0.65 ms a report took,
+ * all of it before the death could be reported.  A thread the child created
+ * has no control block of its own: its report symbolizes in place.
  */
 #include "core.h"
 
@@ -20,6 +29,8 @@
 /* The signal a crash report is about (for its watchdog, on the same thread).
    initial-exec: a plain %fs-relative access, no __tls_get_addr. */
 static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));
+/* The child whose main task this is (NULL in threads the child created). */
+static __thread struct cg_child *cg_crashing __attribute__((tls_model("initial-exec")));
 
 static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
 
@@ -76,9 +87,10 @@ static void on_crash_timeout(int unused)
    signal is re-sent to this thread; it is delivered (and kills the child)
    as the handler returns.  A fault inside here kills at once (SIG_DFL).
    Everything used is async-signal-safe, except backtrace (its unwinder was
-   loaded by cg_start; on glibc 2.35+ it finds FDEs without locks) and
-   backtrace_symbols_fd (dladdr, which takes the loader's lock: hence the
-   watchdog timer). */
+   loaded by cg_start; on glibc 2.35+ it finds FDEs without locks), the
+   Python stack dump (faulthandler's, lock-free) and, in a thread the child
+   created, backtrace_symbols_fd (dladdr, which takes the loader's lock:
+   hence the watchdog timer). */
 static void on_crash(int sig, siginfo_t *si, void *uc_)
 {
     ucontext_t *uc = uc_;
@@ -130,11 +142,21 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         out_s(&o, ", thread ");
         out_u(&o, (unsigned long)tid, 10);
     }
-    out_s(&o, "\ncloneguard: native stack:\n");
-    out_flush(&o);
-    void *frames[64];
-    int n = backtrace(frames, 64);
-    backtrace_symbols_fd(frames, n, 2);
+    out_s(&o, "\n");
+    struct cg_child *c = cg_crashing;
+    int unclaimed = 0;
+    if (c && __atomic_compare_exchange_n(&c->crash_nframes, &unclaimed, -1, false,
+                                         __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
+        /* The container symbolizes them once it has reported the death. */
+        int n = backtrace(c->crash_frames, CG_CRASH_FRAMES);
+        __atomic_store_n(&c->crash_nframes, n > 0 ? n : 0, __ATOMIC_RELEASE);
+    } else {
+        void *frames[CG_CRASH_FRAMES];
+        out_s(&o, "cloneguard: native stack:\n");
+        out_flush(&o);
+        int n = backtrace(frames, CG_CRASH_FRAMES);
+        backtrace_symbols_fd(frames, n, 2);
+    }
     out_s(&o, "cloneguard: Python ");
     out_flush(&o);
     cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
@@ -145,6 +167,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
 
 void crash_handlers_install(struct cg_child *c)
 {
+    cg_crashing = c;
     stack_t ss = {.ss_sp = c->alt + (size_t)sysconf(_SC_PAGESIZE),
                   .ss_size = c->alt_len - (size_t)sysconf(_SC_PAGESIZE),
                   .ss_flags = 0};
@@ -164,4 +187,13 @@ void crash_report_prepare(void)
     /* The first backtrace() dlopens libgcc_s: never in a handler. */
     void *warm[4];
     backtrace(warm, 4);
+}
+
+/* In the container, after the death was reported: a crashed child's native
+   frames (cg_child.crash_frames), one line each, as backtrace_symbols_fd
+   writes them.  dladdr takes the loader's lock: Python calls this from a
+   thread of its own, never from one the container needs. */
+void cg_write_native_stack(void *const *frames, int n, int fd)
+{
+    backtrace_symbols_fd(frames, n, fd);
 }
