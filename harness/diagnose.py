@@ -57,11 +57,13 @@ _MALLOC_FUNCS = ("malloc", "free", "realloc", "calloc", "_int_free", "arena_get"
 _MUTEX_FUNCS = ("pthread_mutex_lock", "pthread_mutex_timedlock", "pthread_mutex_clocklock",
                 "__pthread_mutex_cond_lock")
 _LIBC_LOCK_FRAMES = ("___pthread", "__pthread", "pthread_mutex", "lll_", "__GI_", "__lll_")
-# Locks that one process's participants share, by the function that takes
+# Locks every node process of a container shares, by the function that takes
 # them: per-node isolation cannot keep a dead node's hold on them from the rest.
 SHARED_LOCKS = {
     "TopicPayloadPool": "Fast DDS's payload pool of one topic, shared by every participant in the process "
                         "(TopicPayloadPoolRegistry)",
+    "take_gil": "the GIL's own mutex (CPython's gil->mutex), taken by every thread that takes the GIL",
+    "drop_gil": "the GIL's own mutex (CPython's gil->mutex), taken by every thread that drops the GIL",
 }
 # Loops in other projects' code that wait by spinning, by a frame they run in.
 KNOWN_BUSY_WAITS = {

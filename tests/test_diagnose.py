@@ -89,6 +89,14 @@ def test_a_mutex_is_described_by_the_function_that_takes_it_and_a_shared_one_say
         "owned by tid 31910 (a dead process)")
 
 
+def test_a_wait_on_the_gils_own_mutex_is_named_so():
+    b = BlockedOn(tid=7, kind="pthread mutex", address="0x7f00", owner_tid=9, owner_node=None, owner_dead=True,
+                  where="container", taker="take_gil")
+    assert b.describe() == (
+        "tid 7 (container) waits on the pthread mutex at 0x7f00 (taken in take_gil: the GIL's own mutex "
+        "(CPython's gil->mutex), taken by every thread that takes the GIL), owned by tid 9 (a dead process)")
+
+
 def test_a_lock_taken_inside_jemalloc_is_named_so():
     [t] = parse_threads(DRAIN, pid=3658)
     assert _lock_wait(t) == ("jemalloc lock", "0x7f019a803a68", "")
