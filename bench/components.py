@@ -1,7 +1,9 @@
-"""The two components of ``bench.intra``: a payload source and a payload sink.
+"""The components of ``bench.intra``: a payload source and a payload sink,
+and the floor's trigger and waiter.
 
-Registered as ``bench::PayloadSource`` and ``bench::PayloadSink`` (entry
-points of the ``cloneguard`` distribution). They talk through the
+Registered as ``bench::PayloadSource``, ``bench::PayloadSink``,
+``bench::FloorTrigger`` and ``bench::FloorWaiter`` (entry points of the
+``cloneguard`` distribution). They talk through the
 intra-process API (:mod:`container.intra`): loaded with
 ``use_intra_process_comms`` they hand messages over by reference, without it
 they are the plain rclpy (DDS) path.
@@ -30,6 +32,17 @@ Both publish what they saw as one std_msgs/String (JSON) on ``~/stats``
 (reliable, transient local) when done: the source after its end message, the
 sink when the end message arrives (or ``timeout`` s after it was built, with
 ``"complete": false``).
+
+The floor (FloorTrigger → FloorWaiter): what any cross-node wake-up costs in
+one interpreter, with nothing of the intra-process path in it. The waiter
+makes an rclpy guard condition on its own node (so its own executor waits on
+it) and leaves it, under its ``channel``, in this module's registry
+(:data:`FLOOR_CHANNELS`): in isolated mode every child shares the one
+interpreter, so the trigger (another child) finds the very object there. The
+trigger, from a timer callback like the source's, stores a stamp
+(CLOCK_MONOTONIC) and the phase in the channel and calls ``.trigger()``; the
+waiter's guard-condition callback reads CLOCK_MONOTONIC first thing. Same
+phases (warm-up, one per ``period``, end), same ``~/stats`` reports.
 """
 from __future__ import annotations
 
@@ -250,3 +263,156 @@ class PayloadSink(Node):
             "queue_dropped": sub.queue.dropped if sub.intra else None,
         }
         self._stats_pub.publish(String(data=json.dumps(stats)))
+
+
+class FloorChannel:
+    """What a FloorWaiter leaves for its FloorTrigger: its guard condition,
+    and the last trigger's (stamp, seq, phase), replaced by one store."""
+
+    __slots__ = ("guard", "last")
+
+    def __init__(self, guard):
+        self.guard = guard
+        self.last = (0, 0, WARMUP)
+
+
+# channel name -> FloorChannel of the waiter loaded on it. Shared by every
+# node of one interpreter (thread mode, or isolated mode's clone children);
+# a process-per-node container has no such sharing: the trigger then finds
+# nothing and reports so.
+FLOOR_CHANNELS: dict[str, FloorChannel] = {}
+
+
+class FloorTrigger(Node):
+    def __init__(self, **kwargs):
+        super().__init__("floor_trigger", **kwargs)
+        decl = self.declare_parameter
+        self._channel = decl("channel", "bench_floor").value
+        self._count = decl("count", 50).value
+        self._period = decl("period", 0.02).value
+        self._warmup = decl("warmup", 5).value
+        self._settle = decl("settle", 0.5).value
+        self._match_timeout = decl("match_timeout", 30.0).value
+        if self._period <= 0 or min(self._count, self._warmup) < 0:
+            raise ValueError("period must be positive, counts not negative")
+        self._stats_pub = self.create_publisher(String, "~/stats", STATS_QOS)
+        self._sent = {name: 0 for name in PHASES.values()}
+        self._trigger_ns: list[int] = []     # inside .trigger(), latency phase
+        self._started_ns = time.monotonic_ns()
+        self._found_ns = None
+        self._error = ""
+        self._state = "matching"
+        self._next_at = 0.0
+        self._target: FloorChannel | None = None
+        self._timer = self.create_timer(self._period, self._step)
+        self._housekeeping = None
+
+    def _fire(self, phase: int, seq: int) -> None:
+        target = self._target
+        stamp = time.monotonic_ns()
+        target.last = (stamp, seq, phase)
+        target.guard.trigger()
+        if phase == LATENCY:
+            self._trigger_ns.append(time.monotonic_ns() - stamp)
+        self._sent[PHASES[phase]] += 1
+
+    def _step(self) -> None:
+        now = time.monotonic()
+        if now < self._next_at:
+            return
+        try:
+            if self._state == "matching":
+                self._target = FLOOR_CHANNELS.get(self._channel)
+                if self._target is not None:
+                    self._found_ns = time.monotonic_ns()
+                    self._state = "warmup"
+                    self._next_at = now + self._settle
+                elif now - self._started_ns / 1e9 > self._match_timeout:
+                    self._error = (f"no FloorWaiter on channel {self._channel!r} within {self._match_timeout} s "
+                                   "(it must run in this interpreter: thread or isolated mode)")
+                    self._finish()
+                return
+            if self._state == "warmup":
+                if self._sent["warmup"] < self._warmup:
+                    self._fire(WARMUP, self._sent["warmup"])
+                    self._next_at = now + self._period
+                    return
+                self._state = "latency"
+            if self._state == "latency":
+                if self._sent["latency"] < self._count:
+                    self._fire(LATENCY, self._sent["latency"])
+                    self._next_at = now + self._period
+                    return
+                self._state = "end"
+                self._next_at = now + max(self._period, 0.2)   # let the last one arrive first
+                return
+            if self._state == "end":
+                self._fire(END, 0)
+                self._finish()
+        except Exception as exc:   # reported, not raised: the benchmark must hear of it
+            self._error = f"{type(exc).__name__}: {exc}"
+            self._finish()
+
+    def _finish(self) -> None:
+        self._state = "done"
+        self._target = None
+        self._timer.cancel()
+        self._housekeeping = self.create_timer(HOUSEKEEPING_PERIOD, lambda: None)
+        stats = {
+            "role": "trigger", "channel": self._channel, "sent": self._sent, "error": self._error,
+            "match_s": None if self._found_ns is None else (self._found_ns - self._started_ns) / 1e9,
+            "trigger_ns": self._trigger_ns,
+        }
+        self._stats_pub.publish(String(data=json.dumps(stats)))
+
+
+class FloorWaiter(Node):
+    def __init__(self, **kwargs):
+        super().__init__("floor_waiter", **kwargs)
+        decl = self.declare_parameter
+        self._channel = decl("channel", "bench_floor").value
+        self._timeout_ns = int(decl("timeout", 120.0).value * 1e9)
+        if self._channel in FLOOR_CHANNELS:
+            raise ValueError(f"channel {self._channel!r} already has a FloorWaiter")
+        self._received = {name: 0 for name in PHASES.values()}
+        self._latency_ns: list[int] = []
+        self._latency_seq: list[int] = []
+        self._done = False
+        self._created_ns = time.monotonic_ns()
+        self._guard = self.create_guard_condition(self._on_trigger)
+        self._stats_pub = self.create_publisher(String, "~/stats", STATS_QOS)
+        self._housekeeping = self.create_timer(HOUSEKEEPING_PERIOD, self._check_timeout)
+        self._slot = FloorChannel(self._guard)
+        FLOOR_CHANNELS[self._channel] = self._slot
+
+    def _on_trigger(self) -> None:
+        now = time.monotonic_ns()
+        stamp, seq, phase = self._slot.last
+        name = PHASES.get(phase, "unknown")
+        self._received[name] = self._received.get(name, 0) + 1
+        if phase == LATENCY:
+            self._latency_ns.append(now - stamp)
+            self._latency_seq.append(seq)
+        elif phase == END:
+            self._report(complete=True)
+
+    def _check_timeout(self) -> None:
+        if not self._done and time.monotonic_ns() - self._created_ns > self._timeout_ns:
+            self._report(complete=False)
+
+    def _report(self, *, complete: bool) -> None:
+        if self._done:
+            return
+        self._done = True
+        stats = {
+            "role": "waiter", "complete": complete, "channel": self._channel, "received": self._received,
+            "latency_us": [v / 1e3 for v in self._latency_ns], "latency_seq": self._latency_seq,
+        }
+        self._stats_pub.publish(String(data=json.dumps(stats)))
+
+    def destroy_node(self):
+        # The trigger stops using the channel once it has sent its end (the
+        # benchmark unloads it first); drop it before the guard condition goes.
+        if FLOOR_CHANNELS.get(self._channel) is self._slot:
+            del FLOOR_CHANNELS[self._channel]
+        return super().destroy_node()
