@@ -48,9 +48,10 @@ EXPECTED_TABLES = {
         ["ratio", "numerator", "denominator", "measured", "goal", "verdict"],
     ],
 }
-# Rows of the first table: one per mode (or profile × signal, or measure).
+# Rows of the first table: one per mode (or profile × signal, or measure; intra:
+# 2 sizes × 3 transports and the floor).
 EXPECTED_ROWS = {"child_start": 8, "memory": 3, "crash_latency": 4, "load_latency": 2, "shutdown": 5,
-                 "intra": 6}
+                 "intra": 7}
 
 
 @pytest.fixture(scope="module")
