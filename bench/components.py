@@ -2,9 +2,9 @@
 and the floor's trigger and waiter.
 
 Registered as ``bench::PayloadSource``, ``bench::PayloadSink``,
-``bench::FloorTrigger`` and ``bench::FloorWaiter`` (entry points of the
-``cloneguard`` distribution). They talk through the
-intra-process API (:mod:`container.intra`): loaded with
+``bench::FloorTrigger`` and ``bench::FloorWaiter`` (entry points of the test
+rig's distribution, ``cloneguard-testrig``). They talk through the
+intra-process API (:mod:`cloneguard.container.intra`): loaded with
 ``use_intra_process_comms`` they hand messages over by reference, without it
 they are the plain rclpy (DDS) path.
 
