@@ -85,7 +85,8 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
                                        label(mode), svc_st, goal="as thread mode"))
     notes = [
         "Each probe is a new process with a new DDS participant (the ROS environment and Fast DDS profile "
-        "the harness uses: UDP on loopback, unicast discovery to the first 32 participant ids); it polls "
+        "the harness uses: UDP on loopback, participant discovery by multicast on lo, every participant "
+        "re-announcing every 100 ms); it polls "
         "get_node_names_and_namespaces and get_service_names_and_types_by_node every 10 ms while spinning.",
         f"ros2cli's DirectNode spins {ROS2CLI_SPIN_S:g} s before `ros2 component list` asks the graph, so "
         "'seen within' is the share of such calls that list the container.",
