@@ -1,7 +1,7 @@
 """What the allocator guard costs per malloc/free, and per block handed back.
 
 Each configuration runs in a fresh worker process (python -m
-bench.alloc_guard --worker ...) with the preload it needs; the loops are in
+cloneguard.bench.alloc_guard --worker ...) with the preload it needs; the loops are in
 C (faults/hammer.c), so the figures are the allocator's, not Python's:
 
 * a malloc/free pair of 64 B and 4 KiB by a container thread and by a
