@@ -25,6 +25,17 @@ EVENT_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+# ROS's default service QoS keeps the last 10 responses a client has not
+# taken yet: a burst of more concurrent calls from one client (the fuzzer's
+# 16-load warm-up) lost the oldest answers while this client's spin thread
+# waited for the GIL, and their callers timed out although the container had
+# answered. The container keeps 1000 requests queued; keep as many answers.
+SERVICE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 EVENT_NAMES = {
     ComponentEvent.LOADED: "LOADED",
     ComponentEvent.UNLOADED: "UNLOADED",
@@ -124,9 +135,9 @@ class ContainerClient:
         rclpy.init(context=self._ctx, domain_id=domain_id)
         self.node = Node(name, context=self._ctx)
         base = f"{self.container_fqn}/_container"
-        self._load = self.node.create_client(LoadNode, f"{base}/load_node")
-        self._unload = self.node.create_client(UnloadNode, f"{base}/unload_node")
-        self._list = self.node.create_client(ListNodes, f"{base}/list_nodes")
+        self._load = self.node.create_client(LoadNode, f"{base}/load_node", qos_profile=SERVICE_QOS)
+        self._unload = self.node.create_client(UnloadNode, f"{base}/unload_node", qos_profile=SERVICE_QOS)
+        self._list = self.node.create_client(ListNodes, f"{base}/list_nodes", qos_profile=SERVICE_QOS)
         self.events = Recorder(f"{base}/component_events")
         self._event_sub = self.node.create_subscription(
             ComponentEvent, f"{base}/component_events", self.events._add, EVENT_QOS
@@ -160,7 +171,7 @@ class ContainerClient:
         return future.result()
 
     def service_client(self, srv_type, name: str):
-        return self.node.create_client(srv_type, name)
+        return self.node.create_client(srv_type, name, qos_profile=SERVICE_QOS)
 
     def subscribe(self, msg_type, topic: str, qos=10) -> Recorder:
         rec = Recorder(topic)

@@ -211,3 +211,42 @@ def test_arguments_that_are_not_utf8_are_one_line_and_a_nonzero_exit():
     err = proc.stderr.decode(errors="replace")
     assert proc.returncode != 0 and "Traceback" not in err, err
     assert "component_container:" in err
+
+
+
+@pytest.mark.parametrize("container_args", [MODES["threads"]])
+def test_answers_to_more_calls_than_ros_default_queue_all_reach_the_harness_client(client, container):
+    """The container answers a burst of 20 LoadNode calls while the caller
+    takes none (its executor starved, as under load): with the harness's
+    service QoS (SERVICE_QOS) the caller keeps every answer. With ROS's
+    default (the last 10) the same burst kept 10 to 16 of the 20 here,
+    depending on how many had arrived when the caller spun again: the
+    fuzzer's warm-up lost its first 6 of 16 that way under load."""
+    import rclpy
+    from composition_interfaces.srv import LoadNode
+    from rclpy.executors import SingleThreadedExecutor
+
+    from cloneguard.harness.client import SERVICE_QOS
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=container.domain_id)
+    node = rclpy.create_node("burst_caller", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        caller = node.create_client(LoadNode, f"{container.fqn}/_container/load_node", qos_profile=SERVICE_QOS)
+        assert caller.wait_for_service(timeout_sec=10)
+        futures = [caller.call_async(client.load_request(PKG, "cloneguard::Heartbeat")) for _ in range(20)]
+        client.events.wait_count(20, 30)       # every one loaded (LOADED goes out before the answer)
+        deadline = time.monotonic() + 10
+        while not all(f.done() for f in futures) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        assert sum(f.done() for f in futures) == 20
+        ids = sorted(f.result().unique_id for f in futures)
+        assert [uid for uid, _ in client.list()] == ids
+        for uid in ids:
+            assert client.unload(uid).success
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
