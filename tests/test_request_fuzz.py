@@ -53,6 +53,13 @@ class World:
     def __init__(self, container, client, cgroups: bool):
         self.container, self.client, self.cgroups = container, client, cgroups
         self.model = fuzz.Model()
+        # The container answered ListNodes, but node names travel on their
+        # own topic (ros_discovery_info): a baseline taken before the
+        # container's name arrived made the container itself a "ghost".
+        deadline = time.monotonic() + 10.0
+        while container.fqn not in self.graph():
+            assert time.monotonic() < deadline, f"{container.fqn} not in the client's graph within 10 s"
+            time.sleep(0.05)
         self.baseline_graph = self.graph()
         self.fds = self.threads = 0
         self.rss_kib: list[int] = []
