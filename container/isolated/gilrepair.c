@@ -27,8 +27,10 @@
  *                                                           -> cancel it
  *      the way pthread_cancel would: glibc's own cleanup routine, which the
  *      waiter registered in its struct pthread (.cleanup) before blocking
- *   4. a condvar's internal lock taken (it died signalling) -> clear it if it
- *      stays taken
+ *   4. a condvar's internal lock taken (it died signalling)  -> clear it,
+ *      holding the condvar's mutex, once every live task that could hold
+ *      it is seen blocked elsewhere (unstick_cond_lock: no owner is
+ *      recorded, so its holder is proven dead by accounting, never by time)
  * This file is called by the monitor after a death, before the child is
  * reaped (so its tid cannot be reused meanwhile).  It never takes the GIL.
  */
@@ -132,11 +134,11 @@ static struct cg_dead *take_over(pthread_mutex_t *m, struct cg_dead *d, int n)
     }
 }
 
-/* Lock gil->mutex, taking it over if a dead task turns out to hold it.
-   false after ~2 s of a live holder (then the GIL is not checked). */
-static bool lock_gil_mutex(struct cg_dead *d, int n, uint32_t *misc)
+/* Lock m for the repair, taking it over if a dead task turns out to own it
+   (a death after step 1 looked).  false after ~2 s of a live holder. */
+static bool lock_for_repair(pthread_mutex_t *m, uint32_t bit,
+                            struct cg_dead *d, int n, uint32_t *misc)
 {
-    pthread_mutex_t *m = &GIL->mutex;
     for (int i = 0; i < 40; i++) {
         struct timespec ts;
         clock_gettime(CLOCK_MONOTONIC, &ts);
@@ -147,10 +149,19 @@ static bool lock_gil_mutex(struct cg_dead *d, int n, uint32_t *misc)
             return true;
         struct cg_dead *who = take_over(m, d, n);
         if (who) {
-            credit(who, CG_REPAIR_GIL_MUTEX, misc);
+            credit(who, bit, misc);
             return true;
         }
     }
+    return false;
+}
+
+/* Lock gil->mutex, taking it over if a dead task turns out to hold it.
+   false after ~2 s of a live holder (then the GIL is not checked). */
+static bool lock_gil_mutex(struct cg_dead *d, int n, uint32_t *misc)
+{
+    if (lock_for_repair(&GIL->mutex, CG_REPAIR_GIL_MUTEX, d, n, misc))
+        return true;
     *misc |= CG_REPAIR_GIL_TIMEOUT;
     return false;
 }
@@ -176,24 +187,68 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, uint32_t *misc)
     credit(who, CG_REPAIR_GIL_RELEASED, misc);
 }
 
-/* A condvar's internal lock (low 2 bits of __g1_orig_size; no owner is
-   recorded) is held only for a few instructions by signal/broadcast and by
-   a waiter giving up after a timeout, or while a signaller waits for the
-   waiters of a group it closes (live ones leave at once).  Called only
-   after the dead tasks' own references were dropped: if it stays taken for
-   200 ms, a dead task was inside; clear it and wake one lock waiter. */
-static void unstick_cond_lock(pthread_cond_t *c, uint32_t *misc)
+/* A condvar's internal lock (low 2 bits of __g1_orig_size, glibc 2.36
+   nptl/pthread_cond_common.c: 0 free, 1 taken, 2 taken with futex waiters)
+   records no owner, so it may be cleared only when its holder is proven
+   dead.  Who can hold it (glibc 2.36):
+     - a signaller, inside pthread_cond_signal/broadcast.  CPython signals
+       gil->cond only in drop_gil holding gil->mutex, and switch_cond only
+       in take_gil holding switch_mutex; the repair's own calls run here;
+     - a waiter that stopped waiting without a signal (a timeout, or
+       cancellation): __condvar_cancel_waiting and the replacement signal it
+       may send, without the mutex, but while it still counts in __wrefs >> 3
+       (its wake-up is confirmed only afterwards).  It may block holding the
+       lock, in a signal's group switch waiting for group references.
+   The caller holds the condvar's mutex: then no live signaller exists and
+   no waiter can register (that is done holding the mutex), so __wrefs >> 3
+   only decreases, and a live holder is a registered waiter.
+     - switch_cond (timed = false): its waits are untimed and never
+       cancelled, so no waiter ever takes the lock: its holder is dead.
+     - gil->cond (timed): a registered waiter blocked in FUTEX_WAIT on the
+       lock word is not its holder.  FUTEX_WAKE returns how many were
+       (woken, they re-check and block again: acquire_lock loops).  Proof:
+       the lock is taken, then __wrefs >> 3 (read next) <= blocked +
+       `dead_registered` (dead waiters known to be registered, being
+       cancelled).  A live holder -- or a live waiter that a release just
+       woke -- is registered and not blocked there, so the count falls
+       short; so does a dead registered waiter we do not know of.  Waiters
+       blocked on __g_signals are not counted (woken, they could time out
+       and take the lock before we clear it): they time out within 5 ms and
+       then either leave (confirmed, and they cannot register again while
+       we hold the mutex) or block on the lock word, so this tries for up to
+       ~200 ms.
+   true: free, or cleared (the dead cannot release it and nobody alive can
+   take it before we clear it).  false: still taken by a holder not proven
+   dead, left as it is (a hang at worst, never a broken lock); anything
+   that takes it now may wait forever. */
+static bool unstick_cond_lock(pthread_cond_t *c, bool timed,
+                              unsigned dead_registered, uint32_t *misc)
 {
     unsigned *w = &c->__data.__g1_orig_size;
+    int private_ = (c->__data.__wrefs & 1) == 0;   /* bit 0: process-shared */
     for (int i = 0; i < 200; i++) {
         if ((__atomic_load_n(w, __ATOMIC_ACQUIRE) & 3) == 0)
-            return;
+            return true;
+        bool dead_holder = !timed;
+        if (timed) {
+            unsigned registered =
+                __atomic_load_n(&c->__data.__wrefs, __ATOMIC_ACQUIRE) >> 3;
+            long blocked = syscall(SYS_futex, w,
+                                   FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0),
+                                   INT_MAX, NULL, NULL, 0);
+            dead_holder = blocked >= 0 &&
+                          registered <= (unsigned long)blocked + dead_registered;
+        }
+        if (dead_holder) {
+            unsigned old = __atomic_fetch_and(w, ~3u, __ATOMIC_RELEASE);
+            if ((old & 3) == 2)
+                futex_wake(w, 1, private_);
+            *misc |= CG_REPAIR_COND_LOCK;
+            return true;
+        }
         sleep_us(1000);
     }
-    unsigned old = __atomic_fetch_and(w, ~3u, __ATOMIC_RELEASE);
-    if ((old & 3) == 2)
-        futex_wake(w, 1, (c->__data.__wrefs & 1) == 0);
-    *misc |= CG_REPAIR_COND_LOCK;
+    return false;
 }
 
 /* A dead task blocked in pthread_cond_wait on one of the GIL's condvars. */
@@ -252,15 +307,47 @@ static void take_group_ref(struct waiter *w)
                        __ATOMIC_ACQUIRE);
 }
 
+/* How many of w[from..nw) wait on c: dead, registered, not cancelled yet. */
+static unsigned pending_on(const struct waiter *w, int nw, int from,
+                           const pthread_cond_t *c)
+{
+    unsigned k = 0;
+    for (int i = from; i < nw; i++)
+        k += w[i].cond == c;
+    return k;
+}
+
 uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg)
 {
     struct _gil_runtime_state *gil = GIL;
     uint32_t misc = 0;
     bool checked = false, wake_switch = false;
 
+    /* 0. Dead waiters of cond / switch_cond, and their group references
+       dropped first: a signal closing their group (a live drop_gil, or a
+       live waiter's replacement signal) waits for them holding the
+       condvar's internal lock; with them gone it goes on and lets go.
+       With several dead waiters one cleanup could wait for another's
+       reference, so all go first and each is taken back just before its
+       own cleanup drops it (step 2). */
+    struct waiter w[16];
+    int nw = 0;
+    if (cfg->condvar && cfg->cond_cleanup) {
+        for (int i = 0; i < n && nw < 16; i++)
+            if (find_waiter(&d[i], cfg, &w[nw]))
+                nw++;
+        for (int i = 0; i < nw; i++)
+            drop_group_ref(&w[i]);
+    }
+
     /* 1. Mutexes a dead task owns.  If it owned both, it was in take_gil's
        hand-over, entered only with the GIL free: whatever `locked` and
-       `last_holder` say, nobody alive holds the GIL. */
+       `last_holder` say, nobody alive holds the GIL.  Each condvar is
+       signalled only holding its mutex (gil->cond in drop_gil, switch_cond
+       in take_gil's hand-over), so a dead owner may have died inside that
+       signal holding the condvar's internal lock, which the next signal
+       would wait for forever (seen: 1 in 300 deep payload trials, drop_gil).
+       Holding the mutex we can tell whether its holder is dead. */
     if (cfg->gil) {
         struct cg_dead *wm = take_over(&gil->mutex, d, n);
         struct cg_dead *ws = take_over(&gil->switch_mutex, d, n);
@@ -277,41 +364,46 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
             } else {
                 release_if_held_by_dead(d, n, &misc);
             }
+            if (cfg->condvar)
+                unstick_cond_lock(&gil->cond, true,
+                                  pending_on(w, nw, 0, &gil->cond), &misc);
             checked = true;
             pthread_mutex_unlock(&gil->mutex);
         }
-        if (ws)
+        if (ws) {
+            if (cfg->condvar)
+                unstick_cond_lock(&gil->switch_cond, false, 0, &misc);
             pthread_mutex_unlock(&gil->switch_mutex);
+        }
     }
 
-    /* 2. Dead waiters of cond / switch_cond.  glibc's cleanup routine
-       cancels a waiter exactly as pthread_cancel would: drops its group
-       reference, takes it out of its group (sending a replacement signal
-       if it had consumed one), and re-locks the mutex, which we unlock.
-       With several dead waiters one cleanup could wait for another's
-       reference (closing a group), so all references go first and each is
-       taken back just before its own cleanup drops it. */
-    if (cfg->condvar && cfg->cond_cleanup) {
-        struct waiter w[16];
-        int nw = 0;
-        for (int i = 0; i < n && nw < 16; i++)
-            if (find_waiter(&d[i], cfg, &w[nw]))
-                nw++;
-        for (int i = 0; i < nw; i++)
-            drop_group_ref(&w[i]);
-        for (int i = 0; i < nw; i++) {
-            unstick_cond_lock(w[i].cond, &misc);
-            take_group_ref(&w[i]);
-            w[i].buf->__routine(w[i].cb);        /* returns holding mutex */
-            *(void **)(w[i].who->tcb + cfg->cleanup_off) = w[i].buf->__prev;
-            if (w[i].mutex == &gil->mutex && cfg->gil && !checked) {
-                release_if_held_by_dead(d, n, &misc);
-                checked = true;
-            }
-            pthread_mutex_unlock(w[i].mutex);
-            credit(w[i].who, w[i].bit, &misc);
-            wake_switch = true;
+    /* 2. Cancel each dead waiter.  glibc's cleanup routine cancels a
+       waiter exactly as pthread_cancel would: drops its group reference,
+       takes it out of its group (sending a replacement signal if it had
+       consumed one), and re-locks the mutex, which we unlock.  Taking it
+       out needs the condvar's internal lock: first, under the mutex, make
+       sure no dead task holds it (else the cleanup would wait forever; if
+       that cannot be proven, the waiter is left as it is). */
+    for (int i = 0; i < nw; i++) {
+        uint32_t mbit = w[i].mutex == &gil->mutex ? CG_REPAIR_GIL_MUTEX
+                                                   : CG_REPAIR_SWITCH_MUTEX;
+        if (!lock_for_repair(w[i].mutex, mbit, d, n, &misc))
+            continue;
+        bool free_ = unstick_cond_lock(w[i].cond, w[i].cond == &gil->cond,
+                                       pending_on(w, nw, i, w[i].cond), &misc);
+        pthread_mutex_unlock(w[i].mutex);
+        if (!free_)
+            continue;
+        take_group_ref(&w[i]);
+        w[i].buf->__routine(w[i].cb);        /* returns holding mutex */
+        *(void **)(w[i].who->tcb + cfg->cleanup_off) = w[i].buf->__prev;
+        if (w[i].mutex == &gil->mutex && cfg->gil && !checked) {
+            release_if_held_by_dead(d, n, &misc);
+            checked = true;
         }
+        pthread_mutex_unlock(w[i].mutex);
+        credit(w[i].who, w[i].bit, &misc);
+        wake_switch = true;
     }
 
     /* 3. The GIL itself, if step 1 did not look at it. */
@@ -322,14 +414,26 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
 
     /* 4. A thread that dropped the GIL for the dead one may be waiting
        (untimed) on switch_cond for a hand-over that will not come.  Waiters
-       on cond need nothing: their waits time out every 5 ms. */
+       on cond need nothing: their waits time out every 5 ms.  The
+       broadcast takes switch_cond's internal lock: not if a holder not
+       proven dead keeps it (the monitor would wait forever). */
     bool released = misc & CG_REPAIR_GIL_RELEASED;
     for (int i = 0; i < n; i++)
         released |= (d[i].repairs & CG_REPAIR_GIL_RELEASED) != 0;
     if (cfg->gil && (wake_switch || released)) {
-        if (cfg->condvar)
-            unstick_cond_lock(&gil->switch_cond, &misc);
-        pthread_cond_broadcast(&gil->switch_cond);
+        bool free_ = true;
+        if (cfg->condvar &&
+            (__atomic_load_n(&gil->switch_cond.__data.__g1_orig_size,
+                             __ATOMIC_ACQUIRE) & 3) != 0) {
+            free_ = lock_for_repair(&gil->switch_mutex, CG_REPAIR_SWITCH_MUTEX,
+                                    d, n, &misc);
+            if (free_) {
+                free_ = unstick_cond_lock(&gil->switch_cond, false, 0, &misc);
+                pthread_mutex_unlock(&gil->switch_mutex);
+            }
+        }
+        if (free_)
+            pthread_cond_broadcast(&gil->switch_cond);
     }
     return misc;
 }
