@@ -10,6 +10,7 @@
 #define Py_BUILD_CORE 1
 #include <Python.h>
 #include "internal/pycore_runtime.h"   /* _PyRuntime, _gil_runtime_state */
+#include "internal/pycore_pystate.h"   /* _PyThreadState_Swap */
 #include "internal/pycore_interp.h"    /* struct _ceval_state */
 
 #include <errno.h>
@@ -64,6 +65,32 @@ int gilfault_die_in_gil(int where)
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->mutex);
         break;
+    case GILFAULT_DROP_GIL_SIGNALLING: { /* drop_gil, inside pthread_cond_signal
+                                           (gil->cond): the GIL let go, the
+                                           mutex and the condvar's internal
+                                           lock held */
+        /* As PyEval_SaveThread and drop_gil do it: tstate_current swapped
+           to NULL first (left set, the next taker of the GIL dies of
+           "orphan tstate" instead), last_holder = us, then under the mutex
+           locked = 0 and the signal. */
+        PyThreadState *me = _PyThreadState_Swap(&_PyRuntime.gilstate, NULL);
+        _Py_atomic_store_relaxed(&gil->last_holder, (uintptr_t)me);
+        pthread_mutex_lock(&gil->mutex);
+        _Py_atomic_store_relaxed(&gil->locked, 0);
+        /* __condvar_acquire_lock: low 2 bits of __g1_orig_size 0 -> 1,
+           after any live holder (a waiter cancelling after its timeout
+           holds it for a few instructions, without the mutex) let go. */
+        unsigned *w = &gil->cond.__data.__g1_orig_size;
+        unsigned s = __atomic_load_n(w, __ATOMIC_RELAXED);
+        while ((s & 3) != 0 ||
+               !__atomic_compare_exchange_n(w, &s, s | 1, true,
+                                            __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
+            if ((s & 3) != 0) {
+                sleep_us(10);
+                s = __atomic_load_n(w, __ATOMIC_RELAXED);
+            }
+        break;
+    }
     case GILFAULT_SWITCH_MUTEX:         /* drop_gil: switch_mutex taken */
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->switch_mutex);

@@ -8,6 +8,7 @@ enum {
     GILFAULT_TAKE_GIL_HANDOVER = 2,
     GILFAULT_TAKE_GIL_CHECKING = 3,
     GILFAULT_SWITCH_MUTEX = 4,
+    GILFAULT_DROP_GIL_SIGNALLING = 5,
 };
 
 int gilfault_die_in_gil(int where);

@@ -134,8 +134,9 @@ def test_a_child_dying_with_the_gil_is_repaired(core, counter, target, sig):
      Repair.GIL_MUTEX | Repair.SWITCH_MUTEX | Repair.GIL_RELEASED),
     (gilfault.GILFAULT_TAKE_GIL_CHECKING, Repair.GIL_MUTEX),
     (gilfault.GILFAULT_SWITCH_MUTEX, Repair.SWITCH_MUTEX),
+    (gilfault.GILFAULT_DROP_GIL_SIGNALLING, Repair.GIL_MUTEX | Repair.COND_LOCK),
 ], ids=["drop_gil-holding-mutex", "take_gil-hand-over", "take_gil-checking",
-        "holding-switch_mutex"])
+        "holding-switch_mutex", "drop_gil-inside-cond_signal"])
 def test_a_child_dying_inside_take_gil_or_drop_gil_is_repaired(core, counter, where, expect):
     c = core.spawn(lambda: gilfault.gilfault_die_in_gil(where))
     death = core.wait(c, 10)
