@@ -10,6 +10,7 @@ container's own node, named ``ComponentManager`` by default.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import os
 import signal
 import sys
@@ -200,6 +201,10 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"component_container: {exc}") from None
     if opts.isolated and not opts.shared_arenas:
         allocator.glibc_arena_per_task()        # before a second thread exists
+    # If the container process itself dies of a fault, the log says where:
+    # every thread's Python stack (its children have crash reports of their
+    # own; they start with no handler).
+    faulthandler.enable(file=sys.stderr, all_threads=True)
     stop = StopSignals()
     _ros_init(argv)
     options.container_argv = list(argv)

@@ -80,3 +80,13 @@ def test_idle_and_busy_nodes_are_not_aborted(client, container):
     time.sleep(4)                        # > twice the limit
     assert len(client.list()) == 2
     assert "node watchdog" in container.log_text() and "aborting" not in container.log_text()
+
+
+@pytest.mark.parametrize("container_args", [[]])
+def test_a_container_that_crashes_itself_says_where(client, container):
+    # Thread mode: the fault kills the container; its log shows the stack.
+    client.load_ok(RIG, "faults::SegfaultInCallback", parameters={"delay": 0.2})
+    assert container.wait(timeout=20) == -11
+    log = container.log_text()
+    assert "Fatal Python error: Segmentation fault" in log
+    assert "faults/components.py" in log and "in fire" in log

@@ -216,7 +216,7 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, uint32_t *misc)
        and take the lock before we clear it): they time out within 5 ms and
        then either leave (confirmed, and they cannot register again while
        we hold the mutex) or block on the lock word, so this tries for up to
-       ~200 ms.
+       ~2 s.
    true: free, or cleared (the dead cannot release it and nobody alive can
    take it before we clear it).  false: still taken by a holder not proven
    dead, left as it is (a hang at worst, never a broken lock); anything
@@ -226,7 +226,13 @@ static bool unstick_cond_lock(pthread_cond_t *c, bool timed,
 {
     unsigned *w = &c->__data.__g1_orig_size;
     int private_ = (c->__data.__wrefs & 1) == 0;   /* bit 0: process-shared */
-    for (int i = 0; i < 200; i++) {
+    /* Each count wakes the waiters it counts; they must run to block again
+       before the next one.  On a loaded machine that took more than the
+       1 ms this once slept (deep run under -n 2: 3 hangs in 600 payload
+       trials, a live drop_gil left waiting for the lock), so the pause
+       doubles up to 32 ms, for ~2 s in all. */
+    long pause_us = 1000;
+    for (int i = 0; i < 70; i++) {
         if ((__atomic_load_n(w, __ATOMIC_ACQUIRE) & 3) == 0)
             return true;
         bool dead_holder = !timed;
@@ -246,7 +252,9 @@ static bool unstick_cond_lock(pthread_cond_t *c, bool timed,
             *misc |= CG_REPAIR_COND_LOCK;
             return true;
         }
-        sleep_us(1000);
+        sleep_us(pause_us);
+        if (pause_us < 32000)
+            pause_us *= 2;
     }
     return false;
 }
