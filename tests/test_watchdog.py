@@ -61,7 +61,8 @@ def test_a_node_whose_callback_hangs_is_aborted_alone_with_its_stacks(client, co
     hung = client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
     crash = client.wait_for_event(ComponentEvent.CRASHED, unique_id=hung.unique_id, timeout=15)
     assert crash.exit_signal == 6, crash                     # SIGABRT, sent by the container
-    assert "longer than --node-watchdog 1.5 s" in crash.error_message, crash.error_message
+    assert "longer than --node-watchdog 1.5 s (" in crash.error_message, crash.error_message
+    assert "callback(s) had run before it)" in crash.error_message
     # Its crash report says where it hung; the rest of the container goes on.
     log = container.log_text()
     assert "caught SIGABRT" in log and "faults/components.py" in log and "in fire" in log

@@ -2,8 +2,8 @@
 the container reads, in container memory behind one robust mutex.
 
 Each child, after every callback its executor runs, takes the board's lock
-and updates its own slot (count, time); before each callback it stamps the
-slot's ``busy_ns``. The container reads the board from its watchdog tick
+and updates its own slot (the count of callbacks run); before each callback
+it stamps the slot's ``busy_ns``. The container reads the board from its watchdog tick
 (which finds a lock a dead child left on it) and from the node watchdog
 (``node_watchdog.py``: a callback running too long). It is the state a child can be holding a container lock
 over when it dies, so it is built to be repaired:
@@ -35,7 +35,6 @@ class _Slot(ctypes.Structure):
         ("unique_id", ctypes.c_uint64),
         ("pid", ctypes.c_int32),
         ("beats", ctypes.c_uint64),      # callbacks run so far
-        ("last_ns", ctypes.c_int64),     # CLOCK_MONOTONIC of the last one
         ("busy_ns", ctypes.c_int64),     # CLOCK_MONOTONIC the running callback
                                          # started at; 0 between callbacks
     ]
@@ -46,7 +45,6 @@ class SlotView:
     unique_id: int
     pid: int
     beats: int
-    last_ns: int
     busy_ns: int        # when its running callback started; 0: none runs
 
 
@@ -86,7 +84,7 @@ class ProgressBoard:
             self._index[unique_id] = slot
         with self.mutex:
             s = self._slots[slot]
-            s.seq, s.unique_id, s.pid, s.beats, s.last_ns, s.busy_ns = 0, unique_id, 0, 0, 0, 0
+            s.seq, s.unique_id, s.pid, s.beats, s.busy_ns = 0, unique_id, 0, 0, 0
         return slot
 
     def set_pid(self, slot: int, pid: int) -> None:
@@ -106,7 +104,7 @@ class ProgressBoard:
     def snapshot(self) -> list[SlotView]:
         with self.mutex:
             return [
-                SlotView(s.unique_id, s.pid, s.beats, s.last_ns, s.busy_ns)
+                SlotView(s.unique_id, s.pid, s.beats, s.busy_ns)
                 for s in self._slots if s.unique_id
             ]
 
@@ -125,7 +123,6 @@ class ProgressBoard:
             s = self._slots[slot]
             s.seq += 1
             s.beats += 1
-            s.last_ns = time.monotonic_ns()
             s.busy_ns = 0
             s.seq += 1
 

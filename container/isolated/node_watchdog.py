@@ -40,7 +40,8 @@ class NodeWatchdog:
             if slot.busy_ns and (now - slot.busy_ns) / 1e9 > self.limit_s:
                 ran = (now - slot.busy_ns) / 1e9
                 self._host.abort(slot.unique_id,
-                                 f"its callback ran for {ran:.1f} s, longer than --node-watchdog {self.limit_s:g} s")
+                                 f"its callback ran for {ran:.1f} s, longer than --node-watchdog {self.limit_s:g} s "
+                                 f"({slot.beats} callback(s) had run before it)")
 
     def close(self) -> None:
         self._timer.cancel()
