@@ -30,6 +30,8 @@ from .process import ContainerProcess
 
 SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
 CRASH_LOG_LINES = 40       # of a container that died in a trial, kept in the report
+FATAL_MARK = "Fatal Python error: "   # faulthandler's first line (container/cli.py enables it)
+FATAL_DUMP_CHARS = 16000
 
 # Container arguments per profile; scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
@@ -167,9 +169,16 @@ class Rig:
         if not self.proc.alive():
             out.outcome = "crashed"
             out.details["exit_code"] = self.proc.wait(0)
-            # The container's last words (a crash report, a traceback): the
-            # log itself goes when the test's temporary directory does.
-            out.details["log_tail"] = log_tail(self.proc.log_text(), CRASH_LOG_LINES)
+            # The container's last words: the log itself goes when the
+            # test's temporary directory does. A container that died of a
+            # fault ends its log with faulthandler's dump of every thread
+            # (its "Fatal Python error:" line first): kept whole (bounded)
+            # beside the last lines before it.
+            text = self.proc.log_text()
+            before, mark, dump = text.partition(FATAL_MARK)
+            out.details["log_tail"] = log_tail(before, CRASH_LOG_LINES)
+            if mark:
+                out.details["fatal_error"] = (mark + dump)[:FATAL_DUMP_CHARS]
         else:
             out.outcome = "hung"
             if diagnose.gdb_available():

@@ -10,6 +10,10 @@ def test_a_container_that_died_in_a_trial_is_crashed_with_its_last_log_lines(con
     assert rig.proc.wait(timeout=20) is not None
     out = rig.not_survived("the container is gone")
     assert out.outcome == "crashed" and out.details["exit_code"] == -signal.SIGSEGV
-    # What it said last stays in the report after its log file is gone.
+    # What it said last stays in the report after its log file is gone: the
+    # lines before the fault, and faulthandler's dump of its threads.
     assert "Loaded cloneguard::Heartbeat as /survivor" in out.details["log_tail"]
-    assert rig.proc.log_text().rstrip().endswith(out.details["log_tail"].rstrip())
+    fatal = out.details["fatal_error"]
+    assert fatal.startswith("Fatal Python error: Segmentation fault") and "most recent call first" in fatal
+    log = rig.proc.log_text()
+    assert log.index(out.details["log_tail"]) + len(out.details["log_tail"]) <= log.index(fatal)
