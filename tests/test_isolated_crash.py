@@ -131,3 +131,14 @@ def test_a_clean_exit_and_an_outside_kill_write_no_report(core, capfd):
     assert core.wait(c, 10).exit_signal == signal.SIGKILL
     core.release(c)
     assert "cloneguard:" not in capfd.readouterr().err
+
+
+def test_closing_the_core_ends_its_native_stack_writer(capfd):
+    with CloneCore() as core:
+        c = core.spawn(_segv_gil_released)
+        assert core.wait(c, 10).exit_signal == signal.SIGSEGV
+        core.release(c)
+        assert core.flush_crash_reports(10)
+        assert any(t.name == "cloneguard-native-stacks" for t in threading.enumerate())
+    assert not any(t.name == "cloneguard-native-stacks" for t in threading.enumerate())
+    assert f"cloneguard: pid {c.pid} native stack:" in capfd.readouterr().err

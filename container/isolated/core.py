@@ -439,7 +439,7 @@ class CloneCore:
         self._shutdown_monitor()
         self._stopped = True
         self._listener.join()                   # it closes the event fd
-        if not self._native_stacks.flush(timeout):
+        if not self._native_stacks.close(timeout):
             print(f"cloneguard: a crashed child's native stack was not written within {timeout:g} s "
                   "(the dynamic loader's lock is taken?)", file=sys.stderr)
 
@@ -502,7 +502,7 @@ class CloneCore:
             print("cloneguard: on_event raised:", file=sys.stderr)
             traceback.print_exc()
         finally:
-            if frames:              # after its CRASHED, as it were
+            if frames:              # after on_event reported the death (CRASHED)
                 self._native_stacks.submit(event.pid, frames)
             if kind == KIND_DEATH:
                 entry.death_reported.set()

@@ -54,9 +54,24 @@ class NativeStacks:
         with self._done:
             return self._done.wait_for(lambda: self._pending == 0, timeout)
 
+    def close(self, timeout: float | None = None) -> bool:
+        """Write what was submitted (False if that took longer than
+        ``timeout``), then end the writer thread."""
+        done = self.flush(timeout)
+        with self._done:
+            thread, self._thread = self._thread, None
+        if thread is not None:
+            self._queue.put(None)
+            if done:
+                thread.join()
+        return done
+
     def _write_all(self) -> None:
         while True:
-            pid, frames = self._queue.get()
+            item = self._queue.get()
+            if item is None:
+                return
+            pid, frames = item
             try:
                 os.write(self._fd, f"cloneguard: pid {pid} native stack:\n".encode())
                 array = self._ffi.new("void *[]", [self._ffi.cast("void *", f) for f in frames])
