@@ -153,27 +153,27 @@ int cg_allocator(char *buf, size_t len)
     return f != NULL;
 }
 
+/* Read one jemalloc setting of the calling thread into out (size bytes):
+   0, or -1 without jemalloc (or without that setting). */
+static int read_mallctl(const char *name, void *out, size_t size)
+{
+    mallctl_fn f = find_mallctl();
+    size_t sz = size;
+    return f && f(name, out, &sz, NULL, 0) == 0 ? 0 : -1;
+}
+
 /* Whether the calling thread has a jemalloc thread cache: 1/0; -1 without
    jemalloc. */
 int cg_jemalloc_thread_tcache(void)
 {
-    mallctl_fn f = find_mallctl();
     bool on;
-    size_t sz = sizeof on;
-    if (!f || f("thread.tcache.enabled", &on, &sz, NULL, 0) != 0)
-        return -1;
-    return on;
+    return read_mallctl("thread.tcache.enabled", &on, sizeof on) < 0 ? -1 : on;
 }
 
 /* The jemalloc arena the calling thread allocates from; -1 without
    jemalloc. */
 int cg_jemalloc_thread_arena(void)
 {
-    mallctl_fn f = find_mallctl();
     unsigned a;
-    size_t sz = sizeof a;
-    if (!f || f("thread.arena", &a, &sz, NULL, 0) != 0)
-        return -1;
-    return (int)a;
+    return read_mallctl("thread.arena", &a, sizeof a) < 0 ? -1 : (int)a;
 }
-
