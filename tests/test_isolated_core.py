@@ -28,7 +28,7 @@ import pytest
 
 from cloneguard.container.isolated.assumptions import IsolationUnavailable, self_check
 from cloneguard.container.isolated.core import (CloneCore, Death, StopRequested, in_child,
-                                                stop_requested)
+                                                stop_requested, wait_for_go)
 from cloneguard.container.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)
@@ -574,6 +574,54 @@ def test_parent_request_stop(core, rec):
     assert [type(e) for e in rec.of(c)] == [StopRequested, Death]
     assert rec.of(c)[0].by_signal is False and rec.of(c)[0].signal is None
     core.release(c)
+
+
+# --------------------------------------------------------------------------
+# the gate: wait_for_go / go
+
+def test_each_go_lets_one_wait_through_and_none_is_lost(core):
+    passed = []
+
+    def child():
+        for _ in range(3):
+            passed.append(wait_for_go())
+
+    c = core.spawn(child)
+    core.go(c)
+    core.go(c)                 # both, maybe before the child waits at all
+    wait_until(lambda: len(passed) == 2, what="two waits through")
+    # The third waits; a broken gate would let it through and the child end.
+    assert core.wait(c, timeout=0.3) is None
+    assert len(passed) == 2
+    core.go(c)
+    assert core.wait(c, 10).exit_code == 0
+    assert passed == [False, False, False]
+    core.release(c)
+
+
+@pytest.mark.parametrize("how", ["request_stop", "sigterm"])
+def test_a_stop_ends_every_wait_at_the_gate(core, how):
+    passed = []
+
+    def child():
+        for _ in range(3):
+            passed.append(wait_for_go())
+
+    c = core.spawn(child)
+    core.go(c)
+    wait_until(lambda: passed == [False], what="the first wait through")
+    if how == "request_stop":
+        core.request_stop(c)
+    else:
+        core.kill(c, signal.SIGTERM)
+    assert core.wait(c, 10).exit_code == 0
+    assert passed == [False, True, True]
+    core.release(c)
+
+
+def test_wait_for_go_outside_a_child_raises():
+    with pytest.raises(RuntimeError, match="outside an isolated child"):
+        wait_for_go()
 
 
 # --------------------------------------------------------------------------

@@ -119,9 +119,11 @@ int cg_stop(void);
 int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out);
 int cg_request_stop(struct cg_child *c);
+int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
 int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
+int cg_self_wait_go(void);
 void cg_write_native_stack(void *const *frames, int n, int fd);
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 

@@ -89,6 +89,7 @@ static void on_stop_signal(int sig)
                                         __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST)) {
             monitor_wake();
         }
+        child_gate_post(c, 1);   /* we may be waiting at the gate */
     }
     errno = saved;
 }
@@ -215,6 +216,44 @@ int cg_self_stop_requested(void)   /* -1 when not called from a child */
 {
     struct cg_child *c = cg_self;
     return c ? __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) : -1;
+}
+
+/* The gate: where a child waits, off the GIL (cffi releases it around the
+   call), for its parent's word: the host's spare waits there for the node
+   it is to build, and every node's process waits there, once built, until
+   the container has announced the load, instead of competing with that for
+   the GIL.  The word counts the parent's "go"s (cg_go); each wait takes one,
+   so a go that comes before its wait is not lost (FUTEX_WAIT returns at once
+   when the word has changed).  A stop request, from the parent or our own
+   stop signal, sets CG_GO_STOP, which ends every wait for good.  Private
+   futexes work across the children: they are keyed by the address space,
+   which they all share.  Returns 1 if it is to stop, 0 if it took a go, -1
+   when not called from a child. */
+int cg_self_wait_go(void)
+{
+    struct cg_child *c = cg_self;
+    if (!c)
+        return -1;
+    for (;;) {
+        unsigned word = __atomic_load_n(&c->go, __ATOMIC_ACQUIRE);
+        if (word & CG_GO_STOP)
+            return 1;
+        if (word > c->go_taken) {
+            c->go_taken++;
+            return 0;
+        }
+        syscall(SYS_futex, &c->go, FUTEX_WAIT_PRIVATE, word, NULL, NULL, 0);
+    }
+}
+
+/* One more go, or (stop) end every wait. */
+void child_gate_post(struct cg_child *c, unsigned stop)
+{
+    if (stop)
+        __atomic_fetch_or(&c->go, CG_GO_STOP, __ATOMIC_RELEASE);
+    else
+        __atomic_fetch_add(&c->go, 1, __ATOMIC_RELEASE);
+    syscall(SYS_futex, &c->go, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
 }
 
 

@@ -17,7 +17,7 @@
  *     waits on pidfds, reaps children and reports to Python through a pipe of
  *     fixed-size records.  It never takes the GIL.  It alone touches the child
  *     list (g_children) and cg_child.stop_reported.
- *   - Python threads call cg_spawn / cg_request_stop / cg_release; cffi
+ *   - Python threads call cg_spawn / cg_request_stop / cg_go / cg_release; cffi
  *     releases the GIL around each call.
  *   - A child runs child_main on its own stack and TLS, then the Python
  *     callable under PyGILState_Ensure, then leaves with a raw SYS_exit.
@@ -150,15 +150,24 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
     return 0;
 }
 
-/* Set the child's stop flag; 1 if this call set it. */
+/* Set the child's stop flag, then end its waits at the gate (it goes on to
+   find the flag set); 1 if this call set the flag. */
 int cg_request_stop(struct cg_child *c)
 {
     int none = CG_STOP_NONE;
-    if (!__atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_PARENT,
-                                     false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST))
-        return 0;
-    monitor_wake();
-    return 1;
+    int set = __atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_PARENT,
+                                          false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
+    child_gate_post(c, 1);
+    if (set)
+        monitor_wake();
+    return set;
+}
+
+/* One go for a child's next (or current) wait at its gate. */
+int cg_go(struct cg_child *c)
+{
+    child_gate_post(c, 0);
+    return 0;
 }
 
 /* Unlink and free a reaped child's PyThreadState (it was never current

@@ -82,6 +82,7 @@ enum { CG_RUNNING = 0, CG_REAPED = 1 };
 enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
+#define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
 
 struct cg_child {            /* control block, lives in container memory */
     /* read by Python */
@@ -94,6 +95,9 @@ struct cg_child {            /* control block, lives in container memory */
     int py_phase;            /* CG_PY_* (atomic; written by the child) */
     int stop_signal;         /* the signal that asked (atomic), 0: parent */
     int arena;               /* jemalloc arena the child bound to, -1: none */
+    unsigned go;             /* futex word: how many times the parent said
+                                go (cg_go), | CG_GO_STOP once asked to stop */
+    unsigned go_taken;       /* how many of those the child has waited for */
     /* set up before the clone */
     PyObject *target;        /* borrowed: Python keeps it alive until reaped */
     PyThreadState *tstate;   /* made by cg_spawn, deleted by cg_release */
@@ -159,10 +163,12 @@ int cg_stop(void);
 int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
              int flags, struct cg_child **out);
 int cg_request_stop(struct cg_child *c);
+int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
 int cg_abandon(struct cg_child *c);
 /* child.c */
 int cg_self_stop_requested(void);
+int cg_self_wait_go(void);
 /* crash.c */
 void cg_write_native_stack(void *const *frames, int n, int fd);
 /* contexts.c */
@@ -196,6 +202,7 @@ void monitor_wake(void);                  /* async-signal-safe */
 
 /* child.c */
 long child_clone(struct cg_child *c);     /* on the monitor thread: pid or -errno */
+void child_gate_post(struct cg_child *c, unsigned stop); /* async-signal-safe */
 
 /* crash.c */
 void crash_report_prepare(void);          /* in cg_start, never in a handler */

@@ -13,7 +13,8 @@ os.read with the GIL released.
     core.release(child)               # frees stack, TLS, pidfd
     core.close()
 
-Inside a child, ``stop_requested()`` tells whether it was asked to stop.
+Inside a child, ``stop_requested()`` tells whether it was asked to stop, and
+``wait_for_go()`` waits, off the GIL, for the parent's ``core.go(child)``.
 
 What the core does about a child's death is switchable (``Mitigations``), so
 the harness can measure what each measure buys:
@@ -42,7 +43,7 @@ from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECOR
                                                   StopRequested, decode)
 
 __all__ = ["CloneCore", "Child", "Death", "StopRequested", "CoreEvent",
-           "Repair", "Mitigations", "IsolationUnavailable", "stop_requested",
+           "Repair", "Mitigations", "IsolationUnavailable", "stop_requested", "wait_for_go",
            "in_child", "allocator", "thread_arena", "thread_tcache"]
 
 DEFAULT_STACK = 8 << 20
@@ -138,6 +139,18 @@ def stop_requested() -> bool:
     s = lib.cg_self_stop_requested()
     if s < 0:
         raise RuntimeError("stop_requested() called outside an isolated child")
+    return s != 0
+
+
+def wait_for_go() -> bool:
+    """Inside a child: wait, off the GIL, for the parent's next
+    ``CloneCore.go`` (each go lets one wait through, and one given before
+    the wait is not lost), or until it is asked to stop (by the parent or a
+    signal), which ends every wait. True if it is to stop."""
+    _, lib = _lib()
+    s = lib.cg_self_wait_go()
+    if s < 0:
+        raise RuntimeError("wait_for_go() called outside an isolated child")
     return s != 0
 
 
@@ -303,6 +316,13 @@ class CloneCore:
         with self._lock:
             self._entry(child)
             return bool(lib.cg_request_stop(child._block))
+
+    def go(self, child: Child) -> None:
+        """Let the child's current or next ``wait_for_go`` through."""
+        _, lib = _lib()
+        with self._lock:
+            self._entry(child)
+            lib.cg_go(child._block)
 
     def kill(self, child: Child, sig: int = signal.SIGKILL) -> bool:
         """pidfd_send_signal; False if the child has already died."""
