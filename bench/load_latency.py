@@ -112,13 +112,14 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
         "sending with the event's stamp (set by the container just before it publishes).",
         "The container publishes LOADED before it answers the request, so LOADED can arrive before "
         "the response.",
-        "UnloadNode in isolated mode returns once the child has left its spin loop, which it does only "
-        "after its next callback (Heartbeat: a 50 ms timer): the executor wake-up the host sends does not "
-        "end rclpy's spin_once(timeout_sec=None). An idle node is SIGKILLed after the 500 ms grace "
-        "(see shutdown.md, the Listener row).",
-        "Isolated per-node: the load includes a new rclpy Context (a DDS participant) built inside the "
-        "clone child; isolated shared: the node is built on the container's participant and only "
-        "spun in the child; thread mode: built and added to the container's own executor.",
+        "UnloadNode in isolated mode returns once the child has ended and been reaped: the host sets its "
+        "stop flag and triggers a guard condition of its executor, and the child leaves its spin loop, "
+        "destroys its node (per-node: and its Context and participant) and exits.",
+        "Isolated per-node: the node is built in the warm spare, a clone child whose rclpy Context and "
+        "DDS participant were made ahead (container/isolated/spare.py), and the next spare is made "
+        "right after the load, while its UnloadNode runs; isolated shared: the node is built on the "
+        "container's participant and only spun in the child; thread mode: built on the container's "
+        "participant and added to its executor.",
         "Containers launched as the harness does (ContainerProcess: setpriv --pdeathsig, no-SHM Fast "
         "DDS profile), each on its own ROS domain (harness.domains.lease()).",
     ]

@@ -47,7 +47,7 @@ WATCHDOG_MAX_S = 86400.0
 # Options that mean something only with --isolated (refused without it).
 ISOLATED_ONLY = ("--jemalloc-arenas", "--no-gil-repair", "--no-condvar-repair", "--no-crash-report",
                  "--shared-arenas", "--no-alloc-guard", "--cgroups", "--restart-policy", "--profile",
-                 "--node-watchdog")
+                 "--node-watchdog", "--no-warm-spare")
 MITIGATION_SWITCHES = {
     "--no-gil-repair": "for measurement, do not release the GIL a dead child held",
     "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
@@ -126,6 +126,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "longer than SECONDS and report it CRASHED; the other nodes go on (default: 0, off)",
     )
     parser.add_argument(
+        "--no-warm-spare", action="store_true",
+        help="isolated per-node profile: do not keep the next node's process, with its DDS "
+        "participant, made ahead of the LoadNode (it is made during each load instead)",
+    )
+    parser.add_argument(
         "--profile", choices=profiles.PROFILES, default=profiles.DEFAULT,
         help="isolated mode: where nodes are built; 'per-node' gives each child "
         "its own rclpy Context and DDS participant, 'shared' builds them on the "
@@ -174,7 +179,7 @@ def _make_host(opts, executor, context, logger):
         logger.warning(f"removed the empty cgroup {stale}, left by a dead container that had this pid")
     try:
         return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups,
-                            mitigations=mitigations)
+                            mitigations=mitigations, warm_spare=not opts.no_warm_spare)
     except IsolationUnavailable as exc:
         if cgroups is not None:
             cgroups.close()

@@ -6,7 +6,10 @@ multi-threaded). The isolated host (``container.isolated.host``) gives each
 node its own clone(CLONE_VM) child. Both take the same calls:
 
 ``start(unique_id, cls, args) -> Hosted``
-    build the node and start running it; raise ``LoadError`` if it cannot be.
+    build the node, ready to run; raise ``LoadError`` if it cannot be.
+``run(hosted)``
+    let its callbacks run (the manager calls it once it has announced the
+    load, so that they do not compete with that for the GIL).
 ``stop(hosted)``
     stop running it and destroy it.
 ``close()``
@@ -52,8 +55,12 @@ class ThreadHost:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         start = time.time_ns()
         node = factory.construct(cls, args, self._context, unique_id)
-        self._executor.add_node(node)
         return Hosted(unique_id, node.get_fully_qualified_name(), os.getpid(), start, node)
+
+    def run(self, hosted: Hosted) -> None:
+        """Let a started node's callbacks run: it joins the container's
+        executor (after the LoadNode's LOADED event, as in isolated mode)."""
+        self._executor.add_node(hosted.node)
 
     def stop(self, hosted: Hosted) -> None:
         self._executor.remove_node(hosted.node)

@@ -157,6 +157,10 @@ class ComponentManager:
         )
         if early_death is not None:
             self._report_crash(entry, early_death)
+        else:
+            # Its callbacks start now, not while the event and the log line
+            # above were competing with them for the GIL.
+            self._host.run(hosted)
         response.success = True
         response.full_node_name = hosted.full_node_name
         response.unique_id = unique_id

@@ -16,6 +16,7 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 
 from cloneguard.container.isolated.cgroups import cgroup2_mount
 from cloneguard.faults import PACKAGE as RIG
+from cloneguard.harness import rest
 from cloneguard.harness.process import default_container_exe
 
 PKG = "cloneguard"
@@ -94,13 +95,18 @@ def test_every_failed_construction_is_answered_with_the_constructors_error(clien
 
 @pytest.mark.parametrize("container_args", [MODES["shared"], MODES["per-node"], MODES["threads"]],
                          ids=["shared", "per-node", "threads"])
-def test_failed_constructions_do_not_use_up_fds_or_board_slots(client, container):
+def test_failed_constructions_do_not_use_up_fds_or_board_slots(client, container, container_args):
+    # The per-node profile's spare shares the container's fds: count them
+    # with it made, not half made.
+    spare = container_args == MODES["per-node"]
     for _ in range(20):                      # warm-up: pools, caches
         client.load(PKG, "cloneguard::Heartbeat", parameters={"period": -1.0})
+    assert len(rest.wait_at_rest(client.node, container.pid, spare=spare)) == int(spare)
     fds = _fds(container.pid)
     for _ in range(280):                     # more than the board's 256 slots
         resp = client.load(PKG, "cloneguard::Heartbeat", parameters={"period": -1.0})
         assert not resp.success and "must be between 0.001 and 3600" in resp.error_message
+    assert len(rest.wait_at_rest(client.node, container.pid, spare=spare)) == int(spare)
     assert _fds(container.pid) <= fds + 2    # a socket or two of DDS may come and go
     _still_serves(client, [])
 

@@ -3,8 +3,8 @@
 A cycle loads and unloads a node and fails one construction. After a
 warm-up (a burst of concurrent requests, so the container's bounded thread
 pools are full, then plain cycles), RSS may grow by at most
-LIMIT_MIB_PER_CYCLE a cycle, and fds and threads not at all; no node
-process is left at rest.
+LIMIT_MIB_PER_CYCLE a cycle, and fds and threads not at all; no child
+process is left at rest but the per-node profile's warm spare.
 
 Thread mode and the shared profile build nodes on the container's own
 rclpy Context, where rclpy 7.1 never finalizes a node's type description
@@ -22,7 +22,7 @@ from cloneguard.bench import leaks
 def test_load_cycles_leave_fds_threads_and_processes_flat(mode, tmp_path):
     g = leaks.measure(mode, cycles=60, warmup=20, log_dir=tmp_path)
     assert g.fds <= 0 and g.threads <= 0, (g.before, g.after)
-    assert g.after.node_processes == 0
+    assert g.after.child_processes == leaks.PROCESSES_AT_REST.get(mode, 0)
 
 
 @pytest.mark.timeout(300)

@@ -44,7 +44,8 @@ def test_lost_loaded_event_is_promoted_after_listnodes_confirms(tracker, client)
     assert "late LOADED event ignored" in node.history[-1][2]
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
+# No warm spare: it would be a second child.
+@pytest.mark.parametrize("container_args", [["--isolated", "--no-warm-spare"]])
 def test_a_node_gone_before_the_fallback_is_never_reported_loaded(tracker, client, container):
     node = tracker.load(PKG, "cloneguard::Heartbeat", extra_arguments=DROP)
     assert node.state == State.LOADING

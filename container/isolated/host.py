@@ -11,8 +11,11 @@ Two participant profiles say where a node is built:
     participant for all), and only its executor spins in the child. A child
     that dies inside DDS can leave the container's participant locked.
 
-Either way the child runs one SingleThreadedExecutor. Stopping a node:
-cancel (stop flag + executor wake-up), SIGTERM, up to 500 ms, then SIGKILL.
+Either way the child runs one SingleThreadedExecutor, once the manager has
+announced the load (``run``: until then the child waits at its gate, off
+the GIL). Per-node children are taken from the warm spare when one can serve
+the load (spare.py). Stopping a node: cancel (stop flag + executor wake-up),
+SIGTERM, up to 500 ms, then SIGKILL.
 
 After a child dies on its own the node's objects are not destroyed: the dead
 child may have held locks inside them (rclpy, Fast DDS), and destroying them
@@ -27,6 +30,7 @@ import signal
 import threading
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import rclpy
@@ -40,8 +44,9 @@ from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
 from .board import ProgressBoard
-from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested
+from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .profiles import DEFAULT, PROFILES, SHARED
+from .spare import Spare, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -112,7 +117,7 @@ class _NodeProcess:
 
 class IsolatedHost:
     def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger, cgroups=None,
-                 mitigations: Mitigations | None = None):
+                 mitigations: Mitigations | None = None, warm_spare: bool = True):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
@@ -128,6 +133,15 @@ class IsolatedHost:
         self.cgroups = cgroups          # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
         self._core = CloneCore(on_event=self._on_core_event, mitigations=self.mitigations)
+        # The per-node profile's next process, made ahead (spare.py); not
+        # with cgroups, where each node's process is born in its own.
+        self._spare: Spare | None = None
+        self._closing = False
+        self.keeps_spare = warm_spare and profile != SHARED and cgroups is None
+        self._spare_maker = None
+        if self.keeps_spare:
+            self._spare_maker = ThreadPoolExecutor(1, thread_name_prefix="cloneguard-spare")
+            self._want_spare()
 
     # -- host interface ---------------------------------------------------------
 
@@ -141,6 +155,7 @@ class IsolatedHost:
             # Whatever was half made goes: the child, the container-built
             # node, the cgroup, the board slot, the handoff pipe.
             self._undo(proc)
+            self._want_spare()                  # it may have used the spare
             if isinstance(exc, LoadError):
                 raise
             self._log.error(f"unique_id {unique_id}: starting its process failed:\n"
@@ -173,12 +188,21 @@ class IsolatedHost:
             proc.stop_guard = proc.node.create_guard_condition(_stopping)
             target = self._spin_target(proc)
         else:
-            target = self._build_and_spin_target(proc, cls, args)
+            target = self._fresh_target(proc, cls, args)
         if self.cgroups is not None:
             proc.cgroup = self.cgroups.create(unique_id, args.cpu_quota)
         with self._lock:
-            proc.child = self._core.spawn(target, cgroup_fd=proc.cgroup.fd if proc.cgroup else None)
+            # The spare is taken, or a child spawned, under the lock that
+            # routes deaths: one that dies right away is this load's.
+            spare = self._take_spare(args) if self.profile != SHARED else None
+            if spare is not None:
+                spare.order = (proc, cls, args)
+                proc.child = spare.child
+            else:
+                proc.child = self._core.spawn(target, cgroup_fd=proc.cgroup.fd if proc.cgroup else None)
             self._by_pid[proc.child.pid] = proc
+            if spare is not None:
+                self._core.go(proc.child)
         if proc.cgroup is not None:
             self.cgroups.attach(proc.cgroup, proc.child.pid)
         if self.profile != SHARED:
@@ -215,11 +239,32 @@ class IsolatedHost:
             proc.state = "gone"
         self._core.abandon(proc.child)
 
+    def run(self, hosted: Hosted) -> None:
+        """Let a started node's process run its callbacks. Until then it
+        waits off the GIL, so that the container announces the load without
+        competing with the node's first executor iteration. Unload, shutdown
+        and stop signals let it go too, to stop. Then a new spare is made."""
+        proc = hosted.detail
+        with self._lock:
+            if proc.state == "running":
+                self._core.go(proc.child)
+        self._want_spare()
+
     def stop(self, hosted: Hosted) -> None:
         self._stop_all([hosted.detail])
 
     def close(self, hosted_nodes) -> None:
+        with self._lock:
+            self._closing = True
+        if self._spare_maker is not None:
+            self._spare_maker.shutdown(wait=True)
+        with self._lock:
+            spare, self._spare = self._spare, None
+        if spare is not None:               # it winds down while the nodes do
+            self._core.request_stop(spare.child)
         self._stop_all([h.detail for h in hosted_nodes])
+        if spare is not None:
+            self._retire_spare(spare)
         self._core.close(kill=True)
         if self.cgroups is not None:
             for problem in self.cgroups.close():
@@ -230,8 +275,10 @@ class IsolatedHost:
     def _spin_until_stopped(self, proc: _NodeProcess) -> None:
         """The child's loop: one callback at a time until asked to stop, as
         the executor's spin_once runs them, stamping the board when each
-        starts and recording progress when it ends."""
+        starts and recording progress when it ends. It starts once the
+        container lets it (``run``)."""
         self.board.set_pid(proc.slot, os.getpid())
+        wait_for_go()
         executor = proc.executor
         while not stop_requested():
             try:
@@ -252,39 +299,94 @@ class IsolatedHost:
             self._spin_until_stopped(proc)
         return run
 
-    def _build_and_spin_target(self, proc: _NodeProcess, cls, args):
+    def _fresh_target(self, proc: _NodeProcess, cls, args):
         def run():
-            ctx = Context()
-            # The container's global ROS arguments, if the node is to see them.
-            ros_args = options.container_argv if args.forward_global_arguments else []
-            rclpy.init(args=ros_args, context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-            try:
-                node = factory.construct(cls, args, ctx, proc.unique_id)
-            except Exception as exc:
-                # construct() has destroyed whatever node was half made, so
-                # the participant goes with the context and its threads end.
-                proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
-                ctx.try_shutdown()
-                ctx.destroy()
-                proc.handoff.post(FAILED)
-                return
-            executor = SingleThreadedExecutor(context=ctx)
-            executor.add_node(node)
-            proc.stop_guard = node.create_guard_condition(_stopping)
-            proc.node, proc.executor, proc.context = node, executor, ctx
-            proc.full_name = node.get_fully_qualified_name()
-            proc.handoff.post(READY)
-            try:
-                self._spin_until_stopped(proc)
-            finally:
-                # Also after a callback raised: the participant's threads
-                # must end (else this process outlives its node) and its
-                # SHM segments be unlinked; then the exception ends us (1).
-                executor.shutdown()
-                factory.destroy(node)
-                ctx.try_shutdown()
-                ctx.destroy()
+            self._build_and_spin(proc, _new_context(args.forward_global_arguments), cls, args)
         return run
+
+    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder=None):
+        """In a per-node child: build the node on ``ctx``, say READY (or
+        FAILED), spin it until asked to stop, then tear it all down. A
+        spare's ``placeholder`` node goes once the node holds the
+        participant."""
+        try:
+            node = factory.construct(cls, args, ctx, proc.unique_id)
+        except Exception as exc:
+            # construct() has destroyed whatever node was half made, so
+            # the participant goes with the context and its threads end.
+            proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
+            if placeholder is not None:
+                placeholder.destroy_node()
+            ctx.try_shutdown()
+            ctx.destroy()
+            proc.handoff.post(FAILED)
+            return
+        if placeholder is not None:
+            placeholder.destroy_node()
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        proc.stop_guard = node.create_guard_condition(_stopping)
+        proc.node, proc.executor, proc.context = node, executor, ctx
+        proc.full_name = node.get_fully_qualified_name()
+        proc.handoff.post(READY)
+        try:
+            self._spin_until_stopped(proc)
+        finally:
+            # Also after a callback raised: the participant's threads
+            # must end (else this process outlives its node) and its
+            # SHM segments be unlinked; then the exception ends us (1).
+            executor.shutdown()
+            factory.destroy(node)
+            ctx.try_shutdown()
+            ctx.destroy()
+
+    # -- the warm spare (spare.py) ------------------------------------------------
+
+    def _want_spare(self) -> None:
+        """Have a spare made, on the spare maker's thread, if there is none."""
+        if self._spare_maker is None:
+            return
+        try:
+            self._spare_maker.submit(self._make_spare)
+        except RuntimeError:    # shut down: the container is closing
+            pass
+
+    def _make_spare(self) -> None:
+        """On the spare maker's thread: make a spare if there is none."""
+        spare = Spare()
+        target = spare_target(spare, lambda: _new_context(False), self._build_and_spin)
+        with self._lock:
+            if self._spare is not None or self._closing:
+                return
+            try:
+                spare.child = self._core.spawn(target)
+            except Exception as exc:
+                self._log.warning(f"could not make a spare process for the next load: {exc}")
+                return
+            self._spare = spare
+
+    def _take_spare(self, args) -> Spare | None:
+        """The spare, if it can serve this load (caller holds self._lock)."""
+        spare = self._spare
+        if spare is None or not serves(args):
+            return None
+        self._spare = None
+        return spare
+
+    def _retire_spare(self, spare: Spare) -> None:
+        """Wait for a spare asked to stop (it cleans up and ends), as long as
+        a node is given; then SIGKILL."""
+        death = self._core.wait(spare.child, STOP_TIMEOUT_S)
+        if death is None:
+            self._core.kill(spare.child, signal.SIGKILL)
+            death = self._core.wait(spare.child)
+        self._let_spare_go(spare, death)
+
+    def _let_spare_go(self, spare: Spare, death: Death) -> None:
+        if death.exit_code == 0 and not death.repaired:
+            self._core.release(spare.child)
+        else:   # its participant may be half made, or locked: leave it
+            self._core.abandon(spare.child)
 
     # -- parent side --------------------------------------------------------------
 
@@ -366,6 +468,18 @@ class IsolatedHost:
     def _on_core_event(self, event) -> None:
         with self._lock:
             proc = self._by_pid.get(event.pid)
+            spare = self._spare if proc is None and self._spare and self._spare.child.pid == event.pid else None
+            if spare is not None and isinstance(event, Death):
+                self._spare = None
+        if spare is not None:
+            if isinstance(event, Death):
+                # Exit 0: it was asked to stop by a signal (the container's
+                # process group being stopped, say).
+                log = self._log.info if event.exit_code == 0 else self._log.warning
+                log(f"the spare process for the next load (pid {event.pid}) ended: "
+                    f"{_describe(event)}; the next load makes another")
+                self._let_spare_go(spare, event)
+            return
         if proc is None:
             return
         if isinstance(event, StopRequested):
@@ -448,6 +562,15 @@ def _robust_context_lock(context: Context, logger) -> None:
         logger.warning("rclpy Context has no plain _lock here: its lock stays non-robust")
         return
     context._lock = RobustMutex()
+
+
+def _new_context(forward_global_arguments: bool) -> Context:
+    """A node process's own rclpy Context, with the container's global ROS
+    arguments if the node is to see them."""
+    ctx = Context()
+    ros_args = options.container_argv if forward_global_arguments else []
+    rclpy.init(args=ros_args, context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    return ctx
 
 
 def _stopping() -> None:

@@ -1,0 +1,58 @@
+"""The warm spare: the per-node profile's next process, made ahead.
+
+A per-node load builds a DDS participant, and most of what such a load costs
+beyond a thread-mode one is that participant (its first node took 8.1 ms, a
+second node in the same Context 4.5 ms, measured; rmw_fastrtps makes a
+Context's participant with its first node). So the host keeps one child made
+ahead: its Context initialised and its participant made, held by a hidden
+placeholder node (a leading underscore: ``ros2 node list`` leaves it out).
+The next LoadNode it can serve is handed to it: it builds the node there,
+then destroys the placeholder (the participant stays, the real node holds
+it), and goes on as any per-node child. The host then makes the next spare.
+
+A spare serves a load only when nothing about the load needs another
+Context (``forward_global_arguments`` does: its Context takes the
+container's ROS arguments) and nodes are not put in cgroups (each node's
+process is born in its cgroup). Until it is handed a load it waits at its
+gate off the GIL; asked to stop, it destroys its placeholder and Context and
+ends. One that dies on its own is logged and replaced at the next load.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from rclpy.node import Node
+
+from .core import Child, wait_for_go
+
+PLACEHOLDER_PREFIX = "_cloneguard_spare_"
+
+
+@dataclass
+class Spare:
+    child: Child | None = None
+    order: tuple | None = None       # (proc, cls, args): set before its go
+
+
+def spare_target(spare: Spare, new_context, build_and_spin):
+    """What a spare runs: ``new_context()`` and a placeholder node, then
+    ``build_and_spin(proc, ctx, cls, args, placeholder)`` once handed a
+    load, or its own clean-up if asked to stop first."""
+    def run():
+        ctx = new_context()
+        placeholder = Node(f"{PLACEHOLDER_PREFIX}{os.getpid()}", context=ctx,
+                           start_parameter_services=False, enable_rosout=False)
+        if wait_for_go():
+            placeholder.destroy_node()
+            ctx.try_shutdown()
+            ctx.destroy()
+            return
+        proc, cls, args = spare.order
+        build_and_spin(proc, ctx, cls, args, placeholder)
+    return run
+
+
+def serves(args) -> bool:
+    """Can a spare's Context (made with no ROS arguments) hold this load?"""
+    return not args.forward_global_arguments

@@ -1,0 +1,35 @@
+"""A container at rest: nothing of an earlier request still in flight.
+
+An isolated container with the per-node profile keeps one child process made
+ahead for its next load (its warm spare; the container's README), which
+holds a hidden placeholder node ``_cloneguard_spare_<pid>`` until a load
+takes it, and makes the next one after each load, off the request path. Its
+children share the container's fd table, so counting the container's fds or
+children right after a request can catch that spare half made. Wait for it.
+"""
+from __future__ import annotations
+
+import time
+
+from . import procfs
+
+SPARE_PLACEHOLDER = "_cloneguard_spare_"
+
+
+def warm_spares(node, container_pid: int) -> list[int]:
+    """The container's children whose placeholder is in ``node``'s graph."""
+    names = {name for name, _ns in node.get_node_names_and_namespaces()}
+    return [pid for pid in procfs.children_of(container_pid) if f"{SPARE_PLACEHOLDER}{pid}" in names]
+
+
+def wait_at_rest(node, container_pid: int, *, spare: bool, timeout: float = 10.0) -> list[int]:
+    """Until the container's only child is its warm spare, placeholder
+    announced (or it has none, with ``spare`` False); the children it has
+    then, or at ``timeout``, for the caller to check."""
+    deadline = time.monotonic() + timeout
+    while True:
+        children = procfs.children_of(container_pid)
+        settled = (len(children) == 1 and warm_spares(node, container_pid) == children) if spare else not children
+        if settled or time.monotonic() >= deadline:
+            return children
+        time.sleep(0.01)
