@@ -9,6 +9,7 @@ import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
+from cloneguard.container.isolated.cgroups import cgroup2_mount
 from cloneguard.harness import procfs
 from cloneguard.harness.rest import SPARE_PLACEHOLDER as PLACEHOLDER
 
@@ -95,10 +96,14 @@ def test_a_failed_construction_in_the_spare_answers_and_a_new_spare_is_made(cont
     assert loaded_pid(client, client.load_ok(PKG, "cloneguard::Heartbeat").unique_id) == nxt
 
 
-@pytest.mark.parametrize("container_args", [["--isolated", "--no-warm-spare"],
-                                            ["--isolated", "--profile", "shared"]],
-                         ids=["no-warm-spare", "shared"])
-def test_no_spare_is_kept_when_switched_off_or_in_the_shared_profile(client, container):
+@pytest.mark.parametrize("container_args", [
+    ["--isolated", "--no-warm-spare"],
+    ["--isolated", "--profile", "shared"],
+    pytest.param(["--isolated", "--cgroups"], marks=pytest.mark.skipif(
+        cgroup2_mount() is None, reason="no cgroup2 here")),
+], ids=["no-warm-spare", "shared", "cgroups"])
+def test_no_spare_is_kept_when_switched_off_in_the_shared_profile_or_with_cgroups(client, container):
+    # With --cgroups each node's process is born in its cgroup: none is made ahead.
     uid = client.load_ok(PKG, "cloneguard::Heartbeat").unique_id
     pid = loaded_pid(client, uid)
     client.subscribe(UInt64, "/heartbeat/heartbeat").wait_count(3, timeout=10)
