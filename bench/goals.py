@@ -38,3 +38,16 @@ def goal_at_least_ratio(goal: str, measure: str, value: float | None, target: fl
     return Goal(goal, measure, fmt_ratio(value), False,
                 f"missed: {fmt_ratio(value)} of {fmt_ratio(target)} "
                 f"({f'{short:.2f}×' if short < 2 else fmt_ratio(short)} short)")
+
+
+def ratio_verdict(value: float, limit: float) -> str:
+    """The verdict on a ratio that is to be at most ``limit``."""
+    if value <= limit:
+        return f"met ({fmt_ratio(value)})"
+    return f"missed: {fmt_ratio(value)} against ≤ {fmt_ratio(limit)} ({value / limit:.1f}× over)"
+
+
+def goal_ratio_at_most(goal: str, measure: str, value: float | None, limit: float) -> Goal:
+    if value is None:
+        return Goal(goal, measure, "–", None, "not measured")
+    return Goal(goal, measure, fmt_ratio(value), value <= limit, ratio_verdict(value, limit))

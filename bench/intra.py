@@ -49,7 +49,7 @@ from cloneguard.harness.factory import log_tail
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, fmt_ratio, ratio, stats
-from .goals import Goal, goal_at_least_ratio
+from .goals import Goal, goal_at_least_ratio, goal_ratio_at_most, ratio_verdict
 from .results import Result, Table, summary_row
 from .session import Running, Session
 
@@ -248,15 +248,10 @@ def _fmt(x: float | None, digits: str = ".0f") -> str:
     return "–" if x is None else format(x, digits)
 
 
-def goal_ratio_at_most(goal: str, measure: str, value: float | None, limit: float, judged: bool) -> Goal:
-    if value is None:
-        return Goal(goal, measure, "–", None, "not measured")
-    if not judged:
+def size_ratio_goal(goal: str, measure: str, value: float | None, limit: float, judged: bool) -> Goal:
+    if value is not None and not judged:
         return Goal(goal, measure, fmt_ratio(value), None, "not judged (the goal is 16 MiB vs 1 KiB)")
-    if value <= limit:
-        return Goal(goal, measure, fmt_ratio(value), True, f"met ({fmt_ratio(value)})")
-    return Goal(goal, measure, fmt_ratio(value), False,
-                f"missed: {fmt_ratio(value)} against ≤ {fmt_ratio(limit)} ({value / limit:.1f}× over)")
+    return goal_ratio_at_most(goal, measure, value, limit)
 
 
 def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
@@ -320,10 +315,10 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
     size_goal = {}
     for t in intra_ts:
         r = ratio(med(large, t), med(small, t))
-        g = goal_ratio_at_most(f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the "
-                               f"{size_name(GOAL_SMALL)} median",
-                               f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
-                               r, LATENCY_GOAL_RATIO, judged)
+        g = size_ratio_goal(f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the "
+                            f"{size_name(GOAL_SMALL)} median",
+                            f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
+                            r, LATENCY_GOAL_RATIO, judged)
         goals.append(g)
         size_goal[t] = g
         ratios.add(f"{TRANSPORTS[t][0]}: {size_name(large)} ÷ {size_name(small)} latency",
@@ -339,11 +334,8 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
                     verdict = "not measured"
                 elif not judged_here:
                     verdict = f"(reference: the goal is at {size_name(GOAL_SMALL)} and {size_name(GOAL_LARGE)})"
-                elif r <= FLOOR_GOAL_RATIO:
-                    verdict = f"met ({fmt_ratio(r)})"
                 else:
-                    verdict = (f"missed: {fmt_ratio(r)} against ≤ {fmt_ratio(FLOOR_GOAL_RATIO)} "
-                               f"({r / FLOOR_GOAL_RATIO:.1f}× over)")
+                    verdict = ratio_verdict(r, FLOOR_GOAL_RATIO)
                 ratios.add(f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ the floor, latency",
                            f"{fmt_ms(med(size, t))} ms", f"{fmt_ms(floor_med)} ms", fmt_ratio(r),
                            f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)}", verdict)
