@@ -55,6 +55,8 @@ def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, co
     assert nxt != spare
     wait_until(lambda: placeholders(client) == {f"{PLACEHOLDER}{nxt}"},
                what="only the new spare's placeholder in the graph")
+    # Placeholders have no services, so none is left behind in the node's process.
+    assert not [name for name, _ in client.node.get_service_names_and_types() if PLACEHOLDER in name]
     # An unloaded node's process goes; the spare stays for the next load.
     assert client.unload(uid).success
     assert procfs.children_of(container.pid) == [nxt]

@@ -23,6 +23,7 @@ import os
 from dataclasses import dataclass
 
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from .core import Child, wait_for_go
 
@@ -41,8 +42,12 @@ def spare_target(spare: Spare, new_context, build_and_spin):
     load, or its own clean-up if asked to stop first."""
     def run():
         ctx = new_context()
+        # As few endpoints as a node can have: no parameter services, no
+        # /rosout, no ~/get_type_description (rclpy 7.1 would leave that
+        # one's endpoints behind when the placeholder is destroyed).
         placeholder = Node(f"{PLACEHOLDER_PREFIX}{os.getpid()}", context=ctx,
-                           start_parameter_services=False, enable_rosout=False)
+                           start_parameter_services=False, enable_rosout=False,
+                           parameter_overrides=[Parameter("start_type_description_service", value=False)])
         if wait_for_go():
             placeholder.destroy_node()
             ctx.try_shutdown()
