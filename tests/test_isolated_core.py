@@ -579,14 +579,19 @@ def test_parent_request_stop(core, rec):
 # --------------------------------------------------------------------------
 # the gate: wait_for_go / go
 
-def test_each_go_lets_one_wait_through_and_none_is_lost(core):
+def spawn_waiting_three_times(core):
+    """A child that waits at its gate three times; what each wait returned."""
     passed = []
 
     def child():
         for _ in range(3):
             passed.append(wait_for_go())
 
-    c = core.spawn(child)
+    return core.spawn(child), passed
+
+
+def test_each_go_lets_one_wait_through_and_none_is_lost(core):
+    c, passed = spawn_waiting_three_times(core)
     core.go(c)
     core.go(c)                 # both, maybe before the child waits at all
     wait_until(lambda: len(passed) == 2, what="two waits through")
@@ -601,13 +606,7 @@ def test_each_go_lets_one_wait_through_and_none_is_lost(core):
 
 @pytest.mark.parametrize("how", ["request_stop", "sigterm"])
 def test_a_stop_ends_every_wait_at_the_gate(core, how):
-    passed = []
-
-    def child():
-        for _ in range(3):
-            passed.append(wait_for_go())
-
-    c = core.spawn(child)
+    c, passed = spawn_waiting_three_times(core)
     core.go(c)
     wait_until(lambda: passed == [False], what="the first wait through")
     if how == "request_stop":
