@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import os
+import resource
 import signal
 import sys
 import threading
@@ -155,6 +156,25 @@ def _ros_init(argv: list[str]) -> None:
         raise SystemExit(f"component_container: invalid ROS arguments: {first}") from None
 
 
+def _raise_open_file_limit() -> tuple[int, int] | None:
+    """Isolated mode: the soft RLIMIT_NOFILE up to the hard one; (old, new),
+    or None if it was there already. Node processes share the container's
+    file descriptors, and a per-node node that crashes leaves its
+    participant's sockets open with the rest of it (~9 fds): at a soft limit
+    of 1024, a common default, the container could build no node after
+    ~110 crashes."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    # Linux caps the limit at fs.nr_open, whatever "unlimited" says.
+    top = hard if hard != resource.RLIM_INFINITY else int(open("/proc/sys/fs/nr_open").read())
+    if soft == resource.RLIM_INFINITY or soft >= top:
+        return None
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (top, hard))
+    except (ValueError, OSError):
+        return None
+    return soft, top
+
+
 def _make_host(opts, executor, context, logger):
     if not opts.isolated:
         return ThreadHost(executor, context)
@@ -206,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"component_container: {exc}") from None
     if opts.isolated and not opts.shared_arenas:
         allocator.glibc_arena_per_task()        # before a second thread exists
+    raised_fd_limit = _raise_open_file_limit() if opts.isolated else None
     # If the container process itself dies of a fault, the log says where:
     # every thread's Python stack (its children have crash reports of their
     # own; they start with no handler).
@@ -215,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     options.container_argv = list(argv)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
+    if raised_fd_limit:
+        node.get_logger().info(f"open-file limit raised from {raised_fd_limit[0]} to {raised_fd_limit[1]}: "
+                               "node processes share this process's file descriptors")
     # Thread mode's nodes spin on this executor (as upstream's containers);
     # the container's own services spin on one of their own, so that no
     # node's callback, nor a LoadNode waiting for a constructor, can keep

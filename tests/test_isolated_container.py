@@ -1,5 +1,6 @@
 """--isolated: each node in its own clone(CLONE_VM) process, on real containers."""
 import os
+import resource
 import signal
 import time
 
@@ -204,3 +205,52 @@ def test_shared_arenas_need_the_guard_off(container_factory):
     proc = container_factory.start(["--isolated", "--shared-arenas"])
     assert proc.wait(20) == 1
     assert "--shared-arenas and --jemalloc-arenas auto need --no-alloc-guard" in proc.log_text()
+
+
+def test_a_handoff_waits_on_descriptors_past_select_limit():
+    """Crashed per-node nodes leave their sockets open in the shared fd
+    table: after ~110 crashes a new pipe's fds are past 1024, where select()
+    refuses (found by a deep run: every load after that failed)."""
+    from cloneguard.container.isolated.host import _Handoff
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if max(soft, hard) < 1200:
+        pytest.skip(f"an open-file limit of {max(soft, hard)} cannot reach past 1024")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 1200), hard))
+    filler = [os.open("/dev/null", os.O_RDONLY) for _ in range(1100)]
+    try:
+        handoff = _Handoff()
+        assert handoff._r >= 1024
+        assert handoff.wait(0.01) is None
+        handoff.post(b"R")
+        assert handoff.wait(1.0) == b"R"
+        handoff.close()
+    finally:
+        for fd in filler:
+            os.close(fd)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def _open_file_limits(pid: int) -> tuple[int, int]:
+    with open(f"/proc/{pid}/limits") as f:
+        line = next(x for x in f if x.startswith("Max open files"))
+    soft, hard = line.split()[3:5]
+    return int(soft), int(hard)
+
+
+@pytest.mark.parametrize("args, raised", [(["--isolated"], True), ([], False)], ids=["isolated", "threads"])
+def test_isolated_mode_raises_its_open_file_limit_to_the_hard_one(container_factory, args, raised):
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard <= 1024:
+        pytest.skip(f"the hard open-file limit is {hard}: nothing to raise to")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (1024, hard))   # the container inherits it
+    try:
+        proc = container_factory.start(args)
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    container_factory.connect(proc).list()
+    limits = _open_file_limits(proc.pid)
+    if raised:
+        assert limits[0] == limits[1] and limits[0] > 1024, limits
+        assert f"open-file limit raised from 1024 to {limits[0]}" in proc.log_text()
+    else:
+        assert limits[0] == 1024

@@ -84,7 +84,12 @@ class _Handoff:
         os.write(self._w, word)
 
     def wait(self, timeout: float) -> bytes | None:
-        ready, _, _ = select.select([self._r], [], [], timeout)
+        # poll, not select: every crashed per-node child leaves its
+        # participant's sockets open (~9 fds), and after ~110 crashes this
+        # pipe's fds are past select's FD_SETSIZE (1024).
+        waiter = select.poll()
+        waiter.register(self._r, select.POLLIN)
+        ready = waiter.poll(None if timeout is None else timeout * 1000)
         return os.read(self._r, 1) if ready else None
 
     def close(self) -> None:
