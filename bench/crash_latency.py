@@ -245,10 +245,9 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         "table adds the rcutils wall-clock stamps of the two lines the container logs about the death "
         "(each also goes out on /rosout, a DDS publish of its own); which come before the publish depends "
         "on the container's code, the stamps say." + gap,
-        "SIGSEGV from outside runs the child's crash report (the signal and the Python stack written "
-        "to the container's log, the native stack unwound) before it dies of the signal, so it takes "
-        "longer than SIGKILL; the native stack is symbolized and written by the container after the "
-        "CRASHED event.",
+        "SIGSEGV from outside runs the child's crash report (its head written to the container's log, "
+        "its Python and native stacks recorded raw) before it dies of the signal, so it takes longer "
+        "than SIGKILL; the container writes both stacks after the CRASHED event.",
         f"Settle before the kill: {settle:g} s (the node is spinning). Each container is replaced after "
         f"{recycle} crashes, and when it stops answering. Lost trials (no CRASHED): {lost}; containers "
         f"that no longer answered LoadNode after a crash: {hung} (counted on the signal of that crash; "

@@ -68,8 +68,8 @@ def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, targ
     death = core.wait(c, 10)
     assert death is not None
     assert (death.exit_signal, death.si_code) == (sig, os.CLD_KILLED)
-    # The child wrote the head and its Python stack before it died; the
-    # container writes its native stack after reporting the death.
+    # The child wrote the head before it died; the container writes its
+    # Python and native stacks after reporting the death.
     assert core.flush_crash_reports(10)
     err = capfd.readouterr().err
     name = signal.Signals(sig).name
@@ -78,12 +78,33 @@ def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, targ
     assert re.search(head, err), err
     if sig == signal.SIGSEGV:
         assert f"caught {name} at 0x0 " in err
-    python = err.index("cloneguard: Python Stack (most recent call first):")
+    python = err.index(f"cloneguard: pid {c.pid} Python stack (most recent call first):\n")
     native = err.index(f"cloneguard: pid {c.pid} native stack:\n")
-    assert python < native
-    assert f"line " in err[python:native] and target.__name__ in err[python:native]   # the Python frame
+    assert re.search(head, err).start() < python < native
+    # The Python frames, innermost first, as faulthandler writes them.
+    frames = err[python:native].splitlines()[1:]
+    assert frames and all(re.fullmatch(r'  File ".+", line \d+ in \S+', f) for f in frames), frames
+    first = target.__code__.co_firstlineno
+    lines = [int(m.group(1)) for f in frames
+             if (m := re.fullmatch(rf'  File "{re.escape(__file__)}", line (\d+) in {target.__name__}', f))]
+    assert len(lines) == 1 and first < lines[0] <= first + 8, frames
     assert "libc.so.6" in err[native:] and "_clonecore" in err[native:]              # frames, symbolized
-    assert err.count("cloneguard: pid") == 2 and "cloneguard: native stack:" not in err
+    assert err.count("cloneguard: pid") == 3 and "cloneguard: native stack:" not in err
+    core.release(c)
+
+
+def test_a_deep_python_stack_is_written_to_its_innermost_100_frames(core, capfd):
+    def deep(n):
+        return deep(n - 1) if n else _segv_gil_released()
+
+    c = core.spawn(lambda: deep(150))
+    assert core.wait(c, 10).exit_signal == signal.SIGSEGV
+    assert core.flush_crash_reports(10)
+    err = capfd.readouterr().err
+    python = err.index(f"cloneguard: pid {c.pid} Python stack (most recent call first):\n")
+    frames = err[python:err.index(f"cloneguard: pid {c.pid} native stack:\n")].splitlines()[1:]
+    assert len(frames) == 101 and frames[-1] == "  ..."
+    assert frames[0].endswith(" in _segv_gil_released") and all(f.endswith(" in deep") for f in frames[1:-1])
     core.release(c)
 
 
@@ -133,12 +154,12 @@ def test_a_clean_exit_and_an_outside_kill_write_no_report(core, capfd):
     assert "cloneguard:" not in capfd.readouterr().err
 
 
-def test_closing_the_core_ends_its_native_stack_writer(capfd):
+def test_closing_the_core_ends_its_crash_stack_writer(capfd):
     with CloneCore() as core:
         c = core.spawn(_segv_gil_released)
         assert core.wait(c, 10).exit_signal == signal.SIGSEGV
         core.release(c)
         assert core.flush_crash_reports(10)
-        assert any(t.name == "cloneguard-native-stacks" for t in threading.enumerate())
-    assert not any(t.name == "cloneguard-native-stacks" for t in threading.enumerate())
+        assert any(t.name == "cloneguard-crash-stacks" for t in threading.enumerate())
+    assert not any(t.name == "cloneguard-crash-stacks" for t in threading.enumerate())
     assert f"cloneguard: pid {c.pid} native stack:" in capfd.readouterr().err

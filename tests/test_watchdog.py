@@ -1,4 +1,6 @@
 """The watchdog ends a container whose executor stopped making progress."""
+import time
+
 import pytest
 
 from cloneguard.faults import PACKAGE as RIG
@@ -63,8 +65,11 @@ def test_a_node_whose_callback_hangs_is_aborted_alone_with_its_stacks(client, co
     assert crash.exit_signal == 6, crash                     # SIGABRT, sent by the container
     assert "longer than --node-watchdog 1.5 s (" in crash.error_message, crash.error_message
     assert "callback(s) had run before it)" in crash.error_message
-    # Its crash report says where it hung; the rest of the container goes on.
-    log = container.log_text()
+    # Its crash report says where it hung (its stacks are written by the
+    # container just after the CRASHED event); the rest goes on.
+    deadline = time.monotonic() + 10
+    while "native stack:" not in (log := container.log_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert "caught SIGABRT" in log and "faults/components.py" in log and "in fire" in log
     assert [uid for uid, _ in client.list()] == [beating.unique_id]
     assert container.alive()

@@ -96,6 +96,10 @@ struct cg_child {
     int arena;
     int crash_nframes;
     void *crash_frames[...];
+    int crash_py_nframes;
+    int crash_py_more;
+    void *crash_py_code[...];
+    int crash_py_lasti[...];
     ...;
 };
 
@@ -125,6 +129,9 @@ int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_self_wait_go(void);
 void cg_write_native_stack(void *const *frames, int n, int fd);
+int cg_record_py_stack(void **codes, int *lasti, int max, int *more);
+void cg_hold_py_stack(void *const *codes, int n, int hold);
+void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd);
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 
 #define CG_EV_DEATH ...

@@ -66,6 +66,13 @@ Where each value comes from and how it is checked:
     by _PyThreadState_Prealloc in the parent and bound in the child by
     setting thread_id/native_thread_id and _PyThreadState_SetCurrent (3.11's
     PyGILState TSS note): the same fields the probe checks.
+  CPython 3.11 frames (Include/internal/pycore_frame.h; what crash reports
+  rest on): a crashing child records its Python stack by following
+  tstate->cframe->current_frame and _PyInterpreterFrame.previous, keeping
+  f_code and the offset _PyInterpreterFrame_LASTI gives; the container
+  writes the lines with PyCode_Addr2Line.  Checked on this thread: the
+  chain gives sys._getframe()'s code objects, innermost first, and the
+  innermost offset lies on the calling line.
   Kernel: clone3 + CLONE_CLEAR_SIGHAND (5.5), CLONE_INTO_CGROUP (5.7),
   waitid(P_PIDFD) (5.4), pidfd_send_signal (5.1); probed as well.
 """
@@ -286,6 +293,28 @@ def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layou
     return Layout(**{**L.as_dict(), "cond_cleanup": routine})
 
 
+def _probe_py_stack(ck: _Checker, ffi, lib) -> None:
+    """crash.c records a crashing child's Python frames by following the
+    thread state's frame chain (gilrepair.c cg_record_py_stack): here it
+    must give this thread's frames, innermost first, at their lines."""
+    here = sys._getframe()
+    chain = []
+    f = here
+    while f is not None:
+        chain.append(f)
+        f = f.f_back
+    codes, lasti, more = ffi.new("void *[]", 128), ffi.new("int[]", 128), ffi.new("int *")
+    n = lib.cg_record_py_stack(codes, lasti, 128, more)
+    line = here.f_lineno - 1                     # the line that made the call
+    recorded = [int(ffi.cast("uintptr_t", codes[i])) for i in range(n)]
+    at = [ln for start, end, ln in here.f_code.co_lines() if n and start <= lasti[0] * 2 < end]
+    ok = (recorded == [id(x.f_code) for x in chain[:len(recorded)]] and n == min(len(chain), 128)
+          and at == [line])
+    ck.check(ok, f"the frame chain crash reports follow gives this thread's {n} Python frames",
+             f"cg_record_py_stack gave {n} frames {recorded[:3]}..., expected {len(chain)} "
+             f"{[id(x.f_code) for x in chain[:3]]}... (line {at} for {line})")
+
+
 def _probe_gil(ck: _Checker, ffi, lib) -> None:
     """gilrepair.c's compiled view of the GIL against the running one."""
     g = ffi.new("struct cg_gil_probe *")
@@ -461,6 +490,7 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
                  f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})")
         L = _probe_condwait(ck, ffi, lib, L, overrides)
     _probe_gil(ck, ffi, lib)
+    _probe_py_stack(ck, ffi, lib)
     ck.check(-65536 < L.resp_tls < 0, f"__resp in static TLS ({L.resp_tls})",
              f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB")
     if -65536 < L.resp_tls < 0:

@@ -76,5 +76,14 @@ int cg_gil_probe(struct cg_gil_probe *out);
 /* Async-signal-safe-ish: the Python stack of the calling thread, as
    faulthandler writes it. */
 void cg_dump_py_stack(int fd);
+/* Async-signal-safe: the calling thread's Python frames, raw (code object,
+   instruction offset), innermost first; how many, and *more if the stack
+   went on past max. */
+int cg_record_py_stack(void **codes, int *lasti, int max, int *more);
+/* In the container, without the GIL (each takes it): take or drop a
+   reference on each recorded code object; write the frames as faulthandler
+   would. */
+void cg_hold_py_stack(void *const *codes, int n, int hold);
+void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd);
 
 #endif

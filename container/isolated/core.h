@@ -81,6 +81,7 @@ enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
 enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
+#define CG_CRASH_PY_FRAMES 100 /* Python frames (faulthandler's depth too) */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
 
@@ -119,6 +120,10 @@ struct cg_child {            /* control block, lives in container memory */
     /* written by its crash report (crash.c), read by Python once reaped */
     int crash_nframes;       /* 0: none; -1: being written; else how many */
     void *crash_frames[CG_CRASH_FRAMES];   /* the crashing task's native stack */
+    int crash_py_nframes;    /* its Python stack: how many frames, */
+    int crash_py_more;       /* 1: it went on past CG_CRASH_PY_FRAMES */
+    void *crash_py_code[CG_CRASH_PY_FRAMES];   /* each frame's code object */
+    int crash_py_lasti[CG_CRASH_PY_FRAMES];    /* and instruction offset */
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };

@@ -38,7 +38,7 @@ from typing import Any, Callable, Literal
 
 from cloneguard.container.isolated import assumptions
 from cloneguard.container.isolated.assumptions import IsolationUnavailable
-from cloneguard.container.isolated.crash_reports import NativeStacks
+from cloneguard.container.isolated.crash_reports import CrashStacks
 from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD, CoreEvent, Death, Repair,
                                                   StopRequested, decode)
 
@@ -255,7 +255,7 @@ class CloneCore:
         self._spawning = 0
         self._closed = False        # spawn refused
         self._stopped = False       # monitor stopped
-        self._native_stacks = NativeStacks(lib, ffi)
+        self._crash_stacks = CrashStacks(lib, ffi)
         try:
             assumptions.check_multithreaded()
         except IsolationUnavailable:
@@ -412,9 +412,9 @@ class CloneCore:
                 "a restart of the container frees the quarantined ones")
 
     def flush_crash_reports(self, timeout: float | None = None) -> bool:
-        """Wait until the native stacks of every crash reported so far are
-        written (crash_reports.py); False on timeout."""
-        return self._native_stacks.flush(timeout)
+        """Wait until the stacks of every crash reported so far are written
+        (crash_reports.py); False on timeout."""
+        return self._crash_stacks.flush(timeout)
 
     def children(self) -> list[Child]:
         """Children spawned and not yet released."""
@@ -459,8 +459,8 @@ class CloneCore:
         self._shutdown_monitor()
         self._stopped = True
         self._listener.join()                   # it closes the event fd
-        if not self._native_stacks.close(timeout):
-            print(f"cloneguard: a crashed child's native stack was not written within {timeout:g} s "
+        if not self._crash_stacks.close(timeout):
+            print(f"cloneguard: a crashed child's stacks were not written within {timeout:g} s "
                   "(the dynamic loader's lock is taken?)", file=sys.stderr)
 
     def __enter__(self) -> "CloneCore":
@@ -508,10 +508,10 @@ class CloneCore:
         if entry is None:
             return
         entry.spawned.wait()        # never report a child before spawn() returns
-        frames = ()
+        stacks = None
         if kind == KIND_DEATH:
             # Before anything can release the child's control block.
-            frames = self._native_stacks.frames_of(entry.child._block)
+            stacks = self._crash_stacks.take(entry.child._block)
             entry.death = event
             entry.target = None     # reaped: nothing runs it any more
             entry.dead.set()
@@ -522,8 +522,8 @@ class CloneCore:
             print("cloneguard: on_event raised:", file=sys.stderr)
             traceback.print_exc()
         finally:
-            if frames:              # after on_event reported the death (CRASHED)
-                self._native_stacks.submit(event.pid, frames)
+            if stacks is not None:  # after on_event reported the death (CRASHED)
+                self._crash_stacks.submit(event.pid, stacks)
             if kind == KIND_DEATH:
                 entry.death_reported.set()
 
