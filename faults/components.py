@@ -319,8 +319,9 @@ class PayloadPublisher(Node):
 class PayloadHolder(Node):
     """Holds every message from ``topic`` for ``hold`` s, then releases it
     (the last reference: freeing it is up to this process). Publishes the
-    running count of released messages on ``~/released``: it stalls if a
-    release blocks (on a dead publisher's malloc arena lock, say)."""
+    running counts of released messages on ``~/released`` (it stalls if a
+    release blocks: on a dead publisher's malloc arena lock, say) and of
+    messages taken on ``~/taken``, every 10 ms."""
 
     def __init__(self, **kwargs):
         super().__init__("payload_holder", **kwargs)
@@ -336,15 +337,17 @@ class PayloadHolder(Node):
         topic = self.declare_parameter("topic", "payload").value
         self._now = time.monotonic_ns
         self._held = collections.deque()
-        self._released = 0
+        self._released = self._taken = 0
         self._UInt64 = UInt64
         self._sub = intra.create_subscription(self, UInt8MultiArray, topic, self._on_message, 50,
                                               loaned_field="data" if loaned else None)
         self._pub = self.create_publisher(UInt64, "~/released", 10)
+        self._taken_pub = self.create_publisher(UInt64, "~/taken", 10)
         self._timer = self.create_timer(0.01, self._release_old)
 
     def _on_message(self, msg):
         self._held.append((self._now(), msg))
+        self._taken += 1
 
     def _release_old(self):
         cutoff = self._now() - self._hold_ns
@@ -352,3 +355,4 @@ class PayloadHolder(Node):
             self._held.popleft()       # the last reference: the payload is freed here
             self._released += 1
         self._pub.publish(self._UInt64(data=self._released))
+        self._taken_pub.publish(self._UInt64(data=self._taken))

@@ -98,9 +98,10 @@ def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
 
 
 def _kill_when_firing(rig: Rig, seed: int, plugin: str, node_name: str, parameters: dict,
-                      extra_arguments: dict | None = None) -> Outcome:
-    """Load ``plugin``, wait until it announces its fault (it is at work),
-    SIGKILL it 0-20 ms later (from ``seed``) and judge the death."""
+                      extra_arguments: dict | None = None, ready=None) -> Outcome:
+    """Load ``plugin``, wait until it announces its fault (it is at work)
+    and, with ``ready``, until ``ready()`` returns, SIGKILL it 0-20 ms later
+    (from ``seed``) and judge the death."""
     try:
         resp = rig.client.load_ok(RIG, plugin, node_name=node_name, parameters=parameters,
                                   extra_arguments=extra_arguments or {})
@@ -109,6 +110,8 @@ def _kill_when_firing(rig: Rig, seed: int, plugin: str, node_name: str, paramete
         return rig.not_survived(f"a load before the fault got no answer: {exc}")
     pid = rig.loaded_pid(resp.unique_id)
     rig.wait_firing(pid)
+    if ready is not None:
+        ready()
     sent = kill_at(pid, signal.SIGKILL, random.Random(seed).uniform(0.0, 0.02))
     return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
 
@@ -210,7 +213,9 @@ class PayloadKill:
     """A holder node keeps every message on ``/payload`` for 50 ms, then
     drops it (the last reference); each trial loads a publisher of 256 KiB
     messages that also churns malloc between them, and SIGKILLs it 0-20 ms
-    after its first message. ``payload`` "malloc": the bytes are the dead
+    after the holder has taken one of its messages (until then the trial
+    would not test what it is about: a publisher killed while a subscriber
+    holds its messages; it waits up to 5 s). ``payload`` "malloc": the bytes are the dead
     publisher's malloc'd memory, freed by the holder; "loan": they are a
     block of the container's pool. Survived: the holder releases what it held
     and goes on, and so does the container."""
@@ -223,17 +228,27 @@ class PayloadKill:
         self.rig.client.load_ok(RIG, "faults::PayloadHolder",
                                 parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA)
         self.released = self.rig.client.subscribe(UInt64, "/payload_holder/released")
+        self.taken = self.rig.client.subscribe(UInt64, "/payload_holder/taken")
         self.released.wait_count(3, timeout=10)
+        self.taken.wait_count(3, timeout=10)
 
-    def _released_total(self) -> int:
-        msgs = self.released.messages()
+    @staticmethod
+    def _total(counts) -> int:
+        msgs = counts.messages()
         return msgs[-1].data if msgs else 0
 
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
-        before = self._released_total()
+        before, taken_before = self._total(self.released), self._total(self.taken)
+
+        def holder_has_one() -> None:
+            try:
+                self.taken.wait_for(lambda m: m.data > taken_before, 5.0, "the holder taking a message")
+            except HarnessTimeout:
+                pass                   # killed anyway: the trial then says nothing was released
+
         out = _kill_when_firing(rig, seed, "faults::PayloadPublisher", f"payload_pub{index}",
-                                {"payload": self.payload, "seed": seed}, INTRA)
+                                {"payload": self.payload, "seed": seed}, INTRA, ready=holder_has_one)
         if out.outcome == "survived":
             out = rig.keeps_flowing(self.released, "the holder's releasing", out)
         if out.outcome != "survived":
@@ -244,8 +259,11 @@ class PayloadKill:
             self.released.wait_for(lambda m: m.data > before, 5.0, "release of the dead publisher's messages")
         except HarnessTimeout:
             pass
-        out.details["released"] = self._released_total() - before
-        if out.details["released"] == 0:
+        out.details["released"] = self._total(self.released) - before
+        out.details["taken"] = self._total(self.taken) - taken_before
+        if out.details["taken"] == 0:
+            out.outcome, out.details["why"] = "failed", "the holder took no message of the publisher's"
+        elif out.details["released"] == 0:
             out.outcome, out.details["why"] = "failed", "the holder released no message of the publisher's in 5 s"
         return out
 

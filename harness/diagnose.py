@@ -44,6 +44,7 @@ GDB_TIMEOUT_S = 90
 CPU_WINDOW_S = 0.5
 SPIN_PERCENT = 50
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+UNNAMED_CHILD = "a child process no event named"
 # CPython's gdb extension (py-bt), where the interpreter installed it.
 PY_GDB = Path(sys.base_prefix) / "bin" / f"python{sys.version_info[0]}.{sys.version_info[1]}-gdb.py"
 
@@ -102,7 +103,9 @@ class BlockedOn:
         owner = "no owner recorded"
         if self.owner_tid is not None:
             owner = f"owned by tid {self.owner_tid}"
-            if self.owner_node:
+            if self.owner_node == UNNAMED_CHILD:
+                owner += f" ({self.owner_node})"
+            elif self.owner_node:
                 owner += f" ({'dead ' if self.owner_dead else ''}node {self.owner_node})"
             elif self.owner_dead:
                 owner += " (a dead process)"
@@ -266,12 +269,17 @@ def _inside_arena(threads: list[ThreadStack], arena: str) -> list[int]:
 
 
 def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids: set[int] = frozenset()) -> Diagnosis:
-    """Attach to the container ``pid`` and each live node process with gdb
-    and say what their threads are blocked on."""
+    """Attach to the container ``pid``, each live node process and any other
+    live child of it with gdb and say what their threads are blocked on."""
     nodes_by_pid = nodes_by_pid or {}
     names = {pid: "container"}
     names.update({p: n for p, n in sorted(nodes_by_pid.items())
                   if p not in dead_pids and p != pid and procfs.alive(p)})
+    # Its other children too: a process no event named (a per-node
+    # container's warm spare, or a node whose LOADED was not seen yet) can
+    # be the one that holds what the rest wait for.
+    names.update({p: UNNAMED_CHILD for p in procfs.children_of(pid)
+                  if p not in names and p not in dead_pids and procfs.alive(p)})
     # A stack shows a moment; CPU time over a window says who is spinning
     # (a livelock, a busy wait on something that never comes) and who waits.
     before = {p: procfs.thread_cpu_ticks(p) for p in names}
@@ -312,9 +320,15 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
             # Owned by a task in no process we looked into: say what it is.
             facts = procfs.task_facts(owner)
             note = f"tid {owner}: {facts}" if facts else ""
+        # The owner's process, where it is one we looked into: a node's
+        # thread other than its first, or a child no event named.
+        owner_pid = next((s.pid for s in threads if s.tid == owner), None) if owner else None
+        owner_name = nodes_by_pid.get(owner) if owner else None
+        if owner_name is None and owner_pid not in (None, pid):
+            owner_name = names.get(owner_pid)
         blocked.append(BlockedOn(
             tid=t.tid, kind=kind, address=addr, owner_tid=owner,
-            owner_node=nodes_by_pid.get(owner) if owner else None,
+            owner_node=owner_name,
             owner_dead=bool(owner) and (owner in dead_pids or not procfs.alive(owner)),
             pid=t.pid, where=names.get(t.pid, ""), note=note,
             taker=symbol if kind != "malloc arena lock" else "",

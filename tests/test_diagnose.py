@@ -189,3 +189,22 @@ def test_a_known_busy_wait_in_another_project_is_named_with_its_reference():
     assert state == "running"
     assert where.startswith("clock_gettime in eprosima::fastdds::dds::DomainParticipant::set_listener (")
     assert "eProsima/Fast-DDS#6513" in where
+
+
+def test_a_child_no_event_named_is_looked_into_too(container_factory):
+    """A per-node container's warm spare is a child of it that no LOADED
+    event names: it can hold what the rest wait for (the GIL, say), so its
+    stacks are taken and it is named as what it is."""
+    import pytest
+
+    from cloneguard.harness import rest
+    from cloneguard.harness.diagnose import UNNAMED_CHILD, diagnose, gdb_available
+    if not gdb_available():
+        pytest.skip("no gdb here")
+    proc = container_factory.start(["--isolated"])
+    client = container_factory.connect(proc)
+    (spare,) = rest.wait_at_rest(client.node, proc.pid, spare=True)
+    d = diagnose(proc.pid)
+    assert d.names[spare] == UNNAMED_CHILD
+    assert f"===== {UNNAMED_CHILD} (pid {spare}) =====" in d.stacks_text
+    assert any(t.pid == spare for t in d.threads)
