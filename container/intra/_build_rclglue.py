@@ -67,6 +67,7 @@ typedef struct { ...; } rcl_publisher_t;
 typedef struct { ...; } rcl_subscription_t;
 typedef struct { ...; } rcl_service_t;
 typedef struct { ...; } rcl_node_t;
+typedef struct { ...; } rcl_context_t;
 /* rcl_serialized_message_t is rcutils_uint8_array_t; only these fields are
    read from Python. */
 typedef struct {
@@ -91,6 +92,9 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
                         rcl_serialized_message_t *msg, uint8_t *gid_out,
                         char *err, size_t err_size);
 int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
+int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
+                  char *err, size_t err_size);
+int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
 
 /* waker.h */
 #define CGW_TOKENS ...

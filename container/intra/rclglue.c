@@ -21,6 +21,7 @@
 #include "rclglue.h"
 
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 #include "rcl/error_handling.h"
@@ -110,6 +111,42 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
     }
     memcpy(gid_out, info.publisher_gid.data, CGR_GID_SIZE);
     return CGR_TAKEN;
+}
+
+int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
+                  char *err, size_t err_size)
+{
+    /* The warm spare's placeholder (container/isolated/spare.py): its
+     * context's first node, so rmw makes the participant here, with no
+     * Python thread state held: a Fast DDS lock a dead node left taken
+     * then blocks only this process, not every Python thread with it. */
+    rcl_node_t *node = malloc(sizeof *node);
+    if (node == NULL) {
+        snprintf(err, err_size, "out of memory");
+        return CGR_ERROR;
+    }
+    *node = rcl_get_zero_initialized_node();
+    rcl_node_options_t options = rcl_node_get_default_options();
+    options.enable_rosout = false;
+    rcl_ret_t ret = rcl_node_init(node, name, "/", context, &options);
+    if (ret != RCL_RET_OK) {
+        take_error("rcl_node_init", ret, err, err_size);
+        free(node);
+        return CGR_ERROR;
+    }
+    *out = node;
+    return 0;
+}
+
+int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size)
+{
+    rcl_ret_t ret = rcl_node_fini(node);
+    free(node);
+    if (ret != RCL_RET_OK) {
+        take_error("rcl_node_fini", ret, err, err_size);
+        return CGR_ERROR;
+    }
+    return 0;
 }
 
 int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size)

@@ -38,4 +38,11 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
 /* rcl_service_fini(service, node): 0, or CGR_ERROR with the text in err. */
 int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
 
+/* A bare rcl node (no rosout, no client library around it) on context, in
+   *out (heap); 0, or CGR_ERROR with the text in err.  cgr_node_fini
+   finalizes and frees it.  Called without the GIL (cffi releases it). */
+int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
+                  char *err, size_t err_size);
+int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
+
 #endif

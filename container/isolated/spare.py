@@ -5,7 +5,8 @@ beyond a thread-mode one is that participant (its first node took 8.1 ms, a
 second node in the same Context 4.5 ms, measured; rmw_fastrtps makes a
 Context's participant with its first node). So the host keeps one child made
 ahead: its Context initialised and its participant made, held by a hidden
-placeholder node (a leading underscore: ``ros2 node list`` leaves it out).
+placeholder node (a leading underscore: ``ros2 node list`` leaves it out;
+a bare rcl node, made off the GIL: ``Placeholder``).
 The next LoadNode it can serve is handed to it: it builds the node there,
 then destroys the placeholder (the participant stays, the real node holds
 it), and goes on as any per-node child. The host then makes the next spare.
@@ -22,9 +23,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from rclpy.node import Node
-from rclpy.parameter import Parameter
-
+from ..intra._rclglue import ffi, lib
 from .core import Child, wait_for_go
 
 PLACEHOLDER_PREFIX = "_cloneguard_spare_"
@@ -36,18 +35,41 @@ class Spare:
     order: tuple | None = None       # (proc, cls, args): set before its go
 
 
+class Placeholder:
+    """The spare's placeholder: a bare rcl node (no rosout, no parameter or
+    type-description services: no endpoints of its own), made and destroyed
+    by cffi calls that release the GIL. Making it makes the participant, and
+    rclpy would hold the GIL throughout: a Fast DDS lock that a dead node
+    left taken (its payload pools are shared by every participant in the
+    process) then blocked every Python thread of the container, not only
+    this process (seen in deep runs)."""
+
+    def __init__(self, ctx, name: str):
+        err = ffi.new("char[]", lib.CGR_ERR_SIZE)
+        out = ffi.new("rcl_node_t **")
+        with ctx.handle:
+            rc = lib.cgr_node_init(out, name.encode(), ffi.cast("rcl_context_t *", ctx.handle.pointer),
+                                   err, lib.CGR_ERR_SIZE)
+        if rc != 0:
+            raise RuntimeError(ffi.string(err).decode(errors="replace"))
+        self._node = out[0]
+
+    def destroy_node(self) -> None:
+        node, self._node = self._node, None
+        if node is None:
+            return
+        err = ffi.new("char[]", lib.CGR_ERR_SIZE)
+        if lib.cgr_node_fini(node, err, lib.CGR_ERR_SIZE) != 0:
+            raise RuntimeError(ffi.string(err).decode(errors="replace"))
+
+
 def spare_target(spare: Spare, new_context, build_and_spin):
     """What a spare runs: ``new_context()`` and a placeholder node, then
     ``build_and_spin(proc, ctx, cls, args, placeholder)`` once handed a
     load, or its own clean-up if asked to stop first."""
     def run():
         ctx = new_context()
-        # As few endpoints as a node can have: no parameter services, no
-        # /rosout, no ~/get_type_description (rclpy 7.1 would leave that
-        # one's endpoints behind when the placeholder is destroyed).
-        placeholder = Node(f"{PLACEHOLDER_PREFIX}{os.getpid()}", context=ctx,
-                           start_parameter_services=False, enable_rosout=False,
-                           parameter_overrides=[Parameter("start_type_description_service", value=False)])
+        placeholder = Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
         if wait_for_go():
             placeholder.destroy_node()
             ctx.try_shutdown()
