@@ -32,6 +32,27 @@ SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
 CRASH_LOG_LINES = 40       # of a container that died in a trial, kept in the report
 FATAL_MARK = "Fatal Python error: "   # faulthandler's first line (container/cli.py enables it)
 FATAL_DUMP_CHARS = 16000
+CURRENT_THREAD = "Current thread "      # faulthandler's header of the faulting thread
+
+
+def fatal_excerpt(dump: str, limit: int) -> str:
+    """faulthandler's dump cut to ``limit`` characters, keeping its first
+    line and the faulting thread's stack whole: an isolated container's
+    dump lists every thread state, dead nodes' too, and the faulting thread
+    can come after a hundred of them."""
+    if len(dump) <= limit:
+        return dump
+    first, _, rest = dump.partition("\n")
+    at = rest.find(CURRENT_THREAD)
+    current = ""
+    if at >= 0:
+        end = rest.find("\n\n", at)
+        current = rest[at:] if end < 0 else rest[at:end + 1]
+        rest = rest[:at] + rest[at + len(current):]
+    head = f"{first}\n{current}\n" if current else f"{first}\n"
+    room = max(0, limit - len(head) - 80)
+    left_out = len(rest) - room
+    return head + rest[:room] + (f"\n[... {left_out} more characters of the dump left out ...]\n" if left_out > 0 else "")
 
 # Container arguments per profile; scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
@@ -178,7 +199,7 @@ class Rig:
             before, mark, dump = text.partition(FATAL_MARK)
             out.details["log_tail"] = log_tail(before, CRASH_LOG_LINES)
             if mark:
-                out.details["fatal_error"] = (mark + dump)[:FATAL_DUMP_CHARS]
+                out.details["fatal_error"] = fatal_excerpt(mark + dump, FATAL_DUMP_CHARS)
         else:
             out.outcome = "hung"
             if diagnose.gdb_available():

@@ -17,3 +17,16 @@ def test_a_container_that_died_in_a_trial_is_crashed_with_its_last_log_lines(con
     assert fatal.startswith("Fatal Python error: Segmentation fault") and "most recent call first" in fatal
     log = rig.proc.log_text()
     assert log.index(out.details["log_tail"]) + len(out.details["log_tail"]) <= log.index(fatal)
+
+
+def test_a_long_fault_dump_keeps_the_faulting_threads_stack():
+    from cloneguard.harness.rig import fatal_excerpt
+    others = "".join(f'Thread 0x{i:x} (most recent call first):\n  File "x.py", line {i} in f\n\n'
+                     for i in range(400))
+    current = 'Current thread 0xbeef (most recent call first):\n  Garbage-collecting\n  File "core.py", line 498 in _listen\n'
+    dump = "Fatal Python error: Segmentation fault\n\n" + others + current + "\nExtension modules: yaml\n"
+    cut = fatal_excerpt(dump, 4000)
+    assert len(cut) <= 4000
+    assert cut.startswith("Fatal Python error: Segmentation fault\nCurrent thread 0xbeef")
+    assert current in cut and "more characters of the dump left out" in cut
+    assert fatal_excerpt("Fatal Python error: x\n", 4000) == "Fatal Python error: x\n"
