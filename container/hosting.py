@@ -49,22 +49,36 @@ class ThreadHost:
     def __init__(self, executor, context):
         self._executor = executor
         self._context = context
+        # unique_id -> "built" / "running" / "stopped": an UnloadNode sent
+        # on seeing LOADED can come before run() (the event goes out first).
+        self._lock = threading.Lock()
+        self._states: dict[int, str] = {}
 
     def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         start = time.time_ns()
         node = factory.construct(cls, args, self._context, unique_id)
+        with self._lock:
+            self._states[unique_id] = "built"
         return Hosted(unique_id, node.get_fully_qualified_name(), os.getpid(), start, node)
 
     def run(self, hosted: Hosted) -> None:
         """Let a started node's callbacks run: it joins the container's
-        executor (after the LoadNode's LOADED event, as in isolated mode)."""
-        self._executor.add_node(hosted.node)
+        executor (after the LoadNode's LOADED event, as in isolated mode),
+        unless it was stopped first."""
+        with self._lock:
+            if self._states.get(hosted.unique_id) != "built":
+                return
+            self._states[hosted.unique_id] = "running"
+            self._executor.add_node(hosted.node)
 
     def stop(self, hosted: Hosted) -> None:
-        self._executor.remove_node(hosted.node)
-        self._quiesce()
+        with self._lock:
+            was = self._states.pop(hosted.unique_id, None)
+        if was == "running":
+            self._executor.remove_node(hosted.node)
+            self._quiesce()
         factory.destroy(hosted.node)
 
     def _quiesce(self, timeout: float = 2.0) -> None:
