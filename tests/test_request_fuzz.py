@@ -72,7 +72,7 @@ class World:
     def graph(self) -> set[str]:
         """The nodes the client's graph holds, but the placeholder of a live
         spare (one whose process is gone is a ghost like any other)."""
-        spares = {f"/{rest.PROCESS_PLACEHOLDER}{pid}" for pid in procfs.children_of(self.container.pid)}
+        spares = {f"/{rest.SPARE_PLACEHOLDER}{pid}" for pid in procfs.children_of(self.container.pid)}
         return {(ns.rstrip("/") + "/" + name) for name, ns in self.client.node.get_node_names_and_namespaces()} - spares
 
     def at_rest(self) -> list[int]:

@@ -46,7 +46,7 @@ from ..robust import RobustMutex
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .profiles import DEFAULT, PROFILES, SHARED
-from .spare import PLACEHOLDER_PREFIX, Placeholder, Spare, serves, spare_target
+from .spare import Spare, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -306,38 +306,28 @@ class IsolatedHost:
 
     def _fresh_target(self, proc: _NodeProcess, cls, args):
         def run():
-            ctx = _new_context(args.forward_global_arguments)
-            try:
-                placeholder = Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
-            except RuntimeError as exc:
-                proc.error = f"the node's process could not make its DDS participant: {exc}"
-                ctx.try_shutdown()
-                ctx.destroy()
-                proc.handoff.post(FAILED)
-                return
-            self._build_and_spin(proc, ctx, cls, args, placeholder)
+            self._build_and_spin(proc, _new_context(args.forward_global_arguments), cls, args)
         return run
 
-    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder):
+    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder=None):
         """In a per-node child: build the node on ``ctx``, say READY (or
-        FAILED), spin it until asked to stop, then tear it all down.
-        ``placeholder`` (spare.py) holds the participant from before the node
-        is built until after it is destroyed, so that the participant is made
-        and deleted off the GIL: deleting it can busy-wait in Fast DDS
-        (eProsima/Fast-DDS#6513), and under rclpy's GIL that stopped every
-        Python thread of the container."""
+        FAILED), spin it until asked to stop, then tear it all down. A
+        spare's ``placeholder`` node goes once the node holds the
+        participant."""
         try:
             node = factory.construct(cls, args, ctx, proc.unique_id)
         except Exception as exc:
-            # construct() has destroyed whatever node was half made; the
-            # participant goes with the placeholder, and its threads end
-            # before the parent (waiting for this process to end) answers.
+            # construct() has destroyed whatever node was half made, so
+            # the participant goes with the context and its threads end.
             proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
-            proc.handoff.post(FAILED)
-            placeholder.destroy_node()
+            if placeholder is not None:
+                placeholder.destroy_node()
             ctx.try_shutdown()
             ctx.destroy()
+            proc.handoff.post(FAILED)
             return
+        if placeholder is not None:
+            placeholder.destroy_node()
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         proc.stop_guard = node.create_guard_condition(_stopping)
@@ -352,7 +342,6 @@ class IsolatedHost:
             # SHM segments be unlinked; then the exception ends us (1).
             executor.shutdown()
             factory.destroy(node)
-            placeholder.destroy_node()
             ctx.try_shutdown()
             ctx.destroy()
 

@@ -6,10 +6,10 @@ second node in the same Context 4.5 ms, measured; rmw_fastrtps makes a
 Context's participant with its first node). So the host keeps one child made
 ahead: its Context initialised and its participant made, held by a hidden
 placeholder node (a leading underscore: ``ros2 node list`` leaves it out;
-a bare rcl node, made off the GIL: ``Placeholder``, which every per-node
-process holds for its whole life). The next LoadNode it can serve is handed
-to it: it builds the node there and goes on as any per-node child. The host
-then makes the next spare.
+a bare rcl node, made off the GIL: ``Placeholder``).
+The next LoadNode it can serve is handed to it: it builds the node there,
+then destroys the placeholder (the participant stays, the real node holds
+it), and goes on as any per-node child. The host then makes the next spare.
 
 A spare serves a load only when nothing about the load needs another
 Context (``forward_global_arguments`` does: its Context takes the
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from ..intra._rclglue import ffi, lib
 from .core import Child, wait_for_go
 
-PLACEHOLDER_PREFIX = "_cloneguard_process_"
+PLACEHOLDER_PREFIX = "_cloneguard_spare_"
 
 
 @dataclass
@@ -36,15 +36,13 @@ class Spare:
 
 
 class Placeholder:
-    """A per-node process's placeholder: a hidden bare rcl node (no rosout,
-    no parameter or type-description services: no endpoints of its own),
-    made and destroyed by cffi calls that release the GIL, before the
-    process's node is built and after it is destroyed. So the participant is
-    made and deleted off the GIL; rclpy holds the GIL through both, and a
-    Fast DDS lock that a dead node left taken (its payload pools are shared
-    by every participant in the process), or Fast DDS's busy wait in
-    participant deletion (eProsima/Fast-DDS#6513), then stopped every Python
-    thread of the container, not only this process (seen in deep runs)."""
+    """The spare's placeholder: a bare rcl node (no rosout, no parameter or
+    type-description services: no endpoints of its own), made and destroyed
+    by cffi calls that release the GIL. Making it makes the participant, and
+    rclpy would hold the GIL throughout: a Fast DDS lock that a dead node
+    left taken (its payload pools are shared by every participant in the
+    process) then blocked every Python thread of the container, not only
+    this process (seen in deep runs)."""
 
     def __init__(self, ctx, name: str):
         err = ffi.new("char[]", lib.CGR_ERR_SIZE)
