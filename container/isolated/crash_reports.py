@@ -108,16 +108,17 @@ class CrashStacks:
 
     def _write(self, pid: int, stacks: RecordedStacks) -> None:
         ffi, lib = self._ffi, self._lib
-        codes = ffi.new("void *[]", [ffi.cast("void *", c) for c in stacks.py_codes] or 1)
-        try:
-            if stacks.py_codes:
+        n = len(stacks.py_codes)
+        if n:
+            codes = ffi.new("void *[]", [ffi.cast("void *", c) for c in stacks.py_codes])
+            try:
                 os.write(self._fd, f"cloneguard: pid {pid} Python stack (most recent call first):\n".encode())
                 lasti = ffi.new("int[]", list(stacks.py_lasti))
-                lib.cg_write_py_stack(codes, lasti, len(stacks.py_codes), int(stacks.py_more), self._fd)
-            else:
-                os.write(self._fd, f"cloneguard: pid {pid} Python stack: none (no Python frame)\n".encode())
-        finally:
-            lib.cg_hold_py_stack(codes, len(stacks.py_codes), 0)
+                lib.cg_write_py_stack(codes, lasti, n, int(stacks.py_more), self._fd)
+            finally:
+                lib.cg_hold_py_stack(codes, n, 0)   # the references take() took
+        else:
+            os.write(self._fd, f"cloneguard: pid {pid} Python stack: none (no Python frame)\n".encode())
         os.write(self._fd, f"cloneguard: pid {pid} native stack:\n".encode())
         native = ffi.new("void *[]", [ffi.cast("void *", f) for f in stacks.native])
         lib.cg_write_native_stack(native, len(stacks.native), self._fd)
