@@ -725,6 +725,44 @@ def test_release_frees_stack_tls_and_pidfd_over_many_cycles(core):
     assert core.children() == []
 
 
+def _thread_states() -> int:
+    """The interpreter's thread states (C API: PyThreadState_Next)."""
+    api = ctypes.pythonapi
+    api.PyInterpreterState_Main.restype = ctypes.c_void_p
+    api.PyInterpreterState_ThreadHead.restype = ctypes.c_void_p
+    api.PyInterpreterState_ThreadHead.argtypes = [ctypes.c_void_p]
+    api.PyThreadState_Next.restype = ctypes.c_void_p
+    api.PyThreadState_Next.argtypes = [ctypes.c_void_p]
+    n, t = 0, api.PyInterpreterState_ThreadHead(api.PyInterpreterState_Main())
+    while t:
+        n, t = n + 1, api.PyThreadState_Next(t)
+    return n
+
+
+def test_spawns_of_any_stack_size_free_everything_by_close(rec):
+    # spawn() takes a block (stacks, thread state) made ahead for the last
+    # stack size asked and makes the next: a change of size drops it, and
+    # close() frees the one left over.
+    before = _thread_states()
+    core = CloneCore(on_event=rec)
+    try:
+        depth = []
+        for size in (1 << 20, 1 << 20, 8 << 20, 256 << 10, 8 << 20):
+            def deep(n=0):      # uses most of a 256 KiB stack
+                return n if n >= 120 else deep(n + 1)
+            c = core.spawn(lambda: depth.append(deep()), stack_size=size)
+            assert core.wait(c, 10).exit_code == 0
+            core.release(c)
+        assert depth == [120] * 5
+        with pytest.raises(OSError, match="Invalid argument"):
+            core.spawn(lambda: None, stack_size=4096)   # below 16 pages
+    finally:
+        core.close()
+    # The listener thread has ended; every child's state and the one made
+    # ahead are gone.
+    assert _thread_states() == before
+
+
 def test_close_lets_a_death_still_being_reported_finish_before_releasing():
     # A container stopping while a node's death is still in its handler
     # (the handler publishes CRASHED, destroys the node, then releases the
@@ -779,6 +817,22 @@ def test_api_contracts(core):
         core.release(c)
     with pytest.raises(ValueError):
         core.kill(c)
+    # A child cannot spawn children of its own (the core's one monitor
+    # owns every child): it is told so, and the core is unchanged.
+    raised = []
+    c = core.spawn(lambda: raised.append(_raised_by(lambda: core.spawn(lambda: None))))
+    assert core.wait(c, 10).exit_code == 0
+    core.release(c)
+    assert raised == [("RuntimeError", "spawn() from inside a child is not supported")]
+    assert core.children() == []
+
+
+def _raised_by(call) -> tuple[str, str] | None:
+    try:
+        call()
+    except Exception as exc:
+        return type(exc).__name__, str(exc)
+    return None
 
 
 def test_mitigations_are_chosen_per_core():

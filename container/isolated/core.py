@@ -116,16 +116,19 @@ class Child:
 
 
 class _Entry:
-    """CloneCore's bookkeeping for one child (guarded by CloneCore._lock)."""
+    """CloneCore's bookkeeping for one child: guarded by CloneCore._lock, and
+    waited on with CloneCore._changed (plain flags, not an Event each: a
+    spawn makes one, and it is on the spawn's path)."""
+
+    __slots__ = ("target", "child", "spawned", "dead", "death_reported", "death")
 
     def __init__(self, target: Callable[[], None]) -> None:
         self.target: Callable[[], None] | None = target  # alive until reaped
         self.child: Child | None = None
-        self.spawned = threading.Event()   # spawn() has returned (or failed)
-        self.dead = threading.Event()
-        self.death_reported = threading.Event()  # on_event has returned for the death
+        self.spawned = False           # spawn() has returned (or failed)
+        self.dead = False              # reaped; death is set
+        self.death_reported = False    # on_event has returned for the death
         self.death: Death | None = None
-        self.released = False
 
 
 def _lib():
@@ -249,7 +252,8 @@ class CloneCore:
         # _lock guards _entries, _closed, _spawning, and every use of a
         # child's block or pidfd (so none can race with release()).
         self._lock = threading.Lock()
-        self._idle = threading.Condition(self._lock)   # _spawning == 0
+        # Notified whenever _spawning or an entry's flags change.
+        self._changed = threading.Condition(self._lock)
         self._entries: dict[int, _Entry] = {}
         self._serials = itertools.count(1)
         self._spawning = 0
@@ -279,8 +283,6 @@ class CloneCore:
         """
         if not callable(target):
             raise TypeError("target must be callable")
-        if in_child():
-            raise RuntimeError("spawn() from inside a child is not supported")
         ffi, lib = _lib()
         entry = _Entry(target)
         with self._lock:
@@ -295,6 +297,8 @@ class CloneCore:
             # The child gets a borrowed pointer; entry.target keeps it alive.
             rc = lib.cg_spawn(ffi.cast("void *", id(target)), serial, stack_size,
                               -1 if cgroup_fd is None else cgroup_fd, flags, out)
+            if rc == -errno.EPERM:
+                raise RuntimeError("spawn() from inside a child is not supported")
             if rc < 0:
                 why = self._no_free_slot() if rc == -errno.ENOMEM else None
                 raise OSError(-rc, f"spawn failed: {why or os.strerror(-rc)}")
@@ -307,8 +311,8 @@ class CloneCore:
                 if entry.child is None:
                     del self._entries[serial]
                 self._spawning -= 1
-                self._idle.notify_all()
-            entry.spawned.set()
+                entry.spawned = True
+                self._changed.notify_all()
 
     def request_stop(self, child: Child) -> bool:
         """Set the child's stop flag (no signal); True if it was not set."""
@@ -338,8 +342,8 @@ class CloneCore:
         """The child's Death once reaped, or None on timeout."""
         with self._lock:
             entry = self._entry(child)
-        entry.dead.wait(timeout)
-        return entry.death
+            self._changed.wait_for(lambda: entry.dead, timeout)
+            return entry.death
 
     def release(self, child: Child) -> None:
         """Free a reaped child's thread state, stacks, TLS and pidfd (once).
@@ -352,7 +356,7 @@ class CloneCore:
         _, lib = _lib()
         with self._lock:
             entry = self._entry(child)
-            if not entry.dead.is_set():
+            if not entry.dead:
                 raise RuntimeError(f"child {child.pid} has not been reaped yet")
             del self._entries[child.serial]
             rc = lib.cg_release(child._block)
@@ -368,7 +372,7 @@ class CloneCore:
         _, lib = _lib()
         with self._lock:
             entry = self._entry(child)
-            if not entry.dead.is_set():
+            if not entry.dead:
                 raise RuntimeError(f"child {child.pid} has not been reaped yet")
             del self._entries[child.serial]
             rc = lib.cg_abandon(child._block)
@@ -432,15 +436,15 @@ class CloneCore:
             if self._stopped:
                 return
             self._closed = True                 # no new spawn from here on
-            self._idle.wait_for(lambda: self._spawning == 0)
-            live = [e for e in self._entries.values() if not e.dead.is_set()]
+            self._changed.wait_for(lambda: self._spawning == 0)
+            live = [e for e in self._entries.values() if not e.dead]
             if live and not kill:
                 self._closed = False
                 raise RuntimeError(f"{len(live)} children still alive")
         for e in live:
             self.kill(e.child, signal.SIGKILL)
         for e in live:
-            if not e.dead.wait(timeout):
+            if not self._wait_entry(lambda: e.dead, timeout):
                 raise TimeoutError(f"child {e.child.pid} not reaped after SIGKILL")
         # A death reported before close() may still be in on_event, which
         # may release that child itself: let it finish first, so that no
@@ -448,7 +452,7 @@ class CloneCore:
         with self._lock:
             left = list(self._entries.values())
         for e in left:
-            if not e.death_reported.wait(timeout):
+            if not self._wait_entry(lambda: e.death_reported, timeout):
                 print(f"cloneguard: on_event for child {e.child.pid} still running after "
                       f"{timeout:g} s; releasing it anyway", file=sys.stderr)
         for e in left:
@@ -477,6 +481,10 @@ class CloneCore:
             raise OSError(-rc, f"cannot stop the monitor: {os.strerror(-rc)}")
         with CloneCore._instance_lock:
             CloneCore._open = None
+
+    def _wait_entry(self, flag: Callable[[], bool], timeout: float | None) -> bool:
+        with self._lock:
+            return self._changed.wait_for(flag, timeout)
 
     def _entry(self, child: Child) -> _Entry:
         """Look a child up; caller holds self._lock."""
@@ -507,14 +515,17 @@ class CloneCore:
             entry = self._entries.get(event.serial)
         if entry is None:
             return
-        entry.spawned.wait()        # never report a child before spawn() returns
+        with self._lock:            # never report a child before spawn() returns
+            self._changed.wait_for(lambda: entry.spawned)
         stacks = None
         if kind == KIND_DEATH:
             # Before anything can release the child's control block.
             stacks = self._crash_stacks.take(entry.child._block)
-            entry.death = event
-            entry.target = None     # reaped: nothing runs it any more
-            entry.dead.set()
+            with self._lock:
+                entry.death = event
+                entry.target = None     # reaped: nothing runs it any more
+                entry.dead = True
+                self._changed.notify_all()
         try:
             if self._on_event is not None:
                 self._on_event(event)
@@ -525,7 +536,9 @@ class CloneCore:
             if stacks is not None:  # after on_event reported the death (CRASHED)
                 self._crash_stacks.submit(event.pid, stacks)
             if kind == KIND_DEATH:
-                entry.death_reported.set()
+                with self._lock:
+                    entry.death_reported = True
+                    self._changed.notify_all()
 
 
 @atexit.register
