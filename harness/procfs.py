@@ -72,6 +72,14 @@ def children_of(ppid: int) -> list[int]:
     return sorted(st.pid for st in all_stats() if st.ppid == ppid)
 
 
+def wait_gone(paths: list, timeout: float) -> list:
+    """Poll until none of ``paths`` exists; those still there at ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while (left := [p for p in paths if os.path.exists(p)]) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return left
+
+
 def wait_group_empty(pgid: int, timeout: float) -> bool:
     """Poll until no process is left in ``pgid``; False on timeout."""
     deadline = time.monotonic() + timeout

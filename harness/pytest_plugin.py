@@ -80,6 +80,9 @@ def client(container_factory, container):
     return container_factory.connect(container)
 
 
+JANITOR_GRACE_S = 10.0
+
+
 class _Leftovers:
     def __init__(self):
         self.factories: list[ContainerFactory] = []
@@ -93,9 +96,12 @@ class _Leftovers:
                 if members:
                     found.append(f"processes left in group {proc.pgid}: {members}")
                 # Only cgroups it made: a dead container of an earlier run
-                # that had the same pid may have left one of that name.
+                # that had the same pid may have left one of that name. A
+                # container that ended without its shutdown leaves them to
+                # its cgroup janitor, which removes them just after.
                 cgroups = [d for d in procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
                            if d.stat().st_ctime >= proc.started_at]
+                cgroups = procfs.wait_gone(cgroups, JANITOR_GRACE_S)
                 if cgroups:
                     found.append(f"cgroups left behind: {[str(d) for d in cgroups]}")
         zombies = procfs.zombies_of(os.getpid())

@@ -1,5 +1,6 @@
 """--cgroups: each isolated node born in its own cgroup, with an optional CPU quota."""
 import os
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -13,9 +14,8 @@ from cloneguard.faults import PACKAGE as RIG
 PKG = "cloneguard"
 CG_ARGS = ["--isolated", "--cgroups"]
 
-needs_cpu = pytest.mark.skipif(
-    v1_cpu_mount() is None and "cpu" not in (cgroup2_mount() / "cgroup.controllers").read_text(),
-    reason="no cpu controller on this machine")
+HAS_CPU = v1_cpu_mount() is not None or "cpu" in (cgroup2_mount() / "cgroup.controllers").read_text()
+needs_cpu = pytest.mark.skipif(not HAS_CPU, reason="no cpu controller on this machine")
 
 
 def _cgroup_dirs(container_pid):
@@ -85,6 +85,43 @@ def test_stopping_the_container_removes_its_cgroups(client, container):
     container.stop()
     assert container.exit_status.returncode == 0
     assert not any(d.exists() for d in dirs)
+
+
+@pytest.mark.parametrize("container_args", [CG_ARGS])
+def test_a_killed_container_s_cgroups_are_removed_by_its_janitor(client, container):
+    # SIGKILL (or the watchdog's exit) gives the container no shutdown: its
+    # janitor, a process of its own, empties and removes the cgroups once
+    # the container and its node processes are gone.
+    # With a quota: in the v1 cpu hierarchy too, on a machine where it is there.
+    quota = {"cloneguard.cpu_quota": 0.5} if HAS_CPU else {}
+    client.load_ok(PKG, "cloneguard::Talker", extra_arguments=quota)
+    client.load_ok(PKG, "cloneguard::Heartbeat")
+    dirs = _cgroup_dirs(container.pid)
+    assert all(d.is_dir() for d in dirs)
+    container.signal(signal.SIGKILL)
+    assert container.wait(timeout=10) == -signal.SIGKILL
+    deadline = time.monotonic() + 10
+    while any(d.exists() for d in dirs):
+        assert time.monotonic() < deadline, f"still there 10 s after the kill: {dirs}"
+        time.sleep(0.05)
+    # (A cgroup with a live task in it cannot be removed: its node
+    # processes were gone, or killed by the janitor, first.)
+    log = container.log_text()
+    assert f"cloneguard cgroup janitor: the container (pid {container.pid}) ended without removing" in log
+    assert "could not remove" not in log
+
+
+def test_a_stopped_container_s_janitor_ends_with_it(request):
+    from cloneguard.container.isolated.cgroups import NodeCgroups
+
+    cgroups = NodeCgroups(f"cloneguard-test-janitor-{os.getpid()}")
+    request.addfinalizer(cgroups.close)
+    janitor = cgroups._janitor
+    assert janitor.poll() is None          # waiting for us
+    cgroups.remove(cgroups.create(3))
+    assert cgroups.close() == []
+    assert janitor.returncode == 0         # found nothing left, said nothing
+    assert not cgroups.v2_root.exists()
 
 
 def _stale_tree(name: str) -> list[Path]:

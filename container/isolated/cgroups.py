@@ -11,11 +11,18 @@ the pid is written to it right after the clone.
 Layout, all removed when the node or the container goes:
     <cgroup2 mount>/cloneguard-<container pid>/node-<unique_id>
     <v1 cpu mount>/cloneguard-<container pid>/node-<unique_id>   (quota only)
+
+A container that ends without its shutdown (SIGKILL, the watchdog's exit)
+cannot remove them: its cgroup janitor (cgroup_janitor.py, a process of its
+own started with the roots) does, once the container and its node processes
+are gone.
 """
 from __future__ import annotations
 
 import errno
 import os
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,6 +104,21 @@ class NodeCgroups:
         if self._v2_cpu:
             (v2 / "cgroup.subtree_control").write_text("+cpu")
             (self.v2_root / "cgroup.subtree_control").write_text("+cpu")
+        self._janitor = self._start_janitor()
+
+    def _start_janitor(self) -> subprocess.Popen:
+        """The process that removes our cgroups if we end without close()
+        (cgroup_janitor.py): it waits for the end of a pipe only this
+        process holds."""
+        roots = [str(r) for r in (self.v2_root, self.v1_root) if r is not None]
+        script = Path(__file__).with_name("cgroup_janitor.py")
+        try:
+            return subprocess.Popen([sys.executable, "-I", "-S", str(script), str(os.getpid()), *roots],
+                                    stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                    start_new_session=True)
+        except OSError as exc:
+            _rmdir(self.v2_root)
+            raise CgroupsUnavailable(f"cannot start the cgroup janitor: {exc.strerror}") from None
 
     def _reclaim_stale(self) -> list[str]:
         """Remove cgroups already named for us that no process is in (left
@@ -175,8 +197,18 @@ class NodeCgroups:
 
     def close(self) -> list[str]:
         """Remove every cgroup this container made, emptying any that still
-        holds a process first (cgroup.kill). Never raises: returns what could
-        not be removed."""
+        holds a process first (cgroup.kill), then let the janitor go. Never
+        raises: returns what could not be removed."""
+        problems = self._remove_all()
+        if self._janitor.stdin is not None:
+            self._janitor.stdin.close()        # the janitor finds nothing and ends
+        try:
+            self._janitor.wait(5)
+        except subprocess.TimeoutExpired:
+            problems.append(f"the cgroup janitor (pid {self._janitor.pid}) did not end within 5 s")
+        return problems
+
+    def _remove_all(self) -> list[str]:
         problems = []
         for root in (self.v2_root, self.v1_root):
             if root is None or not root.exists():
