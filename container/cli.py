@@ -36,7 +36,7 @@ from .isolated.node_watchdog import NodeWatchdog
 from .manager import ComponentManager
 from .restart import POLICIES, RestartPolicy
 from .stop_signals import StopSignals
-from .watchdog import Watchdog
+from .watchdog import Watchdog, bound_shutdown
 
 DEFAULT_NODE_NAME = "ComponentManager"
 # Threads serving LoadNode/UnloadNode/ListNodes (and the watchdog, restarts):
@@ -120,6 +120,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "--watchdog", type=_watchdog_seconds, default=None, metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
+    )
+    parser.add_argument(
+        "--shutdown-timeout", type=_watchdog_seconds, default=None, metavar="SECONDS",
+        help="exit with every thread's stack (status 1) if stopping takes longer than SECONDS "
+        "(default: the --watchdog timeout; 0: no bound)",
     )
     parser.add_argument(
         "--node-watchdog", type=_watchdog_seconds, default=0.0, metavar="SECONDS",
@@ -289,6 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     # Stop serving first, then stop the nodes, then tear down our own DDS side.
     if watchdog is not None:
         watchdog.close()
+    shutdown_s = opts.shutdown_timeout if opts.shutdown_timeout is not None else watchdog_s
+    shutdown_bound = bound_shutdown(shutdown_s) if shutdown_s > 0 else None
     if node_watchdog is not None:
         node_watchdog.close()
     services.shutdown()
@@ -305,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     # its /dev/shm segments when the SHM transport is on.
     context.destroy()
     stop.close()
+    if shutdown_bound is not None:
+        shutdown_bound.close()
     if opts.isolated:
         # Objects a dead child left behind (see isolated/host.py) must never
         # be destroyed: the C++ static destructors that exit() runs would do

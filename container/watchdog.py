@@ -18,6 +18,12 @@ The dump has two stages, because the two ways to take it fail differently:
   being freed and crash the container with SIGSEGV instead of exiting 1.
 The typical cause in isolated mode is a child that died holding a lock the
 container then waits for; in thread mode, a callback that never returns.
+
+The container's shutdown has a bound of its own (``bound_shutdown``): the
+same two-stage dump and exit if stopping takes longer than it, since from
+then on no executor is watched (a node that never stops, a DDS call that
+never returns, would otherwise keep the container alive until someone kills
+it, and say nothing of where it is stuck).
 """
 from __future__ import annotations
 
@@ -31,31 +37,19 @@ BANNER = "cloneguard watchdog"
 FALLBACK_GRACE_S = 2.0
 
 
-class Watchdog:
-    def __init__(self, node, timeout_s: float, *, executors=(), on_tick=None):
-        """``node`` spins on the executor whose timer drives the watchdog;
-        ``executors`` are the others that must keep making progress."""
-        if timeout_s <= 0:
-            raise ValueError("watchdog timeout must be positive")
+class _Deadline:
+    """The two-stage dump and exit at a deadline that ``arm`` moves."""
+
+    def __init__(self, timeout_s: float, what: str):
         self.timeout_s = timeout_s
-        self._on_tick = on_tick
-        self._log = node.get_logger()
-        self._watched = list(executors)
-        self._lock = threading.Lock()
-        self._progressed: set[int] = set()     # indexes into _watched since the last arming
-        self._pending: dict[int, object] = {}  # a task handed out, not yet run
-        self._closed = threading.Event()
+        self._what = what            # "<what> for <timeout> s" is the reason printed
         self._deadline = 0.0
-        self._arm()
+        self._closed = threading.Event()
+        self.arm()
         self._thread = threading.Thread(target=self._watch, name="cloneguard-watchdog", daemon=True)
         self._thread.start()
-        self._timer = node.create_timer(min(1.0, timeout_s / 4), self._tick)
-        self._log.info(
-            f"{BANNER}: if an executor makes no progress for {timeout_s:g} s, "
-            "the stacks of all threads are printed and the container exits with status 1"
-        )
 
-    def _arm(self) -> None:
+    def arm(self) -> None:
         self._deadline = time.monotonic() + self.timeout_s
         faulthandler.dump_traceback_later(
             self.timeout_s + FALLBACK_GRACE_S, repeat=False, file=sys.stderr, exit=True
@@ -71,13 +65,45 @@ class Watchdog:
         # Holding the GIL from here on: no thread runs Python code while the
         # dump reads the frames, and nothing re-arms us.
         sys.stderr.write(
-            f"{BANNER}: no progress for {self.timeout_s:g} s; the stacks of all threads follow "
+            f"{BANNER}: {self._what} for {self.timeout_s:g} s; the stacks of all threads follow "
             "and the container exits with status 1\n"
         )
         sys.stderr.flush()
         faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
         sys.stderr.flush()
         os._exit(1)
+
+    def close(self) -> None:
+        self._closed.set()
+        faulthandler.cancel_dump_traceback_later()
+        self._thread.join()
+
+
+def bound_shutdown(timeout_s: float) -> _Deadline:
+    """From now on, the container exits with every thread's stack if it is
+    still stopping ``timeout_s`` seconds later. ``close()`` once stopped."""
+    return _Deadline(timeout_s, "still stopping")
+
+
+class Watchdog:
+    def __init__(self, node, timeout_s: float, *, executors=(), on_tick=None):
+        """``node`` spins on the executor whose timer drives the watchdog;
+        ``executors`` are the others that must keep making progress."""
+        if timeout_s <= 0:
+            raise ValueError("watchdog timeout must be positive")
+        self.timeout_s = timeout_s
+        self._on_tick = on_tick
+        self._log = node.get_logger()
+        self._watched = list(executors)
+        self._lock = threading.Lock()
+        self._progressed: set[int] = set()     # indexes into _watched since the last arming
+        self._pending: dict[int, object] = {}  # a task handed out, not yet run
+        self._deadline = _Deadline(timeout_s, "no progress")
+        self._timer = node.create_timer(min(1.0, timeout_s / 4), self._tick)
+        self._log.info(
+            f"{BANNER}: if an executor makes no progress for {timeout_s:g} s, "
+            "the stacks of all threads are printed and the container exits with status 1"
+        )
 
     def _tick(self) -> None:
         for index, executor in enumerate(self._watched):
@@ -96,10 +122,8 @@ class Watchdog:
                 # The timer's executor is here, and every other one has run
                 # a task since the last arming.
                 self._progressed.clear()
-                self._arm()
+                self._deadline.arm()
 
     def close(self) -> None:
-        self._closed.set()
-        faulthandler.cancel_dump_traceback_later()
+        self._deadline.close()
         self._timer.cancel()
-        self._thread.join()

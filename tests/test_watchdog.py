@@ -1,4 +1,5 @@
 """The watchdog ends a container whose executor stopped making progress."""
+import signal
 import time
 
 import pytest
@@ -34,6 +35,24 @@ def test_a_callback_that_keeps_the_gil_is_still_reported_and_ends_the_container(
     log = _hang_until_the_watchdog_ends_it(client, container, "gil")
     assert "Timeout (0:00:04)!" in log
     assert "cloneguard watchdog: no progress" not in log
+
+
+@pytest.mark.parametrize("container_args", [["--watchdog", "60", "--shutdown-timeout", "2"]])
+def test_a_shutdown_that_does_not_end_is_reported_with_stacks_and_exit_1(client, container):
+    # Thread mode stops its nodes' executor after their callbacks: one that
+    # never returns would keep the stopping container alive, silent.
+    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.0, "mode": "sleep"})
+    deadline = time.monotonic() + 10
+    while " hang-sleep firing at " not in container.log_text():
+        assert time.monotonic() < deadline, container.log_text()
+        time.sleep(0.05)
+    container.signal(signal.SIGTERM)
+    code = container.wait(timeout=20)
+    assert code == 1, f"exit code {code}"
+    log = container.log_text()
+    assert "stopping (SIGTERM)" in log
+    assert "cloneguard watchdog: still stopping for 2 s" in log
+    assert "faults/components.py" in log and "in fire" in log
 
 
 @pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
