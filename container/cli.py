@@ -298,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     shutdown_bound = bound_shutdown(shutdown_s) if shutdown_s > 0 else None
     if node_watchdog is not None:
         node_watchdog.close()
+    manager.stopping()                    # answer loads still waiting for their node
     services.shutdown()
     server.join()
     executor.shutdown()

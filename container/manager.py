@@ -77,6 +77,8 @@ class ComponentManager:
         self._log = logger or node.get_logger()
         self._events = EventPublisher(node)
         self._lock = threading.Lock()       # guards the fields below
+        self._built = threading.Condition(self._lock)   # a start ended, or stopping began
+        self._stopping = False
         self._next_id = 1
         self._loaded: dict[int, _Entry] = {}
         self._starting: set[int] = set()    # ids whose host.start() is running
@@ -238,6 +240,14 @@ class ComponentManager:
 
     # -- life cycle -----------------------------------------------------------
 
+    def stopping(self) -> None:
+        """The container is stopping: a LoadNode still waiting for its node is
+        answered now (success=false), not when the node is built; a node
+        built later is stopped (as after CONSTRUCT_WAIT_S)."""
+        with self._lock:
+            self._stopping = True
+            self._built.notify_all()
+
     def close(self) -> None:
         """Stop every node (container shutdown); no events, the context is gone."""
         if self.restart_policy is not None:
@@ -265,17 +275,20 @@ class ComponentManager:
             with self._lock:
                 late = box.setdefault("late", False)
                 done.set()
+                self._built.notify_all()
             if late and "hosted" in box:
                 self._log.warning(f"unique_id {unique_id}: built after its LoadNode gave up; stopping it")
                 self._host.stop(box["hosted"])
 
         self._builders.submit(build)
-        if not done.wait(self.CONSTRUCT_WAIT_S):
-            with self._lock:
-                if not done.is_set():
-                    box["late"] = True
-            if box.get("late"):
-                raise LoadError(f"the node was not constructed within {self.CONSTRUCT_WAIT_S:g} s")
+        with self._lock:
+            self._built.wait_for(lambda: done.is_set() or self._stopping, self.CONSTRUCT_WAIT_S)
+            if not done.is_set():
+                box["late"] = True
+        if box.get("late"):
+            if self._stopping:
+                raise LoadError("the container is stopping")
+            raise LoadError(f"the node was not constructed within {self.CONSTRUCT_WAIT_S:g} s")
         if "error" in box:
             raise box["error"]
         return box["hosted"]

@@ -41,3 +41,32 @@ def test_graceful_stop_with_shared_memory_leaves_no_segment(container_factory):
     proc.signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 0
     assert not (shm.segments() & created), "segments the container made were left behind"
+
+
+@pytest.mark.parametrize("container_args", [["--isolated"]])
+def test_a_load_waiting_for_its_node_is_answered_when_the_container_stops(container, client):
+    # Stopping does not wait for a constructor (here 20 s): the LoadNode
+    # still waiting is answered, failed, and the container exits 0 at once.
+    import threading
+    import time
+
+    from cloneguard.faults import PACKAGE as RIG
+
+    answers = []
+    slow = threading.Thread(target=lambda: answers.append(
+        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 20.0}, timeout=30)))
+    slow.start()
+    deadline = time.monotonic() + 10
+    while "slow" not in client.node.get_node_names():
+        assert time.monotonic() < deadline, "the slow constructor never started"
+        time.sleep(0.05)
+    t0 = time.monotonic()
+    container.signal(signal.SIGTERM)
+    code = container.wait(timeout=15)
+    stopped_in = time.monotonic() - t0
+    slow.join(30)
+    assert code == 0, f"exit code {code}\n{container.log_text()[-3000:]}"
+    assert stopped_in < 10, f"the stop took {stopped_in:.1f} s"
+    assert answers and not answers[0].success, answers
+    assert answers[0].error_message == "the container is stopping"
+    assert container.group_members() == []
