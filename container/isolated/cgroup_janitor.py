@@ -13,9 +13,11 @@ container's node processes are ever put there), waits until each is empty,
 and removes the trees.
 
 It runs in a session of its own and ignores SIGINT, SIGTERM and SIGHUP, so
-that stopping the container's process group does not stop it first. It
-uses the standard library only and starts without site: it needs none of
-the container's imports.
+that stopping the container's process group does not stop it first; and it
+is not the container's child (it forks once and the first process exits), so
+that what counts the container's children counts its node processes only.
+It uses the standard library only and starts without site: it needs none
+of the container's imports.
 """
 from __future__ import annotations
 
@@ -88,6 +90,8 @@ def clean(roots: list[str]) -> tuple[list[str], list[str]]:
 def main(argv: list[str]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
+    if os.fork() > 0:
+        os._exit(0)             # the container reaps this one at once
     container_pid, roots = argv[1], argv[2:]
     while os.read(0, 4096):     # nothing is ever written: wait for end of file
         pass

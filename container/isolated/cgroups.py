@@ -104,21 +104,23 @@ class NodeCgroups:
         if self._v2_cpu:
             (v2 / "cgroup.subtree_control").write_text("+cpu")
             (self.v2_root / "cgroup.subtree_control").write_text("+cpu")
-        self._janitor = self._start_janitor()
+        self._janitor_pipe = self._start_janitor()
 
-    def _start_janitor(self) -> subprocess.Popen:
-        """The process that removes our cgroups if we end without close()
-        (cgroup_janitor.py): it waits for the end of a pipe only this
-        process holds."""
+    def _start_janitor(self):
+        """Start the process that removes our cgroups if we end without
+        close() (cgroup_janitor.py); the write end of the pipe whose end of
+        file it waits for, which only this process holds."""
         roots = [str(r) for r in (self.v2_root, self.v1_root) if r is not None]
         script = Path(__file__).with_name("cgroup_janitor.py")
         try:
-            return subprocess.Popen([sys.executable, "-I", "-S", str(script), str(os.getpid()), *roots],
-                                    stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                    start_new_session=True)
-        except OSError as exc:
+            first = subprocess.Popen([sys.executable, "-I", "-S", str(script), str(os.getpid()), *roots],
+                                     stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                     start_new_session=True)
+            first.wait(10)      # it forks the janitor and exits
+        except (OSError, subprocess.TimeoutExpired) as exc:
             _rmdir(self.v2_root)
-            raise CgroupsUnavailable(f"cannot start the cgroup janitor: {exc.strerror}") from None
+            raise CgroupsUnavailable(f"cannot start the cgroup janitor: {exc}") from None
+        return first.stdin
 
     def _reclaim_stale(self) -> list[str]:
         """Remove cgroups already named for us that no process is in (left
@@ -200,12 +202,7 @@ class NodeCgroups:
         holds a process first (cgroup.kill), then let the janitor go. Never
         raises: returns what could not be removed."""
         problems = self._remove_all()
-        if self._janitor.stdin is not None:
-            self._janitor.stdin.close()        # the janitor finds nothing and ends
-        try:
-            self._janitor.wait(5)
-        except subprocess.TimeoutExpired:
-            problems.append(f"the cgroup janitor (pid {self._janitor.pid}) did not end within 5 s")
+        self._janitor_pipe.close()      # the janitor finds nothing left and ends
         return problems
 
     def _remove_all(self) -> list[str]:
