@@ -117,3 +117,25 @@ def test_the_spare_switch_needs_isolated_mode(container_factory):
     proc = container_factory.start(["--no-warm-spare"])
     assert proc.wait(timeout=20) != 0
     assert "--no-warm-spare needs --isolated" in proc.log_text()
+
+
+@pytest.mark.parametrize("container_args", [["--isolated", "--no-warm-spare"]])
+def test_every_node_process_makes_its_participant_through_a_placeholder(client, container):
+    # Not only the spare: a node process's participant is made (and, after
+    # a failed construction, deleted) by its placeholder, off the GIL; the
+    # placeholder goes once the node is built.
+    import threading
+
+    from cloneguard.faults import PACKAGE as RIG
+
+    answers = []
+    slow = threading.Thread(target=lambda: answers.append(
+        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 2.0}, timeout=30)))
+    slow.start()
+    pid = wait_until(lambda: (procfs.children_of(container.pid) or [None])[0], what="the node's process")
+    wait_until(lambda: placeholders(client) == {f"{PLACEHOLDER}{pid}"},
+               what="its placeholder while the node is built")
+    slow.join(30)
+    assert answers and answers[0].success, answers
+    assert loaded_pid(client, answers[0].unique_id) == pid
+    wait_until(lambda: placeholders(client) == set(), what="the placeholder to go once the node is built")

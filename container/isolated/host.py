@@ -46,7 +46,7 @@ from ..robust import RobustMutex
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .profiles import DEFAULT, PROFILES, SHARED
-from .spare import Spare, serves, spare_target
+from .spare import Spare, held_context, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -306,28 +306,28 @@ class IsolatedHost:
 
     def _fresh_target(self, proc: _NodeProcess, cls, args):
         def run():
-            self._build_and_spin(proc, _new_context(args.forward_global_arguments), cls, args)
+            ctx, placeholder = held_context(lambda: _new_context(args.forward_global_arguments))
+            self._build_and_spin(proc, ctx, cls, args, placeholder)
         return run
 
-    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder=None):
+    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder):
         """In a per-node child: build the node on ``ctx``, say READY (or
-        FAILED), spin it until asked to stop, then tear it all down. A
-        spare's ``placeholder`` node goes once the node holds the
-        participant."""
+        FAILED), spin it until asked to stop, then tear it all down. The
+        ``placeholder`` (spare.py) that holds the participant goes once the
+        node holds it too, or last after a failed construction: its
+        destruction, off the GIL, then deletes the participant."""
         try:
             node = factory.construct(cls, args, ctx, proc.unique_id)
         except Exception as exc:
-            # construct() has destroyed whatever node was half made, so
-            # the participant goes with the context and its threads end.
+            # construct() has destroyed whatever node was half made; the
+            # participant goes with the placeholder, and its threads end.
             proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
-            if placeholder is not None:
-                placeholder.destroy_node()
+            placeholder.destroy_node()
             ctx.try_shutdown()
             ctx.destroy()
             proc.handoff.post(FAILED)
             return
-        if placeholder is not None:
-            placeholder.destroy_node()
+        placeholder.destroy_node()
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         proc.stop_guard = node.create_guard_condition(_stopping)

@@ -17,6 +17,13 @@ container's ROS arguments) and nodes are not put in cgroups (each node's
 process is born in its cgroup). Until it is handed a load it waits at its
 gate off the GIL; asked to stop, it destroys its placeholder and Context and
 ends. One that dies on its own is logged and replaced at the next load.
+
+Every per-node process, spare or not, starts the same way (``held_context``):
+its participant is made by the placeholder, off the GIL, and the
+placeholder outlives the construction, so that a failed construction's
+half-built node is not the participant's last holder either: rclpy would
+delete the participant with the GIL held, and Fast DDS can busy-wait in that
+deletion (eProsima/Fast-DDS#6513), stopping every thread of the container.
 """
 from __future__ import annotations
 
@@ -63,13 +70,19 @@ class Placeholder:
             raise RuntimeError(ffi.string(err).decode(errors="replace"))
 
 
+def held_context(new_context) -> tuple:
+    """In a node's process: ``new_context()`` and the placeholder that makes
+    and holds its participant; (ctx, placeholder)."""
+    ctx = new_context()
+    return ctx, Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
+
+
 def spare_target(spare: Spare, new_context, build_and_spin):
-    """What a spare runs: ``new_context()`` and a placeholder node, then
+    """What a spare runs: ``held_context(new_context)``, then
     ``build_and_spin(proc, ctx, cls, args, placeholder)`` once handed a
     load, or its own clean-up if asked to stop first."""
     def run():
-        ctx = new_context()
-        placeholder = Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
+        ctx, placeholder = held_context(new_context)
         if wait_for_go():
             placeholder.destroy_node()
             ctx.try_shutdown()
