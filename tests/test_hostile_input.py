@@ -7,15 +7,14 @@ nothing behind (the harness's leftovers check: processes, cgroups, SHM).
 import os
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
+from slow_load import SlowLoad
 
 from cloneguard.container.isolated.cgroups import cgroup2_mount
-from cloneguard.faults import PACKAGE as RIG
 from cloneguard.harness import rest
 from cloneguard.harness.process import default_container_exe
 
@@ -114,21 +113,12 @@ def test_failed_constructions_do_not_use_up_fds_or_board_slots(client, container
 @pytest.mark.parametrize("container_args", [MODES["threads"], MODES["per-node"]], ids=["threads", "per-node"])
 def test_a_constructor_that_never_returns_does_not_stop_the_container_answering(client, container):
     kept = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="kept")
-    answers = []
-    slow = threading.Thread(target=lambda: answers.append(
-        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 6.0}, timeout=30)))
-    slow.start()
-    # Its node exists (in the graph) while its constructor sleeps.
-    deadline = time.monotonic() + 10
-    while "slow" not in client.node.get_node_names():
-        assert time.monotonic() < deadline, "the slow constructor never started"
-        time.sleep(0.05)
+    slow = SlowLoad(client, seconds=6.0)    # its node is in the graph, its constructor sleeps
     assert client.list(timeout=5) == [(kept.unique_id, "/kept")]
     other = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="other")
     assert client.unload(other.unique_id).success
-    assert slow.is_alive(), "the other requests were answered only after the slow construction"
-    slow.join()
-    assert answers and answers[0].success, answers
+    assert slow.waiting(), "the other requests were answered only after the slow construction"
+    assert slow.answer().success
     container.stop()
 
 

@@ -1,7 +1,9 @@
 """SIGINT/SIGTERM: every node destroyed, exit 0, nothing left behind."""
 import signal
+import time
 
 import pytest
+from slow_load import SlowLoad
 
 from cloneguard.harness import shm
 from cloneguard.harness.process import SHM_PROFILE
@@ -47,26 +49,13 @@ def test_graceful_stop_with_shared_memory_leaves_no_segment(container_factory):
 def test_a_load_waiting_for_its_node_is_answered_when_the_container_stops(container, client):
     # Stopping does not wait for a constructor (here 20 s): the LoadNode
     # still waiting is answered, failed, and the container exits 0 at once.
-    import threading
-    import time
-
-    from cloneguard.faults import PACKAGE as RIG
-
-    answers = []
-    slow = threading.Thread(target=lambda: answers.append(
-        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 20.0}, timeout=30)))
-    slow.start()
-    deadline = time.monotonic() + 10
-    while "slow" not in client.node.get_node_names():
-        assert time.monotonic() < deadline, "the slow constructor never started"
-        time.sleep(0.05)
+    slow = SlowLoad(client, seconds=20.0)
     t0 = time.monotonic()
     container.signal(signal.SIGTERM)
     code = container.wait(timeout=15)
     stopped_in = time.monotonic() - t0
-    slow.join(30)
+    answer = slow.answer()
     assert code == 0, f"exit code {code}\n{container.log_text()[-3000:]}"
     assert stopped_in < 10, f"the stop took {stopped_in:.1f} s"
-    assert answers and not answers[0].success, answers
-    assert answers[0].error_message == "the container is stopping"
+    assert not answer.success and answer.error_message == "the container is stopping", answer
     assert container.group_members() == []

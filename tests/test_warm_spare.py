@@ -7,6 +7,7 @@ import time
 
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
+from slow_load import SlowLoad
 from std_msgs.msg import UInt64
 
 from cloneguard.container.isolated.cgroups import cgroup2_mount
@@ -124,18 +125,10 @@ def test_every_node_process_makes_its_participant_through_a_placeholder(client, 
     # Not only the spare: a node process's participant is made (and, after
     # a failed construction, deleted) by its placeholder, off the GIL; the
     # placeholder goes once the node is built.
-    import threading
-
-    from cloneguard.faults import PACKAGE as RIG
-
-    answers = []
-    slow = threading.Thread(target=lambda: answers.append(
-        client.load(RIG, "faults::SlowConstructor", parameters={"seconds": 2.0}, timeout=30)))
-    slow.start()
-    pid = wait_until(lambda: (procfs.children_of(container.pid) or [None])[0], what="the node's process")
-    wait_until(lambda: placeholders(client) == {f"{PLACEHOLDER}{pid}"},
-               what="its placeholder while the node is built")
-    slow.join(30)
-    assert answers and answers[0].success, answers
-    assert loaded_pid(client, answers[0].unique_id) == pid
+    slow = SlowLoad(client, seconds=2.0)
+    [pid] = procfs.children_of(container.pid)
+    assert placeholders(client) == {f"{PLACEHOLDER}{pid}"}, "no placeholder while the node is built"
+    answer = slow.answer()
+    assert answer.success, answer
+    assert loaded_pid(client, answer.unique_id) == pid
     wait_until(lambda: placeholders(client) == set(), what="the placeholder to go once the node is built")
