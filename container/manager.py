@@ -264,7 +264,8 @@ class ComponentManager:
     def _start(self, unique_id: int, cls, args):
         """host.start on a thread of its own, waited for at most
         CONSTRUCT_WAIT_S. A start that finishes after that is undone."""
-        done = threading.Event()
+        # box["late"] is set by whichever comes first, under the lock: the
+        # start's end (False) or the load giving up (True).
         box: dict = {}
 
         def build() -> None:
@@ -274,7 +275,6 @@ class ComponentManager:
                 box["error"] = exc
             with self._lock:
                 late = box.setdefault("late", False)
-                done.set()
                 self._built.notify_all()
             if late and "hosted" in box:
                 self._log.warning(f"unique_id {unique_id}: built after its LoadNode gave up; stopping it")
@@ -282,10 +282,9 @@ class ComponentManager:
 
         self._builders.submit(build)
         with self._lock:
-            self._built.wait_for(lambda: done.is_set() or self._stopping, self.CONSTRUCT_WAIT_S)
-            if not done.is_set():
-                box["late"] = True
-        if box.get("late"):
+            self._built.wait_for(lambda: "late" in box or self._stopping, self.CONSTRUCT_WAIT_S)
+            late = box.setdefault("late", True)
+        if late:
             if self._stopping:
                 raise LoadError("the container is stopping")
             raise LoadError(f"the node was not constructed within {self.CONSTRUCT_WAIT_S:g} s")
