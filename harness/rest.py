@@ -33,3 +33,15 @@ def wait_at_rest(node, container_pid: int, *, spare: bool, timeout: float = 10.0
         if settled or time.monotonic() >= deadline:
             return children
         time.sleep(0.01)
+
+
+def wait_for_spare(node, container_pid: int, timeout: float = 10.0) -> bool:
+    """Until the container has a warm spare whose placeholder is announced
+    (its participant, and so its shared-memory ports, made); False at
+    ``timeout`` (a container that keeps none)."""
+    deadline = time.monotonic() + timeout
+    while not warm_spares(node, container_pid):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True

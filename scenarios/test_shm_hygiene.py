@@ -3,7 +3,7 @@ after a graceful stop, and after a SIGKILL only the orphans are removed."""
 import signal
 
 from cloneguard.faults.outside import sigkill_container
-from cloneguard.harness import procfs, shm
+from cloneguard.harness import procfs, rest, shm
 from cloneguard.harness.process import SHM_PROFILE
 from cloneguard.harness.rig import Outcome, Rig
 
@@ -70,6 +70,9 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
     bystander = Rig(_Named(container_factory, "bystander"), "per-node", fastdds_profile=SHM_PROFILE)
     victim = rig_factory("per-node", fastdds_profile=SHM_PROFILE)
     victim.client.load_ok("cloneguard", "cloneguard::Talker")
+    # The spare made after the load has its own participant and ports: seen
+    # mapped only once made (else one orphan of the victim's is not ours).
+    rest.wait_for_spare(victim.client.node, victim.proc.pid)
     victim.client.close()
     # What the bystander owns (holds the lock of): nothing of it may go while it lives.
     bystanders_own = {seg.name: seg.files for seg in shm.classify(
