@@ -116,7 +116,7 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
 int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
                   char *err, size_t err_size)
 {
-    /* The warm spare's placeholder (container/isolated/spare.py): its
+    /* A node process's placeholder (container/isolated/spare.py): its
      * context's first node, so rmw makes the participant here, with no
      * Python thread state held: a Fast DDS lock a dead node left taken
      * then blocks only this process, not every Python thread with it. */

@@ -46,7 +46,7 @@ from ..robust import RobustMutex
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .profiles import DEFAULT, PROFILES, SHARED
-from .spare import Spare, held_context, serves, spare_target
+from .spare import Spare, held_context, release_context, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -322,9 +322,7 @@ class IsolatedHost:
             # construct() has destroyed whatever node was half made; the
             # participant goes with the placeholder, and its threads end.
             proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
-            placeholder.destroy_node()
-            ctx.try_shutdown()
-            ctx.destroy()
+            release_context(ctx, placeholder)
             proc.handoff.post(FAILED)
             return
         placeholder.destroy_node()
@@ -342,8 +340,7 @@ class IsolatedHost:
             # SHM segments be unlinked; then the exception ends us (1).
             executor.shutdown()
             factory.destroy(node)
-            ctx.try_shutdown()
-            ctx.destroy()
+            release_context(ctx)
 
     # -- the warm spare (spare.py) ------------------------------------------------
 

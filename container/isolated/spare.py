@@ -43,7 +43,8 @@ class Spare:
 
 
 class Placeholder:
-    """The spare's placeholder: a bare rcl node (no rosout, no parameter or
+    """A node process's placeholder (the spare's, and every per-node
+    process's while its node is built): a bare rcl node (no rosout, no parameter or
     type-description services: no endpoints of its own), made and destroyed
     by cffi calls that release the GIL. Making it makes the participant, and
     rclpy would hold the GIL throughout: a Fast DDS lock that a dead node
@@ -77,6 +78,15 @@ def held_context(new_context) -> tuple:
     return ctx, Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
 
 
+def release_context(ctx, placeholder: Placeholder | None = None) -> None:
+    """In a node's process: its placeholder (which deletes the participant
+    off the GIL when it is the last node), then the Context."""
+    if placeholder is not None:
+        placeholder.destroy_node()
+    ctx.try_shutdown()
+    ctx.destroy()
+
+
 def spare_target(spare: Spare, new_context, build_and_spin):
     """What a spare runs: ``held_context(new_context)``, then
     ``build_and_spin(proc, ctx, cls, args, placeholder)`` once handed a
@@ -84,9 +94,7 @@ def spare_target(spare: Spare, new_context, build_and_spin):
     def run():
         ctx, placeholder = held_context(new_context)
         if wait_for_go():
-            placeholder.destroy_node()
-            ctx.try_shutdown()
-            ctx.destroy()
+            release_context(ctx, placeholder)
             return
         proc, cls, args = spare.order
         build_and_spin(proc, ctx, cls, args, placeholder)
