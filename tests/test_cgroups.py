@@ -101,10 +101,8 @@ def test_a_killed_container_s_cgroups_are_removed_by_its_janitor(client, contain
     assert all(d.is_dir() for d in dirs)
     container.signal(signal.SIGKILL)
     assert container.wait(timeout=10) == -signal.SIGKILL
-    deadline = time.monotonic() + 10
-    while any(d.exists() for d in dirs):
-        assert time.monotonic() < deadline, f"still there 10 s after the kill: {dirs}"
-        time.sleep(0.05)
+    left = procfs.wait_gone(dirs, 10)
+    assert left == [], f"still there 10 s after the kill: {left}"
     # (A cgroup with a live task in it cannot be removed: its node
     # processes were gone, or killed by the janitor, first.)
     log = container.log_text()
