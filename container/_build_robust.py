@@ -1,7 +1,12 @@
 """cffi (API mode) builder for container._robust (robust.c: robust mutexes)."""
+
+import runpy
 from pathlib import Path
 
 from cffi import FFI
+
+# The project's C warning flags: one list for every build (scripts/cflags.py).
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 
@@ -21,5 +26,5 @@ ffibuilder.set_source(
     include_dirs=[str(HERE)],
     depends=[str(HERE / "robust.c")],
     libraries=["pthread"],
-    extra_compile_args=["-std=gnu11", "-Wall"],
+    extra_compile_args=["-std=gnu11", *WARNINGS],
 )

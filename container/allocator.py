@@ -8,6 +8,7 @@ takes them out of LD_PRELOAD again once running, so that programs it starts
 do not inherit them. Whether each is really in use is checked, not assumed:
 jemalloc exports ``mallctl``, the guard ``cga_activate``.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -17,14 +18,16 @@ import sysconfig
 from pathlib import Path
 
 JEMALLOC_PATHS = (
-    "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",   # Debian/Ubuntu libjemalloc2
+    "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",  # Debian/Ubuntu libjemalloc2
     "/usr/lib64/libjemalloc.so.2",
     "/usr/lib/libjemalloc.so.2",
 )
 # The allocator guard (container/isolated/allocguard.c), built beside the package.
-GUARD_PATH = str(Path(__file__).resolve().parent / "isolated"
-                 / f"_allocguard{sysconfig.get_config_var('EXT_SUFFIX')}")
+GUARD_PATH = str(Path(__file__).resolve().parent / "isolated" / f"_allocguard{sysconfig.get_config_var('EXT_SUFFIX')}")
 _REEXEC_MARK = "CLONEGUARD_PRELOAD_REEXEC"
+# Set to "0" in the environment the guard starts in: CPython keeps its own
+# object allocator (pyalloc.c reads it before CPython starts).
+PY_POOLS_OFF = "CLONEGUARD_PYALLOC"
 
 
 # glibc mallopt() parameter numbers (malloc.h, glibc 2.36).
@@ -92,20 +95,38 @@ def glibc_arena_per_task() -> None:
 _own_arenas = False
 
 
+def python_pools_active() -> bool:
+    """Does the allocator guard serve CPython's object allocator here, with
+    pools of their own for each node process (isolated/pyalloc.c)? Not
+    when PYTHONMALLOC chose another, or PY_POOLS_OFF turned it off."""
+    lib = ctypes.CDLL(None)
+    return hasattr(lib, "cga_py_active") and bool(lib.cga_py_active())
+
+
 def describe() -> str:
-    guard = ", allocator guard" if guard_loaded() else ""
+    guard = ""
+    if guard_loaded():
+        guard = ", allocator guard" + (", Python object pools per process" if python_pools_active() else "")
     if not jemalloc_active():
         return "glibc malloc" + (", an arena per task" if _own_arenas else "") + guard
     version = ctypes.c_char_p()
     size = ctypes.c_size_t(ctypes.sizeof(version))
     ctypes.CDLL(None).mallctl(b"version", ctypes.byref(version), ctypes.byref(size), None, 0)
-    return f"jemalloc {version.value.decode()}" + guard
+    return f"jemalloc {(version.value or b'?').decode()}" + guard
 
 
-def ensure_preloaded(argv: list[str], *, guard: bool, jemalloc: bool) -> None:
-    """Return once what is asked for is in use (the allocator guard, jemalloc);
-    else re-exec this process with it preloaded. Then take both out of
-    LD_PRELOAD, for the programs this process starts."""
+def ensure_preloaded(
+    argv: list[str], *, guard: bool, jemalloc: bool, python_pools: bool = True, python_locks: bool = False
+) -> None:
+    """Return once what is asked for is in use (the allocator guard, jemalloc;
+    with ``python_locks``, Python's lock types that know their holder, which
+    must be in place before anything imports threading: isolated/boot.py);
+    else re-exec this process with it preloaded, through boot.py for the
+    locks (``python_pools`` False: the guard leaves CPython's object
+    allocator alone). Then take both out of LD_PRELOAD, for the programs
+    this process starts."""
+    from . import locks
+
     missing = []
     if guard and not guard_loaded():
         if not os.path.exists(GUARD_PATH):
@@ -114,25 +135,28 @@ def ensure_preloaded(argv: list[str], *, guard: bool, jemalloc: bool) -> None:
     if jemalloc and not jemalloc_active():
         path = jemalloc_path()
         if path is None:
-            raise AllocatorUnavailable(
-                "libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)")
+            raise AllocatorUnavailable("libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)")
         missing.append(path)
+    if python_locks and not locks.installed():
+        missing.append("Python's lock types (isolated/boot.py)")
     if not missing:
         _scrub_preload()
         return
     if os.environ.get(_REEXEC_MARK):
-        raise AllocatorUnavailable(
-            f"{' and '.join(missing)} preloaded but not in use (LD_PRELOAD ignored?)")
+        raise AllocatorUnavailable(f"{' and '.join(missing)} asked for but not in use (LD_PRELOAD ignored?)")
     env = dict(os.environ)
     # The guard comes first: its malloc and free are the ones every library
     # binds to, and it reaches jemalloc through mallocx & co.
-    wanted = ([GUARD_PATH] if guard else []) + ([jemalloc_path()] if jemalloc else [])
+    wanted = ([GUARD_PATH] if guard else []) + ([jemalloc_path() or ""] if jemalloc else [])
     rest = [p for p in env.get("LD_PRELOAD", "").split() if p not in wanted]
     env["LD_PRELOAD"] = " ".join(wanted + rest)
     env[_REEXEC_MARK] = "1"
+    if not python_pools:
+        env[PY_POOLS_OFF] = "0"
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, *argv], env)
+    boot = ["-m", "cloneguard.container.isolated.boot"] if python_locks else []
+    os.execve(sys.executable, [sys.executable, *boot, *argv], env)
 
 
 def _scrub_preload() -> None:
@@ -143,3 +167,4 @@ def _scrub_preload() -> None:
     else:
         os.environ.pop("LD_PRELOAD", None)
     os.environ.pop(_REEXEC_MARK, None)
+    os.environ.pop(PY_POOLS_OFF, None)

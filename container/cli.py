@@ -7,6 +7,7 @@
 ROS arguments (``--ros-args -r __node:=name -r __ns:=/ns ...``) apply to the
 container's own node, named ``ComponentManager`` by default.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,6 +18,8 @@ import signal
 import sys
 import threading
 import traceback
+from dataclasses import dataclass, field
+from typing import Any
 
 # OpenBLAS (under numpy, under rclpy's messages) starts a process-wide thread
 # pool lazily; started from inside a node's clone child, those threads would
@@ -24,17 +27,19 @@ import traceback
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import rclpy  # noqa: E402
+from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from . import allocator, options
+from . import allocator
 from .hosting import ThreadHost
 from .isolated import profiles
 from .isolated.node_watchdog import NodeWatchdog
 from .manager import ComponentManager
-from .restart import POLICIES, RestartPolicy
+from .restart import DEFAULT_LIMIT as DEFAULT_RESTART_LIMIT
+from .restart import POLICIES
 from .stop_signals import StopSignals
 from .watchdog import Watchdog, bound_shutdown
 
@@ -42,23 +47,35 @@ DEFAULT_NODE_NAME = "ComponentManager"
 # Threads serving LoadNode/UnloadNode/ListNodes (and the watchdog, restarts):
 # a load waiting for its node takes one for up to ComponentManager.CONSTRUCT_WAIT_S.
 SERVICE_THREADS = 8
+# How long stopping waits for requests in flight to be answered (an unload
+# may be stopping its node; a load waiting for its node is answered at once).
+ANSWER_WAIT_S = 5.0
 WATCHDOG_MAX_S = 86400.0
 
 # Mitigations that can be switched off, to measure what each one buys.
-# Options that mean something only with --isolated (refused without it).
-ISOLATED_ONLY = ("--jemalloc-arenas", "--no-gil-repair", "--no-condvar-repair", "--no-crash-report",
-                 "--shared-arenas", "--no-alloc-guard", "--cgroups", "--restart-policy", "--profile",
-                 "--node-watchdog", "--no-warm-spare")
 MITIGATION_SWITCHES = {
     "--no-gil-repair": "for measurement, do not release the GIL a dead child held",
     "--no-condvar-repair": "for measurement, do not repair the GIL's condition variables "
-                           "after a child died waiting on them",
+    "after a child died waiting on them",
+    "--no-interp-repair": "for measurement, do not mend what a child that died holding the "
+    "GIL may have left half-done in the interpreter (objects it was "
+    "changing, GC links, free lists)",
     "--no-crash-report": "no native/Python stack report from a child that crashes",
     "--shared-arenas": "under glibc malloc, let threads and node processes share malloc "
-                       "arenas as glibc does by default (8 per core); needs --no-alloc-guard",
+    "arenas as glibc does by default (8 per core); needs --no-alloc-guard",
     "--no-alloc-guard": "for measurement, no allocator guard: blocks are freed into "
-                        "whichever node's arena they came from, and a node process "
-                        "killed inside malloc can leave its arena locked for others",
+    "whichever node's arena they came from, and a node process "
+    "killed inside malloc can leave its arena locked for others",
+    "--no-python-pools": "for measurement, Python objects from CPython's own allocator "
+    "(pymalloc), shared by every node process, instead of the "
+    "guard's pools of each process",
+    "--no-python-locks": "for measurement, CPython's own lock types (no holder recorded): a "
+    "Python lock whose holder's process died stays held",
+    "--no-mutex-repair": "for measurement, do not release a pthread mutex whose owner's node "
+    "process died (nor report a task blocked on one)",
+    "--no-container-gc": "for measurement, let CPython collect garbage on whichever "
+    "thread allocates, node processes included, instead of only "
+    "on a thread of the container",
 }
 
 
@@ -73,81 +90,148 @@ def _watchdog_seconds(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
-    if not (0.0 <= value <= WATCHDOG_MAX_S):     # also refuses nan and inf
+    if not (0.0 <= value <= WATCHDOG_MAX_S):  # also refuses nan and inf
         raise argparse.ArgumentTypeError(f"must be 0 (off) to {WATCHDOG_MAX_S:g} seconds, got {text!r}")
     return value
 
 
+def _restart_limit(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 1 <= value <= 1000:
+        raise argparse.ArgumentTypeError(f"must be 1 to 1000 restarts, got {text!r}")
+    return value
+
+
+class _IsolatedOptions:
+    """The options that mean something only with --isolated: the one way
+    to add them, so that each is refused without it."""
+
+    def __init__(self, parser: argparse.ArgumentParser) -> None:
+        self._group = parser.add_argument_group("isolated mode (each needs --isolated)")
+        self.flags: set[str] = set()
+
+    def add_argument(self, *args, **kwargs) -> argparse.Action:
+        action = self._group.add_argument(*args, **kwargs)
+        self.flags.update(action.option_strings)
+        return action
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The container's own options; a refused one or combination is one
+    line on stderr and exit status 2."""
     parser = _Parser(
         prog="component_container",
-        allow_abbrev=False,           # an isolated-only flag must be seen for what it is
-        description="ROS 2 component container (rclpy) with optional per-node "
-        "clone(CLONE_VM) process isolation.",
+        allow_abbrev=False,  # an isolated-only flag must be seen for what it is
+        description="ROS 2 component container (rclpy) with optional per-node clone(CLONE_VM) process isolation.",
     )
     parser.add_argument(
-        "--use_multi_threaded_executor", "--use-multi-threaded-executor",
+        "--use_multi_threaded_executor",
+        "--use-multi-threaded-executor",
         action="store_true",
         help="spin the container's nodes on a multi-threaded executor",
     )
     parser.add_argument(
-        "--isolated", action="store_true",
+        "--isolated",
+        action="store_true",
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
     )
     parser.add_argument(
-        "--jemalloc", action="store_true",
+        "--jemalloc",
+        action="store_true",
         help="run on jemalloc (re-executes with Debian's libjemalloc2 preloaded)",
     )
     parser.add_argument(
-        "--jemalloc-arenas", choices=("own", "auto"), default="own",
-        help="isolated mode under jemalloc, with --no-alloc-guard: 'own' binds each node's "
-        "process to an arena of its own, 'auto' leaves the choice to jemalloc (the guard "
-        "always gives each its own) (default: %(default)s)",
-    )
-    for flag, what in MITIGATION_SWITCHES.items():
-        parser.add_argument(flag, action="store_true", help=f"isolated mode: {what}")
-    parser.add_argument(
-        "--cgroups", action="store_true",
-        help="isolated mode: each node's process in a cgroup of its own (cgroup2, "
-        "CLONE_INTO_CGROUP); LoadNode extra argument 'cloneguard.cpu_quota' (CPUs) sets a CPU quota",
-    )
-    parser.add_argument(
-        "--restart-policy", choices=POLICIES, default="never",
-        help="isolated mode: 'on-crash' loads a node whose process died again, after "
-        "0.5 s doubling to 30 s (reset once it stayed up 60 s) (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--watchdog", type=_watchdog_seconds, default=None, metavar="SECONDS",
+        "--watchdog",
+        type=_watchdog_seconds,
+        default=None,
+        metavar="SECONDS",
         help="exit with every thread's stack when the container's executor makes no "
         "progress for SECONDS (default: 10 in isolated mode, off otherwise; 0: off)",
     )
     parser.add_argument(
-        "--shutdown-timeout", type=_watchdog_seconds, default=None, metavar="SECONDS",
+        "--shutdown-timeout",
+        type=_watchdog_seconds,
+        default=None,
+        metavar="SECONDS",
         help="exit with every thread's stack (status 1) if stopping takes longer than SECONDS "
         "(default: the --watchdog timeout; 0: no bound)",
     )
-    parser.add_argument(
-        "--node-watchdog", type=_watchdog_seconds, default=0.0, metavar="SECONDS",
-        help="isolated mode: abort (SIGABRT, with its stacks) a node whose callback has run "
-        "longer than SECONDS and report it CRASHED; the other nodes go on (default: 0, off)",
+    isolated = _IsolatedOptions(parser)
+    isolated.add_argument(
+        "--profile",
+        choices=profiles.PROFILES,
+        default=profiles.DEFAULT,
+        help="where nodes are built; 'per-node' gives each child its own rclpy Context "
+        "and DDS participant, 'shared' builds them on the container's (default: %(default)s)",
     )
-    parser.add_argument(
-        "--no-warm-spare", action="store_true",
-        help="isolated per-node profile: do not keep the next node's process, with its DDS "
+    isolated.add_argument(
+        "--no-warm-spare",
+        action="store_true",
+        help="per-node profile: do not keep the next node's process, with its DDS "
         "participant, made ahead of the LoadNode (it is made during each load instead)",
     )
-    parser.add_argument(
-        "--profile", choices=profiles.PROFILES, default=profiles.DEFAULT,
-        help="isolated mode: where nodes are built; 'per-node' gives each child "
-        "its own rclpy Context and DDS participant, 'shared' builds them on the "
-        "container's (default: %(default)s)",
+    isolated.add_argument(
+        "--cgroups",
+        action="store_true",
+        help="each node's process in a cgroup of its own (cgroup2, CLONE_INTO_CGROUP); "
+        "LoadNode extra argument 'cloneguard.cpu_quota' (CPUs) sets a CPU quota",
     )
+    isolated.add_argument(
+        "--restart-policy",
+        choices=POLICIES,
+        default="never",
+        help="'on-crash' loads a node whose process died again, after 0.5 s doubling to "
+        "30 s (reset once it stayed up 60 s) (default: %(default)s)",
+    )
+    isolated.add_argument(
+        "--restart-limit",
+        type=_restart_limit,
+        default=DEFAULT_RESTART_LIMIT,
+        metavar="N",
+        help="with --restart-policy on-crash: a node that died N restarts in a row, none of "
+        "them up 60 s, is not restarted again (each crash leaves its process's objects in "
+        "memory) (default: %(default)s)",
+    )
+    isolated.add_argument(
+        "--node-watchdog",
+        type=_watchdog_seconds,
+        default=0.0,
+        metavar="SECONDS",
+        help="abort (SIGABRT, with its stacks) a node whose callback has run longer than "
+        "SECONDS and report it CRASHED; the other nodes go on (default: 0, off)",
+    )
+    isolated.add_argument(
+        "--jemalloc-arenas",
+        choices=("own", "auto"),
+        default="own",
+        help="with --jemalloc and --no-alloc-guard: 'own' binds each node's process to an "
+        "arena of its own, 'auto' leaves the choice to jemalloc (the guard always gives "
+        "each its own) (default: %(default)s)",
+    )
+    for flag, what in MITIGATION_SWITCHES.items():
+        isolated.add_argument(flag, action="store_true", help=what)
     opts = parser.parse_args(argv)
+    given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
     if not opts.isolated:
-        given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
-        for flag in ISOLATED_ONLY:
-            if flag in given:
-                parser.error(f"{flag} needs --isolated")
+        for flag in sorted(isolated.flags & given):
+            parser.error(f"{flag} needs --isolated")
+    if "--restart-limit" in given and opts.restart_policy != "on-crash":
+        parser.error("--restart-limit needs --restart-policy on-crash")
+    if "--jemalloc-arenas" in given and not (opts.jemalloc and opts.no_alloc_guard):
+        parser.error(
+            "--jemalloc-arenas needs --jemalloc and --no-alloc-guard (the allocator guard "
+            "gives every node process an arena of its own)"
+        )
+    if opts.no_python_pools and opts.no_alloc_guard:
+        parser.error("--no-python-pools means nothing with --no-alloc-guard (the pools are the guard's)")
+    if opts.shared_arenas and (opts.jemalloc or not opts.no_alloc_guard):
+        parser.error(
+            "--shared-arenas needs glibc malloc and --no-alloc-guard (the allocator guard "
+            "gives every node process an arena of its own)"
+        )
     return opts
 
 
@@ -180,21 +264,33 @@ def _raise_open_file_limit() -> tuple[int, int] | None:
     return soft, top
 
 
-def _make_host(opts, executor, context, logger):
+def _make_host(opts, argv, executor, context, logger):
     if not opts.isolated:
         return ThreadHost(executor, context)
     # Imported here: thread mode must work where the C core cannot (not
     # built on this platform: setup.py); the self-check says so.
-    from .isolated.assumptions import IsolationUnavailable
+    from .isolated.assumptions import IsolationUnavailable, core_module
+
+    try:
+        _, core = core_module()  # the modules below import it
+    except IsolationUnavailable as exc:
+        raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
+    # A fatal signal in the container itself: its native stack first, then
+    # faulthandler's Python stacks (enabled by main) as before.
+    core.cg_container_crash_report()
     from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
     from .isolated.core import Mitigations
     from .isolated.host import IsolatedHost
+
     mitigations = Mitigations(
         gil_repair=not opts.no_gil_repair,
         condvar_repair=not opts.no_condvar_repair,
+        interp_repair=not opts.no_interp_repair,
         crash_report=not opts.no_crash_report,
         jemalloc_arena=opts.jemalloc_arenas,
         alloc_guard=not opts.no_alloc_guard,
+        container_gc=not opts.no_container_gc,
+        mutex_repair=False if opts.no_mutex_repair else None,
     )
     try:
         cgroups = NodeCgroups() if opts.cgroups else None
@@ -203,47 +299,92 @@ def _make_host(opts, executor, context, logger):
     for stale in cgroups.reclaimed if cgroups is not None else ():
         logger.warning(f"removed the empty cgroup {stale}, left by a dead container that had this pid")
     try:
-        return IsolatedHost(context, profile=opts.profile, logger=logger, cgroups=cgroups,
-                            mitigations=mitigations, warm_spare=not opts.no_warm_spare)
+        return IsolatedHost(
+            context,
+            profile=opts.profile,
+            logger=logger,
+            cgroups=cgroups,
+            mitigations=mitigations,
+            warm_spare=not opts.no_warm_spare,
+            container_argv=argv,
+        )
     except IsolationUnavailable as exc:
         if cgroups is not None:
             cgroups.close()
         raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
 
 
+@dataclass
+class _Container:
+    """A built container: its node, executors, host and manager, and what
+    watches them; ``serve`` runs it until a stop signal, ``stop`` ends it."""
+
+    opts: argparse.Namespace
+    stop_signals: StopSignals
+    context: Context
+    node: Node
+    executor: SingleThreadedExecutor | MultiThreadedExecutor
+    services: MultiThreadedExecutor
+    host: Any
+    manager: ComponentManager
+    watchdog_s: float
+    watchdog: Watchdog | None
+    node_watchdog: NodeWatchdog | None
+    failure: list[BaseException] = field(default_factory=list)
+    threads: list[threading.Thread] = field(default_factory=list)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
+    opts, raised_fd_limit = _prepare_process(argv)
+    container = _build(opts, argv, raised_fd_limit)
+    signum = _serve(container)
+    return _stop(container, signum)
+
+
+def _prepare_process(argv: list[str]) -> tuple[argparse.Namespace, tuple[int, int] | None]:
+    """The options, and what the process needs before its second thread:
+    the preloaded allocator (re-executing if it is not), glibc's arenas, the
+    open-file limit (raised: (old, new), or None), faulthandler."""
     try:
         plain = remove_ros_args(argv)[1:]
     except Exception as exc:
         raise SystemExit(f"component_container: invalid ROS arguments: {exc}") from None
     opts = parse_args(plain)
     guard = opts.isolated and not opts.no_alloc_guard
-    if guard and (opts.shared_arenas or opts.jemalloc_arenas != "own"):
-        raise SystemExit("component_container: --shared-arenas and --jemalloc-arenas auto "
-                         "need --no-alloc-guard (the guard gives every node process an arena "
-                         "of its own)")
-    if guard or opts.jemalloc:
+    python_locks = opts.isolated and not opts.no_python_locks
+    if guard or opts.jemalloc or python_locks:
         try:
             # Returns only once what is asked for is in use (else re-executes).
-            allocator.ensure_preloaded(argv, guard=guard, jemalloc=opts.jemalloc)
+            allocator.ensure_preloaded(
+                argv,
+                guard=guard,
+                jemalloc=opts.jemalloc,
+                python_pools=not opts.no_python_pools,
+                python_locks=python_locks,
+            )
         except allocator.AllocatorUnavailable as exc:
             raise SystemExit(f"component_container: {exc}") from None
     if opts.isolated and not opts.shared_arenas:
-        allocator.glibc_arena_per_task()        # before a second thread exists
+        allocator.glibc_arena_per_task()  # before a second thread exists
     raised_fd_limit = _raise_open_file_limit() if opts.isolated else None
     # If the container process itself dies of a fault, the log says where:
     # every thread's Python stack (its children have crash reports of their
     # own; they start with no handler).
     faulthandler.enable(file=sys.stderr, all_threads=True)
-    stop = StopSignals()
+    return opts, raised_fd_limit
+
+
+def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int, int] | None) -> _Container:
+    stop_signals = StopSignals()
     _ros_init(argv)
-    options.container_argv = list(argv)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
     if raised_fd_limit:
-        node.get_logger().info(f"open-file limit raised from {raised_fd_limit[0]} to {raised_fd_limit[1]}: "
-                               "node processes share this process's file descriptors")
+        node.get_logger().info(
+            f"open-file limit raised from {raised_fd_limit[0]} to {raised_fd_limit[1]}: "
+            "node processes share this process's file descriptors"
+        )
     # Thread mode's nodes spin on this executor (as upstream's containers);
     # the container's own services spin on one of their own, so that no
     # node's callback, nor a LoadNode waiting for a constructor, can keep
@@ -255,16 +396,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     services = MultiThreadedExecutor(num_threads=SERVICE_THREADS, context=context)
     try:
-        host = _make_host(opts, executor, context, node.get_logger())
+        host = _make_host(opts, argv, executor, context, node.get_logger())
     except SystemExit:
         node.destroy_node()
         rclpy.try_shutdown()
         raise
-    manager = ComponentManager(node, host)
-    if opts.isolated:
-        host.on_death = manager.on_death
-        if opts.restart_policy == "on-crash":
-            manager.restart_policy = RestartPolicy(node, manager.reload)
+    manager = ComponentManager(
+        node, host, restart_limit=opts.restart_limit if opts.restart_policy == "on-crash" else None
+    )
     services.add_node(node)
     watchdog_s = opts.watchdog if opts.watchdog is not None else (10.0 if opts.isolated else 0.0)
     watchdog = None
@@ -273,49 +412,68 @@ def main(argv: list[str] | None = None) -> int:
         # a dead child left on it is found and repaired even when idle.
         on_tick = host.board.snapshot if opts.isolated else None
         watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick)
-        manager.watchdog = watchdog
     node_watchdog = NodeWatchdog(node, host, opts.node_watchdog) if opts.node_watchdog > 0 else None
-    failure: list[BaseException] = []
-    spinner = threading.Thread(target=_spin, args=(executor, stop, failure), name="container-executor")
-    spinner.start()
-    server = threading.Thread(target=_serve, args=(services, node), name="container-services")
-    server.start()
-    node.get_logger().info(
-        f"{node.get_fully_qualified_name()} ready "
+    return _Container(
+        opts, stop_signals, context, node, executor, services, host, manager, watchdog_s, watchdog, node_watchdog
+    )
+
+
+def _serve(c: _Container) -> int:
+    """Spin the nodes and the services, each on a thread of its own, until
+    a stop signal (or a callback's exception) comes; its number."""
+    c.threads = [
+        threading.Thread(target=_spin, args=(c.executor, c.stop_signals, c.failure), name="container-executor"),
+        threading.Thread(target=_serve_services, args=(c.services, c.node), name="container-services"),
+    ]
+    for t in c.threads:
+        t.start()
+    opts = c.opts
+    c.node.get_logger().info(
+        f"{c.node.get_fully_qualified_name()} ready "
         f"({'multi' if opts.use_multi_threaded_executor else 'single'}-threaded executor"
         f"{', isolated, profile ' + opts.profile if opts.isolated else ''}, {allocator.describe()})"
     )
-    signum = stop.wait()
-    if failure:
+    return c.stop_signals.wait()
+
+
+def _stop(c: _Container, signum: int) -> int:
+    """Stop serving first, then stop the nodes, then tear down our own DDS
+    side, within the shutdown bound; the exit status."""
+    log = c.node.get_logger()
+    if c.failure:
         # As with rclcpp: an exception escaping a callback ends the container.
-        node.get_logger().fatal(f"stopping: a callback raised {type(failure[0]).__name__}: {failure[0]}")
+        log.fatal(f"stopping: a callback raised {type(c.failure[0]).__name__}: {c.failure[0]}")
     else:
-        node.get_logger().info(f"stopping ({signal.Signals(signum).name})")
-    # Stop serving first, then stop the nodes, then tear down our own DDS side.
-    if watchdog is not None:
-        watchdog.close()
-    shutdown_s = opts.shutdown_timeout if opts.shutdown_timeout is not None else watchdog_s
+        log.info(f"stopping ({signal.Signals(signum).name})")
+    if c.watchdog is not None:
+        c.watchdog.close()
+    shutdown_s = c.opts.shutdown_timeout if c.opts.shutdown_timeout is not None else c.watchdog_s
     shutdown_bound = bound_shutdown(shutdown_s) if shutdown_s > 0 else None
-    if node_watchdog is not None:
-        node_watchdog.close()
-    manager.stopping()                    # answer loads still waiting for their node
-    services.shutdown()
+    if c.node_watchdog is not None:
+        c.node_watchdog.close()
+    c.manager.stopping()  # answer loads still waiting for their node
+    unanswered = c.manager.wait_answered(ANSWER_WAIT_S)
+    if unanswered:
+        log.warning(f"stopping with {unanswered} request(s) unanswered after {ANSWER_WAIT_S:g} s")
+    spinner, server = c.threads
+    c.services.shutdown()
     server.join()
-    executor.shutdown()
+    c.executor.shutdown()
     spinner.join()
     try:
-        manager.close()
-    except Exception:                     # shutdown goes on regardless
-        node.get_logger().error("stopping the nodes failed:\n" + traceback.format_exc())
-    node.destroy_node()
+        c.manager.close()
+    except Exception:  # shutdown goes on regardless
+        log.error("stopping the nodes failed:\n" + traceback.format_exc())
+    c.node.destroy_node()
     rclpy.try_shutdown()
     # Destroying the context destroys its DDS participant now, which unlinks
     # its /dev/shm segments when the SHM transport is on.
-    context.destroy()
-    stop.close()
+    c.context.destroy()
+    c.stop_signals.close()
     if shutdown_bound is not None:
         shutdown_bound.close()
-    if opts.isolated:
+    status = 1 if c.failure else 0
+    if c.opts.isolated:
         # Objects a dead child left behind (see isolated/host.py) must never
         # be destroyed: the C++ static destructors that exit() runs would do
         # it (Fast DDS destroys every participant it still knows) and block
@@ -323,18 +481,18 @@ def main(argv: list[str] | None = None) -> int:
         # of ours is already stopped; flush and leave without them.
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(1 if failure else 0)
-    return 1 if failure else 0
+        os._exit(status)
+    return status
 
 
-def _serve(services, node) -> None:
+def _serve_services(services, node) -> None:
     """The services' executor: its callbacks contain their own failures
     (manager.py); should anything still escape, it is logged and serving
     goes on."""
     while True:
         try:
             services.spin()
-            return                         # shut down
+            return  # shut down
         except Exception:
             if not node.context.ok():
                 return
@@ -348,7 +506,7 @@ def _spin(executor, stop: StopSignals, failure: list) -> None:
         traceback.print_exc()
         failure.append(exc)
     finally:
-        stop.post()   # if spin ended on its own (an error), the main thread stops too
+        stop.post()  # if spin ended on its own (an error), the main thread stops too
 
 
 if __name__ == "__main__":

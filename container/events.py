@@ -1,10 +1,12 @@
 """The ComponentEvent stream: what happened to which node, on a latched topic."""
+
 from __future__ import annotations
 
 import time
 
 from cloneguard_interfaces.msg import ComponentEvent
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.exceptions import InvalidHandle
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 EVENTS_TOPIC = "~/_container/component_events"
@@ -64,12 +66,19 @@ class EventPublisher:
         msg.repaired_state = repaired_state
         # Children can die while the container shuts down (they got the same
         # SIGTERM); once the context is gone there is no one to tell.
-        if not self._node.context.ok():
+        if not self._context_ok():
             return None
         try:
             self._pub.publish(msg)
         except RCLError:
-            if self._node.context.ok():
+            if self._context_ok():
                 raise
             return None
         return msg
+
+    def _context_ok(self) -> bool:
+        """Is the context still up? (Once destroyed, asking raises.)"""
+        try:
+            return self._node.context.ok()
+        except InvalidHandle:
+            return False

@@ -12,22 +12,26 @@ node its own clone(CLONE_VM) child. Both take the same calls:
     load, so that they do not compete with that for the GIL).
 ``stop(hosted)``
     stop running it and destroy it.
-``close()``
-    stop everything (container shutdown).
+``close(hosted_nodes)``
+    stop every one of ``hosted_nodes`` and what the host keeps of its own
+    (container shutdown).
 
-A host that can lose a node on its own (a child that dies) reports it through
-the ``on_death(unique_id, death)`` callback the manager gives it.
+``report_deaths_to(on_death)``
+    the manager, once made, says where a node the host loses on its own (a
+    child that dies) is reported: ``on_death(unique_id, death)``.
 """
+
 from __future__ import annotations
 
 import os
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from rclpy.node import Node
 
-from . import factory
+from . import construction
 from .options import CPU_QUOTA, LoadError, NodeArguments
 
 
@@ -39,8 +43,8 @@ class Hosted:
     full_node_name: str
     pid: int
     start_time_ns: int
-    node: Node | None = None   # the node object, where the container holds it
-    detail: object = field(default=None, repr=False)  # host-specific state
+    node: Node | None = None  # the node object, where the container holds it
+    detail: Any = field(default=None, repr=False)  # host-specific state
 
 
 class ThreadHost:
@@ -58,7 +62,7 @@ class ThreadHost:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         start = time.time_ns()
-        node = factory.construct(cls, args, self._context, unique_id)
+        node = construction.construct(cls, args, self._context, unique_id)
         with self._lock:
             self._states[unique_id] = "built"
         return Hosted(unique_id, node.get_fully_qualified_name(), os.getpid(), start, node)
@@ -76,10 +80,12 @@ class ThreadHost:
     def stop(self, hosted: Hosted) -> None:
         with self._lock:
             was = self._states.pop(hosted.unique_id, None)
+        node = hosted.node
+        assert node is not None, "thread mode holds every node it built"
         if was == "running":
-            self._executor.remove_node(hosted.node)
+            self._executor.remove_node(node)
             self._quiesce()
-        factory.destroy(hosted.node)
+        construction.destroy(node)
 
     def _quiesce(self, timeout: float = 2.0) -> None:
         """Wait until the executor has been round its loop once more: a wait
@@ -92,6 +98,10 @@ class ThreadHost:
         self._executor.create_task(turned.set)
         self._executor.wake()
         turned.wait(timeout)
+
+    def report_deaths_to(self, on_death) -> None:
+        """Nothing to report: a node on the container's executor dies only
+        with the container."""
 
     def close(self, hosted_nodes) -> None:
         for hosted in hosted_nodes:

@@ -8,7 +8,8 @@ a failed load answers unique_id 0 and an empty full_node_name.
 
 Deaths come from the host (isolated mode), on its monitor's thread: the node
 leaves the table, a CRASHED event goes out, and with a restart policy the
-same request is loaded again after a backoff.
+same request is loaded again after a backoff, up to a limit of restarts in
+a row (restart.py); the CRASHED event says which.
 
 No request can stop the container serving others. The services share a
 reentrant callback group (the command line spins this node on an executor
@@ -20,12 +21,14 @@ request's failure (``success=false``, the cause named, the traceback logged
 once), never the container's end. What a request echoes back is bounded and
 escaped (``shown``).
 """
+
 from __future__ import annotations
 
 import threading
 import traceback
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -35,7 +38,44 @@ from . import events, intra, options, registry, repairs, seams
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
-from .restart import Lineage, uptime
+from .restart import Lineage, RestartPolicy, uptime
+
+
+class _Unanswered:
+    """Requests taken and not yet answered. rclpy sends what a handler
+    returns once the handler has returned, and rclpy 7.1's
+    ``Executor.shutdown`` does not wait for callbacks in flight: stopping
+    waits here, so that a request answered while the container stops (a
+    load still waiting for its node) reaches its caller."""
+
+    def __init__(self) -> None:
+        self._count = 0
+        self._changed = threading.Condition()
+
+    def counted(self, handler):
+        def taken(request, response):
+            with self._changed:
+                self._count += 1
+            return handler(request, response)
+
+        return taken
+
+    def answering(self, send):
+        def send_response(response, header) -> None:
+            try:
+                send(response, header)
+            finally:
+                with self._changed:
+                    self._count -= 1
+                    self._changed.notify_all()
+
+        return send_response
+
+    def wait(self, timeout: float) -> int:
+        """Wait until every request taken is answered; how many are not."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._count == 0, timeout)
+            return self._count
 
 
 @dataclass
@@ -47,8 +87,7 @@ class _Entry:
 
 
 def _qos_fields(profile: QoSProfile) -> dict:
-    return {"history": profile.history, "reliability": profile.reliability,
-            "durability": profile.durability}
+    return {"history": profile.history, "reliability": profile.reliability, "durability": profile.durability}
 
 
 def shown(text: str, limit: int = 500) -> str:
@@ -71,31 +110,38 @@ class ComponentManager:
     # Requests a service keeps queued while its threads are busy.
     REQUEST_QUEUE = 1000
 
-    def __init__(self, node, host, *, logger=None):
+    def __init__(self, node, host, *, logger=None, restart_limit: int | None = None):
+        """``restart_limit``: reload a node whose process died (restart.py),
+        at most that many times in a row; None: never."""
         self._node = node
         self._host = host
         self._log = logger or node.get_logger()
         self._events = EventPublisher(node)
-        self._lock = threading.Lock()       # guards the fields below
-        self._built = threading.Condition(self._lock)   # a start ended, or stopping began
+        self._lock = threading.Lock()  # guards the fields below
+        self._built = threading.Condition(self._lock)  # a start ended, or stopping began
         self._stopping = False
         self._next_id = 1
         self._loaded: dict[int, _Entry] = {}
-        self._starting: set[int] = set()    # ids whose host.start() is running
-        self._early_deaths: dict[int, object] = {}   # deaths seen while starting
+        self._starting: set[int] = set()  # ids whose host.start() is running
+        self._early_deaths: dict[int, object] = {}  # deaths seen while starting
+        self._unanswered = _Unanswered()
         self._builders = ThreadPoolExecutor(self.BUILDERS, thread_name_prefix="cloneguard-build")
-        self.watchdog = None                # set by the command line when it runs one
-        self.restart_policy = None          # likewise (container.restart.RestartPolicy)
+        self._restarts = None if restart_limit is None else RestartPolicy(node, self.reload, limit=restart_limit)
+        host.report_deaths_to(self.on_death)
         # The intra-process bus is container-owned: made here, before any child.
         intra.get_bus()
         group = ReentrantCallbackGroup()
         # ROS's default service queue keeps 10 requests: an eleventh that
         # arrives while they wait is dropped, never answered. Keep more.
         qos = QoSProfile(**{**_qos_fields(qos_profile_services_default), "depth": self.REQUEST_QUEUE})
-        for srv_type, name, handler in ((LoadNode, "load_node", self._on_load_node),
-                                        (UnloadNode, "unload_node", self._on_unload_node),
-                                        (ListNodes, "list_nodes", self._on_list_nodes)):
-            node.create_service(srv_type, f"~/_container/{name}", handler, qos_profile=qos, callback_group=group)
+        for srv_type, name, handler in (
+            (LoadNode, "load_node", self._on_load_node),
+            (UnloadNode, "unload_node", self._on_unload_node),
+            (ListNodes, "list_nodes", self._on_list_nodes),
+        ):
+            counted = self._unanswered.counted(handler)
+            srv = node.create_service(srv_type, f"~/_container/{name}", counted, qos_profile=qos, callback_group=group)
+            srv.send_response = self._unanswered.answering(srv.send_response)
         # Repairs recorded by whichever task did them (repairs.py), published here.
         self._repair_timer = node.create_timer(self.REPAIR_POLL_S, self.publish_repairs)
 
@@ -130,13 +176,15 @@ class ComponentManager:
         unique_id = self._take_id()
         try:
             hosted = self._start(unique_id, cls, args)
-        except BaseException as exc:     # whatever the start raised fails this load only
-            intra.get_bus().forget(unique_id)   # what a failed constructor registered
+        except BaseException as exc:  # whatever the start raised fails this load only
+            intra.get_bus().forget(unique_id)  # what a failed constructor registered
             with self._lock:
                 self._starting.discard(unique_id)
             if not isinstance(exc, LoadError):
-                self._log.error(f"unique_id {unique_id}: starting the node failed unexpectedly:\n"
-                                + "".join(traceback.format_exception(exc)))
+                self._log.error(
+                    f"unique_id {unique_id}: starting the node failed unexpectedly:\n"
+                    + "".join(traceback.format_exception(exc))
+                )
                 exc = LoadError(f"internal error: {type(exc).__name__}: {exc}")
             return self._load_failed(request, response, str(exc))
         entry = _Entry(hosted, spec, request, lineage or Lineage(hosted.full_node_name))
@@ -149,13 +197,12 @@ class ComponentManager:
         # own (0.6-0.9 ms inside the container, measured, when it came first).
         if args.drop_loaded_event:
             self._log.warning(
-                f"not publishing LOADED for unique_id {unique_id} "
-                f"(fault injection: {seams.DROP_LOADED_EVENT})")
+                f"not publishing LOADED for unique_id {unique_id} (fault injection: {seams.DROP_LOADED_EVENT})"
+            )
         else:
             self._publish(events.LOADED, entry)
         self._log.info(
-            f"Loaded {spec.plugin_name} as {hosted.full_node_name} "
-            f"(unique_id {unique_id}, pid {hosted.pid})"
+            f"Loaded {spec.plugin_name} as {hosted.full_node_name} (unique_id {unique_id}, pid {hosted.pid})"
         )
         if early_death is not None:
             self._report_crash(entry, early_death)
@@ -208,29 +255,25 @@ class ComponentManager:
                 self._early_deaths[unique_id] = death
                 return
             entry = self._loaded.pop(unique_id, None)
-        if entry is not None:   # None: an unload got there first
+        if entry is not None:  # None: an unload got there first
             self._report_crash(entry, death)
 
     def _report_crash(self, entry: _Entry, death) -> None:
         hosted = entry.hosted
+        restart = None
+        if self._restarts is not None and self._node.context.ok():
+            restart = self._restarts.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))
+        reason = death.reason if restart is None else f"{death.reason}; {restart.text}"
         # The event first: logging goes to /rosout too, a DDS publish of its own.
         self._publish(
-            events.CRASHED, entry,
-            error_message=death.reason,
+            events.CRASHED,
+            entry,
+            error_message=reason,
             exit_signal=death.exit_signal,
             exit_code=death.exit_code,
             allocator_quarantined=death.allocator_quarantined,
         )
-        self._log.error(
-            f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) "
-            f"died: {death.reason}"
-        )
-        if self.restart_policy is not None and self._node.context.ok():
-            delay = self.restart_policy.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))
-            self._log.warning(
-                f"restarting {entry.lineage.name} in {delay:g} s "
-                f"(restart {entry.lineage.restarts})"
-            )
+        self._log.error(f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) died: {reason}")
 
     def reload(self, request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""
@@ -248,10 +291,15 @@ class ComponentManager:
             self._stopping = True
             self._built.notify_all()
 
+    def wait_answered(self, timeout: float) -> int:
+        """After ``stopping``: wait for the requests in flight to be
+        answered, at most ``timeout``; how many were not."""
+        return self._unanswered.wait(timeout)
+
     def close(self) -> None:
         """Stop every node (container shutdown); no events, the context is gone."""
-        if self.restart_policy is not None:
-            self.restart_policy.cancel_all()
+        if self._restarts is not None:
+            self._restarts.cancel_all()
         with self._lock:
             entries, self._loaded = list(self._loaded.values()), {}
         for uid in [e.hosted.unique_id for e in entries]:
@@ -317,12 +365,22 @@ class ComponentManager:
         for repair in repairs.drain():
             with self._lock:
                 entry = self._loaded.get(repair.unique_id)
-            names = {}
+            names: dict[str, Any] = {}
             if entry is not None:
-                names = {"full_node_name": entry.hosted.full_node_name, "package_name": entry.spec.package_name,
-                         "plugin_name": entry.spec.plugin_name, "pid": entry.hosted.pid}
-            self._events.publish(events.REPAIRED, unique_id=repair.unique_id, error_message=repair.detail,
-                                 repaired_state=repair.state, stamp_ns=repair.stamp_ns, **names)
+                names = {
+                    "full_node_name": entry.hosted.full_node_name,
+                    "package_name": entry.spec.package_name,
+                    "plugin_name": entry.spec.plugin_name,
+                    "pid": entry.hosted.pid,
+                }
+            self._events.publish(
+                events.REPAIRED,
+                unique_id=repair.unique_id,
+                error_message=repair.detail,
+                repaired_state=repair.state,
+                stamp_ns=repair.stamp_ns,
+                **names,
+            )
 
     def _publish(self, event_type, entry: _Entry, **extra) -> None:
         hosted = entry.hosted

@@ -9,6 +9,7 @@ arguments (rules first, then ``__node:=``, then ``__ns:=``: the first rule
 that matches wins) and judged by rcl when the node is built: a bad one fails
 the load after an id was taken, with rcl's message.
 """
+
 from __future__ import annotations
 
 import math
@@ -40,11 +41,8 @@ KNOWN_EXTRA_ARGUMENTS = {
 FORWARD_GLOBAL_WARNING = (
     "forward_global_arguments is true by default in nodes, but is not recommended in a component "
     "manager. If true, this will cause this node's behavior to be influenced by global arguments, "
-    "not only those targeted at this node.")
-# The container's own command line: a node built with forward_global_arguments
-# on a Context of its own (isolated, per-node) gets its global ROS arguments
-# from here. Set by the command line before any load.
-container_argv: list[str] = []
+    "not only those targeted at this node."
+)
 FAULT_EXTRA_ARGUMENTS = {seams.DROP_LOADED_EVENT: Parameter.Type.BOOL}
 _TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double"}
 
@@ -98,14 +96,15 @@ def _extra_arguments(messages) -> dict[str, object]:
         if wanted is None and seams.enabled():
             wanted = FAULT_EXTRA_ARGUMENTS.get(param.name)
         if wanted is not None and param.type_ != wanted:
-            raise LoadError(
-                f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}"
-            )
-        if param.name == CPU_QUOTA and not (math.isfinite(param.value)
-                                            and CPU_QUOTA_RANGE[0] <= param.value <= CPU_QUOTA_RANGE[1]):
+            raise LoadError(f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}")
+        if param.name == CPU_QUOTA and not (
+            math.isfinite(param.value) and CPU_QUOTA_RANGE[0] <= param.value <= CPU_QUOTA_RANGE[1]
+        ):
             low, high = CPU_QUOTA_RANGE
-            raise LoadError(f"Extra component argument '{CPU_QUOTA}' must be between {low:g} and "
-                            f"{high:g} (CPUs), got {param.value!r}")
+            raise LoadError(
+                f"Extra component argument '{CPU_QUOTA}' must be between {low:g} and "
+                f"{high:g} (CPUs), got {param.value!r}"
+            )
         extra[param.name] = param.value
     return extra
 
@@ -127,7 +126,7 @@ def from_request(request) -> NodeArguments:
         use_intra_process_comms=bool(extra.get("use_intra_process_comms", False)),
         forward_global_arguments=bool(extra.get("forward_global_arguments", False)),
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
-        cpu_quota=extra.get(CPU_QUOTA),
+        cpu_quota=float(extra[CPU_QUOTA]) if CPU_QUOTA in extra else None,  # type: ignore[arg-type]
         log_level=request.log_level if request.log_level in LOG_LEVELS else 0,
         extra=extra,
     )

@@ -12,6 +12,7 @@ A component's ``__init__`` accepts the keyword arguments of
 ``rclpy.node.Node.__init__`` (context, cli_args, parameter_overrides, ...) and
 forwards them to it, the way an rclcpp component takes ``NodeOptions``.
 """
+
 from __future__ import annotations
 
 import re
@@ -54,8 +55,7 @@ class ComponentSpec:
             ) from None
         if not (isinstance(cls, type) and issubclass(cls, Node)):
             raise LoadError(
-                f"Component {self.plugin_name!r} ({self.entry_point.value}) "
-                "is not a subclass of rclpy.node.Node"
+                f"Component {self.plugin_name!r} ({self.entry_point.value}) is not a subclass of rclpy.node.Node"
             )
         return cls
 
@@ -85,7 +85,7 @@ def find(package_name: str, plugin_name: str) -> ComponentSpec:
     if not package_name:
         raise LoadError(UNKNOWN_PACKAGE)
     if _index is None or plugin_name not in components_of(package_name):
-        _index = _scan()      # first use, or installed since the last scan?
+        _index = _scan()  # first use, or installed since the last scan?
     plugins = components_of(package_name)
     if not plugins:
         raise LoadError(UNKNOWN_PACKAGE)

@@ -6,7 +6,9 @@
  * gets EDEADLK instead of hanging.  Its own small extension, so that
  * thread mode (intra-process queues, the bus, the loan pool) needs no clone
  * core. */
+#ifndef _GNU_SOURCE
 #define _GNU_SOURCE
+#endif
 #include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>

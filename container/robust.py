@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator
 
 from ._robust import ffi, lib
 
@@ -66,8 +66,7 @@ class RobustMutex:
     def unlock(self) -> None:
         self._check(lib.rm_unlock(self._m), "unlock")
 
-    def acquire(self, timeout: float | None = None,
-                repair: Callable[[], None] | None = None) -> bool:
+    def acquire(self, timeout: float | None = None, repair: Callable[[], None] | None = None) -> bool:
         """Lock; if the owner had died, repair and mark consistent first.
 
         Returns whether a repair happened.  If the repair raises, the mutex is
@@ -88,8 +87,7 @@ class RobustMutex:
         return died
 
     @contextmanager
-    def held(self, timeout: float | None = None,
-             repair: Callable[[], None] | None = None) -> Iterator[bool]:
+    def held(self, timeout: float | None = None, repair: Callable[[], None] | None = None) -> Iterator[bool]:
         """``with m.held(timeout, repair) as repaired:`` -- see acquire()."""
         repaired = self.acquire(timeout, repair)
         try:
@@ -112,9 +110,7 @@ class RobustMutex:
         if rc == errno.ETIMEDOUT:
             raise TimeoutError("robust mutex: timed out")
         if rc == errno.ENOTRECOVERABLE:
-            raise MutexNotRecoverable(
-                "robust mutex: a previous owner died and the state was never "
-                "marked consistent")
+            raise MutexNotRecoverable("robust mutex: a previous owner died and the state was never marked consistent")
         if rc == errno.EDEADLK:
             raise RuntimeError("robust mutex: already held by this thread")
         raise OSError(rc, os.strerror(rc))

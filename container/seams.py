@@ -9,11 +9,12 @@ declares itself in the entry-point group ``cloneguard.test_rig``. A
 production install has no test rig, so nothing can switch them on; the
 extra argument is then an unknown one, ignored as upstream ignores those.
 """
+
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from importlib.metadata import entry_points
-from typing import Callable
 
 RIG_GROUP = "cloneguard.test_rig"
 #: LoadNode extra argument (bool): the node loads, its LOADED event is not sent.

@@ -7,6 +7,7 @@ while the container is still deciding how to stop them. Here a signal only
 wakes the main thread (Python's wakeup fd, written by the C-level handler on
 whatever thread the kernel picked), and the container stops in its own order.
 """
+
 from __future__ import annotations
 
 import os
@@ -24,14 +25,14 @@ class StopSignals:
 
     @staticmethod
     def _ignore(signum, frame):
-        pass   # the wakeup fd already carries it
+        pass  # the wakeup fd already carries it
 
     def post(self, why: int = 0) -> None:
         """Wake :meth:`wait` without a signal (e.g. the executor thread died)."""
         try:
             os.write(self._w, bytes([why]))
         except BlockingIOError:
-            pass   # a wake-up is already pending
+            pass  # a wake-up is already pending
 
     def wait(self) -> int:
         """Block until a stop signal (or post); return the signal number (0 for post)."""

@@ -25,6 +25,7 @@ then on no executor is watched (a node that never stops, a DDS call that
 never returns, would otherwise keep the container alive until someone kills
 it, and say nothing of where it is stuck).
 """
+
 from __future__ import annotations
 
 import faulthandler
@@ -32,6 +33,7 @@ import os
 import sys
 import threading
 import time
+from typing import Any
 
 BANNER = "cloneguard watchdog"
 FALLBACK_GRACE_S = 2.0
@@ -42,7 +44,7 @@ class _Deadline:
 
     def __init__(self, timeout_s: float, what: str):
         self.timeout_s = timeout_s
-        self._what = what            # "<what> for <timeout> s" is the reason printed
+        self._what = what  # "<what> for <timeout> s" is the reason printed
         self._deadline = 0.0
         self._closed = threading.Event()
         self.arm()
@@ -51,9 +53,7 @@ class _Deadline:
 
     def arm(self) -> None:
         self._deadline = time.monotonic() + self.timeout_s
-        faulthandler.dump_traceback_later(
-            self.timeout_s + FALLBACK_GRACE_S, repeat=False, file=sys.stderr, exit=True
-        )
+        faulthandler.dump_traceback_later(self.timeout_s + FALLBACK_GRACE_S, repeat=False, file=sys.stderr, exit=True)
 
     def _watch(self) -> None:
         while True:
@@ -96,8 +96,8 @@ class Watchdog:
         self._log = node.get_logger()
         self._watched = list(executors)
         self._lock = threading.Lock()
-        self._progressed: set[int] = set()     # indexes into _watched since the last arming
-        self._pending: dict[int, object] = {}  # a task handed out, not yet run
+        self._progressed: set[int] = set()  # indexes into _watched since the last arming
+        self._pending: dict[int, Any] = {}  # a task handed out, not yet run
         self._deadline = _Deadline(timeout_s, "no progress")
         self._timer = node.create_timer(min(1.0, timeout_s / 4), self._tick)
         self._log.info(

@@ -1,5 +1,6 @@
 """Range checks for the demo components' parameters: a bad value fails the
 load with a message that says the accepted range."""
+
 from __future__ import annotations
 
 import math

@@ -4,6 +4,7 @@
 number of requests served and the pid of the process that served it, which
 is how a caller sees which process a node runs in.
 """
+
 import os
 
 from cloneguard_interfaces.srv import Echo

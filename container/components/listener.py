@@ -7,6 +7,7 @@ Its subscription is an intra-process one (container.intra): loaded with
 the rest over DDS, each message once; ``~/by_reference`` counts the
 messages that came by reference.
 """
+
 from rclpy.node import Node
 from std_msgs.msg import String, UInt64
 

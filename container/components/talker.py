@@ -5,6 +5,7 @@ Its publisher is an intra-process one (container.intra): loaded with
 nodes by reference, and to DDS only for subscribers outside the container.
 ``limit`` > 0 stops it after that many messages.
 """
+
 from rclpy.node import Node
 from std_msgs.msg import String
 

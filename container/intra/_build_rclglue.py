@@ -27,10 +27,14 @@ Built by setup.py (``cffi_modules``); after an edit of the C,
 ``pip install --no-build-isolation --no-deps -e .`` rebuilds it in place.
 """
 
+import runpy
 import sys
 from pathlib import Path
 
 from cffi import FFI
+
+# The project's C warning flags: one list for every build (scripts/cflags.py).
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "cflags.py"))["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 
@@ -42,15 +46,22 @@ LIB_DIR = PREFIX / "lib"
 # wheel installs its headers as include/<pkg>/<pkg>/*.h, so every package is
 # one include directory.
 HEADER_PACKAGES = (
-    "rcl", "rmw", "rcutils", "rcl_yaml_param_parser",
-    "rosidl_runtime_c", "rosidl_typesupport_interface",
-    "rosidl_dynamic_typesupport", "type_description_interfaces",
-    "service_msgs", "builtin_interfaces",
+    "rcl",
+    "rmw",
+    "rcutils",
+    "rcl_yaml_param_parser",
+    "rosidl_runtime_c",
+    "rosidl_typesupport_interface",
+    "rosidl_dynamic_typesupport",
+    "type_description_interfaces",
+    "service_msgs",
+    "builtin_interfaces",
 )
 
 
 def _include_dirs() -> list[str]:
-    dirs, missing = [], []
+    dirs: list[str] = []
+    missing: list[str] = []
     for pkg in HEADER_PACKAGES:
         d = PREFIX / "include" / pkg
         (dirs if (d / pkg).is_dir() else missing).append(str(d))
@@ -58,7 +69,8 @@ def _include_dirs() -> list[str]:
         raise RuntimeError(
             f"ROS 2 headers not found in {PREFIX} ({', '.join(missing)}): build "
             "cloneguard.container.intra._rclglue with the venv's python after "
-            "`pip install -r scripts/requirements.txt`")
+            "`pip install -r scripts/requirements.txt`"
+        )
     return dirs
 
 
@@ -117,7 +129,7 @@ ffibuilder.set_source(
     depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h", "waker.c", "waker.h")],
     libraries=["rcl", "rmw", "rcutils"],
     library_dirs=[str(LIB_DIR)],
-    extra_compile_args=["-std=gnu11", "-Wall"],
+    extra_compile_args=["-std=gnu11", *WARNINGS],
     extra_link_args=[f"-Wl,-rpath,{LIB_DIR}"],
     # Tied to CPython 3.11 by the ROS wheels anyway. Not abi3, so that every
     # build produces _rclglue.cpython-311-*.so: an abi3 file would be

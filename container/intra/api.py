@@ -27,14 +27,15 @@ Large payloads: ``pub.loan(n)`` gives a buffer from the container's pool,
 :class:`LoanedMessage` (read-only view, no copy); plain ones get a full
 message (copied on their side). Rules: container/intra/README.md.
 """
+
 from __future__ import annotations
 
 import array
 import functools
 import threading
 import weakref
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -47,11 +48,11 @@ from .queue import MessageQueue
 KEEP_ALL_LIMIT = 10_000
 
 # Which load a node belongs to and whether it asked for intra-process comms:
-# set while its constructor runs (container.factory), remembered per node.
+# set while its constructor runs (container.construction), remembered per node.
 _constructing = threading.local()
-_nodes: "weakref.WeakKeyDictionary[object, tuple[object, bool]]" = weakref.WeakKeyDictionary()
+_nodes: weakref.WeakKeyDictionary[object, tuple[object, bool]] = weakref.WeakKeyDictionary()
 # The live intra-process endpoints of each node, for destroy_endpoints().
-_endpoints: "weakref.WeakKeyDictionary[object, list]" = weakref.WeakKeyDictionary()
+_endpoints: weakref.WeakKeyDictionary[object, list] = weakref.WeakKeyDictionary()
 
 
 @contextmanager
@@ -103,8 +104,10 @@ def _load_of(node) -> tuple[object, bool]:
 def _profile(qos: QoSProfile | int) -> QoSProfile:
     profile = QoSProfile(depth=qos) if isinstance(qos, int) else qos
     if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL:
-        raise ValueError("intra-process endpoints support VOLATILE durability only "
-                         "(TRANSIENT_LOCAL history is not replayed in-process)")
+        raise ValueError(
+            "intra-process endpoints support VOLATILE durability only "
+            "(TRANSIENT_LOCAL history is not replayed in-process)"
+        )
     return profile
 
 
@@ -117,8 +120,7 @@ def check_byte_field(msg_type, field: str) -> str:
     if kind is None:
         raise ValueError(f"{msg_type.__name__} has no field {field!r}")
     if kind not in _BYTE_FIELDS:
-        raise ValueError(f"{msg_type.__name__}.{field} is {kind}: a loan can only be a "
-                         "uint8[] or int8[] field")
+        raise ValueError(f"{msg_type.__name__}.{field} is {kind}: a loan can only be a uint8[] or int8[] field")
     return kind
 
 
@@ -141,6 +143,7 @@ class LoanedMessage:
     @property
     def payload(self) -> memoryview:
         if self._payload is None:
+            assert self._loan is not None, "a loaned message has its payload or its loan"
             self._payload = self._loan.view()
         return self._payload
 
@@ -161,29 +164,40 @@ class LoanedMessage:
         return full
 
     @classmethod
-    def wrap(cls, message, field: str) -> "LoanedMessage":
+    def wrap(cls, message, field: str) -> LoanedMessage:
         """A DDS-received message seen through the same interface (no copy)."""
         return cls(message, field, None, memoryview(getattr(message, field)).toreadonly())
 
 
 class Publisher:
-    def __init__(self, node, msg_type, topic: str, qos: QoSProfile | int = 10, *,
-                 intra_process: bool | None = None, callback_group=None):
+    def __init__(
+        self,
+        node,
+        msg_type,
+        topic: str,
+        qos: QoSProfile | int = 10,
+        *,
+        intra_process: bool | None = None,
+        callback_group=None,
+    ):
         owner, enabled = _load_of(node)
         self.intra = enabled if intra_process is None else intra_process
-        profile = _profile(qos) if self.intra else qos
+        profile = _profile(qos) if self.intra else (QoSProfile(depth=qos) if isinstance(qos, int) else qos)
         self.msg_type = msg_type
         self._dds = node.create_publisher(msg_type, topic, profile, callback_group=callback_group)
         self.node = node
         self.topic = self._dds.topic_name
-        self.sent_intra = 0        # deliveries by reference (one per subscription)
-        self.sent_dds = 0          # DDS publishes
+        self.sent_intra = 0  # deliveries by reference (one per subscription)
+        self.sent_dds = 0  # DDS publishes
         self._entry = None
         if self.intra:
             self._entry = PublisherEntry(
-                owner, self.topic, msg_type,
+                owner,
+                self.topic,
+                msg_type,
                 best_effort=profile.reliability == ReliabilityPolicy.BEST_EFFORT,
-                gid=publisher_gid(self._dds))
+                gid=publisher_gid(self._dds),
+            )
             get_bus().add_publisher(self._entry)
         _track(node, self)
 
@@ -239,10 +253,10 @@ class Publisher:
 
     def _hand_over(self, msg, targets: list[SubscriptionEntry]) -> None:
         for sub in targets:
-            if sub.queue.put(msg):     # it was empty: its executor may be asleep
+            if sub.queue.put(msg):  # it was empty: its executor may be asleep
                 try:
                     sub.wake()
-                except Exception:      # destroyed meanwhile (unload): nothing to wake
+                except Exception:  # destroyed meanwhile (unload): nothing to wake
                     pass
             self.sent_intra += 1
 
@@ -253,9 +267,18 @@ class Publisher:
 
 
 class Subscription:
-    def __init__(self, node, msg_type, topic: str, callback: Callable, qos: QoSProfile | int = 10, *,
-                 intra_process: bool | None = None, loaned_field: str | None = None,
-                 callback_group=None):
+    def __init__(
+        self,
+        node,
+        msg_type,
+        topic: str,
+        callback: Callable,
+        qos: QoSProfile | int = 10,
+        *,
+        intra_process: bool | None = None,
+        loaned_field: str | None = None,
+        callback_group=None,
+    ):
         owner, enabled = _load_of(node)
         self.intra = enabled if intra_process is None else intra_process
         if loaned_field is not None:
@@ -268,8 +291,7 @@ class Subscription:
         self.received_dds = 0
         self._entry = None
         if not self.intra:
-            self._dds = node.create_subscription(msg_type, topic, self._on_dds, qos,
-                                                 callback_group=callback_group)
+            self._dds = node.create_subscription(msg_type, topic, self._on_dds, qos, callback_group=callback_group)
             self._reader = None
             self.topic = self._dds.topic_name
             _track(node, self)
@@ -277,9 +299,14 @@ class Subscription:
         profile = _profile(qos)
         self._dds = None
         self._reader = GidFilteredReader(
-            node, msg_type, topic, profile, self._on_dds,
+            node,
+            msg_type,
+            topic,
+            profile,
+            self._on_dds,
             drop_from=lambda gid: get_bus().is_intra_publisher(self.topic, gid),
-            callback_group=callback_group)
+            callback_group=callback_group,
+        )
         self.topic = self._reader.topic_name
         capacity = KEEP_ALL_LIMIT if profile.history == HistoryPolicy.KEEP_ALL else max(1, profile.depth)
         self.queue = MessageQueue(capacity, on_repair=self._queue_repaired)
@@ -293,9 +320,13 @@ class Subscription:
         else:
             wake = self._wake.trigger
         self._entry = SubscriptionEntry(
-            owner, self.topic, msg_type,
+            owner,
+            self.topic,
+            msg_type,
             reliable=profile.reliability == ReliabilityPolicy.RELIABLE,
-            queue=self.queue, wake=wake)
+            queue=self.queue,
+            wake=wake,
+        )
         get_bus().add_subscription(self._entry)
         _track(node, self)
 
@@ -310,7 +341,8 @@ class Subscription:
             if self._waker is not None:
                 self._waker.remove(self._token)
             self.node.destroy_guard_condition(self._wake)
-            self._reader.destroy()
+            if self._reader is not None:
+                self._reader.destroy()
         elif self._dds is not None:
             self.node.destroy_subscription(self._dds)
             self._dds = None
@@ -336,18 +368,24 @@ class Subscription:
         self.callback(msg)
 
     def _queue_repaired(self, queue: MessageQueue) -> None:
-        log.warning(f"intra-process queue of {self.topic} for {self.node.get_fully_qualified_name()}: "
-                    "the owner of its lock died holding it (EOWNERDEAD); repaired, "
-                    f"{len(queue)} message(s) kept")
+        log.warning(
+            f"intra-process queue of {self.topic} for {self.node.get_fully_qualified_name()}: "
+            "the owner of its lock died holding it (EOWNERDEAD); repaired, "
+            f"{len(queue)} message(s) kept"
+        )
         if self._entry is not None and self._entry.owner is not None:
-            repairs.record(repairs.INTRA_QUEUE, self._entry.owner,
-                           f"the intra-process queue of {self.topic}: {len(queue)} message(s) kept")
+            repairs.record(
+                repairs.INTRA_QUEUE,
+                self._entry.owner,
+                f"the intra-process queue of {self.topic}: {len(queue)} message(s) kept",
+            )
 
 
 def create_publisher(node, msg_type, topic: str, qos: QoSProfile | int = 10, **kwargs) -> Publisher:
     return Publisher(node, msg_type, topic, qos, **kwargs)
 
 
-def create_subscription(node, msg_type, topic: str, callback: Callable,
-                        qos: QoSProfile | int = 10, **kwargs) -> Subscription:
+def create_subscription(
+    node, msg_type, topic: str, callback: Callable, qos: QoSProfile | int = 10, **kwargs
+) -> Subscription:
     return Subscription(node, msg_type, topic, callback, qos, **kwargs)

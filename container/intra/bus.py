@@ -15,11 +15,13 @@ It also holds the wakers (waker.py) of the node processes the container
 opened them for: the isolated host opens one before it starts a node that
 uses intra-process messaging; the node's unload or death closes it.
 """
+
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any
 
 from rclpy.logging import get_logger
 
@@ -34,20 +36,20 @@ log = get_logger("cloneguard.intra")
 
 @dataclass(eq=False)
 class SubscriptionEntry:
-    owner: object                  # the load's unique_id, or None outside a container
+    owner: Any  # the load's unique_id, or None outside a container
     topic: str
     msg_type: type
-    reliable: bool                 # asks for RELIABLE: a BEST_EFFORT publisher does not match
+    reliable: bool  # asks for RELIABLE: a BEST_EFFORT publisher does not match
     queue: MessageQueue
-    wake: Callable[[], None]       # wakes the subscription's executor (waker.py)
+    wake: Callable[[], None]  # wakes the subscription's executor (waker.py)
 
-    def matches(self, pub: "PublisherEntry") -> bool:
+    def matches(self, pub: PublisherEntry) -> bool:
         return pub.msg_type is self.msg_type and not (self.reliable and pub.best_effort)
 
 
 @dataclass(eq=False)
 class PublisherEntry:
-    owner: object
+    owner: Any
     topic: str
     msg_type: type
     best_effort: bool
@@ -91,8 +93,9 @@ class Bus:
         waker = self._wakers.pop(owner, None)
         if waker is not None and not waker.close():
             self.stuck_wakers += 1
-            log.warning(f"intra-process waker of unique_id {owner}: stuck in its dead "
-                        "subscriber's wait-set lock; left behind")
+            log.warning(
+                f"intra-process waker of unique_id {owner}: stuck in its dead subscriber's wait-set lock; left behind"
+            )
 
     # -- changes (robust mutex) --------------------------------------------------
 
@@ -120,7 +123,7 @@ class Bus:
         self._close_waker(owner)
         return removed
 
-    def _drop(self, doomed: Callable[[object], bool], topics: set[str]) -> int:
+    def _drop(self, doomed: Callable[[Any], bool], topics: set[str]) -> int:
         removed = 0
         for topic in topics:
             subs = self._subs.get(topic, ())
@@ -145,8 +148,9 @@ class Bus:
     def _repaired(self) -> None:
         # Every change is one dict store of a whole new tuple: nothing to undo.
         self.repairs += 1
-        log.warning("intra-process bus: the owner of its lock died holding it (EOWNERDEAD); "
-                    "state is consistent, lock recovered")
+        log.warning(
+            "intra-process bus: the owner of its lock died holding it (EOWNERDEAD); state is consistent, lock recovered"
+        )
 
 
 _bus: Bus | None = None

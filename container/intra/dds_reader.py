@@ -21,10 +21,12 @@ the executor only waits on it (through us) and never takes from it itself.
 :func:`publisher_gid` gives an rclpy publisher's gid, the same 16 bytes the
 reader sees on the messages that publisher sent.
 """
+
 from __future__ import annotations
 
 import threading
-from typing import Any, Callable, Optional
+from collections.abc import Callable
+from typing import Any
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
@@ -63,8 +65,7 @@ def publisher_gid(publisher) -> bytes:
     gid = ffi.new("uint8_t[]", GID_SIZE)
     err = ffi.new("char[]", lib.CGR_ERR_SIZE)
     with handle:  # in use: rclpy will not finalize it during the call
-        rc = lib.cgr_publisher_gid(ffi.cast("rcl_publisher_t *", handle.pointer),
-                                   gid, err, len(err))
+        rc = lib.cgr_publisher_gid(ffi.cast("rcl_publisher_t *", handle.pointer), gid, err, len(err))
     if rc != 0:
         raise RuntimeError(f"cannot get the publisher's gid: {_error_text(err)}")
     return ffi.buffer(gid)[:]
@@ -86,11 +87,11 @@ class _TakeBuffer:
         # ffi.release() runs the same destructor now (and only once).
         self.msg = ffi.gc(msg, lib.cgr_message_fini)
 
-    def take(self, subscription_pointer: int) -> Optional[tuple[bytes, bytes]]:
+    def take(self, subscription_pointer: int) -> tuple[bytes, bytes] | None:
         """(serialized message, publisher gid), None when there is nothing to take."""
         rc = lib.cgr_take_serialized(
-            ffi.cast("rcl_subscription_t *", subscription_pointer),
-            self.msg, self.gid, self.err, len(self.err))
+            ffi.cast("rcl_subscription_t *", subscription_pointer), self.msg, self.gid, self.err, len(self.err)
+        )
         if rc == lib.CGR_NOT_TAKEN:
             return None
         if rc != lib.CGR_TAKEN:
@@ -117,9 +118,16 @@ class GidFilteredReader(Waitable):
     Call :meth:`destroy` when done (destroying the node does not).
     """
 
-    def __init__(self, node, msg_type, topic: str, qos_profile: QoSProfile | int,
-                 callback: Callable[[Any], Any], drop_from: Callable[[bytes], bool],
-                 callback_group: CallbackGroup | None = None):
+    def __init__(
+        self,
+        node,
+        msg_type,
+        topic: str,
+        qos_profile: QoSProfile | int,
+        callback: Callable[[Any], Any],
+        drop_from: Callable[[bytes], bool],
+        callback_group: CallbackGroup | None = None,
+    ):
         if isinstance(qos_profile, int):
             if qos_profile < 0:
                 raise ValueError("history depth must be greater than or equal to zero")
@@ -132,8 +140,7 @@ class GidFilteredReader(Waitable):
         # Subscription object that would put the handle in node.subscriptions.
         try:
             with node.handle:
-                self._handle = _rclpy.Subscription(node.handle, msg_type, topic,
-                                                   qos_profile.get_c_qos_profile())
+                self._handle = _rclpy.Subscription(node.handle, msg_type, topic, qos_profile.get_c_qos_profile())
         except ValueError:
             # As create_subscription(): a bad topic name is an
             # InvalidTopicNameException naming the problem.
@@ -153,12 +160,12 @@ class GidFilteredReader(Waitable):
         self.qos_profile = qos_profile
         self.callback = callback
         self.drop_from = drop_from
-        self.received = 0   # messages handed to callback (taken and not dropped)
-        self.dropped = 0    # messages drop_from claimed
+        self.received = 0  # messages handed to callback (taken and not dropped)
+        self.dropped = 0  # messages drop_from claimed
         self.taken_bytes = 0  # CDR bytes of every message taken, dropped ones included
         # Guards the take buffer against destroy() from another thread.
         self._lock = threading.Lock()
-        self._index: Optional[int] = None   # our slot in the current wait set
+        self._index: int | None = None  # our slot in the current wait set
         self._destroyed = False
         node.add_waitable(self)
 

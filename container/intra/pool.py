@@ -17,6 +17,7 @@ published yet; once published, your writable view is released (using it
 raises ValueError) and subscribers get read-only views. A view is valid while
 the message it came from is alive: keep the message, not the view.
 """
+
 from __future__ import annotations
 
 import mmap
@@ -41,12 +42,12 @@ def size_class(nbytes: int) -> int:
 
 @dataclass
 class PoolStats:
-    blocks_mapped: int = 0     # blocks ever created
-    loans: int = 0             # loans handed out
-    reused: int = 0            # of which served from the free list
-    returned: int = 0          # blocks given back by their last holder
-    unmapped: int = 0          # blocks dropped because the free list was full
-    repairs: int = 0           # EOWNERDEAD repairs of the pool's lock
+    blocks_mapped: int = 0  # blocks ever created
+    loans: int = 0  # loans handed out
+    reused: int = 0  # of which served from the free list
+    returned: int = 0  # blocks given back by their last holder
+    unmapped: int = 0  # blocks dropped because the free list was full
+    repairs: int = 0  # EOWNERDEAD repairs of the pool's lock
 
 
 class LoanPool:
@@ -57,7 +58,7 @@ class LoanPool:
         self.stats = PoolStats()
         self._mutex = RobustMutex(self._repair)
 
-    def loan(self, nbytes: int) -> "Loan":
+    def loan(self, nbytes: int) -> Loan:
         """A writable buffer of exactly ``nbytes`` bytes from the pool."""
         size = size_class(nbytes)
         with self._mutex:
@@ -84,7 +85,7 @@ class LoanPool:
             self.stats.unmapped += 1
         try:
             block.close()
-        except BufferError:     # someone kept a view past its message: unmapped when it goes
+        except BufferError:  # someone kept a view past its message: unmapped when it goes
             pass
 
     @property

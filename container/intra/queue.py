@@ -19,9 +19,10 @@ makes that harmless instead of repairing it after the fact:
 
 A message object is handed over by reference: nothing is copied.
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from cloneguard.container import seams
 from cloneguard.container.robust import RobustMutex
@@ -30,14 +31,14 @@ from cloneguard.container.robust import RobustMutex
 class MessageQueue:
     """Bounded FIFO of message objects; the oldest is dropped when full."""
 
-    def __init__(self, capacity: int, *, on_repair: Callable[["MessageQueue"], None] | None = None):
+    def __init__(self, capacity: int, *, on_repair: Callable[[MessageQueue], None] | None = None):
         if capacity < 1:
             raise ValueError(f"queue capacity must be at least 1, got {capacity}")
         self.capacity = capacity
         self._slots: list[object] = [None] * capacity
-        self._state = (0, 0)          # (head, count): the only commit point
-        self.dropped = 0              # messages pushed out by newer ones (KEEP_LAST)
-        self.repairs = 0              # times a locker found the previous owner dead
+        self._state = (0, 0)  # (head, count): the only commit point
+        self.dropped = 0  # messages pushed out by newer ones (KEEP_LAST)
+        self.repairs = 0  # times a locker found the previous owner dead
         self._on_repair = on_repair
         self._mutex = RobustMutex(self._repair)
 
@@ -49,14 +50,14 @@ class MessageQueue:
         needs waking), False if it already had something to take."""
         with self._mutex:
             head, count = self._state
-            if count == self.capacity:          # KEEP_LAST: the oldest goes
+            if count == self.capacity:  # KEEP_LAST: the oldest goes
                 head, count = (head + 1) % self.capacity, count - 1
-                self._state = (head, count)     # commit the drop first
+                self._state = (head, count)  # commit the drop first
                 self.dropped += 1
             self._slots[(head + count) % self.capacity] = message
-            if seams.queue_mid_put is not None:     # fault injection (seams.py)
+            if seams.queue_mid_put is not None:  # fault injection (seams.py)
                 seams.queue_mid_put(self)
-            self._state = (head, count + 1)     # commit: now it is visible
+            self._state = (head, count + 1)  # commit: now it is visible
             return count == 0
 
     def take_all(self) -> list[object]:
@@ -66,7 +67,7 @@ class MessageQueue:
             taken = [self._slots[(head + i) % self.capacity] for i in range(count)]
             if seams.queue_mid_take is not None:
                 seams.queue_mid_take(self)
-            self._state = ((head + count) % self.capacity, 0)   # commit
+            self._state = ((head + count) % self.capacity, 0)  # commit
             for i in range(count):
                 self._slots[(head + i) % self.capacity] = None
             return taken

@@ -7,6 +7,7 @@ would leave the subscriber's executor stuck for good. A publisher posts to
 the subscriber's waker instead (lock-free); the waker, which can only die
 with the container, does the trigger.
 """
+
 from __future__ import annotations
 
 from ._rclglue import ffi, lib
@@ -28,8 +29,7 @@ class Waker:
         with guard_condition.handle:
             token = lib.cgw_add(self._w, ffi.cast("void *", guard_condition.handle.pointer))
         if token < 0:
-            raise OSError(-token, f"intra-process waker: no room for another subscription "
-                                  f"({lib.CGW_TOKENS} per node)")
+            raise OSError(-token, f"intra-process waker: no room for another subscription ({lib.CGW_TOKENS} per node)")
         return token
 
     def remove(self, token: int) -> None:

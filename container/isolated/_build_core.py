@@ -4,21 +4,38 @@ The C lives next to this file, one job per file (core.h lists them): the
 generated module includes core.h, the declarations Python's calls need, and
 links the core's files as further sources; gilrepair.c is among them,
 compiled with Py_BUILD_CORE (it reads CPython's internal GIL state; see
-there), sharing only clonecore.h with the rest.  The cdef below mirrors the
-public part of all of them: keep them in step (a mismatch is a compile error
-in the generated module).  Built with -fvisibility=hidden: the module
+there), sharing only repair.h with the rest.  The cdef below mirrors the
+public part of all of them: keep them in step (a function's mismatch is a
+compile error in the generated module; a struct's, "wrong total size" at its
+first ffi.new, when the core starts).  Built with -fvisibility=hidden: the module
 exports its PyInit function only.
 
 Built by setup.py (``cffi_modules``); after an edit of the C,
 ``pip install --no-build-isolation --no-deps -e .`` rebuilds it in place.
 """
 
+import runpy
 from pathlib import Path
 
 from cffi import FFI
 
+# The project's C warning flags: one list for every build (scripts/cflags.py).
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "cflags.py"))["WARNINGS"]
+
 HERE = Path(__file__).resolve().parent
-SOURCES = ("clonecore.c", "monitor.c", "child.c", "crash.c", "contexts.c", "probes.c", "gilrepair.c")
+SOURCES = (
+    "clonecore.c",
+    "monitor.c",
+    "child.c",
+    "crash.c",
+    "contexts.c",
+    "probes.c",
+    "gilrepair.c",
+    "interp.c",
+    "mutexes.c",
+    "listenerwait.c",
+    "pkeys.c",
+)
 
 CDEF = r"""
 struct cg_layout {
@@ -29,15 +46,21 @@ struct cg_layout {
     long robust_futex_offset;
     long cleanup;
     long cond_cleanup;
+    long mutex_wait_pc;
+    long mutex_ret_slot;
+    long mutex_ret[5];
+    long private_wait_pc;
 };
 
 struct cg_config {
     int gil_repair;
     int condvar_repair;
+    int interp_repair;
     int crash_report;
     int jemalloc_own_arena;
     int jemalloc_tcache;
     int alloc_guard;
+    int mutex_repair;
 };
 
 struct cg_event {
@@ -49,6 +72,17 @@ struct cg_event {
     int64_t t_ns;
     uint32_t repairs;
     uint32_t alloc;
+    uint64_t addr;
+    int32_t tid;
+    int32_t owner;
+};
+
+struct cga_py_stats {
+    unsigned generation;
+    uint64_t pools;
+    uint64_t handed;
+    uint64_t dropped;
+    uint64_t abandoned;
 };
 
 struct cga_slot_stats {
@@ -73,6 +107,20 @@ struct cg_condwait_probe {
     int cleared_after;
 };
 
+struct cg_mutexwait_probe {
+    int self_tid;
+    int seen[5];
+    int op[5], val[5];
+    uintptr_t pc[5];
+    int ret_slot[5];
+    uintptr_t ret[5];
+    int ret_in_libc[5];
+    int kind[5];
+    int owner_is_self[5];
+    int private_seen, private_op, private_val;
+    uintptr_t private_pc;
+};
+
 struct cg_gil_probe {
     unsigned long compiled_hex, running_hex;
     long runtime_size_compiled, runtime_size_elf;
@@ -82,6 +130,14 @@ struct cg_gil_probe {
     int mutex_kind, switch_mutex_kind;
     int cond_wrefs_flags, switch_cond_wrefs_flags;
     long gil_offset, mutex_offset, cond_offset;
+};
+
+struct cg_interp_probe {
+    int threshold[3], count[3];
+    int generation0_is_head;
+    int enabled, collecting;
+    int young_links_ok;
+    int free_lists_ok;
 };
 
 struct cg_child {
@@ -100,6 +156,8 @@ struct cg_child {
     int crash_py_more;
     void *crash_py_code[...];
     int crash_py_lasti[...];
+    void *gil_code;
+    int gil_lasti;
     ...;
 };
 
@@ -110,8 +168,21 @@ long cg_gettid(void);
 void *cg_lookup(const char *name, const char *version);
 long cg_mutex_futex_offset(void);
 int cg_probe_clone3(void);
+
+struct cg_pkeys_probe {
+    int cpu_pku, os_pke;
+    int keys;
+    int alloc_errno;
+    uint32_t pkru;
+    int mprotect_keeps;
+    int thread_inherits;
+    int write_faults;
+};
+int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
+int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_gil_probe(struct cg_gil_probe *out);
+int cg_interp_probe(struct cg_interp_probe *out);
 int cg_allocator(char *buf, size_t len);
 int cg_jemalloc_thread_arena(void);
 int cg_jemalloc_thread_tcache(void);
@@ -129,20 +200,36 @@ int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_self_wait_go(void);
 void cg_write_native_stack(void *const *frames, int n, int fd);
+int cg_container_crash_report(void);
 int cg_record_py_stack(void **codes, int *lasti, int max, int *more);
 void cg_hold_py_stack(void *const *codes, int n, int hold);
 void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd);
+int cg_frame_text(void *code, int lasti, char *buf, int size);
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
+int cg_py_slot_stats(int slot, struct cga_py_stats *out);
+int cg_gc_wait_due(int interval_us, int *wake);
+long cg_gc_collect(void *collect, int generation);
+int cg_py_allocator_active(void);
+int cg_bound_listener_wait(char *why_out, int why_size);
+long cg_listener_waits_bounded(void);
 
 #define CG_EV_DEATH ...
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...
+#define CG_EV_MUTEX ...
+#define CG_MUTEX_CALLERS ...
+#define CG_MUTEX_RELEASED ...
+#define CG_MUTEX_UNPROVEN ...
+#define CG_MUTEX_NO_OWNER ...
+#define CG_MUTEX_EXCLUDED ...
+#define CG_MUTEX_LIBC_LOCK ...
 #define CG_STOP_PARENT ...
 #define CG_STOP_SIGNAL ...
 #define CG_REAPED ...
 #define CG_FLAG_ALLOW_CORE ...
 #define CG_CRASH_FRAMES ...
 #define CG_ALLOC_QUARANTINED ...
+#define CG_ALLOC_PY_ABANDONED ...
 #define CGA_UNUSED ...
 #define CGA_IDLE ...
 #define CGA_BOUND ...
@@ -154,6 +241,10 @@ int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 #define CG_REPAIR_SWITCH_WAITER ...
 #define CG_REPAIR_COND_LOCK ...
 #define CG_REPAIR_GIL_TIMEOUT ...
+#define CG_REPAIR_PY_POOLS ...
+#define CG_REPAIR_GC_LINKS ...
+#define CG_REPAIR_FREELISTS ...
+#define CG_REPAIR_PY_OBJECTS ...
 """
 
 ffibuilder = FFI()
@@ -164,9 +255,9 @@ ffibuilder.set_source(
     # setuptools wants sources relative to the repo root (where setup.py runs).
     sources=[f"container/isolated/{n}" for n in SOURCES],
     include_dirs=[str(HERE)],
-    depends=[f"container/isolated/{n}" for n in ("core.h", "clonecore.h", "allocguard.h")],
+    depends=[f"container/isolated/{n}" for n in ("core.h", "repair.h", "allocguard.h")],
     libraries=["dl", "pthread"],
-    extra_compile_args=["-std=gnu11", "-Wall", "-Wno-unused-function", "-fvisibility=hidden"],
+    extra_compile_args=["-std=gnu11", *WARNINGS, "-Wno-unused-function", "-fvisibility=hidden"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would
     # otherwise define Py_LIMITED_API (the macro covers ffibuilder.compile(),
     # the keyword a setuptools build).

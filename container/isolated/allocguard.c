@@ -59,6 +59,7 @@
 #include <unistd.h>
 
 #include "allocguard.h"
+#include "guard_internal.h"
 
 #define EXPORT __attribute__((visibility("default")))
 #define likely(x) __builtin_expect(!!(x), 1)
@@ -128,7 +129,7 @@ struct je_hooks {
 /* ---------------------------------------------------------------------- */
 /* State.                                                                  */
 
-#define NSLOTS 512                      /* 0: the container; 1..: node processes */
+#define NSLOTS CGA_NSLOTS               /* 0: the container; 1..: node processes */
 #define SLOT_SHIFT 34                   /* jemalloc: 16 GiB of address space a slot */
 #define NOWNERS 8192                    /* glibc: arenas (M_ARENA_MAX is 4096) */
 
@@ -372,6 +373,16 @@ static inline int my_slot(void)
     return likely(s1) ? s1 - 1 : resolve_slot();
 }
 
+int cga_caller_slot(void)
+{
+    return likely(atomic_load_explicit(&g_active, memory_order_relaxed)) ? my_slot() : 0;
+}
+
+int cga_caller_bound(void)
+{
+    return t_bound;
+}
+
 static void drain_stack(struct owner *o)
 {
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
@@ -605,17 +616,19 @@ static void resolve_new_ops(void)
     NEW_OPS(RESOLVE_NEW)
 }
 
+/* The sizes, alignments and nothrow tags delete takes are not needed to
+   free: unnamed parameters. */
 #define DELETE_OPS(X)                                                       \
     X(_ZdlPv, (void *p)) X(_ZdaPv, (void *p))                               \
-    X(_ZdlPvm, (void *p, size_t n)) X(_ZdaPvm, (void *p, size_t n))         \
-    X(_ZdlPvRKSt9nothrow_t, (void *p, const void *t))                       \
-    X(_ZdaPvRKSt9nothrow_t, (void *p, const void *t))                       \
-    X(_ZdlPvSt11align_val_t, (void *p, size_t a))                           \
-    X(_ZdaPvSt11align_val_t, (void *p, size_t a))                           \
-    X(_ZdlPvmSt11align_val_t, (void *p, size_t n, size_t a))                \
-    X(_ZdaPvmSt11align_val_t, (void *p, size_t n, size_t a))                \
-    X(_ZdlPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t a, const void *t)) \
-    X(_ZdaPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t a, const void *t))
+    X(_ZdlPvm, (void *p, size_t)) X(_ZdaPvm, (void *p, size_t))             \
+    X(_ZdlPvRKSt9nothrow_t, (void *p, const void *))                        \
+    X(_ZdaPvRKSt9nothrow_t, (void *p, const void *))                        \
+    X(_ZdlPvSt11align_val_t, (void *p, size_t))                             \
+    X(_ZdaPvSt11align_val_t, (void *p, size_t))                             \
+    X(_ZdlPvmSt11align_val_t, (void *p, size_t, size_t))                    \
+    X(_ZdaPvmSt11align_val_t, (void *p, size_t, size_t))                    \
+    X(_ZdlPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t, const void *)) \
+    X(_ZdaPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t, const void *))
 
 #define DEFINE_DELETE(name, params) \
     EXPORT void name params { free(p); }
@@ -901,17 +914,20 @@ EXPORT void cga_child_start(void)
 }
 
 /* The slot's process is gone (every task of it); tcb is its main task's
-   thread pointer (its context's TLS block).  1: it died inside the
-   allocator, the slot is quarantined for good; 0: its arena is consistent
-   and the slot idle, for the next process in that context. */
+   thread pointer (its context's TLS block).  CGA_RETIRE_QUARANTINED: it
+   died inside the allocator, the slot is quarantined for good; else its
+   arena is consistent and the slot idle, for the next process in that
+   context.  CGA_RETIRE_PY_ABANDONED: it died inside CPython's object
+   allocator, whose pools of that slot start again (pyalloc.c). */
 EXPORT int cga_slot_retire(int slot, char *tcb)
 {
     struct slot *sl = &slots[slot];
     int inside = atomic_load(&sl->inside) != 0 ||
                  (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
+    int py = py_slot_retire(slot, tcb);
     atomic_store(&sl->pid, 0);
     atomic_store(&sl->state, inside ? CGA_QUARANTINED : CGA_IDLE);
-    return inside;
+    return (inside ? CGA_RETIRE_QUARANTINED : 0) | (py ? CGA_RETIRE_PY_ABANDONED : 0);
 }
 
 static void count_stack(struct owner *o, struct cga_slot_stats *out)

@@ -22,6 +22,23 @@ enum {
                                arena(s) may be locked or torn, for good */
 };
 
+/* Slots a container has: slot 0 and up to CGA_NSLOTS - 1 node processes. */
+#define CGA_NSLOTS 512
+
+/* What cga_slot_retire returns: the bits of what a dead process left. */
+#define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */
+#define CGA_RETIRE_PY_ABANDONED 2   /* died inside CPython's object allocator
+                                       (pyalloc.c): its pools abandoned */
+
+/* CPython's object allocator of one slot (pyalloc.c). */
+struct cga_py_stats {
+    unsigned generation;    /* bumped each time its pools were abandoned */
+    uint64_t pools;         /* pools it ever took from the region */
+    uint64_t handed;        /* blocks others freed and handed to it */
+    uint64_t dropped;       /* frees into abandoned pools, left undone */
+    uint64_t abandoned;     /* times its process died inside */
+};
+
 struct cga_slot_stats {
     int state;              /* CGA_* */
     int pid;                /* the process bound to it, 0 if none */
@@ -43,5 +60,10 @@ typedef void (*cga_slot_bind_fn)(int slot);
 typedef void (*cga_child_start_fn)(void);
 typedef int (*cga_slot_retire_fn)(int slot, char *tcb);
 typedef int (*cga_slot_stats_fn)(int slot, struct cga_slot_stats *out);
+typedef int (*cga_py_stats_fn)(int slot, struct cga_py_stats *out);
+typedef int (*cga_py_owner_fn)(const void *p);
+typedef int (*cga_py_active_fn)(void);
+typedef int (*cga_py_abandon_fn)(int slot);
+typedef int (*cga_py_abandoned_fn)(const void *p);
 
 #endif

@@ -49,7 +49,7 @@ Where each value comes from and how it is checked:
                      the waiter's stack; its routine (this address, inside
                      libc.so) is glibc's cancellation cleanup for condvar
                      waiters, its argument {wseq, cond, mutex, private}
-                     (clonecore.h struct cg_cond_cbuf) names our condvar and
+                     (repair.h struct cg_cond_cbuf) names our condvar and
                      mutex, wseq + 2 == cond.__wseq, and the waiter holds one
                      reference on its group (cond.__g_refs[wseq & 1] == 2);
                      once the wait returns TCB+cleanup is what it was before.
@@ -73,6 +73,34 @@ Where each value comes from and how it is checked:
   writes the lines with PyCode_Addr2Line.  Checked on this thread: the
   chain gives sys._getframe()'s code objects, innermost first, and the
   innermost offset lies on the calling line.
+  CPython 3.11 interpreter state (Include/internal/pycore_gc.h,
+  pycore_interp.h; what interp.c rests on: the collector on the
+  container's thread, and what is mended after a death with the GIL):
+    gcstate.generations[i].threshold/count are what gc.get_threshold() and
+    gc.get_count() report; generation0 is generations[0].head; a tracked
+    object's PyGC_Head is a ring of _gc_next/_gc_prev links whose low two
+    prev bits are flags (checked on generation 0 both ways); the float,
+    list, dict and key free lists are a count and an array or chain
+    (counts checked within bounds).  Python's object allocator domains
+    (MEM, OBJ) are set by the allocator guard before CPython starts
+    (pyalloc.c): reported, not required (PYTHONMALLOC overrides it).
+  glibc 2.36 plain mutexes (nptl/pthread_mutex_lock.c, lowlevellock.c; what
+  the lock doctor, mutexes.c, rests on), probed on live pthreads blocked on
+  a NORMAL, RECURSIVE, ERRORCHECK and ADAPTIVE mutex and in the relock after
+  pthread_cond_wait (cg_probe_mutexwait), each read from outside through
+  /proc/<tid>/syscall:
+    mutex_wait_pc    every one waits in futex(&mutex.__lock, FUTEX_WAIT, 2)
+                     at this one pc (__lll_lock_wait's call);
+    mutex_ret_slot   the same word above sp holds a return address into libc,
+    mutex_ret        one per kind (into pthread_mutex_lock by dladdr for the
+                     four types): a waiter is a mutex's only when it returns
+                     to one of these;
+                     while held, __kind is the type and __owner the holder;
+    private_wait_pc  a waiter in __lll_lock_wait_private (glibc's internal
+                     locks) waits at a pc of its own;
+  and the kernel's pid cursor (/proc/sys/kernel/ns_last_pid) is readable.
+  These do not refuse isolation: they say why dead nodes' mutexes cannot be
+  released (Report.mutex_repair_unavailable).
   Kernel: clone3 + CLONE_CLEAR_SIGHAND (5.5), CLONE_INTO_CGROUP (5.7),
   waitid(P_PIDFD) (5.4), pidfd_send_signal (5.1); probed as well.
 """
@@ -83,8 +111,10 @@ import os
 import platform
 import sys
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from typing import Mapping
+from types import FrameType
+from typing import Any
 
 SUPPORTED_MACHINES = ("x86_64",)
 SUPPORTED_GLIBC = ("2.36",)
@@ -99,7 +129,7 @@ TCBHEAD = {
     "pointer_guard": 0x30,
 }
 TCBHEAD_FEATURE_1 = 0x48
-RSEQ_CPU_ID = 4          # offsetof(struct rseq, cpu_id), linux/rseq.h
+RSEQ_CPU_ID = 4  # offsetof(struct rseq, cpu_id), linux/rseq.h
 PTHREAD_KEY_2NDLEVEL_SIZE = 32
 
 
@@ -126,8 +156,12 @@ class Layout:
     robust_futex_offset: int
     cleanup: int
     cond_cleanup: int
+    mutex_wait_pc: int = 0
+    mutex_ret_slot: int = 0
+    mutex_ret: tuple[int, ...] = (0, 0, 0, 0, 0)
+    private_wait_pc: int = 0
 
-    def as_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
@@ -140,17 +174,17 @@ class Report:
     layout: Layout
     checks: tuple[str, ...]
     notes: tuple[str, ...] = field(default=())
+    # Why native mutexes of dead nodes cannot be released here ("": they can).
+    mutex_repair_unavailable: str = ""
 
     def __str__(self) -> str:
-        head = (f"isolation available: {self.machine}, glibc {self.glibc}, "
-                f"Python {self.python}, kernel {self.kernel}")
-        return "\n".join([head, *("  ok   " + c for c in self.checks),
-                          *("  note " + n for n in self.notes)])
+        head = f"isolation available: {self.machine}, glibc {self.glibc}, Python {self.python}, kernel {self.kernel}"
+        return "\n".join([head, *("  ok   " + c for c in self.checks), *("  note " + n for n in self.notes)])
 
 
 def _glibc_version() -> str:
     try:
-        return os.confstr("CS_GNU_LIBC_VERSION").split()[1]
+        return (os.confstr("CS_GNU_LIBC_VERSION") or "").split()[1]
     except (ValueError, OSError, AttributeError, IndexError):
         return "none"
 
@@ -183,11 +217,24 @@ class _Checker:
         return ok
 
 
-def self_check(*, glibc_version: str | None = None,
-               python_version: tuple[int, int] | None = None,
-               machine: str | None = None,
-               kernel_release: str | None = None,
-               overrides: Mapping[str, int] | None = None) -> Report:
+def core_module():
+    """The clone core's cffi module (ffi, lib), or IsolationUnavailable
+    saying it is not built here."""
+    try:
+        from cloneguard.container.isolated._clonecore import ffi, lib
+    except ImportError as e:
+        raise IsolationUnavailable(f"C core not built: {e}") from e
+    return ffi, lib
+
+
+def self_check(
+    *,
+    glibc_version: str | None = None,
+    python_version: tuple[int, int] | None = None,
+    machine: str | None = None,
+    kernel_release: str | None = None,
+    overrides: Mapping[str, int] | None = None,
+) -> Report:
     """Check the platform and discover the layout; raise if anything fails.
 
     Each keyword replaces what would be read from the running system (for
@@ -204,28 +251,32 @@ def self_check(*, glibc_version: str | None = None,
     if unknown:
         raise ValueError(f"unknown layout field(s) to override: {sorted(unknown)}")
 
-    ck.check(machine in SUPPORTED_MACHINES, f"machine {machine}",
-             f"machine {machine!r} is not supported (only {SUPPORTED_MACHINES})")
-    ck.check(glibc in SUPPORTED_GLIBC, f"glibc {glibc}",
-             f"glibc version {glibc!r} is not supported (only {SUPPORTED_GLIBC})")
-    ck.check(sys.implementation.name == "cpython" and pyver in SUPPORTED_PYTHON,
-             f"CPython {pyver[0]}.{pyver[1]}",
-             f"Python {sys.implementation.name} {pyver[0]}.{pyver[1]} is not "
-             f"supported (only CPython {SUPPORTED_PYTHON})")
-    ck.check(_kernel_tuple(kernel) >= MIN_KERNEL, f"kernel {kernel}",
-             f"kernel {kernel} is older than {MIN_KERNEL[0]}.{MIN_KERNEL[1]} "
-             "(clone3 with CLONE_INTO_CGROUP/CLONE_CLEAR_SIGHAND, P_PIDFD)")
-    if ck.failed:   # no point reading memory with layouts we never checked
+    ck.check(
+        machine in SUPPORTED_MACHINES,
+        f"machine {machine}",
+        f"machine {machine!r} is not supported (only {SUPPORTED_MACHINES})",
+    )
+    ck.check(
+        glibc in SUPPORTED_GLIBC, f"glibc {glibc}", f"glibc version {glibc!r} is not supported (only {SUPPORTED_GLIBC})"
+    )
+    ck.check(
+        sys.implementation.name == "cpython" and pyver in SUPPORTED_PYTHON,
+        f"CPython {pyver[0]}.{pyver[1]}",
+        f"Python {sys.implementation.name} {pyver[0]}.{pyver[1]} is not supported (only CPython {SUPPORTED_PYTHON})",
+    )
+    ck.check(
+        _kernel_tuple(kernel) >= MIN_KERNEL,
+        f"kernel {kernel}",
+        f"kernel {kernel} is older than {MIN_KERNEL[0]}.{MIN_KERNEL[1]} "
+        "(clone3 with CLONE_INTO_CGROUP/CLONE_CLEAR_SIGHAND, P_PIDFD)",
+    )
+    if ck.failed:  # no point reading memory with layouts we never checked
         raise IsolationUnavailable("; ".join(ck.failed))
 
-    try:
-        from cloneguard.container.isolated._clonecore import ffi, lib
-    except ImportError as e:
-        raise IsolationUnavailable(f"C core not built: {e}") from e
+    ffi, lib = core_module()
 
     err = lib.cg_probe_clone3()
-    ck.check(err == 0, "clone3 syscall present",
-             f"clone3 probe failed: {os.strerror(err)}")
+    ck.check(err == 0, "clone3 syscall present", f"clone3 probe failed: {os.strerror(err)}")
     try:
         os.close(os.pidfd_open(os.getpid()))
         ck.passed.append("pidfd_open works")
@@ -233,18 +284,29 @@ def self_check(*, glibc_version: str | None = None,
         ck.failed.append(f"pidfd_open failed: {e}")
 
     layout = _discover_and_verify(ck, ffi, lib, overrides)
+    layout, mutex_unavailable = _probe_mutexwait(ck, ffi, lib, layout, overrides)
     try:
         with open("/proc/sys/kernel/core_pattern") as f:
             pattern = f.read().strip()
-        ck.notes.append(f"core_pattern {pattern!r}: children run with "
-                        "RLIMIT_CORE=1, which means no dump for file and pipe "
-                        "patterns alike")
+        ck.notes.append(
+            f"core_pattern {pattern!r}: children run with "
+            "RLIMIT_CORE=1, which means no dump for file and pipe "
+            "patterns alike"
+        )
     except OSError:
         pass
     if ck.failed:
         raise IsolationUnavailable("; ".join(ck.failed))
-    return Report(machine, glibc, f"{pyver[0]}.{pyver[1]}", kernel, layout,
-                  tuple(ck.passed), tuple(ck.notes))
+    return Report(
+        machine,
+        glibc,
+        f"{pyver[0]}.{pyver[1]}",
+        kernel,
+        layout,
+        tuple(ck.passed),
+        tuple(ck.notes),
+        mutex_repair_unavailable=mutex_unavailable,
+    )
 
 
 def check_multithreaded() -> None:
@@ -262,7 +324,8 @@ def check_multithreaded() -> None:
     if mt != 1 or (single != ffi.NULL and single[0] != b"\0"):
         raise IsolationUnavailable(
             f"glibc still thinks the process is single-threaded "
-            f"(multiple_threads={mt}) after the monitor thread started")
+            f"(multiple_threads={mt}) after the monitor thread started"
+        )
 
 
 def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layout:
@@ -272,25 +335,108 @@ def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layou
         ck.failed.append("condvar probe: could not start its thread")
         return L
     where = f"offset cleanup={L.cleanup}"
-    ok = ck.check(bool(p.found), f"cleanup @{L.cleanup} set while blocked in pthread_cond_wait",
-                  f"{where} does not hold: a thread blocked in pthread_cond_wait "
-                  "left it NULL")
+    ok = ck.check(
+        bool(p.found),
+        f"cleanup @{L.cleanup} set while blocked in pthread_cond_wait",
+        f"{where} does not hold: a thread blocked in pthread_cond_wait left it NULL",
+    )
     if ok:
-        ck.check(bool(p.buf_on_stack), "condvar cleanup record on the waiter's stack",
-                 f"{where} does not hold: it does not point at the waiter's stack")
-        ck.check(bool(p.cbuf_matches and p.wseq_matches),
-                 "condvar cleanup argument = {wseq, cond, mutex, private}",
-                 "glibc condvar waiter record is not {wseq, cond, mutex, private} "
-                 "naming the waiter's condvar and position")
-        ck.check(bool(p.holds_ref), "a blocked condvar waiter holds one group reference",
-                 "glibc condvar: a blocked waiter does not hold a __g_refs reference "
-                 "(not the 2.36 algorithm)")
-        ck.check(bool(p.routine_in_libc), f"condvar cleanup routine {p.routine:#x} in libc",
-                 f"condvar cleanup routine {p.routine:#x} is not inside libc.so")
-        ck.check(bool(p.cleared_after), "cleanup restored once the wait returns",
-                 f"{where}: still set after pthread_cond_wait returned")
+        ck.check(
+            bool(p.buf_on_stack),
+            "condvar cleanup record on the waiter's stack",
+            f"{where} does not hold: it does not point at the waiter's stack",
+        )
+        ck.check(
+            bool(p.cbuf_matches and p.wseq_matches),
+            "condvar cleanup argument = {wseq, cond, mutex, private}",
+            "glibc condvar waiter record is not {wseq, cond, mutex, private} naming the waiter's condvar and position",
+        )
+        ck.check(
+            bool(p.holds_ref),
+            "a blocked condvar waiter holds one group reference",
+            "glibc condvar: a blocked waiter does not hold a __g_refs reference (not the 2.36 algorithm)",
+        )
+        ck.check(
+            bool(p.routine_in_libc),
+            f"condvar cleanup routine {p.routine:#x} in libc",
+            f"condvar cleanup routine {p.routine:#x} is not inside libc.so",
+        )
+        ck.check(
+            bool(p.cleared_after),
+            "cleanup restored once the wait returns",
+            f"{where}: still set after pthread_cond_wait returned",
+        )
     routine = overrides.get("cond_cleanup", int(p.routine) if ok else 0)
     return Layout(**{**L.as_dict(), "cond_cleanup": routine})
+
+
+MUTEX_TYPES = ("NORMAL", "RECURSIVE", "ERRORCHECK", "ADAPTIVE", "NORMAL (relock after pthread_cond_wait)")
+FUTEX_WAIT = 0
+FUTEX_CMD_MASK = ~(128 | 256)  # FUTEX_PRIVATE_FLAG, FUTEX_CLOCK_REALTIME
+PID_CURSOR = "/proc/sys/kernel/ns_last_pid"
+MUTEX_NO_ELISION = 512  # PTHREAD_MUTEX_NO_ELISION_NP
+
+
+def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tuple[Layout, str]:
+    """Live pthreads blocked on each kind of plain mutex, and on a
+    glibc-internal lock, read from outside the way mutexes.c reads a
+    waiter. A failure does not refuse isolation: it says why dead nodes'
+    mutexes cannot be released here (the second value)."""
+    failed: list[str] = []
+
+    def check(ok: bool, good: str, bad: str) -> None:
+        (ck.passed if ok else failed).append(good if ok else bad)
+
+    try:
+        with open(PID_CURSOR) as f:
+            int(f.read())
+        ck.passed.append(f"pid cursor readable ({PID_CURSOR})")
+    except (OSError, ValueError) as e:
+        failed.append(f"cannot read the pid cursor {PID_CURSOR} ({e}): a dead owner cannot be proven")
+    p = ffi.new("struct cg_mutexwait_probe *")
+    rc = lib.cg_probe_mutexwait(p)
+    if rc < 0:
+        failed.append(f"mutex waiter probe failed: {os.strerror(-rc)}")
+    else:
+        for k, name in enumerate(MUTEX_TYPES):
+            where = f"a waiter on a {name} mutex"
+            check(bool(p.seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&mutex) within 2 s")
+            if not p.seen[k]:
+                continue
+            check(
+                p.op[k] & FUTEX_CMD_MASK == FUTEX_WAIT and p.val[k] == 2,
+                f"{where}: FUTEX_WAIT for 2",
+                f"{where} waits with futex op {p.op[k]:#x} value {p.val[k]}, not FUTEX_WAIT for 2",
+            )
+            check(
+                p.pc[k] == p.pc[0],
+                f"{where}: at pc {p.pc[k]:#x}",
+                f"{where} waits at pc {p.pc[k]:#x}, not {p.pc[0]:#x} (__lll_lock_wait has one futex call)",
+            )
+            check(
+                p.ret[k] != 0 and p.ret_slot[k] == p.ret_slot[0] and bool(p.ret_in_libc[k]),
+                f"{where}: returns to {p.ret[k]:#x} (stack word {p.ret_slot[k]})",
+                f"{where}: no return address into libc's lock function at stack word {p.ret_slot[0]}",
+            )
+            want = k if k < 4 else 0  # glibc adds NO_ELISION (512) to a NORMAL set by attribute
+            check(
+                p.kind[k] & ~MUTEX_NO_ELISION == want and bool(p.owner_is_self[k]),
+                f"{where}: __kind {p.kind[k]}, __owner = holder",
+                f"{where}: __kind {p.kind[k]} (want type {want}) or __owner is not the holder's tid",
+            )
+        check(
+            bool(p.private_seen) and p.private_val == 2 and p.private_pc not in (0, p.pc[0]),
+            f"a waiter in __lll_lock_wait_private at pc {p.private_pc:#x}",
+            "a waiter in __lll_lock_wait_private was not seen at a pc of its own",
+        )
+    values: dict[str, Any] = {
+        "mutex_wait_pc": int(p.pc[0]) if not failed else 0,
+        "mutex_ret_slot": int(p.ret_slot[0]) if not failed else 0,
+        "mutex_ret": tuple(int(p.ret[k]) for k in range(len(MUTEX_TYPES))) if not failed else (0,) * len(MUTEX_TYPES),
+        "private_wait_pc": int(p.private_pc) if not failed else 0,
+    }
+    values.update({k: v for k, v in overrides.items() if k in values})
+    return Layout(**{**L.as_dict(), **values}), "; ".join(failed)
 
 
 def _probe_py_stack(ck: _Checker, ffi, lib) -> None:
@@ -299,48 +445,90 @@ def _probe_py_stack(ck: _Checker, ffi, lib) -> None:
     must give this thread's frames, innermost first, at their lines."""
     here = sys._getframe()
     chain = []
-    f = here
+    f: FrameType | None = here
     while f is not None:
         chain.append(f)
         f = f.f_back
     codes, lasti, more = ffi.new("void *[]", 128), ffi.new("int[]", 128), ffi.new("int *")
     n = lib.cg_record_py_stack(codes, lasti, 128, more)
-    line = here.f_lineno - 1                     # the line that made the call
+    line = here.f_lineno - 1  # the line that made the call
     recorded = [int(ffi.cast("uintptr_t", codes[i])) for i in range(n)]
     at = [ln for start, end, ln in here.f_code.co_lines() if n and start <= lasti[0] * 2 < end]
-    ok = (recorded == [id(x.f_code) for x in chain[:len(recorded)]] and n == min(len(chain), 128)
-          and at == [line])
-    ck.check(ok, f"the frame chain crash reports follow gives this thread's {n} Python frames",
-             f"cg_record_py_stack gave {n} frames {recorded[:3]}..., expected {len(chain)} "
-             f"{[id(x.f_code) for x in chain[:3]]}... (line {at} for {line})")
+    ok = recorded == [id(x.f_code) for x in chain[: len(recorded)]] and n == min(len(chain), 128) and at == [line]
+    ck.check(
+        ok,
+        f"the frame chain crash reports follow gives this thread's {n} Python frames",
+        f"cg_record_py_stack gave {n} frames {recorded[:3]}..., expected {len(chain)} "
+        f"{[id(x.f_code) for x in chain[:3]]}... (line {at} for {line})",
+    )
 
 
 def _probe_gil(ck: _Checker, ffi, lib) -> None:
     """gilrepair.c's compiled view of the GIL against the running one."""
     g = ffi.new("struct cg_gil_probe *")
     lib.cg_gil_probe(g)
-    ck.check(g.compiled_hex == g.running_hex,
-             f"CPython internals built for the running {g.running_hex:#x}",
-             f"gilrepair.c was built for CPython {g.compiled_hex:#x}, running "
-             f"{g.running_hex:#x}: rebuild the core")
-    ck.check(g.runtime_size_compiled == g.runtime_size_elf,
-             f"sizeof(_PyRuntimeState) {g.runtime_size_compiled} == ELF size of _PyRuntime",
-             f"_PyRuntimeState is {g.runtime_size_compiled} bytes in the headers, "
-             f"{g.runtime_size_elf} in the interpreter")
+    ck.check(
+        g.compiled_hex == g.running_hex,
+        f"CPython internals built for the running {g.running_hex:#x}",
+        f"gilrepair.c was built for CPython {g.compiled_hex:#x}, running {g.running_hex:#x}: rebuild the core",
+    )
+    ck.check(
+        g.runtime_size_compiled == g.runtime_size_elf,
+        f"sizeof(_PyRuntimeState) {g.runtime_size_compiled} == ELF size of _PyRuntime",
+        f"_PyRuntimeState is {g.runtime_size_compiled} bytes in the headers, {g.runtime_size_elf} in the interpreter",
+    )
     held = bool(g.locked == 1 and g.last_holder_is_me and g.tstate_current_is_me)
-    ck.check(held, "GIL held: locked == 1, last_holder and tstate_current are ours",
-             f"CPython GIL layout does not hold: with the GIL held, locked={g.locked}, "
-             f"last_holder ours={bool(g.last_holder_is_me)}, tstate_current ours="
-             f"{bool(g.tstate_current_is_me)}")
-    ck.check(bool(g.native_id_ok and g.thread_id_ok),
-             "PyThreadState native_thread_id/thread_id = gettid()/pthread_self()",
-             "PyThreadState.native_thread_id/thread_id do not hold gettid()/pthread_self()")
-    ck.check(g.mutex_kind == 0 and g.switch_mutex_kind == 0,
-             "GIL mutexes are default-kind glibc mutexes",
-             f"GIL mutex kinds {g.mutex_kind}/{g.switch_mutex_kind}, expected 0/0")
-    ck.check((g.cond_wrefs_flags & 1) == 0 and (g.switch_cond_wrefs_flags & 1) == 0,
-             "GIL condvars are process-private",
-             "a GIL condvar is process-shared")
+    ck.check(
+        held,
+        "GIL held: locked == 1, last_holder and tstate_current are ours",
+        f"CPython GIL layout does not hold: with the GIL held, locked={g.locked}, "
+        f"last_holder ours={bool(g.last_holder_is_me)}, tstate_current ours="
+        f"{bool(g.tstate_current_is_me)}",
+    )
+    ck.check(
+        bool(g.native_id_ok and g.thread_id_ok),
+        "PyThreadState native_thread_id/thread_id = gettid()/pthread_self()",
+        "PyThreadState.native_thread_id/thread_id do not hold gettid()/pthread_self()",
+    )
+    ck.check(
+        g.mutex_kind == 0 and g.switch_mutex_kind == 0,
+        "GIL mutexes are default-kind glibc mutexes",
+        f"GIL mutex kinds {g.mutex_kind}/{g.switch_mutex_kind}, expected 0/0",
+    )
+    ck.check(
+        (g.cond_wrefs_flags & 1) == 0 and (g.switch_cond_wrefs_flags & 1) == 0,
+        "GIL condvars are process-private",
+        "a GIL condvar is process-shared",
+    )
+
+
+def _probe_interp(ck: _Checker, ffi, lib) -> None:
+    """interp.c's compiled view of the collector and free lists against the
+    running interpreter (the release itself: _probe_gil)."""
+    import gc
+
+    p = ffi.new("struct cg_interp_probe *")
+    lib.cg_interp_probe(p)
+    ck.check(
+        tuple(p.threshold) == gc.get_threshold(),
+        "gc generations' thresholds read where gc.get_threshold() has them",
+        f"gc thresholds read as {tuple(p.threshold)}, gc.get_threshold() says {gc.get_threshold()}",
+    )
+    ck.check(
+        bool(p.generation0_is_head),
+        "gc.generation0 is generations[0]'s head",
+        "the collector's generation0 is not generations[0]'s head",
+    )
+    ck.check(
+        bool(p.young_links_ok),
+        "generation 0: next and prev links agree both ways",
+        "generation 0's links do not read as a doubly linked ring",
+    )
+    ck.check(
+        bool(p.free_lists_ok),
+        "free-list counts (float, list, dict) within their bounds",
+        "the free-list counts read out of their bounds: another layout",
+    )
 
 
 def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
@@ -366,8 +554,11 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
         return int(p[0]), int(p[1]), int(p[2])
 
     for name in ("_dl_allocate_tls", "_dl_deallocate_tls"):
-        ck.check(sym(name, "GLIBC_PRIVATE") != 0, f"{name}@GLIBC_PRIVATE found",
-                 f"glibc symbol {name}@GLIBC_PRIVATE not found")
+        ck.check(
+            sym(name, "GLIBC_PRIVATE") != 0,
+            f"{name}@GLIBC_PRIVATE found",
+            f"glibc symbol {name}@GLIBC_PRIVATE not found",
+        )
 
     tp = int(lib.cg_thread_pointer())
     if not tp:
@@ -379,25 +570,30 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
     is_main = lib.cg_gettid() == os.getpid()
 
     # --- discovery -------------------------------------------------------
-    found = dict(TCBHEAD)
+    found: dict[str, Any] = dict(TCBHEAD)
     bits, n, tid = desc("_thread_db_pthread_tid")
-    ck.check((bits, n) == (32, 1), "tid descriptor shape",
-             f"_thread_db_pthread_tid describes {n}x{bits} bits, expected 1x32")
+    ck.check(
+        (bits, n) == (32, 1), "tid descriptor shape", f"_thread_db_pthread_tid describes {n}x{bits} bits, expected 1x32"
+    )
     found["tid"] = tid
     bits, n, lst = desc("_thread_db_pthread_list")
-    ck.check((bits, n) == (128, 1), "list descriptor shape",
-             f"_thread_db_pthread_list describes {n}x{bits} bits, expected 1x128")
+    ck.check(
+        (bits, n) == (128, 1),
+        "list descriptor shape",
+        f"_thread_db_pthread_list describes {n}x{bits} bits, expected 1x128",
+    )
     found["list"] = lst
     head = int(lib.cg_robust_list_head())
     found["robust_head"] = head - tp if head else -1
     bits, n, spec = desc("_thread_db_pthread_specific")
     # glibc describes it as one 2048-bit field; either shape is 32 pointers.
-    ck.check(bits * n == 64 * PTHREAD_KEY_2NDLEVEL_SIZE, "specific descriptor shape",
-             f"_thread_db_pthread_specific describes {n}x{bits} bits, expected "
-             "32 pointers")
+    ck.check(
+        bits * n == 64 * PTHREAD_KEY_2NDLEVEL_SIZE,
+        "specific descriptor shape",
+        f"_thread_db_pthread_specific describes {n}x{bits} bits, expected 32 pointers",
+    )
     found["specific"] = spec
-    kd = int(ffi.cast("uint32_t *", sym("_thread_db_sizeof_pthread_key_data",
-                                        "GLIBC_PRIVATE"))[0])
+    kd = int(ffi.cast("uint32_t *", sym("_thread_db_sizeof_pthread_key_data", "GLIBC_PRIVATE"))[0])
     found["specific_1stblock"] = spec - PTHREAD_KEY_2NDLEVEL_SIZE * kd
     rseq_off_addr = sym("__rseq_offset", "GLIBC_2.35")
     rseq_size_addr = sym("__rseq_size", "GLIBC_2.35")
@@ -407,99 +603,125 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
     found["robust_futex_offset"] = int(lib.cg_mutex_futex_offset())
     bits, n, cancel = desc("_thread_db_pthread_cancelhandling")
     found["cleanup"] = cancel - 16
-    found["cond_cleanup"] = 0          # filled in by the probe below
+    found["cond_cleanup"] = 0  # filled in by the probe below
     found.update(overrides)
-    L = Layout(**{f.name: found[f.name] for f in fields(Layout)})
+    L = Layout(**{f.name: found[f.name] for f in fields(Layout) if f.name in found})
 
     # --- verification against the calling thread --------------------------
     def inside(name: str, off: int, width: int) -> bool:
         """Bounds first: a wrong offset must fail, not read wild memory."""
         if 0 <= off and off + width <= sizeof_pthread:
             return True
-        ck.failed.append(f"offset {name}={off} lies outside struct pthread "
-                         f"({sizeof_pthread} bytes)")
+        ck.failed.append(f"offset {name}={off} lies outside struct pthread ({sizeof_pthread} bytes)")
         return False
 
     for name in ("tcb", "self"):
         off = getattr(L, name)
         if inside(name, off, 8):
             v = u64(tp + off)
-            ck.check(v == tp, f"tcbhead.{name} @{off:#x} == thread pointer",
-                     f"offset {name}={off:#x} does not hold: TCB+{off:#x} has "
-                     f"{v:#x}, the thread pointer is {tp:#x}")
+            ck.check(
+                v == tp,
+                f"tcbhead.{name} @{off:#x} == thread pointer",
+                f"offset {name}={off:#x} does not hold: TCB+{off:#x} has {v:#x}, the thread pointer is {tp:#x}",
+            )
     if inside("multiple_threads", L.multiple_threads, 4):
         v = i32(tp + L.multiple_threads)
         want = (1,) if _task_count() > 1 else (0, 1)
-        ck.check(v in want, f"multiple_threads @{L.multiple_threads:#x} = {v}",
-                 f"offset multiple_threads={L.multiple_threads:#x} does not hold: "
-                 f"value {v}, expected one of {want}")
+        ck.check(
+            v in want,
+            f"multiple_threads @{L.multiple_threads:#x} = {v}",
+            f"offset multiple_threads={L.multiple_threads:#x} does not hold: value {v}, expected one of {want}",
+        )
     for name in ("stack_guard", "pointer_guard"):
         off = getattr(L, name)
         if inside(name, off, 8):
-            ck.check(u64(tp + off) != 0, f"{name} @{off:#x} set",
-                     f"offset {name}={off:#x} does not hold: value is 0")
+            ck.check(u64(tp + off) != 0, f"{name} @{off:#x} set", f"offset {name}={off:#x} does not hold: value is 0")
     f1 = i32(tp + TCBHEAD_FEATURE_1)
-    ck.check(f1 == 0, "CET (tcbhead.feature_1) off",
-             f"CET is active (tcbhead.feature_1={f1:#x}); not supported")
+    ck.check(f1 == 0, "CET (tcbhead.feature_1) off", f"CET is active (tcbhead.feature_1={f1:#x}); not supported")
 
     if inside("tid", L.tid, 4):
         v, me = i32(tp + L.tid), int(lib.cg_gettid())
-        ck.check(v == me, f"tid @{L.tid} == gettid() ({me})",
-                 f"offset tid={L.tid} does not hold: TCB+{L.tid} has {v}, "
-                 f"gettid() is {me}")
+        ck.check(
+            v == me,
+            f"tid @{L.tid} == gettid() ({me})",
+            f"offset tid={L.tid} does not hold: TCB+{L.tid} has {v}, gettid() is {me}",
+        )
     if inside("list", L.list, 16):
         nxt = u64(tp + L.list)
         ok = nxt != 0 and u64(nxt + 8) == tp + L.list
-        ck.check(ok, f"list @{L.list}: list.next->prev == &list",
-                 f"offset list={L.list} does not hold: TCB+{L.list} is not a "
-                 "linked list_t")
+        ck.check(
+            ok,
+            f"list @{L.list}: list.next->prev == &list",
+            f"offset list={L.list} does not hold: TCB+{L.list} is not a linked list_t",
+        )
     if inside("robust_head", L.robust_head, 24):
-        ck.check(head == tp + L.robust_head,
-                 f"robust_head @{L.robust_head} == get_robust_list(0)",
-                 f"offset robust_head={L.robust_head} does not hold: the kernel "
-                 f"has {head - tp} (get_robust_list)")
-        ck.check(L.robust_head == L.tid + 16, "robust_head == tid + 16",
-                 f"offset robust_head={L.robust_head} is not tid+16 ({L.tid + 16})")
+        ck.check(
+            head == tp + L.robust_head,
+            f"robust_head @{L.robust_head} == get_robust_list(0)",
+            f"offset robust_head={L.robust_head} does not hold: the kernel has {head - tp} (get_robust_list)",
+        )
+        ck.check(
+            L.robust_head == L.tid + 16,
+            "robust_head == tid + 16",
+            f"offset robust_head={L.robust_head} is not tid+16 ({L.tid + 16})",
+        )
         fo = i64(tp + L.robust_head + 8)
-        ck.check(fo == L.robust_futex_offset,
-                 f"robust futex_offset {fo} == pthread_mutex_t layout",
-                 f"robust_futex_offset={L.robust_futex_offset} does not hold: "
-                 f"glibc registered {fo}")
+        ck.check(
+            fo == L.robust_futex_offset,
+            f"robust futex_offset {fo} == pthread_mutex_t layout",
+            f"robust_futex_offset={L.robust_futex_offset} does not hold: glibc registered {fo}",
+        )
     if inside("specific", L.specific, 8) and inside(
-            "specific_1stblock", L.specific_1stblock,
-            PTHREAD_KEY_2NDLEVEL_SIZE * 16):
+        "specific_1stblock", L.specific_1stblock, PTHREAD_KEY_2NDLEVEL_SIZE * 16
+    ):
         v = u64(tp + L.specific)
-        ck.check(v == tp + L.specific_1stblock,
-                 f"specific[0] @{L.specific} -> specific_1stblock @{L.specific_1stblock}",
-                 f"offset specific={L.specific}/specific_1stblock="
-                 f"{L.specific_1stblock} does not hold: specific[0] is "
-                 f"{v:#x}, expected {tp + L.specific_1stblock:#x}")
+        ck.check(
+            v == tp + L.specific_1stblock,
+            f"specific[0] @{L.specific} -> specific_1stblock @{L.specific_1stblock}",
+            f"offset specific={L.specific}/specific_1stblock="
+            f"{L.specific_1stblock} does not hold: specific[0] is "
+            f"{v:#x}, expected {tp + L.specific_1stblock:#x}",
+        )
     if inside("rseq_cpu_id", L.rseq_cpu_id, 4):
         registered = rseq_size_addr and int(ffi.cast("uint32_t *", rseq_size_addr)[0]) > 0
         cpu = i32(tp + L.rseq_cpu_id)
         if registered:
-            ck.check(0 <= cpu < 65536, f"rseq cpu_id @{L.rseq_cpu_id} = {cpu}",
-                     f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: value "
-                     f"{cpu} is not a CPU number")
+            ck.check(
+                0 <= cpu < 65536,
+                f"rseq cpu_id @{L.rseq_cpu_id} = {cpu}",
+                f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: value {cpu} is not a CPU number",
+            )
         else:
             ck.notes.append("rseq not registered by glibc (tunable?)")
-            ck.check(cpu in (-1, -2), f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
-                     f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}")
+            ck.check(
+                cpu in (-1, -2),
+                f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
+                f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}",
+            )
     if inside("cleanup", L.cleanup, 8):
-        ck.check(L.cleanup == L.robust_head + 24, f"cleanup @{L.cleanup} == robust_head + 24",
-                 f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})")
+        ck.check(
+            L.cleanup == L.robust_head + 24,
+            f"cleanup @{L.cleanup} == robust_head + 24",
+            f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})",
+        )
         L = _probe_condwait(ck, ffi, lib, L, overrides)
     _probe_gil(ck, ffi, lib)
+    _probe_interp(ck, ffi, lib)
     _probe_py_stack(ck, ffi, lib)
-    ck.check(-65536 < L.resp_tls < 0, f"__resp in static TLS ({L.resp_tls})",
-             f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB")
+    ck.check(
+        -65536 < L.resp_tls < 0,
+        f"__resp in static TLS ({L.resp_tls})",
+        f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB",
+    )
     if -65536 < L.resp_tls < 0:
         v = u64(tp + L.resp_tls)
         if is_main:
-            ok, want = v == sym("_res", "GLIBC_2.2.5"), "&_res"
+            ok, wanted = v == sym("_res", "GLIBC_2.2.5"), "&_res"
         else:
-            ok, want = tp < v < tp + sizeof_pthread, "this thread's struct pthread"
-        ck.check(ok, f"__resp @{L.resp_tls} -> {want}",
-                 f"offset resp_tls={L.resp_tls} does not hold: value {v:#x} "
-                 f"is not {want}")
+            ok, wanted = tp < v < tp + sizeof_pthread, "this thread's struct pthread"
+        ck.check(
+            ok,
+            f"__resp @{L.resp_tls} -> {wanted}",
+            f"offset resp_tls={L.resp_tls} does not hold: value {v:#x} is not {wanted}",
+        )
     return L

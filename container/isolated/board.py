@@ -16,6 +16,7 @@ over when it dies, so it is built to be repaired:
   counters are a lower bound, which is all a progress counter promises),
   then the mutex is marked consistent and everyone goes on.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -31,12 +32,12 @@ SLOTS = 256
 
 class _Slot(ctypes.Structure):
     _fields_ = [
-        ("seq", ctypes.c_uint64),        # odd while being written
+        ("seq", ctypes.c_uint64),  # odd while being written
         ("unique_id", ctypes.c_uint64),
         ("pid", ctypes.c_int32),
-        ("beats", ctypes.c_uint64),      # callbacks run so far
-        ("busy_ns", ctypes.c_int64),     # CLOCK_MONOTONIC the running callback
-                                         # started at; 0 between callbacks
+        ("beats", ctypes.c_uint64),  # callbacks run so far
+        ("busy_ns", ctypes.c_int64),  # CLOCK_MONOTONIC the running callback
+        # started at; 0 between callbacks
     ]
 
 
@@ -45,19 +46,19 @@ class SlotView:
     unique_id: int
     pid: int
     beats: int
-    busy_ns: int        # when its running callback started; 0: none runs
+    busy_ns: int  # when its running callback started; 0: none runs
 
 
 @dataclass(frozen=True)
-class Repair:
-    torn_slots: tuple[int, ...]       # unique_ids whose slot was half-written
+class BoardRepair:
+    torn_slots: tuple[int, ...]  # unique_ids whose slot was half-written
     at_ns: int
 
 
-_current: "ProgressBoard | None" = None
+_current: ProgressBoard | None = None
 
 
-def current() -> "ProgressBoard | None":
+def current() -> ProgressBoard | None:
     """The board of this container process (None outside isolated mode)."""
     return _current
 
@@ -67,10 +68,10 @@ class ProgressBoard:
         global _current
         self._slots = (_Slot * SLOTS)()
         self._free = list(range(SLOTS - 1, -1, -1))
-        self._index: dict[int, int] = {}      # unique_id -> slot (container side)
-        self._alloc_lock = threading.Lock()   # slot allocation: container threads only
+        self._index: dict[int, int] = {}  # unique_id -> slot (container side)
+        self._alloc_lock = threading.Lock()  # slot allocation: container threads only
         self.mutex = RobustMutex(repair=self._repair)
-        self.repairs: list[Repair] = []
+        self.repairs: list[BoardRepair] = []
         self._on_repair = on_repair
         _current = self
 
@@ -103,10 +104,7 @@ class ProgressBoard:
 
     def snapshot(self) -> list[SlotView]:
         with self.mutex:
-            return [
-                SlotView(s.unique_id, s.pid, s.beats, s.busy_ns)
-                for s in self._slots if s.unique_id
-            ]
+            return [SlotView(s.unique_id, s.pid, s.beats, s.busy_ns) for s in self._slots if s.unique_id]
 
     # -- child side ---------------------------------------------------------------
 
@@ -150,7 +148,7 @@ class ProgressBoard:
             if s.seq % 2:
                 s.seq += 1
                 torn.append(s.unique_id)
-        repair = Repair(tuple(torn), time.monotonic_ns())
+        repair = BoardRepair(tuple(torn), time.monotonic_ns())
         self.repairs.append(repair)
         if self._on_repair is not None:
             self._on_repair(repair)

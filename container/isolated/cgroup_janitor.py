@@ -19,6 +19,7 @@ that what counts the container's children counts its node processes only.
 It uses the standard library only and starts without site: it needs none
 of the container's imports.
 """
+
 from __future__ import annotations
 
 import errno
@@ -66,11 +67,10 @@ def clean(roots: list[str]) -> tuple[list[str], list[str]]:
     removed: list[str] = []
     problems: list[str] = []
     present = [r for r in roots if os.path.isdir(r)]
-    nodes = {r: sorted(os.path.join(r, d) for d in os.listdir(r) if d.startswith("node-"))
-             for r in present}
+    nodes = {r: sorted(os.path.join(r, d) for d in os.listdir(r) if d.startswith("node-")) for r in present}
     for root in present:
         for node_dir in nodes[root]:
-            kill = os.path.join(node_dir, "cgroup.kill")     # cgroup2 only
+            kill = os.path.join(node_dir, "cgroup.kill")  # cgroup2 only
             if os.path.exists(kill):
                 try:
                     with open(kill, "w") as f:
@@ -91,15 +91,18 @@ def main(argv: list[str]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     if os.fork() > 0:
-        os._exit(0)             # the container reaps this one at once
+        os._exit(0)  # the container reaps this one at once
     container_pid, roots = argv[1], argv[2:]
-    while os.read(0, 4096):     # nothing is ever written: wait for end of file
+    while os.read(0, 4096):  # nothing is ever written: wait for end of file
         pass
     removed, problems = clean(roots)
     if removed or problems:
-        print(f"cloneguard cgroup janitor: the container (pid {container_pid}) ended without "
-              f"removing its cgroups; removed {removed}"
-              + (f"; could not remove: {problems}" if problems else ""), file=sys.stderr, flush=True)
+        print(
+            f"cloneguard cgroup janitor: the container (pid {container_pid}) ended without "
+            f"removing its cgroups; removed {removed}" + (f"; could not remove: {problems}" if problems else ""),
+            file=sys.stderr,
+            flush=True,
+        )
     return 1 if problems else 0
 
 

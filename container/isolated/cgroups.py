@@ -17,6 +17,7 @@ cannot remove them: its cgroup janitor (cgroup_janitor.py, a process of its
 own started with the roots) does, once the container and its node processes
 are gone.
 """
+
 from __future__ import annotations
 
 import errno
@@ -63,7 +64,7 @@ def v1_cpu_mount() -> Path | None:
 class NodeCgroup:
     unique_id: int
     v2_dir: Path
-    fd: int                      # open cgroup2 dir, for CLONE_INTO_CGROUP
+    fd: int  # open cgroup2 dir, for CLONE_INTO_CGROUP
     cpu_v1_dir: Path | None = None
 
 
@@ -113,10 +114,13 @@ class NodeCgroups:
         roots = [str(r) for r in (self.v2_root, self.v1_root) if r is not None]
         script = Path(__file__).with_name("cgroup_janitor.py")
         try:
-            first = subprocess.Popen([sys.executable, "-I", "-S", str(script), str(os.getpid()), *roots],
-                                     stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                     start_new_session=True)
-            first.wait(10)      # it forks the janitor and exits
+            first = subprocess.Popen(
+                [sys.executable, "-I", "-S", str(script), str(os.getpid()), *roots],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+            first.wait(10)  # it forks the janitor and exits
         except (OSError, subprocess.TimeoutExpired) as exc:
             _rmdir(self.v2_root)
             raise CgroupsUnavailable(f"cannot start the cgroup janitor: {exc}") from None
@@ -130,8 +134,7 @@ class NodeCgroups:
         for root in (self.v2_root, self.v1_root):
             if root is None or not root.is_dir():
                 continue
-            tree = sorted((d for d in root.rglob("*") if d.is_dir()), key=lambda d: len(d.parts),
-                          reverse=True) + [root]
+            tree = sorted((d for d in root.rglob("*") if d.is_dir()), key=lambda d: len(d.parts), reverse=True) + [root]
             busy = [str(d) for d in tree if (d / "cgroup.procs").read_text().strip()]
             if busy:
                 raise CgroupsUnavailable(f"{root} already exists and has processes in {busy}")
@@ -156,7 +159,7 @@ class NodeCgroups:
         try:
             self._set_quota(cg, cpu_quota)
         except BaseException:
-            self.remove(cg)             # nothing may stay of a cgroup that failed
+            self.remove(cg)  # nothing may stay of a cgroup that failed
             raise
         return cg
 
@@ -167,6 +170,7 @@ class NodeCgroups:
             if self._v2_cpu:
                 (v2_dir / "cpu.max").write_text(f"{quota_us} {CFS_PERIOD_US}")
             else:
+                assert self.v1_root is not None, "without a v2 cpu controller NodeCgroups needs v1's"
                 self.v1_root.mkdir(exist_ok=True)
                 cg.cpu_v1_dir = self.v1_root / f"node-{unique_id}"
                 cg.cpu_v1_dir.mkdir()
@@ -183,7 +187,7 @@ class NodeCgroups:
             elif self._v2_cpu:
                 (cg.v2_dir / "cpu.max").write_text(f"max {CFS_PERIOD_US}")
         except OSError:
-            pass                       # then it stops throttled: slower, not wrong
+            pass  # then it stops throttled: slower, not wrong
 
     def attach(self, cg: NodeCgroup, pid: int) -> None:
         """After the clone: join the v1 cpu group, if the node has one."""
@@ -202,7 +206,7 @@ class NodeCgroups:
         holds a process first (cgroup.kill), then let the janitor go. Never
         raises: returns what could not be removed."""
         problems = self._remove_all()
-        self._janitor_pipe.close()      # the janitor finds nothing left and ends
+        self._janitor_pipe.close()  # the janitor finds nothing left and ends
         return problems
 
     def _remove_all(self) -> list[str]:

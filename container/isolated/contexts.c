@@ -33,6 +33,11 @@ static struct {
     cga_child_start_fn child_start;
     cga_slot_retire_fn slot_retire;
     cga_slot_stats_fn slot_stats;
+    cga_py_stats_fn py_stats;
+    cga_py_owner_fn py_owner;
+    cga_py_active_fn py_active;
+    cga_py_abandon_fn py_abandon;
+    cga_py_abandoned_fn py_abandoned;
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
@@ -100,7 +105,7 @@ char *tls_new(void)
 void tls_give_back(struct cg_child *c)
 {
     if (c->ctx) {
-        if (c->quarantined) {
+        if (c->retired & CGA_RETIRE_QUARANTINED) {
             free(c->ctx);                /* the TLS block itself stays */
         } else {
             G.slot_retire(c->ctx->slot, c->ctx->tcb); /* idle (again, if reaped) */
@@ -128,9 +133,15 @@ int guard_start(void)
     FIND(child_start, "cga_child_start");
     FIND(slot_retire, "cga_slot_retire");
     FIND(slot_stats, "cga_slot_stats");
+    FIND(py_stats, "cga_py_stats");
+    FIND(py_owner, "cga_py_owner");
+    FIND(py_active, "cga_py_active");
+    FIND(py_abandon, "cga_py_abandon");
+    FIND(py_abandoned, "cga_py_abandoned");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
-        !G.child_start || !G.slot_retire || !G.slot_stats) {
+        !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
+        !G.py_active || !G.py_abandon || !G.py_abandoned) {
         memset(&G, 0, sizeof G);
         return -ENOENT;                  /* not preloaded */
     }
@@ -197,6 +208,34 @@ int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out)
     return G.slot_stats ? G.slot_stats(slot, out) : -ENOENT;
 }
 
+/* CPython's object allocator of a slot (pyalloc.c); -ENOENT without the guard. */
+int cg_py_slot_stats(int slot, struct cga_py_stats *out)
+{
+    return G.py_stats ? G.py_stats(slot, out) : -ENOENT;
+}
+
+/* Does the guard's allocator serve CPython's objects (pyalloc.c)? */
+int cg_py_allocator_active(void)
+{
+    return G.py_active ? G.py_active() : 0;
+}
+
+/* The slot whose process allocated Python object memory p; -1 if unknown. */
+int guard_py_owner(const void *p)
+{
+    return G.py_owner ? G.py_owner(p) : -1;
+}
+
+int guard_py_abandon(int slot)
+{
+    return G.py_abandon && G.py_active && G.py_active() ? G.py_abandon(slot) : -ENOENT;
+}
+
+int guard_py_abandoned(const void *p)
+{
+    return G.py_abandoned ? G.py_abandoned(p) : 0;
+}
+
 
 bool guard_active(void) { return G.activate != NULL; }
 
@@ -206,6 +245,6 @@ void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
 /* In the child: threads it creates find its slot by its pid. */
 void guard_child_start(void) { G.child_start(); }
 
-/* Every task of the child is gone: 1 if it died inside the allocator (the
-   slot is quarantined), 0 if the slot is idle again. */
+/* Every task of the child is gone: CGA_RETIRE_* bits (allocguard.h): its
+   slot quarantined (it died inside malloc), its Python pools abandoned. */
 int guard_retire(struct cg_ctx *x) { return G.slot_retire(x->slot, x->tcb); }

@@ -1,6 +1,6 @@
 /*
  * core.h - what the clone core's C files share among themselves (gilrepair.c
- * shares only clonecore.h).  The core, file by file:
+ * shares only repair.h).  The core, file by file:
  *
  *   clonecore.c  the calls Python makes: start/stop the core, spawn a child,
  *                ask it to stop, release or abandon it once reaped
@@ -11,8 +11,14 @@
  *   crash.c      the child's crash report, from its own signal stack
  *   contexts.c   TLS blocks (struct pthread) for children, and the allocator
  *                guard's contexts that keep one bound to a slot across children
+ *   mutexes.c    native mutexes a dead child held, found through their
+ *                waiters, proven, released or reported (the monitor runs it)
+ *   listenerwait.c  Fast DDS's infinite participant-listener wait, which
+ *                spins (eProsima/Fast-DDS#6513), made finite waits that sleep
  *   probes.c     small helpers assumptions.py uses to discover and check the
  *                layout, and the allocator in use
+ *   pkeys.c      memory protection keys: what the machine has, and the facts
+ *                per-node heap protection rests on
  *
  * x86_64 and glibc only.  Everything layout-dependent comes from
  * assumptions.py through struct cg_layout (g_layout), checked against a live
@@ -30,9 +36,10 @@
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <time.h>
 
 #include "allocguard.h"
-#include "clonecore.h"
+#include "repair.h"
 
 #if !defined(__x86_64__)
 #error "the clone core is x86_64 only (clone3 trampoline and TLS layout)"
@@ -41,6 +48,7 @@
 /* ---------------------------------------------------------------------- */
 /* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
 
+#define CG_MUTEX_CALLERS 5   /* mutex_ret: 4 mutex types + the condvar relock */
 struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
     long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
@@ -50,32 +58,60 @@ struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long cleanup;            /* struct pthread.cleanup (pthread_cleanup_push) */
     long cond_cleanup;       /* address of glibc's condvar-wait cleanup
                                 routine (cg_probe_condwait), 0: unknown */
+    /* Where a task blocked on a plain mutex waits (cg_probe_mutexwait): */
+    long mutex_wait_pc;      /* its pc, in __lll_lock_wait's futex call */
+    long mutex_ret_slot;     /* the word above its sp holding the return
+                                address into the caller, */
+    long mutex_ret[CG_MUTEX_CALLERS];       /* which is one of these: pthread_mutex_lock's
+                                call for each type (0-3), pthread_cond_wait's
+                                relock (CG_MUTEX_CALLERS of them) */
+    long private_wait_pc;    /* pc of a task in __lll_lock_wait_private */
 };
 
 struct cg_config {           /* per CloneCore; see core.Mitigations */
     int gil_repair;
     int condvar_repair;
+    int interp_repair;
     int crash_report;
     int jemalloc_own_arena;  /* without alloc_guard: arenas.create in the child */
     int jemalloc_tcache;
     int alloc_guard;         /* allocguard.c is preloaded: use it (see there) */
+    int mutex_repair;        /* mutexes.c: release dead children's mutexes */
 };
 
-enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3 };
-struct cg_event {            /* one record on the event pipe: 40 bytes */
+enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
+struct cg_event {            /* one record on the event pipe: 56 bytes */
     uint32_t kind;
-    int32_t pid;
-    int32_t status;          /* death: si_status; stop: CG_STOP_* */
+    int32_t pid;             /* death, stop: the child; mutex: the dead child
+                                that held it (the last one to die if none
+                                is proven) */
+    int32_t status;          /* death: si_status; stop: CG_STOP_*;
+                                mutex: CG_MUTEX_* (what was done) */
     int32_t code;            /* death: si_code (CLD_EXITED/KILLED/DUMPED),
                                 0 if someone else reaped the child;
-                                stop: the signal (0: asked by the parent) */
+                                stop: the signal (0: asked by the parent);
+                                mutex: its __data.__kind, -1: not a
+                                pthread mutex (a glibc-internal lock) */
     uint64_t serial;
     int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
-    uint32_t repairs;        /* death: CG_REPAIR_* (clonecore.h) */
+    uint32_t repairs;        /* death: CG_REPAIR_* (repair.h) */
     uint32_t alloc;          /* death: its allocator slot (low 16 bits, 0:
                                 none) | CG_ALLOC_QUARANTINED */
+    uint64_t addr;           /* mutex: its address (the lock word's) */
+    int32_t tid;             /* mutex: the task blocked on it */
+    int32_t owner;           /* mutex: its owner's tid, 0: none recorded */
 };
-#define CG_ALLOC_QUARANTINED (1u << 31)
+/* What the lock doctor did about a task blocked on a lock (mutexes.c). */
+enum {
+    CG_MUTEX_RELEASED = 1,   /* plain mutex of a proven-dead owner: released */
+    CG_MUTEX_UNPROVEN = 2,   /* its owner is gone, not proven a dead child's */
+    CG_MUTEX_NO_OWNER = 3,   /* held, no owner recorded, for over a second */
+    CG_MUTEX_EXCLUDED = 4,   /* a dead owner's robust/PI/shared/elided mutex */
+    CG_MUTEX_LIBC_LOCK = 5,  /* a glibc-internal lock waited on for over a
+                                second after a death (no owner recorded) */
+};
+#define CG_ALLOC_QUARANTINED (1u << 31)   /* died inside malloc */
+#define CG_ALLOC_PY_ABANDONED (1u << 30)  /* died inside CPython's object allocator */
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
@@ -84,6 +120,20 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_PY_FRAMES 100 /* Python frames (faulthandler's depth too) */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
+
+/* The tasks the monitor saw in a child (mutexes.c): each tid with where the
+   kernel's pid cursor stood when it was last seen alive. */
+#define CG_SEEN_TASKS 256
+struct cg_seen_task {
+    int tid;
+    int cursor;              /* ns_last_pid then */
+    uint64_t advanced;       /* how far the cursor had moved in all, then */
+};
+struct cg_seen_tasks {
+    int n;
+    int overflow;            /* more tasks than CG_SEEN_TASKS were alive */
+    struct cg_seen_task t[CG_SEEN_TASKS];
+};
 
 struct cg_child {            /* control block, lives in container memory */
     /* read by Python */
@@ -115,8 +165,10 @@ struct cg_child {            /* control block, lives in container memory */
     int stop_reported;
     int repair_done;         /* gilrepair has looked at this dead child */
     uint32_t repairs;        /* what it repaired for it */
-    int quarantined;         /* it died inside the allocator */
+    int retired;             /* CGA_RETIRE_* (allocguard.h): what it left in
+                                the allocator guard, once reaped */
     struct cg_child *next;
+    struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
     int crash_nframes;       /* 0: none; -1: being written; else how many */
     void *crash_frames[CG_CRASH_FRAMES];   /* the crashing task's native stack */
@@ -124,6 +176,10 @@ struct cg_child {            /* control block, lives in container memory */
     int crash_py_more;       /* 1: it went on past CG_CRASH_PY_FRAMES */
     void *crash_py_code[CG_CRASH_PY_FRAMES];   /* each frame's code object */
     int crash_py_lasti[CG_CRASH_PY_FRAMES];    /* and instruction offset */
+    /* written by the repair (monitor) if it died holding the GIL: its
+       innermost Python frame, read by Python once reaped */
+    void *gil_code;
+    int gil_lasti;
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -142,6 +198,30 @@ struct cg_condwait_probe {
     int holds_ref;           /* cond.__g_refs[group] == 2 while it waits */
     int routine_in_libc;
     int cleared_after;       /* TCB+cleanup is back to what it was before */
+};
+
+/* A glibc mutex waiter as the monitor sees it from outside
+   (cg_probe_mutexwait checks all of it on live pthreads). */
+struct cg_mutexwait_probe {
+    int self_tid;
+    int seen[CG_MUTEX_CALLERS];      /* the waiter was found in futex(&m) */
+    int op[CG_MUTEX_CALLERS], val[CG_MUTEX_CALLERS];   /* its futex op, value */
+    uintptr_t pc[CG_MUTEX_CALLERS];
+    int ret_slot[CG_MUTEX_CALLERS];  /* where its return address was found */
+    uintptr_t ret[CG_MUTEX_CALLERS];
+    int ret_in_libc[CG_MUTEX_CALLERS];
+    int kind[CG_MUTEX_CALLERS];      /* the mutex's __kind while held */
+    int owner_is_self[CG_MUTEX_CALLERS];   /* its __owner was the holder */
+    int private_seen, private_op, private_val;
+    uintptr_t private_pc;            /* ... in __lll_lock_wait_private */
+};
+
+/* A task's system call as /proc/<tid>/syscall shows it. */
+struct task_syscall {
+    long nr;                 /* -1: blocked outside a syscall, -2: running
+                                or unreadable */
+    uintptr_t args[6];
+    uintptr_t sp, pc;
 };
 
 /* With the guard, a child runs in a *context*: a TLS block (struct pthread
@@ -176,8 +256,24 @@ int cg_self_stop_requested(void);
 int cg_self_wait_go(void);
 /* crash.c */
 void cg_write_native_stack(void *const *frames, int n, int fd);
+int cg_container_crash_report(void);
 /* contexts.c */
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
+int cg_py_slot_stats(int slot, struct cga_py_stats *out);
+int cg_py_allocator_active(void);
+/* CLOCK_MONOTONIC in ns (the monitor's clock, listenerwait.c's). */
+static inline int64_t cg_mono_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+/* listenerwait.c */
+int cg_bound_listener_wait(char *why_out, int why_size);
+long cg_listener_waits_bounded(void);
+/* interp.c */
+int cg_gc_wait_due(int interval_us, int *wake);
+long cg_gc_collect(void *collect, int generation);
 /* probes.c */
 uintptr_t cg_thread_pointer(void);
 uintptr_t cg_robust_list_head(void);
@@ -185,7 +281,20 @@ long cg_gettid(void);
 void *cg_lookup(const char *name, const char *version);
 long cg_mutex_futex_offset(void);
 int cg_probe_clone3(void);
+
+/* pkeys.c */
+struct cg_pkeys_probe {
+    int cpu_pku, os_pke;     /* CPUID.7.0:ECX bits 3 and 4 */
+    int keys;                /* pkey_alloc gave this many (all freed) */
+    int alloc_errno;         /* why the last pkey_alloc failed, 0: none did */
+    uint32_t pkru;           /* the calling thread's PKRU (os_pke only) */
+    int mprotect_keeps;      /* 1 yes, 0 no, -1 not probed */
+    int thread_inherits;     /* 1 yes, 0 no, -1 not probed */
+    int write_faults;        /* 1 yes, 0 no, -1 not probed */
+};
+int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
+int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_allocator(char *buf, size_t len);
 int cg_jemalloc_thread_tcache(void);
 int cg_jemalloc_thread_arena(void);
@@ -204,6 +313,14 @@ int monitor_start(int *event_fd);
 int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
 int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
 void monitor_wake(void);                  /* async-signal-safe */
+void monitor_emit(const struct cg_event *ev);   /* on the monitor thread */
+
+/* mutexes.c: all on the monitor thread */
+int mutexes_start(void);                  /* -ENOENT: no pid cursor to read */
+void mutexes_see(struct cg_child *c);     /* look at a child's tasks now */
+void mutexes_bury(const struct cg_child *c);   /* c is dead, not yet reaped */
+int mutexes_tick(struct cg_child *children, int64_t now);   /* sleep ms, -1 */
+int task_syscall(int tid, struct task_syscall *out);   /* probes.c too */
 
 /* child.c */
 long child_clone(struct cg_child *c);     /* on the monitor thread: pid or -errno */
@@ -223,7 +340,9 @@ bool guard_active(void);
 struct cg_ctx *ctx_take(void);
 void guard_bind(struct cg_ctx *x);
 void guard_child_start(void);             /* in the child */
-int guard_retire(struct cg_ctx *x);       /* 1: it died inside the allocator */
+int guard_retire(struct cg_ctx *x);       /* CGA_RETIRE_* bits */
+int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
+/* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */
 
 /* probes.c */
 mallctl_fn find_mallctl(void);

@@ -33,18 +33,43 @@ import signal
 import sys
 import threading
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
-from cloneguard.container.isolated import assumptions
+from cloneguard.container import locks
+from cloneguard.container.isolated import assumptions, pybind11_registry
 from cloneguard.container.isolated.assumptions import IsolationUnavailable
+from cloneguard.container.isolated.collector import Collector
+from cloneguard.container.isolated.core_events import (
+    KIND_CLOSED,
+    KIND_DEATH,
+    KIND_MUTEX,
+    RECORD_SIZE,
+    CoreEvent,
+    Death,
+    Repair,
+    StopRequested,
+    decode,
+)
 from cloneguard.container.isolated.crash_reports import CrashStacks
-from cloneguard.container.isolated.events import (KIND_CLOSED, KIND_DEATH, RECORD, CoreEvent, Death, Repair,
-                                                  StopRequested, decode)
 
-__all__ = ["CloneCore", "Child", "Death", "StopRequested", "CoreEvent",
-           "Repair", "Mitigations", "IsolationUnavailable", "stop_requested", "wait_for_go",
-           "in_child", "allocator", "thread_arena", "thread_tcache"]
+__all__ = [
+    "CloneCore",
+    "Child",
+    "Death",
+    "StopRequested",
+    "CoreEvent",
+    "Repair",
+    "Mitigations",
+    "IsolationUnavailable",
+    "stop_requested",
+    "wait_for_go",
+    "in_child",
+    "allocator",
+    "thread_arena",
+    "thread_tcache",
+]
 
 DEFAULT_STACK = 8 << 20
 
@@ -62,6 +87,12 @@ class Mitigations:
         variables (glibc's own cancellation cleanup), clearing a condvar
         lock it died holding.  Off: a child killed while waiting for the GIL
         can hang the next thread that signals the GIL condvar.
+    interp_repair
+        ... and when the dead task held the GIL, what it may have left
+        half-done in the interpreter is mended before anyone else runs
+        Python (interp.c: objects it was changing put out of the garbage
+        collector's sight, GC links, free lists).  Off: the next collection
+        can follow what it left half-written.
     crash_report
         A child that gets SIGSEGV/SIGBUS/SIGILL/SIGFPE/SIGABRT writes one
         report (signal, fault address, pc, native and Python stacks) to
@@ -72,6 +103,11 @@ class Mitigations:
         jemalloc's choice.  No effect on glibc malloc.
     jemalloc_tcache
         False turns the child's jemalloc thread cache off.
+    container_gc
+        Automatic garbage collection is off while the core is open; a thread
+        of the container collects when CPython would have (collector.py), so
+        no child is ever killed in the middle of a collection.  Off: CPython
+        collects on whichever thread allocates, children included.
     alloc_guard
         The allocator guard (allocguard.c, preloaded with LD_PRELOAD): each
         child allocates from arenas of its own, set up by the container;
@@ -80,28 +116,46 @@ class Mitigations:
         allocator has its arena quarantined.  None (default): on when the
         guard is preloaded.  With it, ``jemalloc_arena``/``jemalloc_tcache``
         do not apply (every child has its own arena and cache anyway).
+    mutex_repair
+        The lock doctor (mutexes.c): a plain pthread mutex whose owner was a
+        task of a dead child, and that a live task is blocked on, is
+        released, and reported (MutexReport); what it cannot prove or must
+        not touch is reported, not touched.  None (default): on where the
+        platform checks allow (assumptions.py), True: required there.
+    pybind11_ahead
+        pybind11's registry of live instances is rehashed on the container's
+        threads before a child's insert would have to (pybind11_registry.py),
+        so that no child is killed in the middle of a rehash.  None
+        (default): on where its check passes, True: required.
     """
 
     gil_repair: bool = True
     condvar_repair: bool = True
+    interp_repair: bool = True
     crash_report: bool = True
     jemalloc_arena: Literal["own", "auto"] = "own"
     jemalloc_tcache: bool = True
+    container_gc: bool = True
     alloc_guard: bool | None = None
+    mutex_repair: bool | None = None
+    pybind11_ahead: bool | None = None
 
     def __post_init__(self) -> None:
         if self.jemalloc_arena not in ("own", "auto"):
-            raise ValueError(f"jemalloc_arena must be 'own' or 'auto', not "
-                             f"{self.jemalloc_arena!r}")
+            raise ValueError(f"jemalloc_arena must be 'own' or 'auto', not {self.jemalloc_arena!r}")
 
     def as_config(self) -> dict[str, int]:
         """struct cg_config."""
-        return {"gil_repair": int(self.gil_repair),
-                "condvar_repair": int(self.condvar_repair),
-                "crash_report": int(self.crash_report),
-                "jemalloc_own_arena": int(self.jemalloc_arena == "own"),
-                "jemalloc_tcache": int(self.jemalloc_tcache),
-                "alloc_guard": int(bool(self.alloc_guard))}
+        return {
+            "gil_repair": int(self.gil_repair),
+            "condvar_repair": int(self.condvar_repair),
+            "interp_repair": int(self.interp_repair),
+            "crash_report": int(self.crash_report),
+            "jemalloc_own_arena": int(self.jemalloc_arena == "own"),
+            "jemalloc_tcache": int(self.jemalloc_tcache),
+            "alloc_guard": int(bool(self.alloc_guard)),
+            "mutex_repair": int(bool(self.mutex_repair)),
+        }
 
 
 @dataclass(frozen=True)
@@ -109,7 +163,7 @@ class Child:
     pid: int
     pidfd: int
     serial: int
-    start_time_ns: int          # CLOCK_MONOTONIC at clone
+    start_time_ns: int  # CLOCK_MONOTONIC at clone
     stack_size: int
     cgroup_fd: int | None
     _block: Any = field(default=None, repr=False, compare=False)
@@ -124,15 +178,22 @@ class _Entry:
 
     def __init__(self, target: Callable[[], None]) -> None:
         self.target: Callable[[], None] | None = target  # alive until reaped
-        self.child: Child | None = None
-        self.spawned = False           # spawn() has returned (or failed)
-        self.dead = False              # reaped; death is set
-        self.death_reported = False    # on_event has returned for the death
+        self.child: Any = None  # the Child, once spawn() has it
+        self.spawned = False  # spawn() has returned (or failed)
+        self.dead = False  # reaped; death is set
+        self.death_reported = False  # on_event has returned for the death
         self.death: Death | None = None
+
+    def is_dead(self) -> bool:
+        return self.dead
+
+    def death_was_reported(self) -> bool:
+        return self.death_reported
 
 
 def _lib():
     from cloneguard.container.isolated._clonecore import ffi, lib
+
     return ffi, lib
 
 
@@ -192,19 +253,57 @@ def _resolve_guard(m: Mitigations) -> Mitigations:
     """alloc_guard None -> whether the guard is preloaded; True where it
     cannot work -> IsolationUnavailable."""
     from cloneguard.container import allocator
+
     loaded = allocator.guard_loaded()
     if m.alloc_guard is None:
         m = replace(m, alloc_guard=loaded)
     if not m.alloc_guard:
         return m
     if not loaded:
-        raise IsolationUnavailable(
-            f"the allocator guard is not preloaded (LD_PRELOAD={allocator.GUARD_PATH})")
+        raise IsolationUnavailable(f"the allocator guard is not preloaded (LD_PRELOAD={allocator.GUARD_PATH})")
     if not allocator.jemalloc_active() and not allocator.own_arenas():
         raise IsolationUnavailable(
             "the allocator guard under glibc malloc needs an arena per task: call "
-            "cloneguard.container.allocator.glibc_arena_per_task() before a second thread starts")
+            "cloneguard.container.allocator.glibc_arena_per_task() before a second thread starts"
+        )
     return m
+
+
+def _where_possible(m: Mitigations, name: str, why: str | None, cannot: str, without: str) -> Mitigations:
+    """A mitigation that is on where possible: ``why`` says why it is not
+    possible here (None: it is). None -> possible or not, said on stderr
+    (``without``) when not; True where impossible -> IsolationUnavailable."""
+    wanted = getattr(m, name)
+    if wanted and why:
+        raise IsolationUnavailable(f"{cannot}: {why}")
+    if wanted is None:
+        if why:
+            print(f"cloneguard: {without}: {why}", file=sys.stderr)
+        changes: dict[str, Any] = {name: not why}
+        m = replace(m, **changes)
+    return m
+
+
+def _resolve_mutex_repair(m: Mitigations, report: assumptions.Report) -> Mitigations:
+    """mutex_repair: on where the platform checks allow it."""
+    return _where_possible(
+        m,
+        "mutex_repair",
+        report.mutex_repair_unavailable,
+        "native mutex repair is not possible here",
+        "dead nodes' native mutexes will not be released",
+    )
+
+
+def _resolve_pybind11_ahead(m: Mitigations) -> Mitigations:
+    """pybind11_ahead: on where its check passes."""
+    return _where_possible(
+        m,
+        "pybind11_ahead",
+        pybind11_registry.unavailable() if m.pybind11_ahead is not False else None,
+        "pybind11's instance registry cannot be kept ahead",
+        "a node killed while pybind11 rehashes can end the container",
+    )
 
 
 class CloneCore:
@@ -226,16 +325,25 @@ class CloneCore:
     """
 
     _instance_lock = threading.Lock()
-    _open: "CloneCore | None" = None
+    _open: CloneCore | None = None
 
-    def __init__(self, on_event: Callable[[CoreEvent], None] | None = None,
-                 mitigations: Mitigations | None = None, **overrides: Any) -> None:
+    def __init__(
+        self,
+        on_event: Callable[[CoreEvent], None] | None = None,
+        mitigations: Mitigations | None = None,
+        **overrides: Any,
+    ) -> None:
         names = {f.name for f in fields(Mitigations)}
         unknown = set(overrides) - names
         if unknown:
             raise TypeError(f"unknown mitigation(s): {sorted(unknown)}; known: {sorted(names)}")
         self.mitigations = _resolve_guard(replace(mitigations or Mitigations(), **overrides))
         self.report = assumptions.self_check()
+        self.mitigations = _resolve_mutex_repair(self.mitigations, self.report)
+        self.mitigations = _resolve_pybind11_ahead(self.mitigations)
+        self._keep_ahead = pybind11_registry.keep_ahead if self.mitigations.pybind11_ahead else None
+        if self._keep_ahead is not None:
+            self._keep_ahead()
         ffi, lib = _lib()
         with CloneCore._instance_lock:
             if CloneCore._open is not None:
@@ -257,8 +365,8 @@ class CloneCore:
         self._entries: dict[int, _Entry] = {}
         self._serials = itertools.count(1)
         self._spawning = 0
-        self._closed = False        # spawn refused
-        self._stopped = False       # monitor stopped
+        self._closed = False  # spawn refused
+        self._stopped = False  # monitor stopped
         self._crash_stacks = CrashStacks(lib, ffi)
         try:
             assumptions.check_multithreaded()
@@ -266,14 +374,28 @@ class CloneCore:
             self._shutdown_monitor()
             os.close(self._event_fd)
             raise
-        self._listener = threading.Thread(target=self._listen, daemon=True,
-                                          name="cloneguard-core-listener")
+        self._listener = threading.Thread(target=self._listen, daemon=True, name="cloneguard-core-listener")
         self._listener.start()
+        self._collector = Collector(ffi, lib, self._keep_ahead) if self.mitigations.container_gc else None
+        # Python locks that know their holder (container/locks.py), where
+        # boot.py installed them: every child that ends leaves its held
+        # locks to be taken over.
+        self._pylocks = None
+        if locks.installed():
+            from cloneguard.container.isolated import _pylocks
+
+            self._pylocks = _pylocks
+            locks.activate()
 
     # -- children ---------------------------------------------------------
-    def spawn(self, target: Callable[[], None], *, cgroup_fd: int | None = None,
-              stack_size: int = DEFAULT_STACK,
-              _allow_core_dump: bool = False) -> Child:
+    def spawn(
+        self,
+        target: Callable[[], None],
+        *,
+        cgroup_fd: int | None = None,
+        stack_size: int = DEFAULT_STACK,
+        _allow_core_dump: bool = False,
+    ) -> Child:
         """Run ``target()`` in a new child; return once its pid is known.
 
         Exit code 0 if target returns, 1 if it raises (traceback printed),
@@ -293,18 +415,22 @@ class CloneCore:
             self._spawning += 1
         out = ffi.new("struct cg_child **")
         flags = lib.CG_FLAG_ALLOW_CORE if _allow_core_dump else 0
+        if self._keep_ahead is not None:
+            self._keep_ahead()
         try:
             # The child gets a borrowed pointer; entry.target keeps it alive.
-            rc = lib.cg_spawn(ffi.cast("void *", id(target)), serial, stack_size,
-                              -1 if cgroup_fd is None else cgroup_fd, flags, out)
+            rc = lib.cg_spawn(
+                ffi.cast("void *", id(target)), serial, stack_size, -1 if cgroup_fd is None else cgroup_fd, flags, out
+            )
             if rc == -errno.EPERM:
                 raise RuntimeError("spawn() from inside a child is not supported")
             if rc < 0:
                 why = self._no_free_slot() if rc == -errno.ENOMEM else None
                 raise OSError(-rc, f"spawn failed: {why or os.strerror(-rc)}")
             b = out[0]
-            entry.child = Child(b.pid, b.pidfd, serial, b.start_ns, stack_size,
-                                cgroup_fd, b)
+            if self._pylocks is not None:  # before its death can be dispatched
+                self._pylocks.node_born(b.pid)
+            entry.child = Child(b.pid, b.pidfd, serial, b.start_ns, stack_size, cgroup_fd, b)
             return entry.child
         finally:
             with self._lock:
@@ -360,7 +486,7 @@ class CloneCore:
                 raise RuntimeError(f"child {child.pid} has not been reaped yet")
             del self._entries[child.serial]
             rc = lib.cg_release(child._block)
-        if rc < 0:   # cannot happen once the death record was seen
+        if rc < 0:  # cannot happen once the death record was seen
             raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
 
     def abandon(self, child: Child) -> None:
@@ -392,28 +518,39 @@ class CloneCore:
         out = ffi.new("struct cga_slot_stats *")
         if lib.cg_alloc_slot_stats(slot, out) < 0:
             return None
-        states = {lib.CGA_UNUSED: "unused", lib.CGA_IDLE: "idle",
-                  lib.CGA_BOUND: "bound", lib.CGA_QUARANTINED: "quarantined"}
-        return {"state": states.get(out.state, str(out.state)), "pid": out.pid,
-                "arena": out.arena, "glibc_arenas": out.glibc_arenas,
-                "handed_blocks": out.handed_blocks, "pending_blocks": out.pending_blocks,
-                "pending_bytes": out.pending_bytes,
-                "main_arena_allocs": out.main_arena_allocs}
+        states = {
+            lib.CGA_UNUSED: "unused",
+            lib.CGA_IDLE: "idle",
+            lib.CGA_BOUND: "bound",
+            lib.CGA_QUARANTINED: "quarantined",
+        }
+        return {
+            "state": states.get(out.state, str(out.state)),
+            "pid": out.pid,
+            "arena": out.arena,
+            "glibc_arenas": out.glibc_arenas,
+            "handed_blocks": out.handed_blocks,
+            "pending_blocks": out.pending_blocks,
+            "pending_bytes": out.pending_bytes,
+            "main_arena_allocs": out.main_arena_allocs,
+        }
 
     def _no_free_slot(self) -> str | None:
         """Why a spawn found no allocator-guard slot, if that is why: every
         slot is bound to a live node or quarantined (its node died inside
         malloc; its arena is never used again)."""
         counts: dict[str, int] = {}
-        slot = 1                                  # slot 0 is the container's
+        slot = 1  # slot 0 is the container's
         while (stats := self.slot_stats(slot)) is not None:
             counts[stats["state"]] = counts.get(stats["state"], 0) + 1
             slot += 1
         if not counts or counts.get("idle", 0) or counts.get("unused", 0):
             return None
-        return (f"no allocator slot is free: {counts.get('quarantined', 0)} of {slot - 1} are quarantined "
-                f"(their nodes died inside malloc) and {counts.get('bound', 0)} in use; "
-                "a restart of the container frees the quarantined ones")
+        return (
+            f"no allocator slot is free: {counts.get('quarantined', 0)} of {slot - 1} are quarantined "
+            f"(their nodes died inside malloc) and {counts.get('bound', 0)} in use; "
+            "a restart of the container frees the quarantined ones"
+        )
 
     def flush_crash_reports(self, timeout: float | None = None) -> bool:
         """Wait until the stacks of every crash reported so far are written
@@ -435,7 +572,7 @@ class CloneCore:
         with self._lock:
             if self._stopped:
                 return
-            self._closed = True                 # no new spawn from here on
+            self._closed = True  # no new spawn from here on
             self._changed.wait_for(lambda: self._spawning == 0)
             live = [e for e in self._entries.values() if not e.dead]
             if live and not kill:
@@ -444,7 +581,7 @@ class CloneCore:
         for e in live:
             self.kill(e.child, signal.SIGKILL)
         for e in live:
-            if not self._wait_entry(lambda: e.dead, timeout):
+            if not self._wait_entry(e.is_dead, timeout):
                 raise TimeoutError(f"child {e.child.pid} not reaped after SIGKILL")
         # A death reported before close() may still be in on_event, which
         # may release that child itself: let it finish first, so that no
@@ -452,22 +589,30 @@ class CloneCore:
         with self._lock:
             left = list(self._entries.values())
         for e in left:
-            if not self._wait_entry(lambda: e.death_reported, timeout):
-                print(f"cloneguard: on_event for child {e.child.pid} still running after "
-                      f"{timeout:g} s; releasing it anyway", file=sys.stderr)
+            if not self._wait_entry(e.death_was_reported, timeout):
+                print(
+                    f"cloneguard: on_event for child {e.child.pid} still running after "
+                    f"{timeout:g} s; releasing it anyway",
+                    file=sys.stderr,
+                )
         for e in left:
             try:
                 self.release(e.child)
-            except ValueError:                  # its on_event released it
+            except ValueError:  # its on_event released it
                 pass
         self._shutdown_monitor()
         self._stopped = True
-        self._listener.join()                   # it closes the event fd
+        if self._collector is not None:  # no child runs Python any more
+            self._collector.close()
+        self._listener.join()  # it closes the event fd
         if not self._crash_stacks.close(timeout):
-            print(f"cloneguard: a crashed child's stacks were not written within {timeout:g} s "
-                  "(the dynamic loader's lock is taken?)", file=sys.stderr)
+            print(
+                f"cloneguard: a crashed child's stacks were not written within {timeout:g} s "
+                "(the dynamic loader's lock is taken?)",
+                file=sys.stderr,
+            )
 
-    def __enter__(self) -> "CloneCore":
+    def __enter__(self) -> CloneCore:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -497,12 +642,12 @@ class CloneCore:
         try:
             pending = b""
             while True:
-                data = os.read(self._event_fd, RECORD.size * 64)  # GIL released
+                data = os.read(self._event_fd, RECORD_SIZE * 64)  # GIL released
                 if not data:
                     return
                 pending += data
-                while len(pending) >= RECORD.size:
-                    rec, pending = pending[:RECORD.size], pending[RECORD.size:]
+                while len(pending) >= RECORD_SIZE:
+                    rec, pending = pending[:RECORD_SIZE], pending[RECORD_SIZE:]
                     kind, event = decode(rec)
                     if kind == KIND_CLOSED:
                         return
@@ -511,27 +656,34 @@ class CloneCore:
             os.close(self._event_fd)
 
     def _dispatch(self, kind: int, event: CoreEvent) -> None:
+        if kind == KIND_MUTEX:  # of a child that may be released already
+            self._call_on_event(event)
+            return
         with self._lock:
             entry = self._entries.get(event.serial)
         if entry is None:
             return
-        with self._lock:            # never report a child before spawn() returns
+        with self._lock:  # never report a child before spawn() returns
             self._changed.wait_for(lambda: entry.spawned)
         stacks = None
         if kind == KIND_DEATH:
+            if self._pylocks is not None:
+                self._pylocks.node_died(event.pid)
             # Before anything can release the child's control block.
-            stacks = self._crash_stacks.take(entry.child._block)
+            ffi, lib = _lib()
+            block = entry.child._block
+            stacks = self._crash_stacks.take(block)
+            if block.gil_code != ffi.NULL:
+                buf = ffi.new("char[]", 512)
+                lib.cg_frame_text(block.gil_code, block.gil_lasti, buf, 512)
+                event = replace(event, gil_frame=ffi.string(buf).decode(errors="replace"))
             with self._lock:
                 entry.death = event
-                entry.target = None     # reaped: nothing runs it any more
+                entry.target = None  # reaped: nothing runs it any more
                 entry.dead = True
                 self._changed.notify_all()
         try:
-            if self._on_event is not None:
-                self._on_event(event)
-        except Exception:
-            print("cloneguard: on_event raised:", file=sys.stderr)
-            traceback.print_exc()
+            self._call_on_event(event)
         finally:
             if stacks is not None:  # after on_event reported the death (CRASHED)
                 self._crash_stacks.submit(event.pid, stacks)
@@ -539,6 +691,14 @@ class CloneCore:
                 with self._lock:
                     entry.death_reported = True
                     self._changed.notify_all()
+
+    def _call_on_event(self, event: CoreEvent) -> None:
+        try:
+            if self._on_event is not None:
+                self._on_event(event)
+        except Exception:
+            print("cloneguard: on_event raised:", file=sys.stderr)
+            traceback.print_exc()
 
 
 @atexit.register

@@ -18,6 +18,12 @@
  * 25 frames, all of it before the death could be reported.  A thread the
  * child created has no control block of its own: it writes its report
  * whole, in place.
+ *
+ * The container itself installs the same report for its own threads
+ * (cg_container_crash_report, isolated mode): on a fatal signal in the
+ * container, its native stack and the faulting thread's Python stack, then
+ * the handler that was there before (faulthandler's: every thread's Python
+ * stack) runs, and the process dies as it would have.
  */
 #include "core.h"
 
@@ -35,8 +41,15 @@
 static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));
 /* The child whose main task this is (NULL in threads the child created). */
 static __thread struct cg_child *cg_crashing __attribute__((tls_model("initial-exec")));
+static pid_t g_container_pid;
 
 static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
+#define NCRASH ((int)(sizeof crash_signals / sizeof crash_signals[0]))
+
+/* The container's own report: the handlers it replaced (faulthandler's), in
+   crash_signals order; set once, before any fault can use them. */
+static struct sigaction g_container_prev[NCRASH];
+static int g_container_installed;
 
 struct out { char b[256]; size_t n; };
 
@@ -79,6 +92,10 @@ static void on_crash_timeout(int unused)
 {
     (void)unused;
     int sig = cg_crash_sig;
+    if (g_container_installed && getpid() == g_container_pid)
+        for (int i = 0; i < NCRASH; i++)   /* no SA_RESETHAND there: the old one */
+            if (crash_signals[i] == sig)
+                sigaction(sig, &g_container_prev[i], NULL);
     sigset_t s;
     sigemptyset(&s);
     sigaddset(&s, sig);
@@ -112,14 +129,16 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
     sev.sigev_signo = SIGALRM;
     sev._sigev_un._tid = tid;   /* sigev_notify_thread_id */
     int timer;
-    if (syscall(SYS_timer_create, CLOCK_MONOTONIC, &sev, &timer) == 0) {
+    bool timer_ok = syscall(SYS_timer_create, CLOCK_MONOTONIC, &sev, &timer) == 0;
+    if (timer_ok) {
         struct itimerspec its = {{0, 0}, {2, 0}};
         syscall(SYS_timer_settime, timer, 0, &its, NULL);
     }
 
     struct out o = {.n = 0};
     const char *abbrev = sigabbrev_np(sig);
-    out_s(&o, "cloneguard: pid ");
+    bool container = g_container_installed && pid == g_container_pid;
+    out_s(&o, container ? "cloneguard: container pid " : "cloneguard: pid ");
     out_u(&o, (unsigned long)pid, 10);
     out_s(&o, " caught SIG");
     out_s(&o, abbrev ? abbrev : "?");
@@ -169,6 +188,16 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
     }
 
+    if (container) {
+        /* Then whoever handled it before us: faulthandler dumps every
+           thread and re-raises.  The signal is blocked until we return. */
+        for (int i = 0; i < NCRASH; i++)
+            if (crash_signals[i] == sig)
+                sigaction(sig, &g_container_prev[i], NULL);
+        struct itimerspec off = {{0, 0}, {0, 0}};
+        if (timer_ok)
+            syscall(SYS_timer_settime, timer, 0, &off, NULL);
+    }
     syscall(SYS_tgkill, pid, tid, sig);
     errno = saved;
 }
@@ -186,8 +215,27 @@ void crash_handlers_install(struct cg_child *c)
     sa.sa_sigaction = on_crash;
     sa.sa_flags = SA_SIGINFO | SA_ONSTACK | SA_RESETHAND;
     sigemptyset(&sa.sa_mask);
-    for (size_t i = 0; i < sizeof crash_signals / sizeof crash_signals[0]; i++)
+    for (int i = 0; i < NCRASH; i++)
         sigaction(crash_signals[i], &sa, NULL);
+}
+
+/* In the container (isolated mode), after faulthandler.enable(): the same
+   report for a fatal signal in any of its own threads, then the handler it
+   replaces.  Needs no signal stack of its own: faulthandler's alternate
+   stack serves (it sets one up for the calling thread). 0, or -errno. */
+int cg_container_crash_report(void)
+{
+    g_container_pid = getpid();
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_sigaction = on_crash;
+    sa.sa_flags = SA_SIGINFO | SA_ONSTACK;
+    sigemptyset(&sa.sa_mask);
+    for (int i = 0; i < NCRASH; i++)
+        if (sigaction(crash_signals[i], &sa, &g_container_prev[i]) < 0)
+            return -errno;
+    g_container_installed = 1;
+    return 0;
 }
 
 void crash_report_prepare(void)

@@ -21,6 +21,7 @@ loader's lock, which a node that died inside the loader could have left
 taken: the writing runs on a thread of its own, so at worst that thread
 waits, never one the container needs.
 """
+
 from __future__ import annotations
 
 import os
@@ -62,15 +63,16 @@ class CrashStacks:
         self._lib.cg_hold_py_stack(block.crash_py_code, m, 1)
         return RecordedStacks(
             native=tuple(int(ffi.cast("uintptr_t", block.crash_frames[i])) for i in range(n)),
-            py_codes=codes, py_lasti=tuple(block.crash_py_lasti[i] for i in range(m)),
-            py_more=bool(block.crash_py_more))
+            py_codes=codes,
+            py_lasti=tuple(block.crash_py_lasti[i] for i in range(m)),
+            py_more=bool(block.crash_py_more),
+        )
 
     def submit(self, pid: int, stacks: RecordedStacks) -> None:
         with self._done:
             self._pending += 1
             if self._thread is None:
-                self._thread = threading.Thread(target=self._write_all, name="cloneguard-crash-stacks",
-                                                daemon=True)
+                self._thread = threading.Thread(target=self._write_all, name="cloneguard-crash-stacks", daemon=True)
                 self._thread.start()
         self._queue.put((pid, stacks))
 
@@ -100,7 +102,7 @@ class CrashStacks:
             try:
                 self._write(pid, stacks)
             except OSError:
-                pass                    # stderr is gone: nowhere to write
+                pass  # stderr is gone: nowhere to write
             finally:
                 with self._done:
                     self._pending -= 1
@@ -116,7 +118,7 @@ class CrashStacks:
                 lasti = ffi.new("int[]", list(stacks.py_lasti))
                 lib.cg_write_py_stack(codes, lasti, n, int(stacks.py_more), self._fd)
             finally:
-                lib.cg_hold_py_stack(codes, n, 0)   # the references take() took
+                lib.cg_hold_py_stack(codes, n, 0)  # the references take() took
         else:
             os.write(self._fd, f"cloneguard: pid {pid} Python stack: none (no Python frame)\n".encode())
         os.write(self._fd, f"cloneguard: pid {pid} native stack:\n".encode())

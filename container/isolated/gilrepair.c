@@ -58,7 +58,7 @@
 #include <time.h>
 #include <unistd.h>
 
-#include "clonecore.h"
+#include "repair.h"
 
 #define GIL (&_PyRuntime.ceval.gil)
 #define ANON ((struct cg_dead *)-1)   /* a dead owner we cannot name */
@@ -170,7 +170,7 @@ static bool lock_gil_mutex(struct cg_dead *d, int n, uint32_t *misc)
 /* With gil->mutex held: nobody is inside take_gil's hand-over, so if the
    GIL is locked, last_holder is the live thread state of its holder.  If
    that holder's thread is dead, release the GIL in its name. */
-static void release_if_held_by_dead(struct cg_dead *d, int n, uint32_t *misc)
+static void release_if_held_by_dead(struct cg_dead *d, int n, int interp, uint32_t *misc)
 {
     struct _gil_runtime_state *gil = GIL;
     if (!_Py_atomic_load_relaxed(&gil->locked))
@@ -179,6 +179,25 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, uint32_t *misc)
     struct cg_dead *who;
     if (!h || !is_dead((pid_t)h->native_thread_id, d, n, &who))
         return;
+    /* While the GIL is still the dead task's, nobody runs Python: what it
+       may have left half-done in the interpreter first (interp.c). */
+    /* Where it was: its innermost frame (the frames stay, with the dead
+       thread state, until the child is released). */
+    _PyCFrame *cframe;
+    _PyInterpreterFrame *frame, top;
+    PyTypeObject *code_type;
+    if (who && PEEK(&h->cframe, cframe) && cframe && PEEK(&cframe->current_frame, frame) && frame &&
+        PEEK(frame, top) && top.f_code && PEEK(&top.f_code->ob_base.ob_base.ob_type, code_type) &&
+        code_type == &PyCode_Type) {   /* a frame being pushed or popped can be torn */
+        who->gil_code = top.f_code;
+        who->gil_lasti = _PyInterpreterFrame_LASTI(&top);
+    }
+    uint32_t mended = interp ? cg_interp_after_gil_death(who ? who->slot : 0, h) : 0;
+    for (uint32_t bit = 1; mended; bit <<= 1)
+        if (mended & bit) {
+            credit(who, bit, misc);
+            mended &= ~bit;
+        }
     /* It may have swapped itself out already (drop_gil's first step). */
     uintptr_t expected = (uintptr_t)h;
     __atomic_compare_exchange_n(&_PyRuntime.gilstate.tstate_current._value,
@@ -371,7 +390,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
                     credit(wm, CG_REPAIR_GIL_RELEASED, &misc);
                 }
             } else {
-                release_if_held_by_dead(d, n, &misc);
+                release_if_held_by_dead(d, n, cfg->interp, &misc);
             }
             if (cfg->condvar)
                 unstick_cond_lock(&gil->cond, true,
@@ -407,7 +426,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
         w[i].buf->__routine(w[i].cb);        /* returns holding mutex */
         *(void **)(w[i].who->tcb + cfg->cleanup_off) = w[i].buf->__prev;
         if (w[i].mutex == &gil->mutex && cfg->gil && !checked) {
-            release_if_held_by_dead(d, n, &misc);
+            release_if_held_by_dead(d, n, cfg->interp, &misc);
             checked = true;
         }
         pthread_mutex_unlock(w[i].mutex);
@@ -417,7 +436,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
 
     /* 3. The GIL itself, if step 1 did not look at it. */
     if (cfg->gil && !checked && lock_gil_mutex(d, n, &misc)) {
-        release_if_held_by_dead(d, n, &misc);
+        release_if_held_by_dead(d, n, cfg->interp, &misc);
         pthread_mutex_unlock(&gil->mutex);
     }
 
@@ -462,7 +481,16 @@ void cg_tstate_bind(PyThreadState *ts)        /* child, before it runs Python */
 {
     ts->thread_id = PyThread_get_thread_ident();          /* pthread_self() */
     ts->native_thread_id = (unsigned long)syscall(SYS_gettid);
-    _PyThreadState_SetCurrent(ts);   /* PyGILState's TSS slot (our TLS) */
+    /* PyGILState's TSS slot lives in our TLS block, which an earlier child
+       may have used (the allocator guard's contexts are reused), and
+       CPython 3.11 binds a thread state only to an empty slot.  The earlier
+       child's thread state is deleted from a container thread (release),
+       whose own slot that clears, never this one; a crashed child's is
+       never deleted.  So the slot may still name it: PyGILState_Ensure and
+       the crash report (cg_record_py_stack) then used the dead child's
+       thread state.  Empty it first. */
+    PyThread_tss_set(&_PyRuntime.gilstate.autoTSSkey, NULL);
+    _PyThreadState_SetCurrent(ts);
 }
 
 /* ---------------------------------------------------------------------- */
@@ -565,6 +593,22 @@ static void put_str(char *buf, size_t size, size_t *len, PyObject *str)
 
 /* One line a frame, as faulthandler writes them ("  File "f", line N in
    name"), innermost first. */
+int cg_frame_text(void *code_, int lasti, char *buf, int size)
+{
+    PyGILState_STATE g = PyGILState_Ensure();
+    PyCodeObject *code = (PyCodeObject *)code_;
+    size_t len = 0;
+    char num[24];
+    put_str(buf, (size_t)size - 1, &len, code->co_name);
+    put_text(buf, (size_t)size - 1, &len, " (", -1);
+    put_str(buf, (size_t)size - 1, &len, code->co_filename);
+    snprintf(num, sizeof num, ":%d)", PyCode_Addr2Line(code, lasti * (int)sizeof(_Py_CODEUNIT)));
+    put_text(buf, (size_t)size - 1, &len, num, -1);
+    buf[len] = 0;
+    PyGILState_Release(g);
+    return (int)len;
+}
+
 void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd)
 {
     PyGILState_STATE g = PyGILState_Ensure();

@@ -22,6 +22,7 @@ child may have held locks inside them (rclpy, Fast DDS), and destroying them
 could block the container on a lock nobody will release. They are kept,
 counted and logged, a bounded leak per crash.
 """
+
 from __future__ import annotations
 
 import os
@@ -30,23 +31,33 @@ import signal
 import threading
 import time
 import traceback
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import (ConditionReachedException, ExternalShutdownException, ShutdownException,
-                             SingleThreadedExecutor, TimeoutException)
+from rclpy.executors import (
+    ConditionReachedException,
+    ExternalShutdownException,
+    ShutdownException,
+    SingleThreadedExecutor,
+    TimeoutException,
+)
 from rclpy.signals import SignalHandlerOptions
 
-from .. import factory, intra, options, repairs
+from .. import construction, intra, processes, repairs
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
+from . import listener_wait, mutex_reports
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
+from .core_events import MutexReport
+from .placeholder import held_context, release_context
 from .profiles import DEFAULT, PROFILES, SHARED
-from .spare import Spare, held_context, release_context, serves, spare_target
+from .spare import Spare, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
@@ -103,41 +114,55 @@ class _Handoff:
 class _NodeProcess:
     unique_id: int
     profile: str
-    state: str = "starting"            # starting -> running -> stopping -> gone
-    child: object = None
-    node: object = None
-    executor: object = None
-    context: object = None             # the child's own Context (per-node)
+    state: str = "starting"  # starting -> running -> stopping -> gone; running -> dead (it died on its own) -> gone
+    # Set as the start goes on (Any: each is None only until then).
+    child: Any = None  # core.Child
+    node: Any = None  # rclpy Node
+    executor: Any = None  # SingleThreadedExecutor
+    context: Any = None  # the child's own Context (per-node)
     full_name: str = ""
-    slot: int = -1                     # this node's slot on the progress board
+    slot: int = -1  # this node's slot on the progress board
     start_ns: int = 0
-    stop_guard: object = None          # triggered to wake the child's spin loop
-    stopped_by: object = None          # the outside signal that asked it to stop
-    cgroup: object = None              # NodeCgroup, with --cgroups
-    error: str = ""                    # why construction failed in the child
-    aborted: str = ""                  # why the container aborted it (node watchdog)
+    stop_guard: Any = None  # triggered to wake the child's spin loop
+    stopped_by: Any = None  # the outside signal that asked it to stop
+    cgroup: Any = None  # NodeCgroup, with --cgroups
+    error: str = ""  # why construction failed in the child
+    aborted: str = ""  # why the container aborted it (node watchdog)
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
 
 class IsolatedHost:
-    def __init__(self, context: Context, *, profile: str = DEFAULT, on_death=None, logger, cgroups=None,
-                 mitigations: Mitigations | None = None, warm_spare: bool = True):
+    def __init__(
+        self,
+        context: Context,
+        *,
+        profile: str = DEFAULT,
+        logger,
+        cgroups=None,
+        mitigations: Mitigations | None = None,
+        warm_spare: bool = True,
+        container_argv: Sequence[str] = (),
+    ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
         self.profile = profile
-        self.on_death = on_death
+        self._on_death = None  # report_deaths_to
         self._log = logger
+        # The container's command line: the global ROS arguments a node built
+        # with forward_global_arguments gets on its own Context (per-node).
+        self._container_argv = list(container_argv)
         if profile == SHARED:
             _robust_context_lock(context, logger)
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
         self.board = ProgressBoard(on_repair=self._board_repaired)
-        self.cgroups = cgroups          # NodeCgroups, or None: no per-node cgroups
+        self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
         self._core = CloneCore(on_event=self._on_core_event, mitigations=self.mitigations)
+        listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
         # with cgroups, where each node's process is born in its own.
         self._spare: Spare | None = None
@@ -150,6 +175,12 @@ class IsolatedHost:
 
     # -- host interface ---------------------------------------------------------
 
+    def report_deaths_to(self, on_death) -> None:
+        """Where a node's death goes (the manager's on_death); said once."""
+        if self._on_death is not None:
+            raise RuntimeError("deaths are already reported elsewhere")
+        self._on_death = on_death
+
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
@@ -160,19 +191,21 @@ class IsolatedHost:
             # Whatever was half made goes: the child, the container-built
             # node, the cgroup, the board slot, the handoff pipe.
             self._undo(proc)
-            self._want_spare()                  # it may have used the spare
+            self._want_spare()  # it may have used the spare
             if isinstance(exc, LoadError):
                 raise
-            self._log.error(f"unique_id {unique_id}: starting its process failed:\n"
-                            + "".join(traceback.format_exception(exc)))
+            self._log.error(
+                f"unique_id {unique_id}: starting its process failed:\n" + "".join(traceback.format_exception(exc))
+            )
             raise LoadError(f"the node's process could not be started: {type(exc).__name__}: {exc}") from None
         with self._lock:
             # The handoff is closed under the lock that guards posting to it.
             proc.handoff.close()
             died = proc.death
             proc.state = "running" if died is None else "dead"
+        processes.node_is(proc.child.pid, unique_id, proc.full_name)
         hosted = Hosted(unique_id, proc.full_name, proc.child.pid, proc.start_ns, detail=proc)
-        if died is not None:   # died between construction and now
+        if died is not None:  # died between construction and now
             self._crashed(proc, died)
         return hosted
 
@@ -186,7 +219,7 @@ class IsolatedHost:
         proc.slot = self.board.register(unique_id)
         proc.start_ns = time.time_ns()
         if self.profile == SHARED:
-            proc.node = factory.construct(cls, args, self._context, unique_id)
+            proc.node = construction.construct(cls, args, self._context, unique_id)
             proc.full_name = proc.node.get_fully_qualified_name()
             proc.executor = SingleThreadedExecutor(context=self._context)
             proc.executor.add_node(proc.node)
@@ -208,6 +241,7 @@ class IsolatedHost:
             self._by_pid[proc.child.pid] = proc
             if spare is not None:
                 self._core.go(proc.child)
+        processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built
         if proc.cgroup is not None:
             self.cgroups.attach(proc.cgroup, proc.child.pid)
         if self.profile != SHARED:
@@ -220,7 +254,7 @@ class IsolatedHost:
         if proc.child is not None and proc.state != "gone":
             steps.append(lambda: self._end_child(proc))
         if proc.node is not None and proc.profile == SHARED and proc.state != "gone":
-            steps.append(lambda: (proc.executor.shutdown(), factory.destroy(proc.node)))
+            steps.append(lambda: self._destroy_built(proc))
         if proc.cgroup is not None:
             steps.append(lambda: self.cgroups.remove(proc.cgroup))
         if proc.slot >= 0:
@@ -230,9 +264,16 @@ class IsolatedHost:
             try:
                 step()
             except Exception as exc:
-                self._log.error(f"unique_id {proc.unique_id}: clean-up after a failed start: "
-                                f"{type(exc).__name__}: {exc}")
+                self._log.error(
+                    f"unique_id {proc.unique_id}: clean-up after a failed start: {type(exc).__name__}: {exc}"
+                )
         proc.cgroup = None
+
+    @staticmethod
+    def _destroy_built(proc: _NodeProcess) -> None:
+        """A node built in the container (shared profile): its executor, then it."""
+        proc.executor.shutdown()
+        construction.destroy(proc.node)
 
     def _end_child(self, proc: _NodeProcess) -> None:
         """SIGKILL a child that was spawned for a start that failed; reap it;
@@ -265,7 +306,7 @@ class IsolatedHost:
             self._spare_maker.shutdown(wait=True)
         with self._lock:
             spare, self._spare = self._spare, None
-        if spare is not None:               # it winds down while the nodes do
+        if spare is not None:  # it winds down while the nodes do
             self._core.request_stop(spare.child)
         self._stop_all([h.detail for h in hosted_nodes])
         if spare is not None:
@@ -302,22 +343,24 @@ class IsolatedHost:
     def _spin_target(self, proc: _NodeProcess):
         def run():
             self._spin_until_stopped(proc)
+
         return run
 
     def _fresh_target(self, proc: _NodeProcess, cls, args):
         def run():
-            ctx, placeholder = held_context(lambda: _new_context(args.forward_global_arguments))
+            ctx, placeholder = held_context(lambda: self._new_context(args.forward_global_arguments))
             self._build_and_spin(proc, ctx, cls, args, placeholder)
+
         return run
 
     def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder):
         """In a per-node child: build the node on ``ctx``, say READY (or
         FAILED), spin it until asked to stop, then tear it all down. The
-        ``placeholder`` (spare.py) that holds the participant goes once the
+        ``placeholder`` (placeholder.py) that holds the participant goes once the
         node holds it too, or last after a failed construction: its
         destruction, off the GIL, then deletes the participant."""
         try:
-            node = factory.construct(cls, args, ctx, proc.unique_id)
+            node = construction.construct(cls, args, ctx, proc.unique_id)
         except Exception as exc:
             # construct() has destroyed whatever node was half made; the
             # participant goes with the placeholder, and its threads end.
@@ -339,8 +382,16 @@ class IsolatedHost:
             # must end (else this process outlives its node) and its
             # SHM segments be unlinked; then the exception ends us (1).
             executor.shutdown()
-            factory.destroy(node)
+            construction.destroy(node)
             release_context(ctx)
+
+    def _new_context(self, forward_global_arguments: bool) -> Context:
+        """A node process's own rclpy Context, with the container's global ROS
+        arguments if the node is to see them."""
+        ctx = Context()
+        ros_args = self._container_argv if forward_global_arguments else []
+        rclpy.init(args=ros_args, context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+        return ctx
 
     # -- the warm spare (spare.py) ------------------------------------------------
 
@@ -350,13 +401,13 @@ class IsolatedHost:
             return
         try:
             self._spare_maker.submit(self._make_spare)
-        except RuntimeError:    # shut down: the container is closing
+        except RuntimeError:  # shut down: the container is closing
             pass
 
     def _make_spare(self) -> None:
         """On the spare maker's thread: make a spare if there is none."""
         spare = Spare()
-        target = spare_target(spare, lambda: _new_context(False), self._build_and_spin)
+        target = spare_target(spare, lambda: self._new_context(False), self._build_and_spin)
         with self._lock:
             if self._spare is not None or self._closing:
                 return
@@ -387,7 +438,7 @@ class IsolatedHost:
     def _let_spare_go(self, spare: Spare, death: Death) -> None:
         if death.exit_code == 0 and not death.repaired:
             self._core.release(spare.child)
-        else:   # its participant may be half made, or locked: leave it
+        else:  # its participant may be half made, or locked: leave it
             self._core.abandon(spare.child)
 
     # -- parent side --------------------------------------------------------------
@@ -405,8 +456,10 @@ class IsolatedHost:
             why = f"the node's process died during construction ({_describe(proc.death)})"
         clean = word == FAILED
         if self._core.wait(proc.child, FAILED_EXIT_TIMEOUT_S if clean else None) is None:
-            self._log.warning(f"unique_id {proc.unique_id}: its process did not end within "
-                              f"{FAILED_EXIT_TIMEOUT_S:g} s of a failed construction: SIGKILL")
+            self._log.warning(
+                f"unique_id {proc.unique_id}: its process did not end within "
+                f"{FAILED_EXIT_TIMEOUT_S:g} s of a failed construction: SIGKILL"
+            )
             self._core.kill(proc.child, signal.SIGKILL)
             self._core.wait(proc.child)
             clean = False
@@ -440,10 +493,9 @@ class IsolatedHost:
                 )
                 self._core.kill(proc.child, signal.SIGKILL)
                 death = self._core.wait(proc.child)
-            clean = death.exit_code == 0
+            clean = death is not None and death.exit_code == 0
             if clean and proc.profile == SHARED:
-                proc.executor.shutdown()
-                factory.destroy(proc.node)
+                self._destroy_built(proc)
             self._forget(proc, leak=not clean)
 
     def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
@@ -452,7 +504,7 @@ class IsolatedHost:
             proc.state = "gone"
         self.board.unregister(proc.unique_id)
         proc.slot = -1
-        if proc.cgroup is not None:        # the process is reaped: the group is empty
+        if proc.cgroup is not None:  # the process is reaped: the group is empty
             cgroup, proc.cgroup = proc.cgroup, None
             self.cgroups.remove(cgroup)
         if leak:
@@ -468,6 +520,9 @@ class IsolatedHost:
             self._core.release(proc.child)
 
     def _on_core_event(self, event) -> None:
+        if isinstance(event, MutexReport):  # its dead holder may be forgotten already
+            mutex_reports.handle(event, self._log)
+            return
         with self._lock:
             proc = self._by_pid.get(event.pid)
             spare = self._spare if proc is None and self._spare and self._spare.child.pid == event.pid else None
@@ -478,8 +533,10 @@ class IsolatedHost:
                 # Exit 0: it was asked to stop by a signal (the container's
                 # process group being stopped, say).
                 log = self._log.info if event.exit_code == 0 else self._log.warning
-                log(f"the spare process for the next load (pid {event.pid}) ended: "
-                    f"{_describe(event)}; the next load makes another")
+                log(
+                    f"the spare process for the next load (pid {event.pid}) ended: "
+                    f"{_describe(event)}; the next load makes another"
+                )
                 self._let_spare_go(spare, event)
             return
         if proc is None:
@@ -507,13 +564,14 @@ class IsolatedHost:
         its death is reported as any crash is, with ``why`` added. False if
         no running node has that id."""
         with self._lock:
-            proc = next((p for p in self._by_pid.values()
-                         if p.unique_id == unique_id and p.state == "running"), None)
+            proc = next((p for p in self._by_pid.values() if p.unique_id == unique_id and p.state == "running"), None)
             if proc is None or proc.aborted:
                 return False
             proc.aborted = why
-        self._log.error(f"{proc.full_name} (unique_id {unique_id}, pid {proc.child.pid}): {why}; "
-                        "aborting its process (SIGABRT), its stacks follow")
+        self._log.error(
+            f"{proc.full_name} (unique_id {unique_id}, pid {proc.child.pid}): {why}; "
+            "aborting its process (SIGABRT), its stacks follow"
+        )
         self._core.kill(proc.child, signal.SIGABRT)
         return True
 
@@ -537,18 +595,20 @@ class IsolatedHost:
             reason += f" by the container: {proc.aborted}"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
-        if self.on_death is not None:
-            self.on_death(proc.unique_id, NodeDeath(
-                pid=death.pid,
-                exit_signal=death.exit_signal or 0,
-                exit_code=death.exit_code or 0,
-                reason=reason,
-                allocator_quarantined=death.alloc_quarantined,
-            ))
+        if self._on_death is not None:
+            self._on_death(
+                proc.unique_id,
+                NodeDeath(
+                    pid=death.pid,
+                    exit_signal=death.exit_signal or 0,
+                    exit_code=death.exit_code or 0,
+                    reason=reason,
+                    allocator_quarantined=death.alloc_quarantined,
+                ),
+            )
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
-            proc.executor.shutdown()
-            factory.destroy(proc.node)
+            self._destroy_built(proc)
         self._forget(proc, leak=not clean)
 
 
@@ -563,16 +623,7 @@ def _robust_context_lock(context: Context, logger) -> None:
     if type(getattr(context, "_lock", None)) is not type(threading.Lock()):
         logger.warning("rclpy Context has no plain _lock here: its lock stays non-robust")
         return
-    context._lock = RobustMutex()
-
-
-def _new_context(forward_global_arguments: bool) -> Context:
-    """A node process's own rclpy Context, with the container's global ROS
-    arguments if the node is to see them."""
-    ctx = Context()
-    ros_args = options.container_argv if forward_global_arguments else []
-    rclpy.init(args=ros_args, context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    return ctx
+    context._lock = RobustMutex()  # type: ignore[assignment]  # used as a context manager only
 
 
 def _stopping() -> None:
@@ -584,7 +635,7 @@ def _wake(proc: _NodeProcess) -> None:
     """Wake the node's executor so its spin loop sees the stop flag."""
     try:
         proc.stop_guard.trigger()
-    except Exception:   # not built yet, or the child is tearing it down itself
+    except Exception:  # not built yet, or the child is tearing it down itself
         pass
 
 
@@ -597,9 +648,13 @@ def _describe(death: Death | None) -> str:
         what = "exited, status unknown"
     else:
         what = f"exited with code {death.exit_code}"
+    if death.gil_frame:
+        what += f"; it held the GIL in {death.gil_frame}"
     if death.repaired:
-        # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED" -- the harness counts these
+        # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED"
         what += "; repaired: " + ", ".join(death.repairs.names())
     if death.alloc_quarantined:
         what += "; it died inside the allocator: its arena is quarantined"
+    if death.py_abandoned:
+        what += "; it died inside Python's object allocator: its pools are abandoned"
     return what

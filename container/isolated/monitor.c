@@ -5,7 +5,8 @@
  * waits on the children's pidfds with epoll, and after a death, before
  * reaping, calls gilrepair.c to undo what the dead task left in CPython's
  * GIL; then it reports to Python through a pipe of fixed-size records
- * (struct cg_event).  It never takes the GIL.  It alone touches the child
+ * (struct cg_event).  Between events, and after each, it runs the lock
+ * doctor (mutexes.c), which says how long it may sleep.  It never takes the GIL.  It alone touches the child
  * list (g_children) and cg_child.stop_reported.
  *
  * Other threads talk to it through commands (spawn, stop) written as
@@ -31,13 +32,6 @@ static int g_epfd = -1, g_wakefd = -1, g_cmd[2] = {-1, -1}, g_ev[2] = {-1, -1};
 static pthread_t g_monitor;
 static struct cg_child *g_children;   /* monitor-only */
 static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
-
-static int64_t mono_ns(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
-}
 
 enum { CMD_SPAWN = 1, CMD_STOP = 2 };
 struct cg_cmd {              /* lives on the caller's stack */
@@ -70,17 +64,13 @@ static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
     return cmd->result;
 }
 
-static void emit(uint32_t kind, const struct cg_child *c, int status,
-                 int code, int64_t t, uint32_t repairs)
+/* One record onto the event pipe; blocks if Python lags >1000 records
+   behind. */
+void monitor_emit(const struct cg_event *ev)
 {
-    uint32_t alloc = 0;
-    if (c && c->ctx)
-        alloc = (uint32_t)c->ctx->slot | (c->quarantined ? CG_ALLOC_QUARANTINED : 0);
-    struct cg_event ev = {kind, c ? c->pid : 0, status, code,
-                          c ? c->serial : 0, t, repairs, alloc};
-    const char *p = (const char *)&ev;
-    size_t left = sizeof ev;
-    while (left) {   /* blocks if Python lags >2048 records behind */
+    const char *p = (const char *)ev;
+    size_t left = sizeof *ev;
+    while (left) {
         ssize_t n = write(g_ev[1], p, left);
         if (n < 0 && errno == EINTR)
             continue;
@@ -88,6 +78,20 @@ static void emit(uint32_t kind, const struct cg_child *c, int status,
             return;
         p += n, left -= (size_t)n;
     }
+}
+
+static void emit(uint32_t kind, const struct cg_child *c, int status,
+                 int code, int64_t t, uint32_t repairs)
+{
+    uint32_t alloc = 0;
+    if (c && c->ctx)
+        alloc = (uint32_t)c->ctx->slot |
+                (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
+                (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0);
+    struct cg_event ev = {.kind = kind, .pid = c ? c->pid : 0, .status = status,
+                          .code = code, .serial = c ? c->serial : 0, .t_ns = t,
+                          .repairs = repairs, .alloc = alloc};
+    monitor_emit(&ev);
 }
 
 static void report_stop(struct cg_child *c, int64_t t)
@@ -102,7 +106,7 @@ static void report_stop(struct cg_child *c, int64_t t)
 
 static int do_spawn(struct cg_child *c)
 {
-    c->start_ns = mono_ns();
+    c->start_ns = cg_mono_ns();
     long pid = child_clone(c);
     if (pid < 0)
         return (int)pid;
@@ -119,6 +123,8 @@ static int do_spawn(struct cg_child *c)
     }
     c->next = g_children;
     g_children = c;
+    mutexes_see(c);              /* its main task, for a death before the
+                                    first periodic look (mutexes.c) */
     return 0;
 }
 
@@ -146,15 +152,20 @@ static void repair_after_death(struct cg_child *reaped)
     int n = 0;
     for (struct cg_child *c = g_children; c && n < 32; c = c->next)
         if (!c->repair_done && (c == reaped || child_is_dead(c))) {
-            d[n] = (struct cg_dead){c->pid, c->tcb, c->map, c->map + c->map_len, 0};
+            d[n] = (struct cg_dead){c->pid, c->tcb, c->map, c->map + c->map_len,
+                                    c->ctx ? c->ctx->slot : 0, 0, NULL, 0};
             who[n++] = c;
         }
-    struct cg_repair_cfg cfg = {g_cfg.gil_repair, g_cfg.condvar_repair, g_layout.cleanup,
-                                (uintptr_t)g_layout.cond_cleanup};
+    struct cg_repair_cfg cfg = {g_cfg.gil_repair, g_cfg.condvar_repair, g_cfg.interp_repair,
+                                g_layout.cleanup, (uintptr_t)g_layout.cond_cleanup};
     uint32_t misc = cg_gil_repair(d, n, &cfg);
     for (int i = 0; i < n; i++) {
         who[i]->repairs |= d[i].repairs;
         who[i]->repair_done = 1;
+        if (d[i].gil_code) {
+            who[i]->gil_code = d[i].gil_code;
+            who[i]->gil_lasti = d[i].gil_lasti;
+        }
     }
     reaped->repairs |= misc;
 }
@@ -179,13 +190,14 @@ static void reap(struct cg_child *c, int64_t t)
     /* Every task of the child is gone: whether it died inside the allocator
        is settled now (before anything hears of the death). */
     if (c->ctx)
-        c->quarantined = guard_retire(c->ctx);
+        c->retired = guard_retire(c->ctx);
     if (r == 0) {
         siginfo_t gone;
         memset(&gone, 0, sizeof gone);
         waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &gone, WEXITED | __WALL | WNOHANG);
     }
     report_stop(c, t);           /* never after the death record */
+    mutexes_bury(c);             /* its tasks may prove a mutex's owner dead */
     epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
     for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
         if (*p == c) {
@@ -200,11 +212,15 @@ static void *monitor_main(void *unused)
 {
     (void)unused;
     struct epoll_event evs[32];
+    int sleep_ms = -1;
     for (;;) {
-        int n = epoll_wait(g_epfd, evs, 32, -1);
-        if (n < 0)
-            continue;                    /* EINTR; all signals are blocked */
-        int64_t t = mono_ns();
+        int n = epoll_wait(g_epfd, evs, 32, sleep_ms);
+        int64_t t = cg_mono_ns();
+        if (n <= 0) {                    /* EINTR (all signals are blocked),
+                                            or time for the lock doctor */
+            sleep_ms = mutexes_tick(g_children, t);
+            continue;
+        }
         /* Commands and stop notices first, deaths second: a stop notice of
            a child must reach Python before its death record. */
         for (int i = 0; i < n; i++) {
@@ -233,6 +249,7 @@ static void *monitor_main(void *unused)
         for (int i = 0; i < n; i++)
             if (evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
                 reap(evs[i].data.ptr, t);
+        sleep_ms = mutexes_tick(g_children, cg_mono_ns());
     }
 }
 
@@ -248,6 +265,9 @@ static void close_fds(void)
    which Python owns (and closes after cg_stop). */
 int monitor_start(int *event_fd)
 {
+    int r = mutexes_start();
+    if (r < 0)
+        return r;
     g_epfd = epoll_create1(EPOLL_CLOEXEC);
     g_wakefd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
     if (g_epfd < 0 || g_wakefd < 0 || pipe2(g_cmd, O_CLOEXEC) < 0 ||
@@ -262,12 +282,20 @@ int monitor_start(int *event_fd)
     epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_wakefd, &e2);
 
     /* The monitor runs with every signal blocked (process-directed signals
-       go to other threads); children inherit that mask and clear it. */
+       go to other threads); children inherit that mask and clear it.  All
+       but the ones a fault raises: blocked, a fault of its own kills the
+       container silently (the kernel delivers it anyway, default action,
+       no handler run); unblocked, the container's crash report names it. */
     sigset_t all, old;
     sigfillset(&all);
+    static const int faults[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT, SIGTRAP};
+    for (size_t i = 0; i < sizeof faults / sizeof faults[0]; i++)
+        sigdelset(&all, faults[i]);
     pthread_sigmask(SIG_SETMASK, &all, &old);
     int err = pthread_create(&g_monitor, NULL, monitor_main, NULL);
     pthread_sigmask(SIG_SETMASK, &old, NULL);
+    if (!err)
+        pthread_setname_np(g_monitor, "cg-monitor");   /* for ps, gdb, benchmarks */
     if (err) {
         close(g_ev[0]);
         g_ev[0] = -1;

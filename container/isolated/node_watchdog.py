@@ -18,6 +18,7 @@ the GIL (a C call that never returns without releasing it) stops this timer
 with every other Python thread: only the container's watchdog, whose last
 resort runs without the GIL, ends that.
 """
+
 from __future__ import annotations
 
 import time
@@ -32,16 +33,19 @@ class NodeWatchdog:
         self._timer = node.create_timer(min(1.0, limit_s / 4), self._check)
         node.get_logger().info(
             f"node watchdog: a node whose callback runs longer than {limit_s:g} s is aborted "
-            "(SIGABRT, with its stacks) and reported CRASHED")
+            "(SIGABRT, with its stacks) and reported CRASHED"
+        )
 
     def _check(self) -> None:
         now = time.monotonic_ns()
         for slot in self._host.board.snapshot():
             if slot.busy_ns and (now - slot.busy_ns) / 1e9 > self.limit_s:
                 ran = (now - slot.busy_ns) / 1e9
-                self._host.abort(slot.unique_id,
-                                 f"its callback ran for {ran:.1f} s, longer than --node-watchdog {self.limit_s:g} s "
-                                 f"({slot.beats} callback(s) had run before it)")
+                self._host.abort(
+                    slot.unique_id,
+                    f"its callback ran for {ran:.1f} s, longer than --node-watchdog {self.limit_s:g} s "
+                    f"({slot.beats} callback(s) had run before it)",
+                )
 
     def close(self) -> None:
         self._timer.cancel()

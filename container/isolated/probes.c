@@ -9,6 +9,7 @@
 #include <asm/prctl.h>
 #include <dlfcn.h>
 #include <errno.h>
+#include <linux/futex.h>
 #include <pthread.h>
 #include <sched.h>
 #include <stdio.h>
@@ -176,4 +177,144 @@ int cg_jemalloc_thread_arena(void)
 {
     unsigned a;
     return read_mallctl("thread.arena", &a, sizeof a) < 0 ? -1 : (int)a;
+}
+
+/* ---- Where a task blocked on a mutex waits, seen from outside ---------- */
+
+struct mutex_waiter {
+    pthread_mutex_t *m;
+    pthread_cond_t *cv;      /* NULL: pthread_mutex_lock; else cond_wait */
+    volatile int tid, phase; /* phase 1: about to block, 2: done */
+    int *word;               /* __lll_lock_wait_private: the lock word */
+};
+
+static void *mutex_waiter_main(void *p)
+{
+    struct mutex_waiter *w = p;
+    w->tid = (int)syscall(SYS_gettid);
+    if (w->word) {
+        void (*wait_private)(int *) =
+            (void (*)(int *))dlvsym(RTLD_DEFAULT, "__lll_lock_wait_private", "GLIBC_PRIVATE");
+        __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
+        wait_private(w->word);       /* returns holding it (word 2) */
+    } else if (w->cv) {
+        pthread_mutex_lock(w->m);
+        __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
+        pthread_cond_wait(w->cv, w->m);   /* relocks: cond_lock */
+        pthread_mutex_unlock(w->m);
+    } else {
+        __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
+        pthread_mutex_lock(w->m);
+        pthread_mutex_unlock(w->m);
+    }
+    __atomic_store_n(&w->phase, 2, __ATOMIC_RELEASE);
+    return NULL;
+}
+
+/* Wait (~2 s at most) until task tid is in futex(uaddr); its view. */
+static int wait_in_futex(int tid, const void *uaddr, struct task_syscall *sc)
+{
+    for (int i = 0; i < 2000; i++) {
+        if (task_syscall(tid, sc) == 0 && sc->nr == SYS_futex &&
+            sc->args[0] == (uintptr_t)uaddr)
+            return 0;
+        usleep(1000);
+    }
+    return -ETIMEDOUT;
+}
+
+static uintptr_t stack_word(uintptr_t sp, int i) { return ((uintptr_t *)sp)[i]; }
+
+/* Block a pthread on a mutex of each kind glibc waits for in __lll_lock_wait
+   (PTHREAD_MUTEX_{NORMAL,RECURSIVE,ERRORCHECK,ADAPTIVE}_NP, and the relock
+   after pthread_cond_wait), and on a glibc-internal lock
+   (__lll_lock_wait_private), and read where each waits, from outside, the
+   way mutexes.c will: /proc/<tid>/syscall gives the futex call, its pc and
+   sp, and the waiter's stack, above sp, the return address into its caller.
+   What the mutexes were and the probes saw is checked by assumptions.py. */
+int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
+{
+    memset(out, 0, sizeof *out);
+    void *libc = dlopen("libc.so.6", RTLD_NOW | RTLD_NOLOAD);
+    void *lock_fn = libc ? dlsym(libc, "pthread_mutex_lock") : NULL;
+    if (libc)
+        dlclose(libc);
+    if (!lock_fn || !dlvsym(RTLD_DEFAULT, "__lll_lock_wait_private", "GLIBC_PRIVATE"))
+        return -ENOENT;
+    out->self_tid = (int)syscall(SYS_gettid);
+    for (int k = 0; k < CG_MUTEX_CALLERS; k++) {
+        pthread_mutex_t m;
+        pthread_mutexattr_t at;
+        pthread_cond_t cv = PTHREAD_COND_INITIALIZER;
+        pthread_mutexattr_init(&at);
+        pthread_mutexattr_settype(&at, k == CG_MUTEX_CALLERS - 1 ? PTHREAD_MUTEX_NORMAL : k);
+        pthread_mutex_init(&m, &at);
+        pthread_mutexattr_destroy(&at);
+        struct mutex_waiter w = {&m, k == CG_MUTEX_CALLERS - 1 ? &cv : NULL, 0, 0, NULL};
+        struct task_syscall sc;
+        pthread_t t;
+        if (w.cv == NULL)
+            pthread_mutex_lock(&m);
+        if (pthread_create(&t, NULL, mutex_waiter_main, &w) != 0)
+            return -EAGAIN;
+        while (__atomic_load_n(&w.phase, __ATOMIC_ACQUIRE) == 0)
+            sched_yield();
+        if (w.cv) {                  /* it waits on cv; take m, wake it */
+            if (wait_in_futex(w.tid, &cv.__data.__g_signals[0], &sc) < 0)
+                wait_in_futex(w.tid, &cv.__data.__g_signals[1], &sc);
+            pthread_mutex_lock(&m);
+            pthread_cond_signal(&cv);
+        }
+        int seen = wait_in_futex(w.tid, &m, &sc) == 0;
+        out->kind[k] = m.__data.__kind;
+        out->owner_is_self[k] = m.__data.__owner == out->self_tid;
+        if (seen) {
+            out->op[k] = (int)sc.args[1];
+            out->val[k] = (int)sc.args[2];
+            out->pc[k] = sc.pc;
+            /* The return address: the first word above sp that lies in
+               pthread_mutex_lock (by dladdr) for a plain lock; for the
+               relock, the word at the same place. */
+            for (int i = 0; i < 32 && k < CG_MUTEX_CALLERS - 1; i++) {
+                Dl_info info;
+                uintptr_t v = stack_word(sc.sp, i);
+                if (dladdr((void *)v, &info) && info.dli_saddr == lock_fn) {
+                    out->ret_slot[k] = i;
+                    out->ret[k] = v;
+                    break;
+                }
+            }
+            if (k == CG_MUTEX_CALLERS - 1 && out->ret[0]) {
+                out->ret_slot[k] = out->ret_slot[0];
+                out->ret[k] = stack_word(sc.sp, out->ret_slot[0]);
+            }
+            Dl_info info;
+            out->ret_in_libc[k] = out->ret[k] && dladdr((void *)out->ret[k], &info) &&
+                                  info.dli_fname && strstr(info.dli_fname, "libc.so");
+        }
+        out->seen[k] = seen;
+        pthread_mutex_unlock(&m);
+        pthread_join(t, NULL);
+        pthread_mutex_destroy(&m);
+        pthread_cond_destroy(&cv);
+    }
+    /* A glibc-internal lock (no owner recorded): word 2 = held, contended. */
+    int word = 2;
+    struct mutex_waiter w = {NULL, NULL, 0, 0, &word};
+    struct task_syscall sc;
+    pthread_t t;
+    if (pthread_create(&t, NULL, mutex_waiter_main, &w) != 0)
+        return -EAGAIN;
+    while (__atomic_load_n(&w.phase, __ATOMIC_ACQUIRE) == 0)
+        sched_yield();
+    if (wait_in_futex(w.tid, &word, &sc) == 0) {
+        out->private_seen = 1;
+        out->private_pc = sc.pc;
+        out->private_op = (int)sc.args[1];
+        out->private_val = (int)sc.args[2];
+    }
+    __atomic_store_n(&word, 0, __ATOMIC_RELEASE);
+    syscall(SYS_futex, &word, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
+    pthread_join(t, NULL);
+    return 0;
 }

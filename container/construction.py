@@ -1,4 +1,5 @@
 """Build a component's node from its class and validated arguments."""
+
 from __future__ import annotations
 
 from rclpy.logging import LoggingSeverity
@@ -18,12 +19,10 @@ def construct(cls: type[Node], args: NodeArguments, context, owner: int) -> Node
     try:
         with intra.api.constructing(owner, args.use_intra_process_comms):
             node = cls(**args.node_kwargs(context))
-    except BaseException as exc:     # SystemExit too: the component's failure, not ours
+    except BaseException as exc:  # SystemExit too: the component's failure, not ours
         _destroy_half_built(exc)
         # Same wording as rclcpp_components for a throwing constructor.
-        raise LoadError(
-            f"Component constructor threw an exception: {type(exc).__name__}: {exc}"
-        ) from None
+        raise LoadError(f"Component constructor threw an exception: {type(exc).__name__}: {exc}") from None
     if not isinstance(node, Node):  # a class whose __new__ returns something else
         raise LoadError(f"Component {cls.__qualname__} did not produce an rclpy Node")
     intra.api.adopt(node, owner, args.use_intra_process_comms)
@@ -47,7 +46,7 @@ def _destroy_half_built(exc: BaseException) -> None:
     for node in seen:
         try:
             destroy(node)
-        except Exception:       # half made: destroy what can be
+        except Exception:  # half made: destroy what can be
             pass
 
 
@@ -57,7 +56,29 @@ def destroy(node: Node) -> None:
     description service. The node is in no executor's wait any more."""
     intra.api.destroy_endpoints(node)
     _finish_type_description_service(node)
-    node.destroy_node()
+    if hasattr(node, "_type_description_service"):
+        node.destroy_node()
+    else:
+        _destroy_half_made(node)
+
+
+def _destroy_half_made(node: Node) -> None:
+    """``Node.destroy_node`` for a node whose ``Node.__init__`` raised before
+    it made the type description service, its last step (a built-in
+    parameter of the wrong type: ``use_sim_time`` as a string, say). rclpy
+    7.1's destroy_node destroys the node's entities, then stops at that
+    service's ``destroy()`` with an AttributeError, before the rcl node: it
+    stayed alive with its /rosout publisher registered and, as the last
+    node of a per-node Context, kept that Context's DDS participant and its
+    threads (the node's process then never ended)."""
+    try:
+        node.destroy_node()
+    except AttributeError:
+        if hasattr(node, "_type_description_service"):
+            raise
+    handle = getattr(node, "_Node__node", None)  # None: rcl_node_init itself failed
+    if handle is not None:
+        handle.destroy_when_not_in_use()
 
 
 def _finish_type_description_service(node: Node) -> None:
@@ -73,7 +94,12 @@ def _finish_type_description_service(node: Node) -> None:
         return
     err = ffi.new("char[]", lib.CGR_ERR_SIZE)
     with node.handle, service.impl:
-        rc = lib.cgr_service_fini(ffi.cast("rcl_service_t *", service.impl.pointer),
-                                  ffi.cast("rcl_node_t *", node.handle.pointer), err, lib.CGR_ERR_SIZE)
+        rc = lib.cgr_service_fini(
+            ffi.cast("rcl_service_t *", service.impl.pointer),
+            ffi.cast("rcl_node_t *", node.handle.pointer),
+            err,
+            lib.CGR_ERR_SIZE,
+        )
     if rc != 0:
-        node.get_logger().warning(f"finalizing ~/get_type_description failed: {ffi.string(err).decode(errors='replace')}")
+        why = ffi.string(err).decode(errors="replace")
+        node.get_logger().warning(f"finalizing ~/get_type_description failed: {why}")

@@ -1,16 +1,18 @@
 /*
- * clonecore.h - what clonecore.c (the clone3 core) and gilrepair.c (CPython
- * GIL internals, built with Py_BUILD_CORE) share.  Shapes that Python sees
- * are mirrored in _build_core.py's cdef.
+ * repair.h - what the clone core and its repairers built with
+ * Py_BUILD_CORE (gilrepair.c: the GIL; interp.c: the interpreter) share:
+ * the repair bits a death reports, what is known of a dead task, glibc's
+ * condvar waiter record.  Shapes that Python sees are mirrored in
+ * _build_core.py's cdef.
  */
-#ifndef CLONEGUARD_CLONECORE_H
-#define CLONEGUARD_CLONECORE_H
+#ifndef CLONEGUARD_REPAIR_H
+#define CLONEGUARD_REPAIR_H
 
 #include <stdint.h>
 #include <sys/types.h>
 
 /* What the monitor repaired after a death (struct cg_event.repairs).
-   Mirrored by events.Repair. */
+   Mirrored by core_events.Repair. */
 enum {
     CG_REPAIR_GIL_RELEASED = 1 << 0,   /* the dead task held the GIL */
     CG_REPAIR_GIL_MUTEX = 1 << 1,      /* ... or gil->mutex */
@@ -21,6 +23,15 @@ enum {
                                           taken: cleared */
     CG_REPAIR_GIL_TIMEOUT = 1 << 6,    /* gil->mutex could not be taken to
                                           check the GIL: nothing checked */
+    /* interp.c, when the dead task held the GIL: */
+    CG_REPAIR_PY_POOLS = 1 << 7,       /* its Python object pools abandoned,
+                                          their objects untracked before the
+                                          next collection */
+    CG_REPAIR_GC_LINKS = 1 << 8,       /* a half-updated link of the young
+                                          generation mended */
+    CG_REPAIR_FREELISTS = 1 << 9,      /* the interpreter's free lists emptied */
+    CG_REPAIR_PY_OBJECTS = 1 << 10,    /* objects it may have been changing
+                                          put out of the collector's sight */
 };
 
 /* One dead task the repair looks at: a child whose thread group is gone
@@ -29,12 +40,17 @@ struct cg_dead {
     pid_t pid;              /* its tid (= pid) */
     char *tcb;              /* its struct pthread */
     char *stack_lo, *stack_hi;   /* its stack mapping */
+    int slot;               /* its allocator-guard slot, 0: none */
     uint32_t repairs;       /* out: CG_REPAIR_* attributed to it */
+    void *gil_code;         /* out: it held the GIL: its innermost Python
+                               frame's code object (NULL: none), */
+    int gil_lasti;          /* ... and instruction offset */
 };
 
 struct cg_repair_cfg {
     int gil;                /* force-release the GIL / its mutexes */
     int condvar;            /* cancel dead waiters of the GIL's condvars */
+    int interp;             /* mend the interpreter when the dead held the GIL */
     long cleanup_off;       /* struct pthread.cleanup (from the layout) */
     uintptr_t cond_cleanup; /* glibc's condvar-wait cleanup routine */
 };
@@ -55,8 +71,20 @@ struct cg_cond_cbuf {
    repairs that belong to no particular dead task. */
 uint32_t cg_gil_repair(struct cg_dead *dead, int n, const struct cg_repair_cfg *cfg);
 
-/* The child's PyThreadState: made by the parent, bound by the child. */
+/* interp.c: the interpreter after a death with the GIL held (slot: the
+   dead task's, 0 if none; dead: its thread state), called while the GIL is
+   still the dead task's (nobody runs Python): CG_REPAIR_* bits of what it
+   did. */
 struct _ts;
+uint32_t cg_interp_after_gil_death(int slot, struct _ts *dead);
+
+/* contexts.c, for interp.c: the allocator guard's Python object pools
+   (pyalloc.c): abandon slot's (-ENOENT: no guard, or not in use); was p
+   made in a pool since abandoned? */
+int guard_py_abandon(int slot);
+int guard_py_abandoned(const void *p);
+
+/* The child's PyThreadState: made by the parent, bound by the child. */
 struct _ts *cg_tstate_new(void);
 void cg_tstate_bind(struct _ts *ts);
 
@@ -73,6 +101,16 @@ struct cg_gil_probe {
 };
 int cg_gil_probe(struct cg_gil_probe *out);
 
+/* interp.c's facts for assumptions.py (takes the GIL itself). */
+struct cg_interp_probe {
+    int threshold[3], count[3];      /* generations[i], as compiled */
+    int generation0_is_head;         /* gc.generation0 == &generations[0].head */
+    int enabled, collecting;
+    int young_links_ok;              /* generation 0's links agree both ways */
+    int free_lists_ok;               /* the free-list counts within bounds */
+};
+int cg_interp_probe(struct cg_interp_probe *out);
+
 /* Async-signal-safe-ish: the Python stack of the calling thread, as
    faulthandler writes it. */
 void cg_dump_py_stack(int fd);
@@ -85,5 +123,14 @@ int cg_record_py_stack(void **codes, int *lasti, int max, int *more);
    would. */
 void cg_hold_py_stack(void *const *codes, int n, int hold);
 void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd);
+/* "name (file:line)" of one such frame into buf (size bytes); its length. */
+int cg_frame_text(void *code, int lasti, char *buf, int size);
+
+/* interp.c: read len bytes at addr into out without faulting (false where
+   any is unmapped).  What a dead task left is read only so. */
+#include <stdbool.h>
+#include <stddef.h>
+bool cg_peek(const void *addr, void *out, size_t len);
+#define PEEK(addr, var) cg_peek((addr), &(var), sizeof(var))
 
 #endif

@@ -1,0 +1,74 @@
+"""Memory protection keys on this machine: whether they exist, how many,
+and whether the facts per-node heap protection rests on hold here
+(pkeys.c names them and how each is checked).
+
+``probe()`` runs the check on the calling thread; ``Support.unavailable``
+says in one line why keys cannot protect anything here, or None."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+# What a thread's PKRU holds by default on Linux x86_64: every key but 0
+# access-disabled (the kernel's init_pkru), so that pages under a key are
+# untouchable by threads that never asked for it.
+DEFAULT_PKRU = 0x55555554
+
+
+@dataclass(frozen=True)
+class Support:
+    cpu_pku: bool  # the CPU has protection keys
+    os_pke: bool  # and the kernel enabled them
+    keys: int  # pkey_alloc hands out this many
+    alloc_errno: int  # why it stopped (ENOSPC once all are out)
+    pkru: int  # the probing thread's PKRU
+    mprotect_keeps: bool | None  # None: not probed (no keys)
+    thread_inherits: bool | None
+    write_faults: bool | None
+
+    @property
+    def unavailable(self) -> str | None:
+        """Why keys cannot protect a node's heap here, or None."""
+        if not self.cpu_pku:
+            return "the CPU has no memory protection keys (no pku in /proc/cpuinfo)"
+        if not self.os_pke:
+            return "the kernel did not enable memory protection keys (no ospke in /proc/cpuinfo)"
+        if self.keys == 0:
+            return f"pkey_alloc gives no key: {os.strerror(self.alloc_errno)}"
+        broken = [
+            what
+            for what, ok in (
+                ("a plain mprotect keeps a page's key", self.mprotect_keeps),
+                ("a new thread starts with its creator's PKRU", self.thread_inherits),
+                ("a write the PKRU forbids faults with SEGV_PKUERR", self.write_faults),
+            )
+            if not ok
+        ]
+        return "not true here: " + "; ".join(broken) if broken else None
+
+    def describe(self) -> str:
+        """One line for the container's log."""
+        why = self.unavailable
+        return f"memory protection keys: {self.keys} usable" if why is None else f"memory protection keys: no ({why})"
+
+
+def probe() -> Support:
+    from cloneguard.container.isolated._clonecore import ffi, lib
+
+    p = ffi.new("struct cg_pkeys_probe *")
+    lib.cg_pkeys_probe(p)
+
+    def fact(v: int) -> bool | None:
+        return None if v < 0 else bool(v)
+
+    return Support(
+        cpu_pku=bool(p.cpu_pku),
+        os_pke=bool(p.os_pke),
+        keys=int(p.keys),
+        alloc_errno=int(p.alloc_errno),
+        pkru=int(p.pkru),
+        mprotect_keeps=fact(p.mprotect_keeps),
+        thread_inherits=fact(p.thread_inherits),
+        write_faults=fact(p.write_faults),
+    )
