@@ -1,7 +1,12 @@
 """cffi (API mode) builder for faults._hammer (the malloc hammer, hammer.c)."""
+
+import runpy
 from pathlib import Path
 
 from cffi import FFI
+
+# The project's C warning flags: one list for every build (scripts/cflags.py).
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 
@@ -20,5 +25,5 @@ ffibuilder.set_source(
     '#include "hammer.c"\n',
     include_dirs=[str(HERE)],
     depends=[str(HERE / "hammer.c")],
-    extra_compile_args=["-O2", "-std=gnu11"],
+    extra_compile_args=["-O2", "-std=gnu11", *WARNINGS],
 )

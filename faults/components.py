@@ -1,7 +1,8 @@
 """Fault components: nodes that fail on purpose, loaded like any other.
 
-Each is an installed entry point of the ``cloneguard`` package (see
-pyproject.toml), configured by ROS parameters:
+Each is an installed entry point of the test rig's distribution
+(``cloneguard_testrig``: rig/pyproject.toml), never of the product's,
+configured by ROS parameters:
 
 ``delay``      seconds from construction to the fault (default 0.2)
 ``jitter``     extra random seconds in [0, jitter), drawn from ``seed``
@@ -13,6 +14,7 @@ container's log before the fault can take the process down. The harness
 reads it to measure fault-to-event latency against the CRASHED event's
 stamp (same host clock).
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -23,10 +25,15 @@ import time
 
 from rclpy.node import Node
 
+from cloneguard.container import locks
+
 # Imported here, in the container, when the class is looked up: a C library
 # loaded for the first time inside a clone child is best avoided.
 from cloneguard.faults._hammer import lib as hammer
+from cloneguard.faults._nativelock import lib as nativelock
 from cloneguard.harness import firing
+
+from . import shared_state
 
 
 def announce(fault: str) -> None:
@@ -77,7 +84,7 @@ class SegfaultInCallback(_FaultNode):
 
     def fire(self):
         if self.mode == "gil-held":
-            ctypes.string_at(0)   # strlen(NULL); string_at(0, n) would not read at all
+            ctypes.string_at(0)  # strlen(NULL); string_at(0, n) would not read at all
         else:
             libc = ctypes.CDLL(None)
             buf = ctypes.create_string_buffer(1)
@@ -190,6 +197,165 @@ class DieHoldingContainerLock(_FaultNode):
         libc.kill(os.getpid(), signal.SIGKILL)
 
 
+class DieHoldingPythonLock(_FaultNode):
+    """Takes one of shared_state's Python locks (``kind``: lock, rlock,
+    condition, logging) and dies holding it (``how``: "segfault", holding
+    the GIL too; "sigkill", through libc, the GIL released). Its sibling
+    :class:`WaitsForPythonLock` waits for the same lock. Needs ``--isolated``."""
+
+    fault = "die-holding-python-lock"
+
+    def __init__(self, **kwargs):
+        super().__init__("python_lock_holder", **kwargs)
+        self.kind = self.declare_parameter("kind", "lock").value
+        self.how = self.declare_parameter("how", "sigkill").value
+        # Die half-way through acquire instead: the lock word taken, the
+        # holder not recorded yet (what a death in that window leaves).
+        self.taking = self.declare_parameter("taking", False).value
+        if self.kind not in shared_state.KINDS or self.how not in ("segfault", "sigkill"):
+            raise ValueError(f"kind must be one of {shared_state.KINDS}, how 'segfault' or 'sigkill'")
+
+    def fire(self):
+        if self.taking:
+            shared_state.take_word_only(self.kind)
+        else:
+            shared_state.take(self.kind)
+        if self.how == "segfault":
+            ctypes.string_at(0)
+        else:
+            ctypes.CDLL(None).kill(os.getpid(), signal.SIGKILL)
+
+
+class WaitsForPythonLock(Node):
+    """Uses shared_state's ``kind`` lock every ``period`` s and publishes how
+    many times on ``~/progress``: it stops if the lock is never given back.
+    Its repair callback (container/locks.py) counts the takeovers it made on
+    ``~/repaired``, naming the lock in its log."""
+
+    def __init__(self, **kwargs):
+        super().__init__("python_lock_waiter", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self.kind = self.declare_parameter("kind", "lock").value
+        if self.kind not in shared_state.KINDS:
+            raise ValueError(f"kind must be one of {shared_state.KINDS}")
+        self._count = 0
+        self._repaired = 0
+        self._msg = UInt64
+        self._pub = self.create_publisher(UInt64, "~/progress", 10)
+        self._repaired_pub = self.create_publisher(UInt64, "~/repaired", 10)
+        locks.on_dead_holder(shared_state.lock_of(self.kind), self._on_dead_holder)
+        self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
+
+    def _on_dead_holder(self, death) -> None:
+        self._repaired += 1
+        self.get_logger().warning(f"took {death.name} over from {death.node} (pid {death.pid})")
+        self._repaired_pub.publish(self._msg(data=self._repaired))
+
+    def _tick(self):
+        shared_state.use(self.kind)
+        self._count += 1
+        self._pub.publish(self._msg(data=self._count))
+
+
+#: The native locks of faults/nativelock.c, by name: g_locks' mutexes, and
+#: "file", a stdio stream's lock (glibc's own: no owner recorded).
+NATIVE_LOCKS = {
+    "normal": nativelock.NL_NORMAL,
+    "recursive": nativelock.NL_RECURSIVE,
+    "errorcheck": nativelock.NL_ERRORCHECK,
+    "adaptive": nativelock.NL_ADAPTIVE,
+    "robust": nativelock.NL_ROBUST,
+    "file": -1,
+}
+_HOW = {"sigkill": nativelock.NL_SIGKILL, "segfault": nativelock.NL_SEGFAULT}
+
+
+def _native_lock(node: Node) -> int:
+    kind = node.declare_parameter("kind", "normal").value
+    if kind not in NATIVE_LOCKS:
+        raise ValueError(f"parameter 'kind' must be one of {sorted(NATIVE_LOCKS)}, not {kind!r}")
+    return NATIVE_LOCKS[kind]
+
+
+class DieHoldingNativeMutex(_FaultNode):
+    """Takes one of nativelock.c's native locks (``kind``) and dies holding
+    it (``how``: "sigkill" or "segfault"); with ``taking`` true, half-way
+    through pthread_mutex_lock instead: the lock word taken, no owner
+    written. :class:`WaitsForNativeMutex` waits for the same lock. Needs
+    ``--isolated``."""
+
+    fault = "die-holding-native-mutex"
+
+    def __init__(self, **kwargs):
+        super().__init__("native_mutex_holder", **kwargs)
+        self.lock = _native_lock(self)
+        how = self.declare_parameter("how", "sigkill").value
+        self.taking = self.declare_parameter("taking", False).value
+        if how not in _HOW or (self.taking and self.lock in (-1, nativelock.NL_ROBUST)):
+            raise ValueError("how must be 'sigkill' or 'segfault'; taking needs a plain mutex")
+        self.how = _HOW[how]
+
+    def fire(self):
+        if self.lock == -1:
+            nativelock.nativelock_die_holding_file(self.how)
+        elif self.taking:
+            nativelock.nativelock_die_taking(self.lock, self.how)
+        else:
+            nativelock.nativelock_hold_and_die(self.lock, self.how)
+
+
+class WaitsForNativeMutex(Node):
+    """Takes and gives back nativelock.c's ``kind`` lock every ``period`` s
+    (the GIL released) and publishes how many times on ``~/progress``: it
+    stops if the lock is never given back. A robust mutex that comes with
+    EOWNERDEAD is made consistent and counted on ``~/repaired``."""
+
+    def __init__(self, **kwargs):
+        super().__init__("native_mutex_waiter", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self.lock = _native_lock(self)
+        self._count = self._repaired = 0
+        self._msg = UInt64
+        self._pub = self.create_publisher(UInt64, "~/progress", 10)
+        self._repaired_pub = self.create_publisher(UInt64, "~/repaired", 10)
+        self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
+
+    def _tick(self):
+        r = nativelock.nativelock_use_file() if self.lock == -1 else nativelock.nativelock_use(self.lock)
+        if r < 0:
+            raise OSError(-r, os.strerror(-r))
+        if r == 1:
+            self._repaired += 1
+            self._repaired_pub.publish(self._msg(data=self._repaired))
+        self._count += 1
+        self._pub.publish(self._msg(data=self._count))
+
+
+class HoldsNativeMutex(Node):
+    """Holds nativelock.c's ``kind`` mutex from its construction for
+    ``hold`` s, then gives it back: a live owner. With ``orphan`` true, a
+    thread of its process takes it and ends instead: an owner that is gone
+    but was never a dead node process's."""
+
+    def __init__(self, **kwargs):
+        super().__init__("native_mutex_owner", **kwargs)
+        self.lock = _native_lock(self)
+        if self.lock in (-1, nativelock.NL_ROBUST):
+            raise ValueError("kind must be a plain mutex")
+        orphan = self.declare_parameter("orphan", False).value
+        hold = self.declare_parameter("hold", 3.0).value
+        r = (nativelock.nativelock_thread_exits_holding if orphan else nativelock.nativelock_hold)(self.lock)
+        if r < 0:
+            raise OSError(-r, os.strerror(-r))
+        self._timer = None if orphan else self.create_timer(hold, self._give_back)
+
+    def _give_back(self):
+        self._timer.cancel()
+        nativelock.nativelock_release(self.lock)
+
+
 class MallocHammer(_FaultNode):
     """Allocates and frees without pause from a callback (in C, GIL
     released), handing one block in eight to ring ``ring`` for a
@@ -230,6 +396,7 @@ class MallocDrain(Node):
 
 # -- intra-process messaging (container.intra) ------------------------------
 
+
 class IntraDieMidQueueOp(_FaultNode):
     """Dies by SIGKILL inside an intra-process queue operation, holding that
     queue's robust mutex: ``op`` "put" is a publisher on ``topic`` killed
@@ -266,8 +433,9 @@ class IntraDieMidQueueOp(_FaultNode):
         me = os.getpid()
 
         def die(q):
-            if os.getpid() == me:      # the hook is global: only this node's process
+            if os.getpid() == me:  # the hook is global: only this node's process
                 ctypes.CDLL(None).kill(me, signal.SIGKILL)
+
         seams.arm(f"queue_mid_{self.op}", die)
 
 
@@ -304,7 +472,7 @@ class PayloadPublisher(Node):
     def _tick(self):
         if self._payload == "malloc":
             data = self._array("B")
-            data.frombytes(self._pattern)          # malloc'd here, in this process
+            data.frombytes(self._pattern)  # malloc'd here, in this process
             self._pub.publish(self._Msg(data=data))
         else:
             loan = self._pub.loan(self._size)
@@ -339,8 +507,9 @@ class PayloadHolder(Node):
         self._held = collections.deque()
         self._released = self._taken = 0
         self._UInt64 = UInt64
-        self._sub = intra.create_subscription(self, UInt8MultiArray, topic, self._on_message, 50,
-                                              loaned_field="data" if loaned else None)
+        self._sub = intra.create_subscription(
+            self, UInt8MultiArray, topic, self._on_message, 50, loaned_field="data" if loaned else None
+        )
         self._pub = self.create_publisher(UInt64, "~/released", 10)
         self._taken_pub = self.create_publisher(UInt64, "~/taken", 10)
         self._timer = self.create_timer(0.01, self._release_old)
@@ -352,7 +521,72 @@ class PayloadHolder(Node):
     def _release_old(self):
         cutoff = self._now() - self._hold_ns
         while self._held and self._held[0][0] <= cutoff:
-            self._held.popleft()       # the last reference: the payload is freed here
+            self._held.popleft()  # the last reference: the payload is freed here
             self._released += 1
         self._pub.publish(self._UInt64(data=self._released))
         self._taken_pub.publish(self._UInt64(data=self._taken))
+
+
+_libc = ctypes.CDLL(None, use_errno=True)
+_libc.malloc.restype = ctypes.c_void_p
+_libc.malloc.argtypes = [ctypes.c_size_t]
+
+
+class HeapVictim(Node):
+    """Keeps a ``size``-byte buffer in its own process's native heap (malloc,
+    at its first tick, so in its process in either profile), filled with a
+    pattern. Every ``period`` s it checks the buffer (a changed one is
+    filled again) and publishes on ``~/checks`` how many checks so far
+    found it changed: one topic, so that what a check found is in order
+    with the checks before it. Where the buffer is:
+    shared_state.HEAP_BUFFERS, by node name."""
+
+    PATTERN = 0xC3
+
+    def __init__(self, **kwargs):
+        super().__init__("heap_victim", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self._msg = UInt64
+        self._size = self.declare_parameter("size", 4096).value
+        if not 64 <= self._size <= 1 << 20:
+            raise ValueError("parameter 'size' must be 64 B to 1 MiB")
+        self._expected = bytes([self.PATTERN]) * self._size
+        self._buf = 0
+        self._corrupted = 0
+        self._pub = self.create_publisher(UInt64, "~/checks", 10)
+        self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
+
+    def _tick(self):
+        if not self._buf:
+            self._buf = _libc.malloc(self._size)
+            if not self._buf:
+                raise MemoryError("HeapVictim: malloc failed")
+            ctypes.memset(self._buf, self.PATTERN, self._size)
+            shared_state.HEAP_BUFFERS[self.get_name()] = (self._buf, self._size)
+        if ctypes.string_at(self._buf, self._size) != self._expected:
+            self._corrupted += 1
+            ctypes.memset(self._buf, self.PATTERN, self._size)
+        self._pub.publish(self._msg(data=self._corrupted))
+
+
+class WildWriter(_FaultNode):
+    """A stray write: ``bytes`` bytes (at an offset chosen from ``seed``)
+    into the buffer of the HeapVictim named ``victim``, a node of another
+    process. Nothing in this node's own code notices; whether the write
+    lands or faults is the container's doing."""
+
+    fault = "wild-write"
+
+    def __init__(self, **kwargs):
+        super().__init__("wild_writer", **kwargs)
+        self.victim = self.declare_parameter("victim", "heap_victim").value
+        self.count = self.declare_parameter("bytes", 64).value
+        if self.victim not in shared_state.HEAP_BUFFERS:
+            raise ValueError(f"no HeapVictim named {self.victim!r} has its buffer yet")
+        if not 1 <= self.count <= shared_state.HEAP_BUFFERS[self.victim][1]:
+            raise ValueError("parameter 'bytes' must be 1 to the victim's buffer size")
+
+    def fire(self):
+        addr, size = shared_state.HEAP_BUFFERS[self.victim]
+        ctypes.memset(addr + self.rng.randrange(size - self.count + 1), 0x5A, self.count)

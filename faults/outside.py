@@ -3,6 +3,7 @@
 Every random choice comes from a ``random.Random`` the caller seeds, so a
 trial can be replayed exactly.
 """
+
 from __future__ import annotations
 
 import os

@@ -8,18 +8,22 @@ survive (the harness finds the registry through the entry point group
 harness, never the reverse). Every random choice of a trial comes from its
 ``seed``, so any trial can be replayed.
 """
+
 from __future__ import annotations
 
 import random
 import signal
 import time
-from typing import Callable, Protocol
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
 
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
+from cloneguard.harness import procfs
 from cloneguard.harness.client import HarnessTimeout
-from cloneguard.harness.rig import Outcome, Rig
+from cloneguard.harness.rig import DEATHS_PER_CONTAINER, Outcome, Rig, TrialOutcome
 
 from . import PACKAGE as RIG
 from .outside import kill_at
@@ -32,32 +36,34 @@ CALLBACK_FAULTS = {
 }
 
 
-
 def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
     """A node whose timer callback faults 0.1-0.3 s after it starts."""
     plugin, params, sig = CALLBACK_FAULTS[fault]
-    resp = rig.client.load_ok(RIG, plugin, node_name=f"victim{index}",
-                              parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed})
+    resp = rig.client.load_ok(
+        RIG, plugin, node_name=f"victim{index}", parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed}
+    )
     pid = rig.loaded_pid(resp.unique_id)
     return rig.judge_death(resp.unique_id, pid, signal_expected=sig, fault_ns=None)
 
 
 def raise_in_callback(rig: Rig, seed: int, index: int) -> Outcome:
     """A node whose timer callback raises: its process ends (exit code 1)."""
-    resp = rig.client.load_ok(RIG, "faults::RaiseInCallback", node_name=f"raiser{index}",
-                              parameters={"delay": 0.1, "seed": seed})
+    resp = rig.client.load_ok(
+        RIG, "faults::RaiseInCallback", node_name=f"raiser{index}", parameters={"delay": 0.1, "seed": seed}
+    )
     pid = rig.loaded_pid(resp.unique_id)
     out = rig.judge_death(resp.unique_id, pid, signal_expected=0, fault_ns=None)
-    if out.outcome == "survived" and out.details.get("exit_code") != 1:
-        out.outcome, out.details["why"] = "failed", "exit code was not 1"
+    if out.survived and out.details.get("exit_code") != 1:
+        out.outcome, out.details["why"] = TrialOutcome.FAILED, "exit code was not 1"
     return out
 
 
 def outside_sigkill(rig: Rig, seed: int, index: int) -> Outcome:
     """A node publishing at 500 Hz, SIGKILLed 0-50 ms after it is loaded."""
     rng = random.Random(seed)
-    resp = rig.client.load_ok("cloneguard", "cloneguard::Talker", node_name=f"busy{index}",
-                              parameters={"period": 0.002})
+    resp = rig.client.load_ok(
+        "cloneguard", "cloneguard::Talker", node_name=f"busy{index}", parameters={"period": 0.002}
+    )
     pid = rig.loaded_pid(resp.unique_id)
     sent = kill_at(pid, signal.SIGKILL, rng.uniform(0.0, 0.05))
     return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
@@ -68,10 +74,16 @@ def repaired(rig: Rig, state: str, unique_id: int, *, since_ns: int = 0, wait_s:
     for ``unique_id``, of repairs made since ``since_ns`` (host clock), the
     container has published, once at least one has come or ``wait_s`` has
     passed."""
+
     def match(ev) -> bool:
         stamp = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec
-        return (ev.event_type == ComponentEvent.REPAIRED and ev.repaired_state == state
-                and ev.unique_id == unique_id and stamp >= since_ns)
+        return (
+            ev.event_type == ComponentEvent.REPAIRED
+            and ev.repaired_state == state
+            and ev.unique_id == unique_id
+            and stamp >= since_ns
+        )
+
     if wait_s > 0:
         try:
             rig.client.events.wait_for(match, wait_s)
@@ -83,28 +95,34 @@ def repaired(rig: Rig, state: str, unique_id: int, *, since_ns: int = 0, wait_s:
 def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
     """A node that dies holding the container's progress-board lock, its
     slot half-written; survived means exactly one EOWNERDEAD repair of it."""
-    resp = rig.client.load_ok(RIG, "faults::DieHoldingContainerLock", node_name=f"holder{index}",
-                              parameters={"delay": 0.05, "jitter": 0.1, "seed": seed})
+    resp = rig.client.load_ok(
+        RIG,
+        "faults::DieHoldingContainerLock",
+        node_name=f"holder{index}",
+        parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
+    )
     pid = rig.loaded_pid(resp.unique_id)
     out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
-    if out.outcome == "survived":
+    if out.survived:
         # The survivor takes this lock after every callback, and has beaten
         # since the death: the repair is done, its event on its way.
         repairs = repaired(rig, "progress-board", resp.unique_id, wait_s=5.0)
         out.details["repairs"] = repairs
         if repairs != 1:
-            out.outcome, out.details["why"] = "failed", f"{repairs} EOWNERDEAD repairs logged, expected 1"
+            out.outcome, out.details["why"] = TrialOutcome.FAILED, f"{repairs} EOWNERDEAD repairs logged, expected 1"
     return out
 
 
-def _kill_when_firing(rig: Rig, seed: int, plugin: str, node_name: str, parameters: dict,
-                      extra_arguments: dict | None = None, ready=None) -> Outcome:
+def _kill_when_firing(
+    rig: Rig, seed: int, plugin: str, node_name: str, parameters: dict, extra_arguments: dict | None = None, ready=None
+) -> Outcome:
     """Load ``plugin``, wait until it announces its fault (it is at work)
     and, with ``ready``, until ``ready()`` returns, SIGKILL it 0-20 ms later
     (from ``seed``) and judge the death."""
     try:
-        resp = rig.client.load_ok(RIG, plugin, node_name=node_name, parameters=parameters,
-                                  extra_arguments=extra_arguments or {})
+        resp = rig.client.load_ok(
+            RIG, plugin, node_name=node_name, parameters=parameters, extra_arguments=extra_arguments or {}
+        )
     except HarnessTimeout as exc:
         # The container went on after the last trial's death and stopped later.
         return rig.not_survived(f"a load before the fault got no answer: {exc}")
@@ -142,15 +160,13 @@ class MallocKill:
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
         out = _kill_when_firing(rig, seed, "faults::MallocHammer", f"hammer{index}", {"delay": 0.0, "seed": seed})
-        if out.outcome == "survived":
+        if out.survived:
             out = rig.keeps_flowing(self.freed, "the drain sibling's freeing", out)
         return out
 
     def settle(self, out: Outcome) -> None:
-        if out.outcome != "survived":
-            self.rig.restart()
+        if self.rig.settle(out):
             self._start_drain()
-
 
 
 # -- intra-process messaging -----------------------------------------------------
@@ -175,37 +191,50 @@ class IntraQueueDeath:
 
     def _start_pair(self) -> None:
         client = self.rig.client
-        self.listener = client.load_ok("cloneguard", "cloneguard::Listener", node_name="intra_listener",
-                                       parameters={"topic": self.TOPIC}, extra_arguments=INTRA).unique_id
-        client.load_ok("cloneguard", "cloneguard::Talker", node_name="intra_talker",
-                       parameters={"topic": self.TOPIC, "period": 0.005}, extra_arguments=INTRA)
+        self.listener = client.load_ok(
+            "cloneguard",
+            "cloneguard::Listener",
+            node_name="intra_listener",
+            parameters={"topic": self.TOPIC},
+            extra_arguments=INTRA,
+        ).unique_id
+        client.load_ok(
+            "cloneguard",
+            "cloneguard::Talker",
+            node_name="intra_talker",
+            parameters={"topic": self.TOPIC, "period": 0.005},
+            extra_arguments=INTRA,
+        )
         self.received = client.subscribe(UInt64, "/intra_listener/received")
         self.received.wait_count(5, timeout=10)
-
 
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
         started = time.time_ns()
-        resp = rig.client.load_ok(RIG, "faults::IntraDieMidQueueOp", node_name=f"queue_victim{index}",
-                                  parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05,
-                                              "jitter": 0.1, "seed": seed},
-                                  extra_arguments=INTRA)
+        resp = rig.client.load_ok(
+            RIG,
+            "faults::IntraDieMidQueueOp",
+            node_name=f"queue_victim{index}",
+            parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05, "jitter": 0.1, "seed": seed},
+            extra_arguments=INTRA,
+        )
         pid = rig.loaded_pid(resp.unique_id)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None)
-        if out.outcome == "survived":
+        if out.survived:
             out = rig.keeps_flowing(self.received, "the listener's receiving", out, more=5)
-        if out.outcome != "survived":
+        if not out.survived:
             return out
-        repairs = repaired(rig, "intra-queue", self.listener, since_ns=started,
-                           wait_s=5.0 if self.op == "put" else 0.0)
+        repairs = repaired(rig, "intra-queue", self.listener, since_ns=started, wait_s=5.0 if self.op == "put" else 0.0)
         out.details["listener_queue_repairs"] = repairs
         if self.op == "put" and repairs != 1:
-            out.outcome, out.details["why"] = "failed", f"{repairs} repairs of the listener's queue, expected 1"
+            out.outcome, out.details["why"] = (
+                TrialOutcome.FAILED,
+                f"{repairs} repairs of the listener's queue, expected 1",
+            )
         return out
 
     def settle(self, out: Outcome) -> None:
-        if out.outcome != "survived":
-            self.rig.restart()
+        if self.rig.settle(out):
             self._start_pair()
 
 
@@ -225,8 +254,9 @@ class PayloadKill:
         self._start_holder()
 
     def _start_holder(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::PayloadHolder",
-                                parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA)
+        self.rig.client.load_ok(
+            RIG, "faults::PayloadHolder", parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA
+        )
         self.released = self.rig.client.subscribe(UInt64, "/payload_holder/released")
         self.taken = self.rig.client.subscribe(UInt64, "/payload_holder/taken")
         self.released.wait_count(3, timeout=10)
@@ -245,13 +275,20 @@ class PayloadKill:
             try:
                 self.taken.wait_for(lambda m: m.data > taken_before, 5.0, "the holder taking a message")
             except HarnessTimeout:
-                pass                   # killed anyway: the trial then says nothing was released
+                pass  # killed anyway: the trial then says nothing was released
 
-        out = _kill_when_firing(rig, seed, "faults::PayloadPublisher", f"payload_pub{index}",
-                                {"payload": self.payload, "seed": seed}, INTRA, ready=holder_has_one)
-        if out.outcome == "survived":
+        out = _kill_when_firing(
+            rig,
+            seed,
+            "faults::PayloadPublisher",
+            f"payload_pub{index}",
+            {"payload": self.payload, "seed": seed},
+            INTRA,
+            ready=holder_has_one,
+        )
+        if out.survived:
             out = rig.keeps_flowing(self.released, "the holder's releasing", out)
-        if out.outcome != "survived":
+        if not out.survived:
             return out
         # The holder keeps each message 50 ms: its first release of the dead
         # publisher's messages comes that long after the death, at least.
@@ -262,21 +299,181 @@ class PayloadKill:
         out.details["released"] = self._total(self.released) - before
         out.details["taken"] = self._total(self.taken) - taken_before
         if out.details["taken"] == 0:
-            out.outcome, out.details["why"] = "failed", "the holder took no message of the publisher's"
+            out.outcome, out.details["why"] = TrialOutcome.FAILED, "the holder took no message of the publisher's"
         elif out.details["released"] == 0:
-            out.outcome, out.details["why"] = "failed", "the holder released no message of the publisher's in 5 s"
+            out.outcome, out.details["why"] = (
+                TrialOutcome.FAILED,
+                "the holder released no message of the publisher's in 5 s",
+            )
         return out
 
     def settle(self, out: Outcome) -> None:
-        if out.outcome != "survived":
-            self.rig.restart()
+        if self.rig.settle(out):
             self._start_holder()
+
+
+@dataclass(frozen=True)
+class LockFamily:
+    """Locks of one kind that nodes of an isolated container share, as the
+    lock-death trials use them: the components that die holding one and
+    wait for one, the REPAIRED event's ``repaired_state``, and what its
+    message names each lock by."""
+
+    holder: str
+    waiter: str
+    topic: str  # the waiter's, with /progress and /repaired beside it
+    repaired_state: str
+    names: dict[str, str]  # kind -> what the REPAIRED message calls it
+    waiter_callback: bool  # the waiter counts its own repairs on /repaired
+
+
+PYTHON_LOCKS = LockFamily(
+    "faults::DieHoldingPythonLock",
+    "faults::WaitsForPythonLock",
+    "/python_lock_waiter",
+    "python-lock",
+    {
+        k: f"cloneguard.faults.shared_state.{v}"
+        for k, v in {"lock": "LOCK", "rlock": "RLOCK", "condition": "CONDITION", "logging": "HANDLER"}.items()
+    },
+    waiter_callback=True,
+)
+# faults/nativelock.c's g_locks: one pthread_mutex_t (40 bytes) of each type.
+NATIVE_MUTEXES = LockFamily(
+    "faults::DieHoldingNativeMutex",
+    "faults::WaitsForNativeMutex",
+    "/native_mutex_waiter",
+    "native-mutex",
+    {"normal": "NORMAL mutex", "recursive": "RECURSIVE mutex"},
+    waiter_callback=False,
+)
+LOCK_DEATH_SIGNALS = {"segfault": signal.SIGSEGV, "sigkill": signal.SIGKILL}
+
+
+class LockDeath:
+    """A waiter node uses one shared lock of ``family`` (``kind``) every
+    10 ms; each trial loads a node that takes the same lock and dies holding
+    it (``how``: segfault, SIGKILL). Survived: the death is reported, the
+    waiter goes on (the lock was taken over or released), one REPAIRED event
+    of the family's ``repaired_state`` names the lock and the dead holder,
+    and where the waiter has a repair callback, it ran."""
+
+    def __init__(self, rig: Rig, family: LockFamily, kind: str, how: str):
+        self.rig, self.family, self.kind, self.how = rig, family, kind, how
+        self._start_waiter()
+
+    def _start_waiter(self) -> None:
+        self.rig.client.load_ok(RIG, self.family.waiter, parameters={"kind": self.kind})
+        self.progress = self.rig.client.subscribe(UInt64, f"{self.family.topic}/progress")
+        self.repaired = self.rig.client.subscribe(UInt64, f"{self.family.topic}/repaired")
+        self.progress.wait_count(5, timeout=10)
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig, family = self.rig, self.family
+        started = time.time_ns()
+        callbacks = len(self.repaired)
+        resp = rig.client.load_ok(
+            RIG,
+            family.holder,
+            node_name=f"lock_holder{index}",
+            parameters={"kind": self.kind, "how": self.how, "delay": 0.05, "jitter": 0.1, "seed": seed},
+        )
+        pid = rig.loaded_pid(resp.unique_id)
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=LOCK_DEATH_SIGNALS[self.how], fault_ns=None)
+        if out.survived:
+            out = rig.keeps_flowing(self.progress, "the waiter's use of the lock", out, more=5)
+        if not out.survived:
+            return out
+        repaired(rig, family.repaired_state, resp.unique_id, since_ns=started, wait_s=5.0)
+        events = [
+            ev.error_message
+            for ev in rig.client.events.messages()
+            if ev.event_type == ComponentEvent.REPAIRED
+            and ev.repaired_state == family.repaired_state
+            and ev.unique_id == resp.unique_id
+        ]
+        name = family.names[self.kind]
+        out.details["repairs"] = events
+        if len(events) != 1 or name not in events[0] or f"lock_holder{index}" not in events[0]:
+            out.outcome = TrialOutcome.FAILED
+            out.details["why"] = f"{len(events)} {family.repaired_state} repairs, expected one naming {name}"
+            return out
+        if family.waiter_callback:
+            try:  # the waiter's own repair callback ran for it
+                self.repaired.wait_count(callbacks + 1, timeout=5)
+            except HarnessTimeout:
+                out.outcome, out.details["why"] = TrialOutcome.FAILED, "the waiter's repair callback did not run"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if self.rig.settle(out):
+            self._start_waiter()
+
+
+class WildWrite:
+    """A HeapVictim keeps a pattern-filled buffer in its own process's heap
+    and checks it every 10 ms; each trial loads a WildWriter that writes 64
+    bytes into it 50-150 ms after it starts. Survived: the write faulted in
+    the writer alone (CRASHED, SIGSEGV) and the victim's buffer is intact.
+    Corrupted: the victim found its buffer changed, and the container did
+    not notice (the writer goes on)."""
+
+    CHECKS_AFTER = 3  # the victim's checks, after the write, that decide
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self._start_victim()
+
+    def _start_victim(self) -> None:
+        self.rig.client.load_ok(RIG, "faults::HeapVictim")
+        self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
+        self.checks.wait_count(5, timeout=10)
+
+    def _corruptions(self) -> int:
+        return self.checks.messages()[-1].data
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig = self.rig
+        before = self._corruptions()
+        resp = rig.client.load_ok(
+            RIG,
+            "faults::WildWriter",
+            node_name=f"wild_writer{index}",
+            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
+        )
+        pid = rig.loaded_pid(resp.unique_id)
+        rig.wait_firing(pid)
+        try:
+            self.checks.wait_count(len(self.checks) + self.CHECKS_AFTER, timeout=5)
+        except HarnessTimeout as exc:
+            return rig.not_survived(f"the victim stopped checking its buffer: {exc}")
+        if self._corruptions() > before:
+            out = Outcome(TrialOutcome.CORRUPTED, details={"pid": pid, "why": "the victim's buffer was changed"})
+            if procfs.alive(pid):
+                out.details["writer"] = "went on"
+                rig.client.unload(resp.unique_id)
+            return out
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGSEGV, fault_ns=None)
+        if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
+            out.details["why"] = "the write neither landed nor killed the writer"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        # A corrupted trial leaves the container as it was: the victim has
+        # filled its buffer again, the writer is unloaded.
+        if out.outcome == TrialOutcome.CORRUPTED and self.rig.node_deaths() < DEATHS_PER_CONTAINER:
+            return
+        if self.rig.settle(out):
+            self._start_victim()
 
 
 # -- the registry ------------------------------------------------------------------
 
+
 class Trials(Protocol):
     """A fault set up on a rig: one trial from a seed, and what to do after."""
+
+    rig: Rig
 
     def trial(self, seed: int, index: int) -> Outcome: ...
 
@@ -313,4 +510,13 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "intra-die-mid-take": lambda rig: IntraQueueDeath(rig, "take"),
     "sigkill-publisher-holding-messages/malloc": lambda rig: PayloadKill(rig, "malloc"),
     "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
+    "wild-write-into-another-nodes-heap": WildWrite,
+    **{
+        f"die-holding-{prefix}-{kind}/{how}": (
+            lambda rig, family=family, kind=kind, how=how: LockDeath(rig, family, kind, how)
+        )
+        for prefix, family in (("python", PYTHON_LOCKS), ("native", NATIVE_MUTEXES))
+        for kind in family.names
+        for how in LOCK_DEATH_SIGNALS
+    },
 }

@@ -9,8 +9,14 @@ from setuptools import find_packages, setup
 FOLDERS = ("harness", "faults", "bench")
 
 setup(
-    packages=[f"cloneguard.{top}{'.' + sub if sub else ''}"
-              for top in FOLDERS for sub in ["", *find_packages(f"../{top}")]],
+    packages=[
+        f"cloneguard.{top}{'.' + sub if sub else ''}" for top in FOLDERS for sub in ["", *find_packages(f"../{top}")]
+    ],
     package_dir={f"cloneguard.{top}": f"../{top}" for top in FOLDERS},
-    cffi_modules=["../faults/_build_hammer.py:ffibuilder", "../faults/_build_gilfault.py:ffibuilder"],
+    cffi_modules=[
+        "../faults/_build_hammer.py:ffibuilder",
+        "../faults/_build_gilfault.py:ffibuilder",
+        "../faults/_build_interpfault.py:ffibuilder",
+        "../faults/_build_nativelock.py:ffibuilder",
+    ],
 )

@@ -1,0 +1,143 @@
+/* nativelock.c - native locks of a C extension that every node process of
+ * an isolated container shares (the extension is loaded once, into the one
+ * address space), and ways to die holding them: what the lock doctor
+ * (container/isolated/mutexes.c) is tested against.  A test extension of the
+ * rig, like gilfault.c.
+ *
+ * g_locks holds one mutex of each kind: NORMAL (as std::mutex), RECURSIVE
+ * (std::recursive_mutex), ERRORCHECK, ADAPTIVE and a robust NORMAL; g_file
+ * is a stdio stream, whose lock is one of glibc's internal ones.  cffi
+ * releases the GIL around every call, so a caller blocked here holds no
+ * Python state. */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <pthread.h>
+#include <stdbool.h>
+#include <signal.h>
+#include <stdio.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include "nativelock.h"
+
+static pthread_mutex_t g_locks[NL_KINDS];
+static FILE *g_file;
+
+__attribute__((constructor)) static void nativelock_init(void)
+{
+    static const int types[NL_KINDS] = {PTHREAD_MUTEX_NORMAL, PTHREAD_MUTEX_RECURSIVE,
+                                        PTHREAD_MUTEX_ERRORCHECK, PTHREAD_MUTEX_ADAPTIVE_NP,
+                                        PTHREAD_MUTEX_NORMAL};
+    for (int k = 0; k < NL_KINDS; k++) {
+        pthread_mutexattr_t at;
+        pthread_mutexattr_init(&at);
+        if (k != NL_NORMAL)          /* NORMAL as PTHREAD_MUTEX_INITIALIZER makes it */
+            pthread_mutexattr_settype(&at, types[k]);
+        if (k == NL_ROBUST)
+            pthread_mutexattr_setrobust(&at, PTHREAD_MUTEX_ROBUST);
+        pthread_mutex_init(&g_locks[k], &at);
+        pthread_mutexattr_destroy(&at);
+    }
+    g_file = fopen("/dev/null", "w");
+}
+
+static int bad(int kind) { return kind < 0 || kind >= NL_KINDS; }
+
+static _Noreturn void die(int how)
+{
+    if (how == NL_SEGFAULT)
+        *(volatile int *)0 = 0;
+    kill(getpid(), SIGKILL);
+    for (;;)
+        pause();
+}
+
+/* Lock and unlock once: 0, 1 if the lock came with EOWNERDEAD (robust; made
+   consistent), -errno on error. */
+int nativelock_use(int kind)
+{
+    if (bad(kind))
+        return -EINVAL;
+    int r = pthread_mutex_lock(&g_locks[kind]), repaired = 0;
+    if (r == EOWNERDEAD) {
+        pthread_mutex_consistent(&g_locks[kind]);
+        repaired = 1;
+    } else if (r) {
+        return -r;
+    }
+    pthread_mutex_unlock(&g_locks[kind]);
+    return repaired;
+}
+
+/* Take it (a recursive one twice) and die. */
+int nativelock_hold_and_die(int kind, int how)
+{
+    if (bad(kind))
+        return -EINVAL;
+    pthread_mutex_lock(&g_locks[kind]);
+    if (kind == NL_RECURSIVE)
+        pthread_mutex_lock(&g_locks[kind]);
+    die(how);
+}
+
+/* Die half-way through pthread_mutex_lock: the lock word taken (its first
+   step), the owner not written yet (its next). */
+int nativelock_die_taking(int kind, int how)
+{
+    if (bad(kind) || kind == NL_ROBUST)
+        return -EINVAL;
+    int unlocked = 0;
+    if (!__atomic_compare_exchange_n(&g_locks[kind].__data.__lock, &unlocked, 1, false,
+                                     __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
+        return -EBUSY;
+    die(how);
+}
+
+int nativelock_hold(int kind)
+{
+    return bad(kind) ? -EINVAL : -pthread_mutex_lock(&g_locks[kind]);
+}
+
+int nativelock_release(int kind)
+{
+    return bad(kind) ? -EINVAL : -pthread_mutex_unlock(&g_locks[kind]);
+}
+
+static void *exit_holding(void *p)
+{
+    pthread_mutex_lock(p);
+    return NULL;                     /* a thread that ends holding it */
+}
+
+/* A thread of the caller's process takes it and ends: its owner is gone,
+   and was never a dead node's. */
+int nativelock_thread_exits_holding(int kind)
+{
+    if (bad(kind) || kind == NL_ROBUST)
+        return -EINVAL;
+    pthread_t t;
+    int r = pthread_create(&t, NULL, exit_holding, &g_locks[kind]);
+    return r ? -r : -pthread_join(t, NULL);
+}
+
+/* Hold the stream's lock (glibc's own, recording no owner tid) and die. */
+int nativelock_die_holding_file(int how)
+{
+    if (!g_file)
+        return -ENOENT;
+    flockfile(g_file);
+    die(how);
+}
+
+int nativelock_use_file(void)
+{
+    if (!g_file)
+        return -ENOENT;
+    fputs("beat\n", g_file);
+    return 0;
+}
+
+long nativelock_address(int kind)
+{
+    return bad(kind) ? 0 : (long)&g_locks[kind];
+}
