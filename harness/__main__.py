@@ -12,6 +12,7 @@ Adding a subcommand: write ``_add_NAME(subparsers)``, which creates its
 parser and calls ``set_defaults(func=run_NAME)``, and ``run_NAME(args) ->
 exit code``; then append ``_add_NAME`` to ``SUBCOMMANDS``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,17 +21,24 @@ import sys
 
 def _add_compare(subparsers) -> None:
     p = subparsers.add_parser(
-        "compare", help="compare two runs' survival rates and latencies",
+        "compare",
+        help="compare two runs' survival rates and latencies",
         description="Per scenario: survival rate A -> B with counts and significance, "
-                    "median latency A -> B per series, and scenarios only in one run.",
+        "median latency A -> B per series, and scenarios only in one run.",
     )
     p.add_argument("run_a", metavar="RUN_A", help="report directory or report.json (the baseline)")
     p.add_argument("run_b", metavar="RUN_B", help="report directory or report.json (the new run)")
-    p.add_argument("--fail-on-regression", action="store_true",
-                   help="exit 1 if any survival rate got significantly worse")
-    p.add_argument("--test", dest="method", choices=("z", "wilson"), default="z",
-                   help="significance: z = two-proportion z-test (default), "
-                        "wilson = non-overlapping 95%% Wilson intervals (stricter)")
+    p.add_argument(
+        "--fail-on-regression", action="store_true", help="exit 1 if any survival rate got significantly worse"
+    )
+    p.add_argument(
+        "--test",
+        dest="method",
+        choices=("z", "wilson"),
+        default="z",
+        help="significance: z = two-proportion z-test (default), "
+        "wilson = non-overlapping 95%% Wilson intervals (stricter)",
+    )
     p.add_argument("--alpha", type=float, default=0.05, help="significance level of the z-test (default 0.05)")
     p.set_defaults(func=run_compare)
 
@@ -51,8 +59,9 @@ def run_compare(args) -> int:
 def _add_render(subparsers) -> None:
     p = subparsers.add_parser("render", help="re-render report.html from report.json")
     p.add_argument("run", metavar="RUN", help="report directory or report.json")
-    p.add_argument("-o", "--output", default=None,
-                   help="where to write the HTML (default: report.html beside report.json)")
+    p.add_argument(
+        "-o", "--output", default=None, help="where to write the HTML (default: report.html beside report.json)"
+    )
     p.set_defaults(func=run_render)
 
 
@@ -67,16 +76,18 @@ def run_render(args) -> int:
 
 def _add_merge(subparsers) -> None:
     p = subparsers.add_parser(
-        "merge", help="join the reports of shards (--shard K/N) into one report",
+        "merge",
+        help="join the reports of shards (--shard K/N) into one report",
         description="Join shards' reports: trials put together by scenario, every expectation "
-                    "judged on all of them, hangs and diagnoses kept; writes report.json, "
-                    "report.html and junit.xml. Exit 1 if a scenario failed or an expectation "
-                    "is not met.",
+        "judged on all of them, hangs and diagnoses kept; writes report.json, "
+        "report.html and junit.xml. Exit 1 if a scenario failed or an expectation "
+        "is not met.",
     )
     p.add_argument("runs", metavar="RUN", nargs="+", help="report directories or report.json files")
     p.add_argument("--out", required=True, help="directory for the merged report")
-    p.add_argument("--allow-mixed-commits", action="store_true",
-                   help="merge runs of different commits (refused by default)")
+    p.add_argument(
+        "--allow-mixed-commits", action="store_true", help="merge runs of different commits (refused by default)"
+    )
     p.set_defaults(func=run_merge)
 
 
@@ -84,13 +95,14 @@ def run_merge(args) -> int:
     from .report.merge import merge_reports, write_merged
     from .report.model import load_report
 
-    merged = merge_reports([load_report(r) for r in args.runs],
-                           allow_mixed_commits=args.allow_mixed_commits)
+    merged = merge_reports([load_report(r) for r in args.runs], allow_mixed_commits=args.allow_mixed_commits)
     out = write_merged(merged, args.out)
     summary = merged.summary()
     failed = [s for s in merged.scenarios if s.outcome in ("failed", "error")]
-    print(f"merged {len(args.runs)} run(s): {summary['tests']} scenario(s), {summary['trials']} trial(s) "
-          f"{summary['trial_outcomes']}; expectations {summary['expectations']}")
+    print(
+        f"merged {len(args.runs)} run(s): {summary['tests']} scenario(s), {summary['trials']} trial(s) "
+        f"{summary['trial_outcomes']}; expectations {summary['expectations']}"
+    )
     print(f"report: {out / 'report.html'}")
     for s in failed:
         print(f"FAILED {s.nodeid}: {s.message}", file=sys.stderr)

@@ -4,10 +4,12 @@ It has its own rclpy Context on the container's domain and spins it on a
 thread of its own, so tests call it like a plain object. Every call has a
 timeout and raises :class:`HarnessTimeout` saying what did not happen.
 """
+
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import rclpy
@@ -18,6 +20,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .errors import HarnessTimeout  # raised here; importable from here too
 
 EVENT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -45,8 +49,8 @@ EVENT_NAMES = {
 }
 
 
-class HarnessTimeout(AssertionError):
-    """Something the harness waited for did not happen in time."""
+# ListNodes changes nothing: sent again after this long unanswered (call()).
+LIST_RESEND_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,7 @@ class Recorder:
             self._items.append(Received(msg, time.monotonic_ns()))
             self._cond.notify_all()
             listeners = list(self._listeners)
-        for listener in listeners:   # outside our lock: they take their own
+        for listener in listeners:  # outside our lock: they take their own
             listener(msg)
 
     def add_listener(self, fn) -> None:
@@ -142,7 +146,7 @@ class ContainerClient:
         self._event_sub = self.node.create_subscription(
             ComponentEvent, f"{base}/component_events", self.events._add, EVENT_QOS
         )
-        self._subs = []
+        self._subs: list = []
         self._executor = SingleThreadedExecutor(context=self._ctx)
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name="harness-client", daemon=True)
@@ -157,18 +161,27 @@ class ContainerClient:
 
     # -- generic --------------------------------------------------------------
 
-    def call(self, client, request, timeout: float = 10.0):
-        """Call a service; wait for it to exist and answer within ``timeout``."""
+    def call(self, client, request, timeout: float = 10.0, *, resend_after: float | None = None):
+        """Call a service; wait for it to exist and answer within ``timeout``.
+
+        ``resend_after`` (for requests that change nothing): send the request
+        again each time that long passes unanswered. A server's response can
+        be lost for good: rmw_fastrtps drops it ("client will not receive
+        response") when the server has not yet matched the client's reply
+        reader, which discovery under load can delay past its short wait."""
         deadline = time.monotonic() + timeout
         if not client.wait_for_service(timeout_sec=timeout):
             raise HarnessTimeout(f"service {client.srv_name} not available within {timeout:.1f} s")
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(max(0.0, deadline - time.monotonic())):
+        while True:
+            done = threading.Event()
+            future = client.call_async(request)
+            future.add_done_callback(lambda _f, done=done: done.set())
+            left = max(0.0, deadline - time.monotonic())
+            if done.wait(min(left, resend_after) if resend_after else left):
+                return future.result()
             client.remove_pending_request(future)
-            raise HarnessTimeout(f"no answer from {client.srv_name} within {timeout:.1f} s")
-        return future.result()
+            if time.monotonic() >= deadline:
+                raise HarnessTimeout(f"no answer from {client.srv_name} within {timeout:.1f} s")
 
     def service_client(self, srv_type, name: str):
         return self.node.create_client(srv_type, name, qos_profile=SERVICE_QOS)
@@ -188,9 +201,9 @@ class ContainerClient:
         node_name: str = "",
         node_namespace: str = "",
         log_level: int = 0,
-        remap_rules: list[str] = (),
-        parameters: dict[str, object] | list[ParameterMsg] = (),
-        extra_arguments: dict[str, object] | list[ParameterMsg] = (),
+        remap_rules: Sequence[str] = (),
+        parameters: dict[str, object] | Sequence[ParameterMsg] = (),
+        extra_arguments: dict[str, object] | Sequence[ParameterMsg] = (),
     ) -> LoadNode.Request:
         req = LoadNode.Request()
         req.package_name = package_name
@@ -225,12 +238,13 @@ class ContainerClient:
         return self.call(self._unload, req, timeout)
 
     def list(self, *, timeout: float = 10.0) -> list[tuple[int, str]]:
-        resp = self.call(self._list, ListNodes.Request(), timeout)
-        return list(zip(resp.unique_ids, resp.full_node_names))
+        resp = self.call(self._list, ListNodes.Request(), timeout, resend_after=LIST_RESEND_S)
+        return list(zip(resp.unique_ids, resp.full_node_names, strict=True))
 
     def wait_for_event(self, event_type: int, *, unique_id: int | None = None, timeout: float = 10.0) -> ComponentEvent:
         def match(ev):
             return ev.event_type == event_type and (unique_id is None or ev.unique_id == unique_id)
+
         what = EVENT_NAMES.get(event_type, str(event_type)) + (f" for unique_id {unique_id}" if unique_id else "")
         return self.events.wait_for(match, timeout, what)
 

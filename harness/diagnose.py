@@ -24,6 +24,7 @@ the summary says that, and what the node processes' main threads do.
 An owner tid that belongs to a node's process that has died (the caller
 passes what it knows: pid -> node name, and which pids are dead) is named.
 """
+
 from __future__ import annotations
 
 import os
@@ -38,6 +39,10 @@ from pathlib import Path
 from . import procfs
 
 GDB_TIMEOUT_S = 90
+# How the container's own log lines about a lock it left as it was begin
+# (its container/repairs.py NOT_REPAIRED): a diagnosis quotes them first,
+# naming the lock as the container did.
+CONTAINER_NOT_REPAIRED = "lock not repaired: "
 # CPU use of every thread is sampled over this window before the stacks are
 # taken; at SPIN_PERCENT or more of a CPU a thread of a hung container is
 # called spinning.
@@ -49,55 +54,73 @@ UNNAMED_CHILD = "a child process no event named"
 PY_GDB = Path(sys.base_prefix) / "bin" / f"python{sys.version_info[0]}.{sys.version_info[1]}-gdb.py"
 
 _THREAD = re.compile(r'^Thread \d+ \(Thread 0x[0-9a-f]+ \(LWP (\d+)\)(?: "([^"]*)")?\)')
-_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-f]+ in )?(\S.*?) \((.*)")   # a C++ name may hold spaces
+_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-f]+ in )?(\S.*?) \((.*)")  # a C++ name may hold spaces
 _PY_FILE = re.compile(r'^\s*File "([^"]+)", line (\S+), in (\S+)')
 _MUTEX_ARG = re.compile(r"mutex=(?:mutex@entry=)?(0x[0-9a-f]+)")
 _FUTEX_ARG = re.compile(r"futex=(?:futex@entry=)?(0x[0-9a-f]+)(?: <([^>]+)>)?")
 _AV_ARG = re.compile(r"\bav=(?:av@entry=)?(0x[0-9a-f]+)")
 _MALLOC_FUNCS = ("malloc", "free", "realloc", "calloc", "_int_free", "arena_get", "tcache")
-_MUTEX_FUNCS = ("pthread_mutex_lock", "pthread_mutex_timedlock", "pthread_mutex_clocklock",
-                "__pthread_mutex_cond_lock")
+_MUTEX_FUNCS = ("pthread_mutex_lock", "pthread_mutex_timedlock", "pthread_mutex_clocklock", "__pthread_mutex_cond_lock")
 _LIBC_LOCK_FRAMES = ("___pthread", "__pthread", "pthread_mutex", "lll_", "__GI_", "__lll_")
 # Locks every node process of a container shares, by the function that takes
 # them: per-node isolation cannot keep a dead node's hold on them from the rest.
 SHARED_LOCKS = {
     "TopicPayloadPool": "Fast DDS's payload pool of one topic, shared by every participant in the process "
-                        "(TopicPayloadPoolRegistry)",
+    "(TopicPayloadPoolRegistry)",
     "take_gil": "the GIL's own mutex (CPython's gil->mutex), taken by every thread that takes the GIL",
     "drop_gil": "the GIL's own mutex (CPython's gil->mutex), taken by every thread that drops the GIL",
 }
 # Loops in other projects' code that wait by spinning, by a frame they run in.
 KNOWN_BUSY_WAITS = {
     "DomainParticipant::set_listener": "Fast DDS 2.14 busy-waits there, with the lock its participant-listener "
-                                       "callbacks need, for those callbacks to end: eProsima/Fast-DDS#6513",
+    "callbacks need, for those callbacks to end: eProsima/Fast-DDS#6513",
 }
-_IDLE_FUNCS = ("epoll_wait", "epoll_pwait", "poll", "ppoll", "select", "pselect", "recvfrom",
-               "recvmsg", "recv", "read", "__libc_read", "accept", "nanosleep", "clock_nanosleep",
-               "sigwait", "sigtimedwait", "pause", "waitid", "wait4", "futex_wait")
+_IDLE_FUNCS = (
+    "epoll_wait",
+    "epoll_pwait",
+    "poll",
+    "ppoll",
+    "select",
+    "pselect",
+    "recvfrom",
+    "recvmsg",
+    "recv",
+    "read",
+    "__libc_read",
+    "accept",
+    "nanosleep",
+    "clock_nanosleep",
+    "sigwait",
+    "sigtimedwait",
+    "pause",
+    "waitid",
+    "wait4",
+    "futex_wait",
+)
 
 
 @dataclass
 class ThreadStack:
     tid: int
     name: str
-    pid: int = 0                                        # its process (thread group)
-    frames: list[str] = field(default_factory=list)    # function names, innermost first
+    pid: int = 0  # its process (thread group)
+    frames: list[str] = field(default_factory=list)  # function names, innermost first
     raw: list[str] = field(default_factory=list)
-    python: list[str] = field(default_factory=list)    # "func (file:line)", innermost first
+    python: list[str] = field(default_factory=list)  # "func (file:line)", innermost first
 
 
 @dataclass(frozen=True)
 class BlockedOn:
     tid: int
-    kind: str             # "pthread mutex", "jemalloc lock", "malloc arena lock", "GIL"
-    address: str          # the lock's address, "" when not known
+    kind: str  # "pthread mutex", "jemalloc lock", "malloc arena lock", "GIL"
+    address: str  # the lock's address, "" when not known
     owner_tid: int | None
     owner_node: str | None
     owner_dead: bool
-    pid: int = 0          # the waiting thread's process
-    where: str = ""       # the waiter: node name / "container"
-    note: str = ""        # the next best fact when the owner is not recorded
-    taker: str = ""       # the function that wants the lock (a mutex's caller)
+    pid: int = 0  # the waiting thread's process
+    where: str = ""  # the waiter: node name / "container"
+    note: str = ""  # the next best fact when the owner is not recorded
+    taker: str = ""  # the function that wants the lock (a mutex's caller)
 
     def describe(self) -> str:
         owner = "no owner recorded"
@@ -125,8 +148,8 @@ class BlockedOn:
 class ThreadState:
     tid: int
     pid: int
-    state: str            # "blocked", "idle", "python lock", "running"
-    what: str             # the function (and Python frame) it is in
+    state: str  # "blocked", "idle", "python lock", "running"
+    what: str  # the function (and Python frame) it is in
     cpu_percent: int = 0  # CPU it used in the sampling window before the stacks were taken
 
 
@@ -137,18 +160,26 @@ class Diagnosis:
     threads: list[ThreadStack]
     blocked: list[BlockedOn]
     states: list[ThreadState] = field(default_factory=list)
-    names: dict[int, str] = field(default_factory=dict)   # pid -> "container" / node name
+    names: dict[int, str] = field(default_factory=dict)  # pid -> "container" / node name
+    container_said: list[str] = field(default_factory=list)  # its "lock not repaired" lines
 
     def summary(self) -> str:
-        spinning = [f"{self.names.get(s.pid, '?')} tid {s.tid} spinning ({s.cpu_percent}% of a CPU "
-                    f"while nothing progressed): {s.what}" for s in self.states if s.cpu_percent >= SPIN_PERCENT]
+        said = [f"the container said: {line}" for line in self.container_said]
+        return "; ".join([*said, self._threads_summary()])
+
+    def _threads_summary(self) -> str:
+        spinning = [
+            f"{self.names.get(s.pid, '?')} tid {s.tid} spinning ({s.cpu_percent}% of a CPU "
+            f"while nothing progressed): {s.what}"
+            for s in self.states
+            if s.cpu_percent >= SPIN_PERCENT
+        ]
         if self.blocked:
             return "; ".join([b.describe() for b in self.blocked] + spinning)
         facts = list(spinning)
         for pid, name in self.names.items():
             main = next((s for s in self.states if s.tid == pid), None)
-            busy = [s for s in self.states
-                    if s.pid == pid and s.state != "idle" and s.cpu_percent < SPIN_PERCENT]
+            busy = [s for s in self.states if s.pid == pid and s.state != "idle" and s.cpu_percent < SPIN_PERCENT]
             if main is not None and (main.state != "idle" or pid != self.pid):
                 facts.append(f"{name} (pid {pid}) main thread {main.state}: {main.what}")
             facts.extend(f"{name} tid {s.tid} {s.state}: {s.what}" for s in busy if s is not main)
@@ -203,30 +234,42 @@ def parse_threads(text: str, pid: int = 0) -> list[ThreadStack]:
 def _lock_wait(t: ThreadStack) -> tuple[str, str, str] | None:
     """(kind, address, symbol) of the lock the thread waits on, or None;
     for a mutex, the symbol is the function that takes it."""
-    for i, (fn, raw) in enumerate(zip(t.frames, t.raw)):
+    for i, (fn, raw) in enumerate(zip(t.frames, t.raw, strict=True)):
         if fn == "take_gil":
             return "GIL", "", ""
         if any(name in fn for name in _MUTEX_FUNCS):
             m = _MUTEX_ARG.search(raw)
-            outer = " ".join(t.raw[i + 1:i + 3])
+            outer = " ".join(t.raw[i + 1 : i + 3])
             kind = "jemalloc lock" if "libjemalloc" in outer else "pthread mutex"
-            taker = "" if kind == "jemalloc lock" else next(
-                (f for f in t.frames[i + 1:] if not f.startswith(_LIBC_LOCK_FRAMES) and f != "??"), "")
+            taker = (
+                ""
+                if kind == "jemalloc lock"
+                else next((f for f in t.frames[i + 1 :] if not f.startswith(_LIBC_LOCK_FRAMES) and f != "??"), "")
+            )
             return kind, m.group(1) if m else "", taker.split("(")[0]
         if fn.endswith("lll_lock_wait_private") or fn.endswith("lll_lock_wait"):
-            outer = t.frames[i + 1:i + 4]
-            if any(any(k in o for k in _MALLOC_FUNCS) for o in outer):
+            callers = t.frames[i + 1 : i + 4]
+            if any(any(k in o for k in _MALLOC_FUNCS) for o in callers):
                 m = _FUTEX_ARG.search(raw)
                 return "malloc arena lock", m.group(1) if m else "", (m.group(2) or "") if m else ""
     return None
 
 
 def _where(t: ThreadStack) -> str:
-    skip = ("futex", "__GI_", "syscall", "do_futex_wait", "__new_sem_wait", "___sem_", "__pthread_cond",
-            "___pthread_cond", "__lll_", "lll_")
+    skip = (
+        "futex",
+        "__GI_",
+        "syscall",
+        "do_futex_wait",
+        "__new_sem_wait",
+        "___sem_",
+        "__pthread_cond",
+        "___pthread_cond",
+        "__lll_",
+        "lll_",
+    )
     native = next((f for f in t.frames if not f.startswith(skip) and f != "??"), t.frames[0] if t.frames else "?")
-    known = next(((f.split("(")[0], why) for f in t.frames for key, why in KNOWN_BUSY_WAITS.items() if key in f),
-                 None)
+    known = next(((f.split("(")[0], why) for f in t.frames for key, why in KNOWN_BUSY_WAITS.items() if key in f), None)
     if known and not native.startswith(known[0]):
         native += f" in {known[0]} ({known[1]})"
     return native + (f" [Python: {t.python[0]}]" if t.python else "")
@@ -263,30 +306,52 @@ def _inside_arena(threads: list[ThreadStack], arena: str) -> list[int]:
     for t in threads:
         if _lock_wait(t) is not None:
             continue
-        if any(arena in (_AV_ARG.search(r).group(1) if _AV_ARG.search(r) else "") for r in t.raw):
+        if any(arena == m.group(1) for r in t.raw if (m := _AV_ARG.search(r))):
             out.append(t.tid)
     return out
 
 
-def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids: set[int] = frozenset()) -> Diagnosis:
+def not_repaired_lines(log: str) -> list[str]:
+    """The container's own reports, in its log, of locks it left as they were
+    (the part after the mark; each once)."""
+    out = []
+    for line in log.splitlines():
+        _, mark, rest = line.partition(CONTAINER_NOT_REPAIRED)
+        if mark and rest not in out:
+            out.append(rest)
+    return out
+
+
+def diagnose(
+    pid: int,
+    *,
+    nodes_by_pid: dict[int, str] | None = None,
+    dead_pids: set[int] | frozenset[int] = frozenset(),
+    log: str = "",
+) -> Diagnosis:
     """Attach to the container ``pid``, each live node process and any other
-    live child of it with gdb and say what their threads are blocked on."""
+    live child of it with gdb and say what their threads are blocked on;
+    with the container's ``log``, quote first what it said of locks it could
+    not repair."""
     nodes_by_pid = nodes_by_pid or {}
     names = {pid: "container"}
-    names.update({p: n for p, n in sorted(nodes_by_pid.items())
-                  if p not in dead_pids and p != pid and procfs.alive(p)})
+    names.update({p: n for p, n in sorted(nodes_by_pid.items()) if p not in dead_pids and p != pid and procfs.alive(p)})
     # Its other children too: a process no event named (a per-node
     # container's warm spare, or a node whose LOADED was not seen yet) can
     # be the one that holds what the rest wait for.
-    names.update({p: UNNAMED_CHILD for p in procfs.children_of(pid)
-                  if p not in names and p not in dead_pids and procfs.alive(p)})
+    names.update(
+        {p: UNNAMED_CHILD for p in procfs.children_of(pid) if p not in names and p not in dead_pids and procfs.alive(p)}
+    )
     # A stack shows a moment; CPU time over a window says who is spinning
     # (a livelock, a busy wait on something that never comes) and who waits.
     before = {p: procfs.thread_cpu_ticks(p) for p in names}
     time.sleep(CPU_WINDOW_S)
     after = {p: procfs.thread_cpu_ticks(p) for p in names}
-    cpu = {tid: round(100 * (ticks - before[p].get(tid, ticks)) / (CLOCK_TICKS * CPU_WINDOW_S))
-           for p in names for tid, ticks in after[p].items()}
+    cpu = {
+        tid: round(100 * (ticks - before[p].get(tid, ticks)) / (CLOCK_TICKS * CPU_WINDOW_S))
+        for p in names
+        for tid, ticks in after[p].items()
+    }
     commands = ["thread apply all bt 40"]
     if PY_GDB.is_file():
         commands = [f"source {PY_GDB}", *commands, "thread apply all py-bt"]
@@ -313,8 +378,10 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
                 note = f"{arena}: glibc records no owner; live threads inside it: {inside}"
             else:
                 dead = sorted(f"{nodes_by_pid.get(d, '?')} (pid {d})" for d in dead_pids)
-                note = (f"{arena}: glibc records no owner and no live thread is inside it, so a "
-                        f"task that is gone holds it" + (f"; dead node processes: {', '.join(dead)}" if dead else ""))
+                note = (
+                    f"{arena}: glibc records no owner and no live thread is inside it, so a "
+                    f"task that is gone holds it" + (f"; dead node processes: {', '.join(dead)}" if dead else "")
+                )
         owner = owner or None
         if owner and not note and owner not in {s.tid for s in threads}:
             # Owned by a task in no process we looked into: say what it is.
@@ -326,14 +393,21 @@ def diagnose(pid: int, *, nodes_by_pid: dict[int, str] | None = None, dead_pids:
         owner_name = nodes_by_pid.get(owner) if owner else None
         if owner_name is None and owner_pid not in (None, pid):
             owner_name = names.get(owner_pid)
-        blocked.append(BlockedOn(
-            tid=t.tid, kind=kind, address=addr, owner_tid=owner,
-            owner_node=owner_name,
-            owner_dead=bool(owner) and (owner in dead_pids or not procfs.alive(owner)),
-            pid=t.pid, where=names.get(t.pid, ""), note=note,
-            taker=symbol if kind != "malloc arena lock" else "",
-        ))
-    return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names)
+        blocked.append(
+            BlockedOn(
+                tid=t.tid,
+                kind=kind,
+                address=addr,
+                owner_tid=owner,
+                owner_node=owner_name,
+                owner_dead=owner is not None and owner > 0 and (owner in dead_pids or not procfs.alive(owner)),
+                pid=t.pid,
+                where=names.get(t.pid, ""),
+                note=note,
+                taker=symbol if kind != "malloc arena lock" else "",
+            )
+        )
+    return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names, not_repaired_lines(log))
 
 
 def _owners(pid: int, waits) -> dict[tuple[str, str], int | None]:
@@ -349,9 +423,9 @@ def _owners(pid: int, waits) -> dict[tuple[str, str], int | None]:
             wanted.setdefault(pid, []).append(("GIL", ""))
         elif addr and kind != "malloc arena lock":
             wanted.setdefault(t.pid, []).append((kind, addr))
-    owners = {}
+    owners: dict = {}
     for p, keys in wanted.items():
         keys = list(dict.fromkeys(keys))
         exprs = [_GIL_OWNER if kind == "GIL" else f"((int *){addr})[2]" for kind, addr in keys]  # __owner
-        owners.update(zip(keys, _read_ints(p, exprs)))
+        owners.update(zip(keys, _read_ints(p, exprs), strict=True))
     return owners

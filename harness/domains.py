@@ -5,6 +5,7 @@ long as it lives, so two pytest sessions on one machine (or two tests of one
 session) never get the same domain and never see each other's nodes. A lock
 held by a process that died is released by the kernel with it.
 """
+
 from __future__ import annotations
 
 import fcntl

@@ -4,8 +4,10 @@ Used by the pytest fixtures (one factory per test) and by the standalone
 commands (``python -m cloneguard.harness reproduce``): every container it starts and
 every client it connects is closed by :meth:`stop_all`, and only those.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from .client import ContainerClient
@@ -24,7 +26,9 @@ def wait_ready(cli: ContainerClient, proc: ContainerProcess, timeout: float = RE
         cli.list(timeout=timeout)
     except AssertionError as exc:
         state = "running" if proc.alive() else f"exited with {proc.wait(0)}"
-        raise AssertionError(f"container not ready ({state}): {exc}\n--- log ---\n{log_tail(proc.log_text())}") from None
+        raise AssertionError(
+            f"container not ready ({state}): {exc}\n--- log ---\n{log_tail(proc.log_text())}"
+        ) from None
 
 
 class ContainerFactory:
@@ -37,7 +41,7 @@ class ContainerFactory:
 
     def start(
         self,
-        args: list[str] = (),
+        args: Sequence[str] = (),
         *,
         node_name: str = "ComponentManager",
         fastdds_profile=NO_SHM_PROFILE,

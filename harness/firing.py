@@ -5,10 +5,11 @@ against the CRASHED event's stamp (the same host clock).
 
     cloneguard-fault: <fault> firing at <time.time_ns()> pid <pid>
 """
+
 from __future__ import annotations
 
 import re
-from typing import Iterator
+from collections.abc import Iterator
 
 MARK = "cloneguard-fault:"
 _LINE = re.compile(r"^" + re.escape(MARK) + r" (\S+) firing at (\d+) pid (\d+)$", re.M)

@@ -3,7 +3,9 @@
 The strategies cover every field of LoadNode (package and plugin names, node
 name and namespace, log level, remap rules, parameters of every type and of
 no known type, extra arguments: the container's own and unknown ones),
-UnloadNode ids (live, gone, never given, the uint64 edges) and ListNodes.
+UnloadNode ids (live, gone, never given, the uint64 edges) and ListNodes;
+rclpy's built-in parameters (``BUILTIN_PARAMETERS``) with values of every
+type.
 A load is *valid* (it must succeed) or *hostile* (anything may be asked; it
 must be answered and leave the model unchanged unless it succeeded).
 
@@ -13,6 +15,7 @@ an id is never reused (and ids only grow, as upstream's counter), a
 failure says why, an unload of a live id succeeds and of any other id fails.
 tests/test_request_fuzz.py drives real containers with these.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +28,7 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 
 PKG = "cloneguard"
 #: components a valid load may name, with the parameters it may set
-VALID_PLUGINS = ("cloneguard::Heartbeat", "cloneguard::Talker", "cloneguard::Listener",
-                 "cloneguard::EchoService")
+VALID_PLUGINS = ("cloneguard::Heartbeat", "cloneguard::Talker", "cloneguard::Listener", "cloneguard::EchoService")
 UINT64_MAX = 2**64 - 1
 
 # -- text --------------------------------------------------------------------
@@ -34,34 +36,78 @@ UINT64_MAX = 2**64 - 1
 _NAME_START = "abcdefghijklmnopqrstuvwxyz"
 _NAME_REST = _NAME_START + "0123456789_"
 #: names rcl accepts: a letter, then letters, digits, single underscores
-valid_names = st.builds(lambda a, b: a + b, st.sampled_from(_NAME_START),
-                        st.text(_NAME_REST, max_size=12)).filter(lambda s: "__" not in s and not s.endswith("_"))
-valid_namespaces = st.one_of(st.just(""), st.just("/"),
-                             st.lists(valid_names, min_size=1, max_size=3).map(lambda parts: "/" + "/".join(parts)))
+valid_names = st.builds(lambda a, b: a + b, st.sampled_from(_NAME_START), st.text(_NAME_REST, max_size=12)).filter(
+    lambda s: "__" not in s and not s.endswith("_")
+)
+valid_namespaces = st.one_of(
+    st.just(""), st.just("/"), st.lists(valid_names, min_size=1, max_size=3).map(lambda parts: "/" + "/".join(parts))
+)
 
 #: what a careless or hostile client puts in a string field
 hostile_text = st.one_of(
     st.text(max_size=40),
     st.text(st.characters(codec="utf-8"), min_size=200, max_size=3000),
-    st.sampled_from([
-        "", " ", "/", "//", "~", "~/x", "../../etc/passwd", "/tmp/x.so", "a::b::c", "::", "x:=y",
-        "\x1b[31mred\x1b[0m", "nul\x00byte", "new\nline", "__node", "__ns", "{x}", "%s%n",
-        "rclpy", "os.system('id')", "__import__('os')", "cloneguard::", "CLONEGUARD", "cloneguard ",
-        "cloneguard::heartbeat", "cloneguard::Heartbeat\n", "faults", "1" * 300,
-    ]),
+    st.sampled_from(
+        [
+            "",
+            " ",
+            "/",
+            "//",
+            "~",
+            "~/x",
+            "../../etc/passwd",
+            "/tmp/x.so",
+            "a::b::c",
+            "::",
+            "x:=y",
+            "\x1b[31mred\x1b[0m",
+            "nul\x00byte",
+            "new\nline",
+            "__node",
+            "__ns",
+            "{x}",
+            "%s%n",
+            "rclpy",
+            "os.system('id')",
+            "__import__('os')",
+            "cloneguard::",
+            "CLONEGUARD",
+            "cloneguard ",
+            "cloneguard::heartbeat",
+            "cloneguard::Heartbeat\n",
+            "faults",
+            "1" * 300,
+        ]
+    ),
 )
-hostile_remaps = st.lists(st.one_of(
-    hostile_text,
-    st.builds(lambda a, b: f"{a}:={b}", hostile_text, hostile_text),
-    st.sampled_from(["__node:=x", "__ns:=/y", "__ns:=rel", "__node:=", ":=", "a:=b:=c",
-                     "chatter:=/other", "__log_level:=debug", "__params:=/nonexistent.yaml"]),
-), max_size=4)
+hostile_remaps = st.lists(
+    st.one_of(
+        hostile_text,
+        st.builds(lambda a, b: f"{a}:={b}", hostile_text, hostile_text),
+        st.sampled_from(
+            [
+                "__node:=x",
+                "__ns:=/y",
+                "__ns:=rel",
+                "__node:=",
+                ":=",
+                "a:=b:=c",
+                "chatter:=/other",
+                "__log_level:=debug",
+                "__params:=/nonexistent.yaml",
+            ]
+        ),
+    ),
+    max_size=4,
+)
 
 # -- parameters --------------------------------------------------------------
 
-_floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
-                    st.sampled_from([0.0, -0.0, 1e-12, 5e-324, 1e300, -1.0, math.nan, math.inf, -math.inf]))
-_ints = st.one_of(st.integers(-2**63, 2**63 - 1), st.sampled_from([0, -1, 2**62, 2**63 - 1, -2**63]))
+_floats = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 1e-12, 5e-324, 1e300, -1.0, math.nan, math.inf, -math.inf]),
+)
+_ints = st.one_of(st.integers(-(2**63), 2**63 - 1), st.sampled_from([0, -1, 2**62, 2**63 - 1, -(2**63)]))
 
 
 @st.composite
@@ -83,13 +129,55 @@ def parameter_values(draw) -> ParameterValue:
 
 
 _parameter_names = st.one_of(
-    st.sampled_from(["period", "topic", "message", "limit", "use_sim_time", "qos_overrides./x.publisher.depth",
-                     "use_intra_process_comms", "cloneguard.cpu_quota", "cloneguard.fault.drop_loaded_event",
-                     "forward_global_arguments", "cloneguard.unknown", ""]),
+    st.sampled_from(
+        [
+            "period",
+            "topic",
+            "message",
+            "limit",
+            "use_sim_time",
+            "qos_overrides./x.publisher.depth",
+            "use_intra_process_comms",
+            "cloneguard.cpu_quota",
+            "cloneguard.fault.drop_loaded_event",
+            "forward_global_arguments",
+            "cloneguard.unknown",
+            "",
+        ]
+    ),
     hostile_text,
 )
-hostile_parameters = st.lists(st.builds(lambda n, v: ParameterMsg(name=n, value=v), _parameter_names,
-                                        parameter_values()), max_size=4)
+#: rclpy's own parameters, which ``Node.__init__`` (or a publisher made with
+#: QoS overriding options: Heartbeat's, topic ``~/heartbeat``) declares with
+#: a type and checks before the component's own code runs
+BUILTIN_PARAMETERS = (
+    "use_sim_time",
+    "start_type_description_service",
+    *(
+        f"qos_overrides.{topic}.publisher.{policy}"
+        for topic in ("/heartbeat/heartbeat", "/chatter")
+        for policy in ("history", "depth", "reliability", "durability")
+    ),
+)
+#: every ParameterType value, each drawn for each built-in parameter
+_PARAMETER_TYPES = st.sampled_from(range(ParameterType.PARAMETER_NOT_SET, ParameterType.PARAMETER_STRING_ARRAY + 1))
+
+
+@st.composite
+def builtin_parameters(draw) -> ParameterMsg:
+    """A built-in parameter with a value of any type (most of them wrong)."""
+    value = draw(parameter_values())
+    value.type = draw(_PARAMETER_TYPES)
+    return ParameterMsg(name=draw(st.sampled_from(BUILTIN_PARAMETERS)), value=value)
+
+
+hostile_parameters = st.lists(
+    st.one_of(
+        st.builds(lambda n, v: ParameterMsg(name=n, value=v), _parameter_names, parameter_values()),
+        builtin_parameters(),
+    ),
+    max_size=4,
+)
 
 
 def _double(name: str, value: float) -> ParameterMsg:
@@ -102,15 +190,18 @@ def _bool(name: str, value: bool) -> ParameterMsg:
 
 # -- requests ----------------------------------------------------------------
 
+
 @dataclass
 class Load:
     request: LoadNode.Request
     valid: bool
 
-    def __repr__(self) -> str:     # what a failing example prints: every field that is set
+    def __repr__(self) -> str:  # what a failing example prints: every field that is set
         r = self.request
-        fields = {k: getattr(r, k) for k in ("package_name", "plugin_name", "node_name", "node_namespace",
-                                             "log_level", "remap_rules")}
+        fields = {
+            k: getattr(r, k)
+            for k in ("package_name", "plugin_name", "node_name", "node_namespace", "log_level", "remap_rules")
+        }
         fields["parameters"] = [(p.name, p.value.type) for p in r.parameters]
         fields["extra_arguments"] = [(p.name, p.value.type) for p in r.extra_arguments]
         return f"Load(valid={self.valid}, {fields!r})"
@@ -140,8 +231,16 @@ def valid_loads(draw, *, cgroups: bool) -> Load:
         extra.append(_bool("use_intra_process_comms", draw(st.booleans())))
     if cgroups and draw(st.booleans()):
         extra.append(_double("cloneguard.cpu_quota", draw(st.floats(0.01, 4.0))))
-    req = _request(PKG, plugin, draw(st.one_of(st.just(""), valid_names)), draw(valid_namespaces),
-                   draw(st.sampled_from([0, 10, 20, 30, 40, 50])), [], params, extra)
+    req = _request(
+        PKG,
+        plugin,
+        draw(st.one_of(st.just(""), valid_names)),
+        draw(valid_namespaces),
+        draw(st.sampled_from([0, 10, 20, 30, 40, 50])),
+        [],
+        params,
+        extra,
+    )
     return Load(req, valid=True)
 
 
@@ -154,12 +253,46 @@ def hostile_loads(draw) -> Load:
     plugin = draw(st.one_of(st.sampled_from(VALID_PLUGINS), hostile_text))
     name = draw(st.one_of(st.just(""), valid_names, hostile_text))
     namespace = draw(st.one_of(valid_namespaces, hostile_text))
-    extra = draw(st.lists(st.one_of(
-        st.builds(_double, st.just("cloneguard.cpu_quota"), _floats),
-        st.builds(_bool, st.just("use_intra_process_comms"), st.booleans()),
-        st.builds(lambda n, v: ParameterMsg(name=n, value=v), _parameter_names, parameter_values())), max_size=3))
-    req = _request(package, plugin, name, namespace, draw(st.integers(0, 255)), draw(hostile_remaps),
-                   draw(hostile_parameters), extra)
+    extra = draw(
+        st.lists(
+            st.one_of(
+                st.builds(_double, st.just("cloneguard.cpu_quota"), _floats),
+                st.builds(_bool, st.just("use_intra_process_comms"), st.booleans()),
+                st.builds(lambda n, v: ParameterMsg(name=n, value=v), _parameter_names, parameter_values()),
+            ),
+            max_size=3,
+        )
+    )
+    req = _request(
+        package,
+        plugin,
+        name,
+        namespace,
+        draw(st.integers(0, 255)),
+        draw(hostile_remaps),
+        draw(hostile_parameters),
+        extra,
+    )
+    return Load(req, valid=False)
+
+
+@st.composite
+def hostile_parameter_loads(draw) -> Load:
+    """A load that gets past every early check to the constructor (a demo
+    component, a legal name, no remap rules), with hostile parameters and
+    at least one built-in one: what Node.__init__ and the component refuse
+    part-way through building the node."""
+    params = draw(hostile_parameters) + [draw(builtin_parameters())]
+    req = _request(
+        PKG,
+        draw(st.sampled_from(VALID_PLUGINS)),
+        draw(st.one_of(st.just(""), valid_names)),
+        draw(st.sampled_from(["", "/"])),
+        0,
+        [],
+        draw(st.permutations(params)),
+        [],
+    )
     return Load(req, valid=False)
 
 
@@ -175,10 +308,12 @@ def unload_ids(live: list[int], gone: list[int]):
 
 # -- the model ---------------------------------------------------------------
 
+
 @dataclass
 class Model:
     """What the container must say it holds, and every id it ever gave."""
-    live: dict[int, str] = field(default_factory=dict)      # unique_id -> full node name
+
+    live: dict[int, str] = field(default_factory=dict)  # unique_id -> full node name
     given: set[int] = field(default_factory=set)
     gone: list[int] = field(default_factory=list)
     highest: int = 0

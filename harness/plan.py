@@ -16,13 +16,17 @@ Fixtures (registered by harness.pytest_plugin)
     record_trial(index, seed, Outcome)     one trial into the report
     run_trials(trial, settle, quick, deep) the loop most scenarios share
 """
+
 from __future__ import annotations
 
+import argparse
 import os
 import random
 import zlib
 
 import pytest
+
+from .errors import HarnessTimeout  # not .client: that imports rclpy
 
 ENV_DEEP = "CLONEGUARD_DEEP"
 #: per-test timeout of a deep run or one with --trials N (hundreds of trials
@@ -30,16 +34,31 @@ ENV_DEEP = "CLONEGUARD_DEEP"
 LONG_RUN_TIMEOUT_S = 4 * 3600
 
 
+def trial_count_arg(text: str) -> int:
+    """A command line's trial count: a whole number, at least 1 (argparse
+    turns the error into a usage error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a trial count is a whole number, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a trial count is at least 1, not {value}")
+    return value
+
+
 def add_options(parser) -> None:
     group = parser.getgroup("cloneguard trials")
-    group.addoption("--deep", action="store_true", default=False,
-                    help="run the deep trial counts (hundreds per scenario)")
-    group.addoption("--trials", type=int, default=None, help="run exactly N trials per scenario")
+    group.addoption(
+        "--deep", action="store_true", default=False, help="run the deep trial counts (hundreds per scenario)"
+    )
+    group.addoption(
+        "--trials", type=trial_count_arg, default=None, metavar="N", help="run exactly N (>= 1) trials per scenario"
+    )
     group.addoption("--seed", type=int, default=1, help="base seed of every random choice (default 1)")
 
 
 def parse_shard(text: str) -> tuple[int, int]:
-    """"K/N" -> (K, N), 1 <= K <= N."""
+    """ "K/N" -> (K, N), 1 <= K <= N."""
     try:
         k, n = (int(x) for x in text.split("/"))
     except ValueError:
@@ -56,9 +75,11 @@ def shard_of(config) -> tuple[int, int] | None:
 
 def trial_plan_of(config) -> dict:
     """What decides which trials a run makes (runs merge only if equal)."""
-    return {"seed": config.getoption("--seed", default=None),
-            "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
-            "trials": config.getoption("--trials", default=None)}
+    return {
+        "seed": config.getoption("--seed", default=None),
+        "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
+        "trials": config.getoption("--trials", default=None),
+    }
 
 
 def trial_count(config, quick: int, deep: int) -> int:
@@ -69,8 +90,9 @@ def trial_count(config, quick: int, deep: int) -> int:
 
 
 def long_run(config) -> bool:
-    return bool(config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1"
-                or config.getoption("--trials") is not None)
+    return bool(
+        config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1" or config.getoption("--trials") is not None
+    )
 
 
 def pytest_collection_modifyitems(config, items) -> None:
@@ -105,17 +127,19 @@ def trial_plan(request):
         count = trial_count(config, quick, deep)
         planned = plan(count, scenario_rng(config, request.node.nodeid), shard)
         if not planned:
-            pytest.skip(f"shard {shard[0]}/{shard[1]} has none of this scenario's {count} trial(s)")
+            where = f"shard {shard[0]}/{shard[1]}" if shard else "this run"
+            pytest.skip(f"{where} has none of this scenario's {count} trial(s)")
         return planned
+
     return make
 
 
 @pytest.fixture
 def record_trial(resilience):
     """record_trial(index, seed, Outcome): one trial into the report."""
+
     def record(index: int, seed: int, out) -> None:
-        resilience.trial(outcome=out.outcome, index=index, seed=seed, latency_ms=out.latency_ms,
-                         details=out.details)
+        resilience.trial(outcome=out.outcome, index=index, seed=seed, latency_ms=out.latency_ms, details=out.details)
         d = out.diagnosis
         if d is not None:
             first = d.blocked[0] if d.blocked else None
@@ -127,18 +151,30 @@ def record_trial(resilience):
                 owner_tid=first.owner_tid if first else None,
                 owner_node=first.owner_node if first else None,
             )
+
     return record
 
 
 @pytest.fixture
 def run_trials(record_trial, trial_plan):
-    """run_trials(trial, settle, quick, deep): the trial loop every rate
-    scenario shares: ``trial(seed, index) -> Outcome`` for each planned
+    """run_trials(trial, settle, quick, deep, rig=None): the trial loop every
+    rate scenario shares: ``trial(seed, index) -> Outcome`` for each planned
     trial, recorded, then ``settle(outcome)`` (which replaces a broken
-    container)."""
-    def run(trial, settle, quick: int, deep: int) -> None:
+    container). With the trials' ``rig``, a trial whose own request goes
+    unanswered is a hang of that rig (diagnosed), not an error of the
+    scenario."""
+
+    def run(trial, settle, quick: int, deep: int, *, rig=None) -> None:
         for i, seed in trial_plan(quick, deep):
-            out = trial(seed, i)
+            try:
+                out = trial(seed, i)
+            except HarnessTimeout as exc:
+                if rig is None:
+                    raise
+                # A request of the trial's own went unanswered (a load, say):
+                # the container is stuck, judged and diagnosed as any hang.
+                out = rig.not_survived(f"the trial's request went unanswered: {exc}")
             record_trial(i, seed, out)
             settle(out)
+
     return run

@@ -6,9 +6,11 @@ ROS_DOMAIN_ID, Fast DDS on UDP only by default, and its output in a log file.
 Stopping it is SIGTERM to its process group, 2 s of grace, then SIGKILL.
 Only process groups this module started are ever signalled.
 """
+
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import procfs, shm
+from .errors import HarnessTimeout
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NO_SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_no_shm.xml"
@@ -48,31 +51,43 @@ def ros_environment(domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE) -
     }
 
 
-def process_environment(domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE,
-                        base: dict[str, str] | None = None) -> dict[str, str]:
+def process_environment(
+    domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE, base: dict[str, str] | None = None
+) -> dict[str, str]:
     """``base`` (default: this process's environment) with the ROS variables
     of ros_environment(); a discovery-range setting would replace the
     profile's transports, so it goes."""
     env = dict(os.environ if base is None else base)
-    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    for key in DISCOVERY_RANGE_VARIABLES:
+        env.pop(key, None)
     env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
     return env
 
 
+#: variables a discovery range setting would use to replace the profile's transports
+DISCOVERY_RANGE_VARIABLES = ("ROS_AUTOMATIC_DISCOVERY_RANGE",)
+
+
+def loopback_variables() -> dict[str, str]:
+    """What this process's own participants (the harness's clients) run
+    with to follow the rules the containers get, UDP on loopback only (the
+    domain is chosen per context). rmw_implementation and Fast DDS read them
+    at the process's first rclpy import and first participant."""
+    return {k: v for k, v in ros_environment(0).items() if k != "ROS_DOMAIN_ID"}
+
+
 def use_loopback_ros() -> None:
-    """This process's own participants (the harness's clients) run under
-    the rules the containers get, UDP on loopback only: call before any
-    rclpy.init. The domain is chosen per context."""
-    os.environ.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-    for key, value in ros_environment(0).items():
-        if key != "ROS_DOMAIN_ID":
-            os.environ[key] = value
+    """Set loopback_variables() in this process, for good: call before any
+    rclpy import (the command-line tools and benchmarks do)."""
+    for key in DISCOVERY_RANGE_VARIABLES:
+        os.environ.pop(key, None)
+    os.environ.update(loopback_variables())
 
 
 @dataclass(frozen=True)
 class ExitStatus:
-    returncode: int          # as subprocess reports it: -N for signal N
-    forced: bool             # True when SIGKILL was needed
+    returncode: int  # as subprocess reports it: -N for signal N
+    forced: bool  # True when SIGKILL was needed
     stop_seconds: float
 
 
@@ -115,9 +130,9 @@ class ContainerProcess:
             start_new_session=True,
         )
         self.pid = self._popen.pid
-        self.pgid = self.pid   # start_new_session: the leader of its own group
+        self.pgid = self.pid  # start_new_session: the leader of its own group
         self.exit_status: ExitStatus | None = None
-        self.shm_seen: set[str] = set()   # Fast DDS segments it was seen to map
+        self.shm_seen: set[str] = set()  # Fast DDS segments it was seen to map
 
     @property
     def fqn(self) -> str:
@@ -131,6 +146,20 @@ class ContainerProcess:
             return self.log_path.read_text(errors="replace")
         except FileNotFoundError:
             return ""
+
+    def wait_for_log(self, pattern: str, timeout: float) -> re.Match:
+        """The first match of the regular expression ``pattern`` in the
+        container's log, waited for up to ``timeout`` s; HarnessTimeout, with
+        the log's tail, if it does not come."""
+        deadline = time.monotonic() + timeout
+        while True:
+            log = self.log_text()
+            found = re.search(pattern, log)
+            if found:
+                return found
+            if time.monotonic() > deadline:
+                raise HarnessTimeout(f"the log did not say /{pattern}/ within {timeout:g} s; its end:\n{log[-2000:]}")
+            time.sleep(0.05)
 
     def group_members(self) -> list[int]:
         """Live or zombie processes still in the container's process group."""

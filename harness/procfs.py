@@ -1,4 +1,5 @@
 """What /proc says about processes: groups, states, parents, threads."""
+
 from __future__ import annotations
 
 import os
@@ -28,14 +29,19 @@ def stat(pid: int) -> ProcStat | None:
     comm = head.partition("(")[2]
     fields = rest.split()
     return ProcStat(
-        pid=pid, comm=comm, state=fields[0], ppid=int(fields[1]),
-        pgrp=int(fields[2]), session=int(fields[3]), num_threads=int(fields[17]),
+        pid=pid,
+        comm=comm,
+        state=fields[0],
+        ppid=int(fields[1]),
+        pgrp=int(fields[2]),
+        session=int(fields[3]),
+        num_threads=int(fields[17]),
     )
 
 
 def thread_cpu_ticks(pid: int) -> dict[int, int]:
     """CPU time (user + system, in clock ticks) of every thread of ``pid``."""
-    out = {}
+    out: dict[int, int] = {}
     try:
         tids = os.listdir(f"/proc/{pid}/task")
     except (FileNotFoundError, ProcessLookupError):
@@ -46,7 +52,7 @@ def thread_cpu_ticks(pid: int) -> dict[int, int]:
                 rest = f.read().decode(errors="replace").rpartition(")")[2].split()
         except (FileNotFoundError, ProcessLookupError):
             continue
-        out[int(tid)] = int(rest[11]) + int(rest[12])      # utime, stime (fields 14, 15)
+        out[int(tid)] = int(rest[11]) + int(rest[12])  # utime, stime (fields 14, 15)
     return out
 
 
@@ -101,7 +107,7 @@ def status_field(pid: int, key: str) -> str | None:
     return None
 
 
-_SYS_KCMP = 312          # x86_64
+_SYS_KCMP = 312  # x86_64
 _KCMP_VM = 1
 
 

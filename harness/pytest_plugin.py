@@ -1,4 +1,9 @@
-"""pytest plugin: real containers as fixtures, and a leftovers check after each test.
+"""pytest plugin: real containers as fixtures, and a leftovers check after each test that starts one.
+
+It changes nothing for a test that uses none of its fixtures: no ROS import
+at start-up (rclpy's rcl exits the process with 102 at import when
+RMW_IMPLEMENTATION names an rmw that is not installed), no environment
+variable set, no check after the test.
 
 Fixtures
     container_args     arguments for the container (override by parametrizing)
@@ -6,7 +11,12 @@ Fixtures
     container_factory  start(args, ...) -> ContainerProcess; stops them after the test
     container          one started container (``container_args``), services up
     client             a ContainerClient connected to ``container``
+    system_factory     system_factory(nodes, container_args=("--isolated",)) -> System:
+                       your own composition loaded into a container (harness/system.py)
     domain_id          this test's own ROS_DOMAIN_ID
+    ros_environment    for the test's duration, this process's participants (the
+                       harness's clients) follow the containers' rules: Fast DDS,
+                       UDP on loopback only (container_factory uses it)
 
 Options
     --container-exe PATH   the container executable under test (default: ours)
@@ -18,6 +28,7 @@ After every test that started a container: its process group is empty, the
 harness has no zombie child, and no orphaned /dev/shm/fastrtps_* segment
 appeared.
 """
+
 from __future__ import annotations
 
 import os
@@ -25,15 +36,15 @@ import os
 import pytest
 
 from . import domains, plan, procfs, shm
-from .factory import ContainerFactory, log_tail
 from .plan import pytest_collection_modifyitems, record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
-from .process import use_loopback_ros
+from .process import DISCOVERY_RANGE_VARIABLES, loopback_variables
 
 
 def pytest_addoption(parser):
     group = parser.getgroup("cloneguard")
     group.addoption(
-        "--container-exe", default=None,
+        "--container-exe",
+        default=None,
         help="component container executable to test (default: this project's component_container)",
     )
     plan.add_options(parser)
@@ -41,7 +52,14 @@ def pytest_addoption(parser):
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
-    use_loopback_ros()
+
+
+@pytest.fixture
+def ros_environment(monkeypatch):
+    for key in DISCOVERY_RANGE_VARIABLES:
+        monkeypatch.delenv(key, raising=False)
+    for key, value in loopback_variables().items():
+        monkeypatch.setenv(key, value)
 
 
 @pytest.fixture
@@ -61,7 +79,9 @@ def container_env() -> dict[str, str]:
 
 
 @pytest.fixture
-def container_factory(request, domain_id, tmp_path, _leftovers):
+def container_factory(request, ros_environment, domain_id, tmp_path, _leftovers):
+    from .factory import ContainerFactory, log_tail  # imports rclpy: only now, with ros_environment set
+
     factory = ContainerFactory(domain_id, tmp_path, exe=request.config.getoption("--container-exe"))
     _leftovers.factories.append(factory)
     yield factory
@@ -80,12 +100,22 @@ def client(container_factory, container):
     return container_factory.connect(container)
 
 
+@pytest.fixture
+def system_factory(container_factory):
+    from .system import System
+
+    def make(nodes, container_args=("--isolated",)):
+        return System(container_factory, nodes, container_args)
+
+    return make
+
+
 JANITOR_GRACE_S = 10.0
 
 
 class _Leftovers:
     def __init__(self):
-        self.factories: list[ContainerFactory] = []
+        self.factories: list = []  # the ContainerFactory of each test
         self.shm_before = shm.segments()
 
     def problems(self) -> list[str]:
@@ -99,8 +129,11 @@ class _Leftovers:
                 # that had the same pid may have left one of that name. A
                 # container that ended without its shutdown leaves them to
                 # its cgroup janitor, which removes them just after.
-                cgroups = [d for d in procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
-                           if d.stat().st_ctime >= proc.started_at]
+                cgroups = [
+                    d
+                    for d in procfs.cgroup_dirs_named(f"cloneguard-{proc.pid}")
+                    if d.stat().st_ctime >= proc.started_at
+                ]
                 cgroups = procfs.wait_gone(cgroups, JANITOR_GRACE_S)
                 if cgroups:
                     found.append(f"cgroups left behind: {[str(d) for d in cgroups]}")
@@ -126,7 +159,7 @@ class _Leftovers:
         return found
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture
 def _leftovers():
     tracker = _Leftovers()
     yield tracker

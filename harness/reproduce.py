@@ -9,9 +9,11 @@ Every fault the scenarios inject can be replayed: the faults come from the
 registry the test rig's faults package declares (entry point group
 ``cloneguard.trials``), the one the scenarios take their trials from.
 """
+
 from __future__ import annotations
 
 import random
+import shutil
 import signal
 import tempfile
 from importlib.metadata import entry_points
@@ -19,8 +21,11 @@ from pathlib import Path
 
 from cloneguard.harness import domains
 from cloneguard.harness.factory import ContainerFactory
+from cloneguard.harness.plan import trial_count_arg
 from cloneguard.harness.process import use_loopback_ros
 from cloneguard.harness.rig import PROFILES, Rig
+
+from .report.model import TrialOutcome
 
 REGISTRY_GROUP = "cloneguard.trials"
 
@@ -30,26 +35,40 @@ def registry() -> tuple[dict, dict]:
     found = {ep.name: ep for ep in entry_points(group=REGISTRY_GROUP)}
     missing = {"faults", "allocators"} - set(found)
     if missing:
-        raise SystemExit(f"no fault registry installed (entry points {sorted(missing)} of "
-                         f"{REGISTRY_GROUP}: the test rig's faults package)")
+        raise SystemExit(
+            f"no fault registry installed (entry points {sorted(missing)} of "
+            f"{REGISTRY_GROUP}: the test rig's faults package)"
+        )
     return found["faults"].load(), found["allocators"].load()
 
 
 def add_parser(subparsers) -> None:
     faults, allocators = registry()
     p = subparsers.add_parser(
-        "reproduce", help="replay a fault until it does not survive, then stop there",
+        "reproduce",
+        help="replay a fault until it does not survive, then stop there",
         description=__doc__.split("\n\n")[0],
     )
     p.add_argument("fault", choices=sorted(faults))
     p.add_argument("--profile", choices=sorted(PROFILES), default="per-node")
-    p.add_argument("--allocator", choices=sorted(allocators), default="glibc",
-                   help="the container's allocator set-up (default: glibc, guarded)")
+    p.add_argument(
+        "--allocator",
+        choices=sorted(allocators),
+        default="glibc",
+        help="the container's allocator set-up (default: glibc, guarded)",
+    )
     p.add_argument("--seed", type=int, default=1, help="base seed; each trial's seed is drawn from it")
     p.add_argument("--trial-seed", type=int, default=None, help="run every trial with this one seed")
-    p.add_argument("--trials", type=int, default=100)
-    p.add_argument("--no-wait", action="store_true",
-                   help="do not wait for Ctrl-C before stopping the stuck container")
+    p.add_argument(
+        "--trials", type=trial_count_arg, default=100, metavar="N", help="at most N (>= 1) trials (default 100)"
+    )
+    p.add_argument(
+        "--container-exe",
+        default=None,
+        metavar="PATH",
+        help="the component container executable to test (default: this project's component_container)",
+    )
+    p.add_argument("--no-wait", action="store_true", help="do not wait for Ctrl-C before stopping the stuck container")
     p.set_defaults(func=run)
 
 
@@ -57,9 +76,11 @@ def run(args) -> int:
     use_loopback_ros()
     faults, allocators = registry()
     log_dir = Path(tempfile.mkdtemp(prefix="cloneguard-reproduce-"))
+    print(f"logs: {log_dir} (kept if a trial does not survive)", flush=True)
     rng = random.Random(args.seed)
+    survived = False
     with domains.lease() as lease:
-        factory = ContainerFactory(lease.domain_id, log_dir)
+        factory = ContainerFactory(lease.domain_id, log_dir, exe=args.container_exe)
         try:
             rig = Rig(factory, args.profile, extra_args=allocators[args.allocator])
             fault = faults[args.fault](rig)
@@ -68,14 +89,17 @@ def run(args) -> int:
                 out = fault.trial(seed, i)
                 lat = ", ".join(f"{k} {v:.2f} ms" for k, v in out.latency_ms.items())
                 print(f"trial {i} seed {seed}: {out.outcome}" + (f" ({lat})" if lat else ""), flush=True)
-                if out.outcome != "survived":
+                if not out.survived:
                     _report_stuck(rig, out, log_dir, wait=not args.no_wait)
                     return 1
                 fault.settle(out)
             print(f"{args.trials} trials survived")
+            survived = True
             return 0
         finally:
             factory.stop_all()
+            if survived:  # nothing to look at: the logs go (a stuck run's are printed and kept)
+                shutil.rmtree(log_dir, ignore_errors=True)
 
 
 def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:
@@ -86,14 +110,16 @@ def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:
         print(f"diagnosis: {out.diagnosis.summary()}")
         print(f"all stacks: {stacks}")
     print(f"container log: {rig.proc.log_path}")
-    if out.outcome == "hung" and rig.proc.alive():
+    if out.outcome == TrialOutcome.HUNG and rig.proc.alive():
+        if not wait:
+            print(f"\nThe container (pid {rig.proc.pid}) is still stuck; stopping it now (--no-wait).")
+            return
         kids = sorted(rig.nodes_by_pid())
         print(f"\nThe container is still stuck: pid {rig.proc.pid} (node processes {kids}).")
         print(f"Attach a debugger:  gdb -p {rig.proc.pid}    then: thread apply all bt")
         print("Python stacks:      gdb -p PID -batch -ex 'py-bt'   (with CPython's gdb extension)")
-        if wait:
-            print("Press Ctrl-C to stop it and clean up.", flush=True)
-            try:
-                signal.pause()
-            except KeyboardInterrupt:
-                pass
+        print("Press Ctrl-C to stop it and clean up.", flush=True)
+        try:
+            signal.pause()
+        except KeyboardInterrupt:
+            pass

@@ -7,6 +7,7 @@ takes it, and makes the next one after each load, off the request path. Its
 children share the container's fd table, so counting the container's fds or
 children right after a request can catch that spare half made. Wait for it.
 """
+
 from __future__ import annotations
 
 import time

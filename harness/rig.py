@@ -12,8 +12,10 @@ injects a fault into a *victim* node, then judges the outcome:
 ``crashed``   the container process itself died;
 ``failed``    something else went wrong (e.g. no CRASHED for a death).
 
-The rig restarts the container after a trial that did not survive.
+The rig restarts the container after a trial that did not survive, and
+after every ``DEATHS_PER_CONTAINER`` node deaths.
 """
+
 from __future__ import annotations
 
 import signal
@@ -23,16 +25,32 @@ from dataclasses import dataclass, field
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
-from . import diagnose, firing, procfs
+from . import diagnose, firing, procfs, symbols
 from .client import ContainerClient, HarnessTimeout
 from .factory import log_tail
 from .process import ContainerProcess
+from .report.model import TrialOutcome
 
 SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
-CRASH_LOG_LINES = 40       # of a container that died in a trial, kept in the report
-FATAL_MARK = "Fatal Python error: "   # faulthandler's first line (container/cli.py enables it)
+CRASH_LOG_LINES = 40  # of a container that died in a trial, kept in the report
+FATAL_MARK = "Fatal Python error: "  # faulthandler's first line (container/cli.py enables it)
+# The first line of the container's own report of a fatal signal, before
+# faulthandler's (isolated mode: container/isolated/crash.c): its native
+# stack and its faulting thread's Python stack.
+CONTAINER_CRASH_MARK = "cloneguard: container pid "
+NATIVE_STACK_CHARS = 12000
+DEATHS_BEFORE = 5  # node deaths kept with a container death, the latest
 FATAL_DUMP_CHARS = 16000
-CURRENT_THREAD = "Current thread "      # faulthandler's header of the faulting thread
+# A rig's container is replaced after this many node deaths. Each dead
+# per-node node leaves its DDS participant, sockets and all (by design: a
+# dead node's objects are never destroyed); Fast DDS gives participant id p
+# of domain D the ports 7400 + 250 D + 10 + 2 p (and +11), so past ~120 of
+# them a container binds ports of domain D + 1's range, where another test
+# may be running (measured: 2,232 UDP ports in one rig container after ~1,000
+# outside kills). Deaths in one container are measured on their own
+# (bench.leaks' crash cycles, --restart-limit).
+DEATHS_PER_CONTAINER = 100
+CURRENT_THREAD = "Current thread "  # faulthandler's header of the faulting thread
 
 
 def fatal_excerpt(dump: str, limit: int) -> str:
@@ -47,12 +65,14 @@ def fatal_excerpt(dump: str, limit: int) -> str:
     current = ""
     if at >= 0:
         end = rest.find("\n\n", at)
-        current = rest[at:] if end < 0 else rest[at:end + 1]
-        rest = rest[:at] + rest[at + len(current):]
+        current = rest[at:] if end < 0 else rest[at : end + 1]
+        rest = rest[:at] + rest[at + len(current) :]
     head = f"{first}\n{current}\n" if current else f"{first}\n"
     room = max(0, limit - len(head) - 80)
     left_out = len(rest) - room
-    return head + rest[:room] + (f"\n[... {left_out} more characters of the dump left out ...]\n" if left_out > 0 else "")
+    cut = f"\n[... {left_out} more characters of the dump left out ...]\n" if left_out > 0 else ""
+    return head + rest[:room] + cut
+
 
 # Container arguments per profile; scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
@@ -67,10 +87,16 @@ PROFILES = {
 
 @dataclass
 class Outcome:
+    """One trial's outcome (a TrialOutcome), and what the trial measured."""
+
     outcome: str
     latency_ms: dict[str, float] = field(default_factory=dict)
     details: dict = field(default_factory=dict)
     diagnosis: diagnose.Diagnosis | None = None
+
+    @property
+    def survived(self) -> bool:
+        return self.outcome == TrialOutcome.SURVIVED
 
 
 class Rig:
@@ -105,8 +131,11 @@ class Rig:
     # -- what the harness knows about pids ---------------------------------------------
 
     def nodes_by_pid(self) -> dict[int, str]:
-        return {e.pid: e.full_node_name for e in self.client.events.messages()
-                if e.event_type in (ComponentEvent.LOADED, ComponentEvent.CRASHED) and e.pid}
+        return {
+            e.pid: e.full_node_name
+            for e in self.client.events.messages()
+            if e.event_type in (ComponentEvent.LOADED, ComponentEvent.CRASHED) and e.pid
+        }
 
     def dead_pids(self) -> set[int]:
         return {e.pid for e in self.client.events.messages() if e.event_type == ComponentEvent.CRASHED}
@@ -148,25 +177,32 @@ class Rig:
             return f"container stopped answering: {exc}"
         return None
 
-    def judge_death(self, unique_id: int, pid: int, *, signal_expected: int | None,
-                    fault_ns: int | None, timeout: float = 5.0) -> Outcome:
+    def judge_death(
+        self, unique_id: int, pid: int, *, signal_expected: int | None, fault_ns: int | None, timeout: float = 5.0
+    ) -> Outcome:
         """After a fault in node ``unique_id`` (process ``pid``): what happened."""
         try:
             ev = self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=unique_id, timeout=timeout)
         except HarnessTimeout:
             if procfs.alive(pid) and self.goes_on() is None:
-                return Outcome("failed", details={"pid": pid, "why": f"the fault did not kill pid {pid}"})
+                return Outcome(TrialOutcome.FAILED, details={"pid": pid, "why": f"the fault did not kill pid {pid}"})
             return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
-        out = Outcome("survived", details={"pid": pid, "exit_signal": ev.exit_signal, "exit_code": ev.exit_code,
-                                           "allocator_quarantined": ev.allocator_quarantined})
+        out = Outcome(
+            TrialOutcome.SURVIVED,
+            details={
+                "pid": pid,
+                "exit_signal": ev.exit_signal,
+                "exit_code": ev.exit_code,
+                "allocator_quarantined": ev.allocator_quarantined,
+            },
+        )
         event_ns = ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec
         fault_ns = fault_ns if fault_ns is not None else self.firing_ns(pid)
         if fault_ns is not None:
             out.latency_ms["death_to_event"] = (event_ns - fault_ns) / 1e6
         if signal_expected is not None and ev.exit_signal != signal_expected:
-            out.outcome = "failed"
-            out.details["why"] = (f"reported signal {ev.exit_signal}, expected "
-                                  f"{signal.Signals(signal_expected).name}")
+            out.outcome = TrialOutcome.FAILED
+            out.details["why"] = f"reported signal {ev.exit_signal}, expected {signal.Signals(signal_expected).name}"
             return out
         stopped = self.goes_on()
         if stopped:
@@ -185,10 +221,10 @@ class Rig:
         return out
 
     def not_survived(self, why: str, out: Outcome | None = None) -> Outcome:
-        out = out or Outcome("hung")
+        out = out or Outcome(TrialOutcome.HUNG)
         out.details["why"] = why
         if not self.proc.alive():
-            out.outcome = "crashed"
+            out.outcome = TrialOutcome.CRASHED
             out.details["exit_code"] = self.proc.wait(0)
             # The container's last words: the log itself goes when the
             # test's temporary directory does. A container that died of a
@@ -197,18 +233,39 @@ class Rig:
             # beside the last lines before it.
             text = self.proc.log_text()
             before, mark, dump = text.partition(FATAL_MARK)
+            before, native_mark, native = before.partition(CONTAINER_CRASH_MARK)
             out.details["log_tail"] = log_tail(before, CRASH_LOG_LINES)
+            if native_mark:
+                out.details["native_stack"] = symbols.symbolize(native_mark + native)[:NATIVE_STACK_CHARS]
             if mark:
                 out.details["fatal_error"] = fatal_excerpt(mark + dump, FATAL_DUMP_CHARS)
+            # What died before it, as its CRASHED events said (held the
+            # GIL, in which function; what was repaired after each).
+            out.details["deaths_before"] = [
+                {"node": e.full_node_name, "pid": e.pid, "reason": e.error_message}
+                for e in self.client.events.messages()
+                if e.event_type == ComponentEvent.CRASHED
+            ][-DEATHS_BEFORE:]
         else:
-            out.outcome = "hung"
+            out.outcome = TrialOutcome.HUNG
             if diagnose.gdb_available():
                 out.diagnosis = diagnose.diagnose(
-                    self.proc.pid, nodes_by_pid=self.nodes_by_pid(), dead_pids=self.dead_pids())
+                    self.proc.pid,
+                    nodes_by_pid=self.nodes_by_pid(),
+                    dead_pids=self.dead_pids(),
+                    log=self.proc.log_text(),
+                )
         return out
 
-    def settle(self, outcome: Outcome) -> None:
-        """After a trial: a container that did not survive is replaced."""
-        if outcome.outcome != "survived":
-            self.restart()
+    def settle(self, outcome: Outcome) -> bool:
+        """After a trial: a container that did not survive is replaced, and
+        one that has seen DEATHS_PER_CONTAINER node deaths. True when it was
+        (what a trial had started in the old one is gone)."""
+        if outcome.survived and self.node_deaths() < DEATHS_PER_CONTAINER:
+            return False
+        self.restart()
+        return True
 
+    def node_deaths(self) -> int:
+        """CRASHED events this rig's container has published."""
+        return sum(1 for e in self.client.events.messages() if e.event_type == ComponentEvent.CRASHED)

@@ -30,6 +30,7 @@ it ran something of its own: never anyone else's segment, live or dead.
 Every function takes the directory to look in (``shm_dir``, default
 :data:`SHM_DIR`), so the rules can be exercised on files made elsewhere.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -52,7 +53,7 @@ _SEM = re.compile(r"^sem\.(fastrtps_port\d{1,5})_mutex$")
 # glibc keeps named semaphores here, whatever directory is being examined.
 _GLIBC_SEM_DIR = Path("/dev/shm")
 
-FileId = tuple[int, int]   # (st_dev, st_ino)
+FileId = tuple[int, int]  # (st_dev, st_ino)
 
 
 def _dir(shm_dir: Path | str | None) -> Path:
@@ -62,15 +63,16 @@ def _dir(shm_dir: Path | str | None) -> Path:
 def segments(shm_dir: Path | str | None = None) -> set[str]:
     """Names of the Fast DDS files (segments, lock files, port semaphores) present now."""
     try:
-        return {p.name for p in _dir(shm_dir).iterdir()
-                if p.name.startswith(PREFIX) or p.name.startswith("sem." + PREFIX)}
+        return {
+            p.name for p in _dir(shm_dir).iterdir() if p.name.startswith(PREFIX) or p.name.startswith("sem." + PREFIX)
+        }
     except FileNotFoundError:
         return set()
 
 
 @dataclass(frozen=True)
 class Segment:
-    name: str             # fastrtps_<hash> or fastrtps_port<N>
+    name: str  # fastrtps_<hash> or fastrtps_port<N>
     files: tuple[str, ...]  # every file that belongs to it and exists
     orphan: bool
     lockless: bool = False  # a port with no lock file (see the module docstring)
@@ -157,8 +159,7 @@ def _files_of(base: str) -> list[str]:
 
 def _lockless_in_use(d: Path, base: str, mapped: set[FileId]) -> bool:
     """Is a lock-less port mapped (the port or its semaphore) by a live process?"""
-    return any((fid := _file_id(d / f)) is not None and fid in mapped
-               for f in (base, f"sem.{base}_mutex"))
+    return any((fid := _file_id(d / f)) is not None and fid in mapped for f in (base, f"sem.{base}_mutex"))
 
 
 def classify(names: set[str], shm_dir: Path | str | None = None) -> list[Segment]:
@@ -189,7 +190,7 @@ def classify(names: set[str], shm_dir: Path | str | None = None) -> list[Segment
 
 # -- Fast DDS's mutex of a port: a POSIX named semaphore -----------------------------------
 
-_SEM_FAILED = None   # ctypes returns a NULL sem_t* as None
+_SEM_FAILED = None  # ctypes returns a NULL sem_t* as None
 _libc = None
 
 
@@ -230,7 +231,7 @@ def _port_mutex(d: Path, base: str) -> Iterator[FileId | None]:
             yield None
             return
         sem = libc.sem_open(name, 0, 0, 0)
-        if sem is _SEM_FAILED:   # removed between the two calls
+        if sem is _SEM_FAILED:  # removed between the two calls
             yield None
             return
         taken = libc.sem_trywait(sem) == 0
@@ -246,7 +247,7 @@ def _remove_lockless(d: Path, base: str) -> bool:
     """Remove a lock-less port if, under its mutex, it still is an orphan."""
     with _port_mutex(d, base) as own:
         if any((d / f"{base}_{k}").exists() for k in _LOCK_KINDS):
-            return False   # a listener has just opened it
+            return False  # a listener has just opened it
         if _lockless_in_use(d, base, mapped_files(discount=own)):
             return False
         removed = False
@@ -311,7 +312,7 @@ def locked_by(pids: set[int], shm_dir: Path | str | None = None) -> set[str]:
         m = _LOCK.match(name)
         if m and (fid := _file_id(d / name)) is not None:
             bases[fid] = m.group(1)
-    found = set()
+    found: set = set()
     try:
         with open("/proc/locks") as f:
             lines = f.readlines()
@@ -335,8 +336,7 @@ def belonging_to(names: set[str], owners: set[str]) -> set[str]:
     return {n for n in names if _base(n) in owners}
 
 
-def remove_orphans_of(names: set[str], owners: set[str],
-                      shm_dir: Path | str | None = None) -> list[Segment]:
+def remove_orphans_of(names: set[str], owners: set[str], shm_dir: Path | str | None = None) -> list[Segment]:
     """Like :func:`remove_orphans`, limited to segments in ``owners``:
     never anyone else's orphans."""
     return remove_orphans(belonging_to(names, owners), shm_dir)

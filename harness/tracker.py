@@ -9,6 +9,7 @@ not listed (it was killed after the answer and its events were lost) is
 marked Failed, never Loaded. A LOADED event that arrives after the promotion
 changes nothing.
 """
+
 from __future__ import annotations
 
 import enum
@@ -43,7 +44,7 @@ class TrackedNode:
     unique_id: int = 0
     full_node_name: str = ""
     pid: int = 0
-    answered_at: float | None = None          # monotonic time of the LoadNode answer
+    answered_at: float | None = None  # monotonic time of the LoadNode answer
     error: str = ""
     warnings: list[str] = field(default_factory=list)
     history: list[tuple[float, State, str]] = field(default_factory=list)
@@ -57,7 +58,7 @@ class NodeTracker:
         self._cond = threading.Condition()
         self._nodes: list[TrackedNode] = []
         self._by_id: dict[int, TrackedNode] = {}
-        self._early: dict[int, list[ComponentEvent]] = {}   # events before the answer
+        self._early: dict[int, list[ComponentEvent]] = {}  # events before the answer
         self._stopped = False
         client.events.add_listener(self._on_event)
         self._fallback = threading.Thread(target=self._fallback_loop, name="tracker-fallback", daemon=True)
@@ -121,7 +122,7 @@ class NodeTracker:
 
     def _on_event(self, ev: ComponentEvent) -> None:
         if ev.event_type == ComponentEvent.LOAD_FAILED or ev.unique_id == 0:
-            return   # the LoadNode answer already said so
+            return  # the LoadNode answer already said so
         with self._cond:
             node = self._by_id.get(ev.unique_id)
             if node is None:
@@ -152,13 +153,20 @@ class NodeTracker:
 
     def _overdue(self, now: float) -> list[TrackedNode]:
         return [
-            n for n in self._nodes
-            if n.state == State.LOADING and n.unique_id and now - n.answered_at >= self.fallback_s
+            n
+            for n in self._nodes
+            if n.state == State.LOADING
+            and n.unique_id
+            and n.answered_at is not None
+            and now - n.answered_at >= self.fallback_s
         ]
 
     def _next_deadline(self) -> float | None:
-        waiting = [n.answered_at + self.fallback_s for n in self._nodes
-                   if n.state == State.LOADING and n.unique_id]
+        waiting = [
+            n.answered_at + self.fallback_s
+            for n in self._nodes
+            if n.state == State.LOADING and n.unique_id and n.answered_at is not None
+        ]
         return min(waiting) if waiting else None
 
     def _fallback_loop(self) -> None:
@@ -182,10 +190,12 @@ class NodeTracker:
             with self._cond:
                 for node in overdue:
                     if node.state != State.LOADING:
-                        continue   # an event got there while we asked
+                        continue  # an event got there while we asked
                     if node.unique_id in listed:
-                        msg = (f"no LOADED event {self.fallback_s:.0f} s after LoadNode succeeded; "
-                               "promoted to Loaded (ListNodes confirms it)")
+                        msg = (
+                            f"no LOADED event {self.fallback_s:.0f} s after LoadNode succeeded; "
+                            "promoted to Loaded (ListNodes confirms it)"
+                        )
                         node.warnings.append(msg)
                         self._set(node, State.LOADED, msg)
                     else:

@@ -7,12 +7,17 @@
     stats     Wilson intervals, the z-test, latency summaries
     render    report.html (self-contained: inline CSS and SVG)
     charts    the SVG charts
+    record    what one test records: the ``resilience`` fixture
     compare   comparison of two runs (``python -m cloneguard.harness compare``)
+    merge     one report from the shards of a run (``python -m cloneguard.harness merge``)
+    junit     junit.xml where pytest's own writer did not write one (a merge)
+    summary   a report as Markdown (``python -m cloneguard.harness summary``)
     env       host and git facts for the run metadata
 
 Only ``collect``, ``session`` and ``record`` import pytest; the rest is the
 standard library.
 """
+
 from .model import Report, Scenario, load_report
 
 __all__ = ["Report", "Scenario", "load_report"]

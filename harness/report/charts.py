@@ -2,19 +2,22 @@
 
 Every text that goes into the SVG is escaped here; callers pass plain text.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from html import escape
-from typing import Sequence
 
 from . import stats
+from .model import TrialOutcome
 
-OUTCOME_COLORS = {
-    "survived": "#2e9d4f",
-    "hung": "#e0a100",
-    "crashed": "#d13b3b",
-    "failed": "#7a6fb0",
+OUTCOME_COLORS: dict[str, str] = {
+    TrialOutcome.SURVIVED: "#2e9d4f",
+    TrialOutcome.HUNG: "#e0a100",
+    TrialOutcome.CRASHED: "#d13b3b",
+    TrialOutcome.FAILED: "#7a6fb0",
+    TrialOutcome.CORRUPTED: "#8c2d7a",
 }
 
 #: Dots drawn at most; the box, whiskers and median always use every value.
@@ -50,7 +53,7 @@ def _tick_label(value: float) -> str:
 
 def _nice_step(rough: float) -> float:
     exponent = math.floor(math.log10(rough))
-    base = 10.0 ** exponent
+    base = 10.0**exponent
     for mult in (1.0, 2.0, 2.5, 5.0, 10.0):
         if rough <= mult * base * (1 + 1e-9):
             return mult * base
@@ -82,9 +85,9 @@ def log_ticks(lo: float, hi: float) -> list[float]:
         last += 1
     ticks = []
     for e in range(first, last + 1):
-        ticks.append(10.0 ** e)
+        ticks.append(10.0**e)
         if last - first <= 2 and e < last:
-            ticks.extend([2 * 10.0 ** e, 5 * 10.0 ** e])
+            ticks.extend([2 * 10.0**e, 5 * 10.0**e])
     return sorted(ticks)
 
 
@@ -101,6 +104,7 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
     if not data:
         return ""
     summary = stats.summarize(data)
+    assert summary is not None  # data is not empty
     log = _use_log(data)
     if log:
         ticks = log_ticks(data[0], data[-1])
@@ -123,8 +127,10 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
     mid = (band_top + band_bottom) / 2
     q1, q3 = stats.quantile(data, 0.25), stats.quantile(data, 0.75)
     median = summary.median
-    title = (f"{name}: n={summary.n}, min {fmt_ms(summary.min)}, median {fmt_ms(median)}, "
-             f"p90 {fmt_ms(summary.p90)}, p99 {fmt_ms(summary.p99)}, max {fmt_ms(summary.max)} ms")
+    title = (
+        f"{name}: n={summary.n}, min {fmt_ms(summary.min)}, median {fmt_ms(median)}, "
+        f"p90 {fmt_ms(summary.p90)}, p99 {fmt_ms(summary.p99)}, max {fmt_ms(summary.max)} ms"
+    )
     out = [
         f'<svg class="chart" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
         f'viewBox="0 0 {width} {height}" role="img" aria-label="{escape(title)}">',
@@ -137,19 +143,24 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
         out.append(f'<line x1="{tx:.1f}" y1="{band_top}" x2="{tx:.1f}" y2="{band_bottom}" class="grid"/>')
         out.append(f'<line x1="{tx:.1f}" y1="{axis_y}" x2="{tx:.1f}" y2="{axis_y + 4}" class="axis"/>')
         anchor = "start" if tx <= left + 1 else "end" if tx >= left + plot_w - 1 else "middle"
-        out.append(f'<text x="{tx:.1f}" y="{axis_y + 15}" text-anchor="{anchor}" class="tick">'
-                   f"{escape(_tick_label(t))}</text>")
+        out.append(
+            f'<text x="{tx:.1f}" y="{axis_y + 15}" text-anchor="{anchor}" class="tick">{escape(_tick_label(t))}</text>'
+        )
     out.append(f'<line x1="{left}" y1="{axis_y}" x2="{left + plot_w:.1f}" y2="{axis_y}" class="axis"/>')
     axis_title = f"{name} latency, ms" + (" (log scale)" if log else "")
-    out.append(f'<text x="{left + plot_w / 2:.1f}" y="{height - 4}" text-anchor="middle" class="axis-title">'
-               f"{escape(axis_title)}</text>")
+    out.append(
+        f'<text x="{left + plot_w / 2:.1f}" y="{height - 4}" text-anchor="middle" class="axis-title">'
+        f"{escape(axis_title)}</text>"
+    )
     # whiskers and box
     out.append(f'<line x1="{x(data[0]):.1f}" y1="{mid}" x2="{x(q1):.1f}" y2="{mid}" class="whisker"/>')
     out.append(f'<line x1="{x(q3):.1f}" y1="{mid}" x2="{x(data[-1]):.1f}" y2="{mid}" class="whisker"/>')
     for v in (data[0], data[-1]):
         out.append(f'<line x1="{x(v):.1f}" y1="{mid - 6}" x2="{x(v):.1f}" y2="{mid + 6}" class="whisker"/>')
-    out.append(f'<rect x="{x(q1):.1f}" y="{mid - 11}" width="{max(1.0, x(q3) - x(q1)):.1f}" height="22" '
-               f'class="box"><title>25th–75th percentile: {escape(fmt_ms(q1))}–{escape(fmt_ms(q3))} ms</title></rect>')
+    out.append(
+        f'<rect x="{x(q1):.1f}" y="{mid - 11}" width="{max(1.0, x(q3) - x(q1)):.1f}" height="22" '
+        f'class="box"><title>25th–75th percentile: {escape(fmt_ms(q1))}–{escape(fmt_ms(q3))} ms</title></rect>'
+    )
     # dots, in trial order with a golden-ratio jitter so the picture is reproducible
     step = max(1, math.ceil(len(values) / MAX_DOTS))
     dots = [float(v) for v in values][::step]
@@ -164,8 +175,7 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
     out.append(f'<line x1="{mx:.1f}" y1="{band_top - 2}" x2="{mx:.1f}" y2="{band_bottom + 2}" class="median"/>')
     label = f"median {fmt_ms(median)} ms"
     anchor = "start" if mx < left + 60 else "end" if mx > left + plot_w - 60 else "middle"
-    out.append(f'<text x="{mx:.1f}" y="{top_label}" text-anchor="{anchor}" class="median-label">'
-               f"{escape(label)}</text>")
+    out.append(f'<text x="{mx:.1f}" y="{top_label}" text-anchor="{anchor}" class="median-label">{escape(label)}</text>')
     out.append("</svg>")
     return "".join(out)
 
@@ -174,18 +184,22 @@ def outcome_bar(counts: dict[str, int], width: int = 320, height: int = 16) -> s
     """A stacked bar of trial outcomes, in the order survived, hung, crashed, failed."""
     total = sum(counts.values())
     title = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "no trials"
-    out = [f'<svg class="bar" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-           f'viewBox="0 0 {width} {height}" role="img" aria-label="{escape(title)}">',
-           f"<title>{escape(title)}</title>",
-           f'<rect x="0" y="0" width="{width}" height="{height}" fill="#eee"/>']
+    out = [
+        f'<svg class="bar" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+        f'viewBox="0 0 {width} {height}" role="img" aria-label="{escape(title)}">',
+        f"<title>{escape(title)}</title>",
+        f'<rect x="0" y="0" width="{width}" height="{height}" fill="#eee"/>',
+    ]
     xpos = 0.0
     for outcome, n in counts.items():
         if not n or not total:
             continue
         w = width * n / total
         color = OUTCOME_COLORS.get(outcome, "#999")
-        out.append(f'<rect x="{xpos:.2f}" y="0" width="{w:.2f}" height="{height}" fill="{color}">'
-                   f"<title>{escape(outcome)}: {n}/{total}</title></rect>")
+        out.append(
+            f'<rect x="{xpos:.2f}" y="0" width="{w:.2f}" height="{height}" fill="{color}">'
+            f"<title>{escape(outcome)}: {n}/{total}</title></rect>"
+        )
         xpos += w
     out.append("</svg>")
     return "".join(out)

@@ -16,6 +16,7 @@ Options
                         harness/plan.py); merge the shards' reports with
                         ``python -m cloneguard.harness merge``
 """
+
 from __future__ import annotations
 
 import pytest
@@ -34,15 +35,19 @@ _SESSION = pytest.StashKey[ReportSession]()
 def pytest_addoption(parser):
     group = parser.getgroup("cloneguard-report", "cloneguard crash-resilience reports")
     group.addoption(
-        "--report-dir", default=None, metavar="PATH",
+        "--report-dir",
+        default=None,
+        metavar="PATH",
         help=f"directory for this run's report.json, report.html and junit.xml "
-             f"(env {ENV_REPORT_DIR}; default: <repo>/reports/<UTC time>-<random>)",
+        f"(env {ENV_REPORT_DIR}; default: <repo>/reports/<UTC time>-<random>)",
     )
     group.addoption("--run-label", default=None, metavar="TEXT", help="a label for this run, shown in the report")
     group.addoption(
-        "--shard", default=None, metavar="K/N",
+        "--shard",
+        default=None,
+        metavar="K/N",
         help="run shard K of N of every scenario's trials (trial i where i %% N == K-1; seeds "
-             "are drawn as in the unsharded run); merge the shards with `python -m cloneguard.harness merge`",
+        "are drawn as in the unsharded run); merge the shards with `python -m cloneguard.harness merge`",
     )
 
 

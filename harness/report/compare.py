@@ -10,6 +10,7 @@ methods (the output says which):
 ``z``        two-proportion z-test, pooled, two-sided, at ``alpha`` (default)
 ``wilson``   the two 95% Wilson score intervals do not overlap (stricter)
 """
+
 from __future__ import annotations
 
 import json
@@ -99,7 +100,9 @@ def _key_short(s: Scenario):
     return (s.fault, s.profile)
 
 
-def match_scenarios(a: Report, b: Report) -> tuple[list[tuple[Scenario, Scenario, str]], list[Scenario], list[Scenario]]:
+def match_scenarios(
+    a: Report, b: Report
+) -> tuple[list[tuple[Scenario, Scenario, str]], list[Scenario], list[Scenario]]:
     """Pairs (scenario of A, scenario of B, how matched), then the unmatched of A and of B."""
     pairs = []
     b_by_id = {s.nodeid: s for s in b.scenarios}
@@ -121,7 +124,7 @@ def match_scenarios(a: Report, b: Report) -> tuple[list[tuple[Scenario, Scenario
             groups_a.setdefault(key(s), []).append(s)
         for s in rest_b:
             groups_b.setdefault(key(s), []).append(s)
-        matched = set()
+        matched: set = set()
         for k, members in groups_a.items():
             if k is None or len(members) != 1 or len(groups_b.get(k, ())) != 1:
                 continue
@@ -135,8 +138,9 @@ def match_scenarios(a: Report, b: Report) -> tuple[list[tuple[Scenario, Scenario
     return pairs, rest_a, rest_b
 
 
-def significance(pa: stats.Proportion, pb: stats.Proportion, method: str = "z",
-                 alpha: float = 0.05) -> tuple[bool, float | None]:
+def significance(
+    pa: stats.Proportion, pb: stats.Proportion, method: str = "z", alpha: float = 0.05
+) -> tuple[bool, float | None]:
     """(significant, p-value or None) for the change from ``pa`` to ``pb``."""
     if not pa.trials or not pb.trials:
         return False, None
@@ -158,9 +162,9 @@ def compare_reports(a: Report, b: Report, method: str = "z", alpha: float = 0.05
         significant, p_value = significance(pa, pb, method, alpha)
         lat_a, lat_b = sa.latency_summaries(), sb.latency_summaries()
         latency = [
-            LatencyDelta(name,
-                         lat_a[name].median if name in lat_a else None,
-                         lat_b[name].median if name in lat_b else None)
+            LatencyDelta(
+                name, lat_a[name].median if name in lat_a else None, lat_b[name].median if name in lat_b else None
+            )
             for name in list(lat_a) + [n for n in lat_b if n not in lat_a]
         ]
         deltas.append(ScenarioDelta(sa, sb, how, pa, pb, p_value, significant, latency))
@@ -168,7 +172,7 @@ def compare_reports(a: Report, b: Report, method: str = "z", alpha: float = 0.05
 
 
 def _prop(p: stats.Proportion) -> str:
-    if not p.trials:
+    if not p.trials or p.rate is None:
         return "no trials"
     return f"{p.successes}/{p.trials} {p.rate * 100:5.1f}% [{p.low * 100:.1f}–{p.high * 100:.1f}]"
 
@@ -226,7 +230,9 @@ def format_comparison(c: Comparison) -> str:
         lines.append("only in B:")
         lines.extend(f"  {s.nodeid}  {_prop(s.survival())}" for s in c.only_b)
     lines.append("")
-    lines.append(f"{len(c.deltas)} matched, {len(c.regressions)} significantly worse, "
-                 f"{len(c.improvements)} significantly better, {len(c.only_a)} only in A, "
-                 f"{len(c.only_b)} only in B")
+    lines.append(
+        f"{len(c.deltas)} matched, {len(c.regressions)} significantly worse, "
+        f"{len(c.improvements)} significantly better, {len(c.only_a)} only in A, "
+        f"{len(c.only_b)} only in B"
+    )
     return "\n".join(lines)

@@ -1,4 +1,5 @@
 """What a report says about the machine and the code it ran on."""
+
 from __future__ import annotations
 
 import os
@@ -9,7 +10,8 @@ from pathlib import Path
 
 
 def _cpuinfo(path: str = "/proc/cpuinfo") -> tuple[str | None, set[str]]:
-    model, flags = None, set()
+    model: str | None = None
+    flags: set[str] = set()
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
             for line in fh:
@@ -61,7 +63,10 @@ def _git(repo: Path, *args: str) -> str | None:
     try:
         done = subprocess.run(
             ["git", "-C", str(repo), *args],
-            capture_output=True, text=True, timeout=10, check=False,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
         )
     except (OSError, subprocess.SubprocessError):
         return None

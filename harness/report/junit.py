@@ -1,5 +1,6 @@
 """junit.xml of a run's scenarios, for runs where pytest's own writer did
 not write it (a merge of shards, a session that named no scenarios)."""
+
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET

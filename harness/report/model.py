@@ -7,8 +7,10 @@ the trials when needed, and also written to report.json (under ``stats`` and
 ``summary``) for readers that do not want to recompute it. Loading ignores
 the derived parts, so report.json stays the single source of truth.
 """
+
 from __future__ import annotations
 
+import enum
 import json
 import math
 import os
@@ -24,11 +26,27 @@ REPORT_JSON = "report.json"
 REPORT_HTML = "report.html"
 JUNIT_XML = "junit.xml"
 
-#: What became of the container in one trial.
-#: survived: the container and the other nodes are fine; hung: the container
-#: stopped making progress; crashed: the container process died; failed:
-#: something else went wrong (the trial's details say what).
-TRIAL_OUTCOMES = ("survived", "hung", "crashed", "failed")
+
+class TrialOutcome(enum.StrEnum):
+    """What became of the container in one trial (a str: report.json holds
+    the value)."""
+
+    SURVIVED = "survived"  # the container and the other nodes are fine
+    HUNG = "hung"  # the container, or a sibling, stopped making progress
+    CRASHED = "crashed"  # the container process died
+    FAILED = "failed"  # something else went wrong (the trial's details say what)
+    CORRUPTED = "corrupted"  # a node's memory was changed by another and nothing noticed
+
+
+#: The values, as records hold them (plain str).
+TRIAL_OUTCOMES = tuple(o.value for o in TrialOutcome)
+#: The outcome that is every node dying at once: the container process died.
+#: Counted on its own, and shown first, wherever a report sums trials up.
+CONTAINER_DEATH = TrialOutcome.CRASHED.value
+#: Profiles of the thread-mode baselines, where a node's crash is the
+#: container's by design: their container deaths are not counted as the
+#: isolated cells' are.
+BASELINE_PROFILES = ("threads",)
 #: pytest's verdict on the test as a whole.
 TEST_OUTCOMES = ("passed", "failed", "skipped", "error")
 
@@ -78,6 +96,10 @@ class Trial:
     details: dict[str, Any] = field(default_factory=dict)
     time: str | None = None
 
+    @property
+    def survived(self) -> bool:
+        return self.outcome == TrialOutcome.SURVIVED
+
     def latency_values(self, series: str) -> list[float]:
         value = self.latency_ms.get(series)
         if value is None:
@@ -88,8 +110,12 @@ class Trial:
 
     def to_dict(self) -> dict:
         return {
-            "index": self.index, "outcome": self.outcome, "seed": self.seed,
-            "latency_ms": self.latency_ms, "details": self.details, "time": self.time,
+            "index": self.index,
+            "outcome": self.outcome,
+            "seed": self.seed,
+            "latency_ms": self.latency_ms,
+            "details": self.details,
+            "time": self.time,
         }
 
 
@@ -107,9 +133,13 @@ class Hang:
 
     def to_dict(self) -> dict:
         return {
-            "trial": self.trial, "summary": self.summary, "lock": self.lock,
-            "owner_tid": self.owner_tid, "owner_node": self.owner_node,
-            "stacks": self.stacks, "details": self.details,
+            "trial": self.trial,
+            "summary": self.summary,
+            "lock": self.lock,
+            "owner_tid": self.owner_tid,
+            "owner_node": self.owner_node,
+            "stacks": self.stacks,
+            "details": self.details,
         }
 
 
@@ -130,19 +160,35 @@ class Expectation:
     met: bool | None = False
 
     @classmethod
-    def judged(cls, outcome: str, *, at_least: float | None, at_most: float | None,
-               successes: int, trials: int, defer: bool = False) -> "Expectation":
+    def judged(
+        cls,
+        outcome: str,
+        *,
+        at_least: float | None,
+        at_most: float | None,
+        successes: int,
+        trials: int,
+        defer: bool = False,
+    ) -> Expectation:
         """The expectation with its measurement: the rate, its 95% Wilson
         interval, and whether it was kept (None when ``defer``)."""
         p = stats.proportion(successes, trials)
         met = p.rate is not None
-        if met and at_least is not None and p.rate < at_least:
+        if p.rate is not None and at_least is not None and p.rate < at_least:
             met = False
-        if met and at_most is not None and p.rate > at_most:
+        if p.rate is not None and at_most is not None and p.rate > at_most:
             met = False
-        return cls(outcome=outcome, at_least=at_least, at_most=at_most, successes=p.successes,
-                   trials=p.trials, rate=p.rate, ci_low=p.low, ci_high=p.high,
-                   met=None if defer else met)
+        return cls(
+            outcome=outcome,
+            at_least=at_least,
+            at_most=at_most,
+            successes=p.successes,
+            trials=p.trials,
+            rate=p.rate,
+            ci_low=p.low,
+            ci_high=p.high,
+            met=None if defer else met,
+        )
 
     def requirement(self) -> str:
         parts = []
@@ -154,9 +200,15 @@ class Expectation:
 
     def to_dict(self) -> dict:
         return {
-            "outcome": self.outcome, "at_least": self.at_least, "at_most": self.at_most,
-            "successes": self.successes, "trials": self.trials, "rate": self.rate,
-            "ci_low": self.ci_low, "ci_high": self.ci_high, "met": self.met,
+            "outcome": self.outcome,
+            "at_least": self.at_least,
+            "at_most": self.at_most,
+            "successes": self.successes,
+            "trials": self.trials,
+            "rate": self.rate,
+            "ci_low": self.ci_low,
+            "ci_high": self.ci_high,
+            "met": self.met,
         }
 
 
@@ -185,16 +237,24 @@ class Scenario:
 
     # -- derived ---------------------------------------------------------
     def counts(self) -> dict[str, int]:
-        counts = {outcome: 0 for outcome in TRIAL_OUTCOMES}
+        counts: dict[str, int] = {outcome: 0 for outcome in TRIAL_OUTCOMES}
         for trial in self.trials:
             counts[trial.outcome] = counts.get(trial.outcome, 0) + 1
         return counts
 
-    def rate_of(self, outcome: str = "survived") -> stats.Proportion:
+    def rate_of(self, outcome: str = TrialOutcome.SURVIVED) -> stats.Proportion:
         return stats.proportion(self.counts().get(outcome, 0), len(self.trials))
 
     def survival(self) -> stats.Proportion:
-        return self.rate_of("survived")
+        return self.rate_of(TrialOutcome.SURVIVED)
+
+    def container_deaths(self) -> stats.Proportion:
+        return self.rate_of(CONTAINER_DEATH)
+
+    @property
+    def isolated(self) -> bool:
+        """A cell of an isolated container (not a thread-mode baseline)."""
+        return bool(self.profile) and (self.profile or "").split("/")[0] not in BASELINE_PROFILES
 
     def latency_series(self) -> dict[str, list[float]]:
         """Every latency series, in order of first appearance, with all values."""
@@ -228,10 +288,17 @@ class Scenario:
 
     def to_dict(self) -> dict:
         return {
-            "nodeid": self.nodeid, "name": self.name, "fault": self.fault,
-            "profile": self.profile, "mitigations": self.mitigations, "claim": self.claim,
-            "outcome": self.outcome, "duration_s": self.duration_s, "started": self.started,
-            "message": self.message, "longrepr": self.longrepr,
+            "nodeid": self.nodeid,
+            "name": self.name,
+            "fault": self.fault,
+            "profile": self.profile,
+            "mitigations": self.mitigations,
+            "claim": self.claim,
+            "outcome": self.outcome,
+            "duration_s": self.duration_s,
+            "started": self.started,
+            "message": self.message,
+            "longrepr": self.longrepr,
             "used_resilience": self.used_resilience,
             "trials": [t.to_dict() for t in self.trials],
             "hangs": [h.to_dict() for h in self.hangs],
@@ -241,9 +308,8 @@ class Scenario:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Scenario":
-        scenario = _from(cls, {k: v for k, v in data.items()
-                               if k not in ("trials", "hangs", "expectations")})
+    def from_dict(cls, data: dict) -> Scenario:
+        scenario = _from(cls, {k: v for k, v in data.items() if k not in ("trials", "hangs", "expectations")})
         scenario.mitigations = dict(scenario.mitigations or {})
         scenario.notes = list(scenario.notes or [])
         scenario.trials = [_from(Trial, t) for t in data.get("trials") or []]
@@ -299,7 +365,7 @@ class Report:
         return counts
 
     def summary(self) -> dict:
-        trial_counts = {outcome: 0 for outcome in TRIAL_OUTCOMES}
+        trial_counts: dict[str, int] = {outcome: 0 for outcome in TRIAL_OUTCOMES}
         expectations = {"met": 0, "not_met": 0, "deferred": 0}
         for scenario in self.scenarios:
             for outcome, n in scenario.counts().items():
@@ -311,20 +377,30 @@ class Report:
             "outcomes": self.outcome_counts(),
             "trials": sum(trial_counts.values()),
             "trial_outcomes": trial_counts,
+            "container_deaths": self.container_deaths().to_dict(),
             "hangs": sum(len(s.hangs) for s in self.scenarios),
             "expectations": expectations,
         }
 
+    def container_deaths(self) -> stats.Proportion:
+        """Container deaths over every trial of the isolated cells."""
+        cells = [s for s in self.scenarios if s.isolated]
+        return stats.proportion(
+            sum(s.counts().get(CONTAINER_DEATH, 0) for s in cells), sum(len(s.trials) for s in cells)
+        )
+
     def to_dict(self) -> dict:
-        return jsonable({
-            "schema": SCHEMA,
-            "run": self.run.to_dict(),
-            "summary": self.summary(),
-            "scenarios": [s.to_dict() for s in self.scenarios],
-        })
+        return jsonable(
+            {
+                "schema": SCHEMA,
+                "run": self.run.to_dict(),
+                "summary": self.summary(),
+                "scenarios": [s.to_dict() for s in self.scenarios],
+            }
+        )
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Report":
+    def from_dict(cls, data: dict) -> Report:
         schema = data.get("schema", "")
         if not str(schema).startswith("cloneguard-report/"):
             raise ValueError(f"not a cloneguard report (schema {schema!r})")

@@ -1,10 +1,13 @@
-"""Where crash-resilience reports go: the repository root, the reports root
-under it, a new run's directory name, and ``reports/latest``."""
+"""Where crash-resilience reports go: ``reports/`` under the pytest run's
+root directory (the project under test: this repository for its own
+scenarios, a team's own for theirs), a new run's directory name, and
+``reports/latest``."""
+
 from __future__ import annotations
 
 import os
 import secrets
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from .model import write_atomic
@@ -13,21 +16,13 @@ ENV_REPORT_DIR = "CLONEGUARD_REPORT_DIR"
 LATEST = "latest"
 
 
-def repo_root() -> Path:
-    """The directory holding pyproject.toml next to harness/ (for an
-    installed, not editable, copy: the current directory)."""
-    root = Path(__file__).resolve().parents[2]
-    if (root / "pyproject.toml").is_file() and (root / "harness").is_dir():
-        return root
-    return Path.cwd()
-
-
-def default_reports_root() -> Path:
-    return repo_root() / "reports"
+def default_reports_root(rootdir: Path) -> Path:
+    """``rootdir``: pytest's root directory of the run (config.rootpath)."""
+    return Path(rootdir) / "reports"
 
 
 def new_run_id(now: datetime | None = None) -> str:
-    now = now or datetime.now(timezone.utc)
+    now = now or datetime.now(UTC)
     return now.strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(2)
 
 

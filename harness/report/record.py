@@ -10,7 +10,7 @@ Scenarios record through the fixture::
         for trial in range(20):
             ...
             resilience.trial("survived", seed=seed, latency_ms={"death_to_event": 0.4})
-        resilience.expect_rate("survived", at_least=0.95)
+        resilience.expect_rate(TrialOutcome.SURVIVED, at_least=0.95)
 
 The record lives in the process that runs the test (a pytest-xdist worker,
 or the one pytest process). When the test's teardown report is made, the
@@ -18,17 +18,19 @@ record rides on it (``report.cloneguard_record``, plain JSON data, which
 xdist carries to the controller like the rest of the report); the report
 session (session.py) takes it from there.
 """
+
 from __future__ import annotations
 
 import threading
 import time
-from datetime import datetime, timezone
-from typing import Any, Mapping
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from typing import Any
 
 import pytest
 
 from . import stats
-from .model import TRIAL_OUTCOMES, Expectation, Hang, Scenario, Trial, jsonable
+from .model import CONTAINER_DEATH, TRIAL_OUTCOMES, Expectation, Hang, Scenario, Trial, TrialOutcome, jsonable
 
 #: the report attribute that carries a test's record to the report session
 RECORD_ATTR = "cloneguard_record"
@@ -36,7 +38,7 @@ _RECORDERS = pytest.StashKey[dict]()
 
 
 def _iso(ts: float) -> str:
-    return datetime.fromtimestamp(ts, timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return datetime.fromtimestamp(ts, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 # --------------------------------------------------------------------------
@@ -47,7 +49,7 @@ class Resilience:
 
     def __init__(self, scenario: Scenario, *, defer: bool = False):
         self._scenario = scenario
-        self._defer = defer          # a shard: expectations are judged by the merge
+        self._defer = defer  # a shard: expectations are judged by the merge
         self._lock = threading.Lock()
 
     @property
@@ -55,9 +57,15 @@ class Resilience:
         """The record being filled (read it, do not change it)."""
         return self._scenario
 
-    def describe(self, *, fault: str | None = None, profile: str | None = None,
-                 mitigations: Mapping[str, Any] | None = None, claim: str | None = None,
-                 name: str | None = None) -> None:
+    def describe(
+        self,
+        *,
+        fault: str | None = None,
+        profile: str | None = None,
+        mitigations: Mapping[str, Any] | None = None,
+        claim: str | None = None,
+        name: str | None = None,
+    ) -> None:
         """What the scenario is: the fault injected, the isolation profile, the
         mitigations switched on, and the claim it checks. Can be called again;
         arguments left out keep their value. ``name`` replaces the test name
@@ -77,15 +85,21 @@ class Resilience:
             if name is not None:
                 s.name = str(name)
 
-    def trial(self, outcome: str, *, index: int | None = None, seed: Any = None,
-              latency_ms: Mapping[str, float | list[float] | None] | None = None,
-              details: Mapping[str, Any] | None = None) -> int:
+    def trial(
+        self,
+        outcome: str,
+        *,
+        index: int | None = None,
+        seed: Any = None,
+        latency_ms: Mapping[str, float | list[float] | None] | None = None,
+        details: Mapping[str, Any] | None = None,
+    ) -> int:
         """Record one trial and return its index: ``index`` (its place in the
         scenario's plan, which a shard skips parts of), else the next one.
 
-        outcome: survived (container and other nodes fine), hung (container
-        stopped making progress), crashed (container process died) or failed
-        (something else went wrong; say what in ``details``).
+        outcome: a TrialOutcome (or its value; stored as the plain value, which
+        is what report.json and pytest-xdist's channel carry); failed needs
+        a why in ``details``.
         latency_ms: series name -> milliseconds (a number, a list of numbers,
         or None for "not measured").
         """
@@ -97,15 +111,29 @@ class Resilience:
         with self._lock:
             if index is None:
                 index = self._scenario.trials[-1].index + 1 if self._scenario.trials else 0
-            self._scenario.trials.append(Trial(
-                index=index, outcome=outcome, seed=jsonable(seed), latency_ms=latencies,
-                details=jsonable(dict(details or {})), time=_iso(time.time()),
-            ))
+            self._scenario.trials.append(
+                Trial(
+                    index=index,
+                    outcome=TrialOutcome(outcome).value,
+                    seed=jsonable(seed),
+                    latency_ms=latencies,
+                    details=jsonable(dict(details or {})),
+                    time=_iso(time.time()),
+                )
+            )
         return index
 
-    def hang(self, *, summary: str, trial: int | None = None, stacks: str | None = None,
-             lock: Any = None, owner_tid: int | None = None, owner_node: str | None = None,
-             details: Mapping[str, Any] | None = None) -> None:
+    def hang(
+        self,
+        *,
+        summary: str,
+        trial: int | None = None,
+        stacks: str | None = None,
+        lock: Any = None,
+        owner_tid: int | None = None,
+        owner_node: str | None = None,
+        details: Mapping[str, Any] | None = None,
+    ) -> None:
         """Record the diagnosis of a hang: a one-line ``summary``, the trial it
         happened in, the threads' ``stacks`` (text), the ``lock`` waited on
         (an int is shown in hex) and who owns it."""
@@ -114,26 +142,31 @@ class Resilience:
         if lock == "":
             lock = None
         with self._lock:
-            self._scenario.hangs.append(Hang(
-                summary=str(summary), trial=trial, stacks=None if stacks is None else str(stacks),
-                lock=None if lock is None else str(lock),
-                owner_tid=None if owner_tid is None else int(owner_tid),
-                owner_node=None if owner_node is None else str(owner_node),
-                details=jsonable(dict(details or {})),
-            ))
+            self._scenario.hangs.append(
+                Hang(
+                    summary=str(summary),
+                    trial=trial,
+                    stacks=None if stacks is None else str(stacks),
+                    lock=None if lock is None else str(lock),
+                    owner_tid=None if owner_tid is None else int(owner_tid),
+                    owner_node=None if owner_node is None else str(owner_node),
+                    details=jsonable(dict(details or {})),
+                )
+            )
 
     def counts(self) -> dict[str, int]:
         """Trials so far by outcome."""
         with self._lock:
             return self._scenario.counts()
 
-    def rate(self, outcome: str = "survived") -> stats.Proportion:
+    def rate(self, outcome: str = TrialOutcome.SURVIVED) -> stats.Proportion:
         """The measured rate of ``outcome`` so far, with its Wilson interval."""
         with self._lock:
             return self._scenario.rate_of(outcome)
 
-    def expect_rate(self, outcome: str = "survived", *, at_least: float | None = None,
-                    at_most: float | None = None) -> Expectation:
+    def expect_rate(
+        self, outcome: str = TrialOutcome.SURVIVED, *, at_least: float | None = None, at_most: float | None = None
+    ) -> Expectation:
         """Record the rate of ``outcome`` this profile promises and check it
         against the trials so far: raises AssertionError (with the counts)
         when the measured rate is below ``at_least`` or above ``at_most``, or
@@ -143,6 +176,7 @@ class Resilience:
         __tracebackhide__ = True
         if outcome not in TRIAL_OUTCOMES:
             raise ValueError(f"outcome must be one of {TRIAL_OUTCOMES}, got {outcome!r}")
+        outcome = TrialOutcome(outcome).value
         if at_least is None and at_most is None:
             raise ValueError("expect_rate needs at_least or at_most")
         for bound in (at_least, at_most):
@@ -151,18 +185,32 @@ class Resilience:
         with self._lock:
             counts = self._scenario.counts()
             expectation = Expectation.judged(
-                outcome, at_least=at_least, at_most=at_most, successes=counts.get(outcome, 0),
-                trials=len(self._scenario.trials), defer=self._defer)
+                outcome,
+                at_least=at_least,
+                at_most=at_most,
+                successes=counts.get(outcome, 0),
+                trials=len(self._scenario.trials),
+                defer=self._defer,
+            )
             self._scenario.expectations.append(expectation)
         if expectation.met is False:
             if expectation.rate is None:
-                raise AssertionError(f"expected {outcome} rate {expectation.requirement()}, but no trials were recorded")
+                raise AssertionError(
+                    f"expected {outcome} rate {expectation.requirement()}, but no trials were recorded"
+                )
             raise AssertionError(
                 f"expected {outcome} rate {expectation.requirement()}, measured {expectation.rate:.1%} "
                 f"({expectation.successes}/{expectation.trials} trials {outcome}; 95% CI "
                 f"{expectation.ci_low:.1%}–{expectation.ci_high:.1%}; counts {self.counts()})"
             )
         return expectation
+
+    def expect_no_container_death(self) -> Expectation:
+        """The isolated cells' own floor, apart from any survival floor:
+        none of the trials ended the container itself (every node at once).
+        A cell whose survival floor allows a hang never allows that."""
+        __tracebackhide__ = True
+        return self.expect_rate(CONTAINER_DEATH, at_most=0.0)
 
     def note(self, text: str) -> None:
         """Free text shown with the scenario in the report."""
@@ -209,8 +257,7 @@ def resilience(request) -> Resilience:
     node = request.node
     recorder = recorders.get(node.nodeid)
     if recorder is None:
-        scenario = Scenario(nodeid=node.nodeid, name=node.name, started=_iso(time.time()),
-                            used_resilience=True)
+        scenario = Scenario(nodeid=node.nodeid, name=node.name, started=_iso(time.time()), used_resilience=True)
         recorder = recorders[node.nodeid] = Resilience(scenario, defer=sharded(request.config))
     return recorder
 

@@ -1,4 +1,5 @@
 """report.html: one self-contained page (inline CSS and SVG, no scripts)."""
+
 from __future__ import annotations
 
 import json
@@ -7,8 +8,8 @@ from datetime import datetime
 from html import escape
 from pathlib import Path
 
-from . import charts
-from .model import REPORT_HTML, TRIAL_OUTCOMES, Report, Scenario, write_atomic
+from . import charts, stats
+from .model import CONTAINER_DEATH, REPORT_HTML, TRIAL_OUTCOMES, Report, Scenario, TrialOutcome, write_atomic
 from .stats import Proportion
 
 #: Without an expectation, a cell is amber from this survival rate up to
@@ -29,7 +30,7 @@ def e(value) -> str:
 
 
 def pct(rate: float | None) -> str:
-    return "–" if rate is None else f"{rate * 100:.1f}%"
+    return stats.percent(rate)
 
 
 def ci_text(p: Proportion) -> str:
@@ -159,6 +160,7 @@ svg.chart .box{fill:#d7e6f7;stroke:#7aa4d1} svg.chart .dot{fill:#1d5fa8;fill-opa
 svg.chart .median{stroke:#c0392b;stroke-width:2.5} svg.chart .median-label{font-size:11.5px;fill:#c0392b;font-weight:600}
 svg.bar{vertical-align:middle;border-radius:2px}
 td.num,th.num{text-align:right}
+.death{color:#b3261e}
 footer{margin-top:40px;color:var(--muted);font-size:12px}
 @media print{details{display:block} pre{max-height:none}}
 """
@@ -170,67 +172,95 @@ def _header(report: Report) -> str:
     host = run.host or {}
     git = run.git or {}
     badges = []
+    deaths = report.container_deaths()
+    if deaths.trials:
+        cls = "b-red" if deaths.successes else "b-green"
+        badges.append(
+            f'<span class="badge {cls}">{deaths.successes} container death'
+            f"{'' if deaths.successes == 1 else 's'} in {deaths.trials} isolated trials "
+            f"(95% upper bound {e(pct(deaths.high))})</span>"
+        )
     for outcome, n in summary["outcomes"].items():
         if n or outcome in ("passed", "failed"):
-            badges.append(f'<span class="badge b-{e(outcome)}">{n} {e(outcome)}</span>')
+            # "0 failed" says so in the plain colour, not in red.
+            cls = f"b-{outcome}" if n else ""
+            badges.append(f'<span class="badge {e(cls)}">{n} {e(outcome)}</span>')
     t = summary["trial_outcomes"]
     trial_text = ", ".join(f"{n} {k}" for k, n in t.items() if n) or "none"
     exp = summary["expectations"]
     badges.append(f'<span class="badge">{summary["trials"]} trials: {e(trial_text)}</span>')
-    badges.append(f'<span class="badge">{summary["hangs"]} hang diagnos{"is" if summary["hangs"] == 1 else "es"}</span>')
+    badges.append(
+        f'<span class="badge">{summary["hangs"]} hang diagnos{"is" if summary["hangs"] == 1 else "es"}</span>'
+    )
     if exp["met"] or exp["not_met"]:
         cls = "b-red" if exp["not_met"] else "b-green"
         badges.append(f'<span class="badge {cls}">expectations met: {exp["met"]}/{exp["met"] + exp["not_met"]}</span>')
     if exp.get("deferred"):
-        badges.append(f'<span class="badge b-amber">{exp["deferred"]} expectation(s) judged only '
-                      f'when shards are merged (shard {e(run.shard or "?")})</span>')
+        badges.append(
+            f'<span class="badge b-amber">{exp["deferred"]} expectation(s) judged only '
+            f"when shards are merged (shard {e(run.shard or '?')})</span>"
+        )
     if run.workers:
         badges.append(f'<span class="badge">run by {run.workers} pytest-xdist workers</span>')
     if run.shards:
-        parts = ", ".join(f'{sh.get("shard") or "unsharded"} ({sh.get("host") or "?"}, '
-                          f'{(sh.get("commit") or "?")[:12]})' for sh in run.shards)
+        parts = ", ".join(
+            f"{sh.get('shard') or 'unsharded'} ({sh.get('host') or '?'}, {(sh.get('commit') or '?')[:12]})"
+            for sh in run.shards
+        )
         badges.append(f'<span class="badge">merged from {len(run.shards)} run(s): {e(parts)}</span>')
 
     commit = git.get("commit")
     commit_text = "–"
     if commit:
-        commit_text = f'<code>{e(commit[:12])}</code>'
+        commit_text = f"<code>{e(commit[:12])}</code>"
         if git.get("branch"):
-            commit_text += f' on <code>{e(git["branch"])}</code>'
+            commit_text += f" on <code>{e(git['branch'])}</code>"
         if git.get("dirty"):
             commit_text += ' <span class="badge b-amber">dirty</span>'
     cpu = host.get("cpu_model") or "unknown CPU"
-    cpu_line = f'{e(cpu)} × {e(host.get("cpu_count", "?"))}'
+    cpu_line = f"{e(cpu)} × {e(host.get('cpu_count', '?'))}"
     if host.get("cpu_usable") and host.get("cpu_usable") != host.get("cpu_count"):
-        cpu_line += f' ({e(host["cpu_usable"])} usable)'
-    cpu_line += f'; PKU {"yes" if host.get("pku") else "no"}'
+        cpu_line += f" ({e(host['cpu_usable'])} usable)"
+    cpu_line += f"; PKU {'yes' if host.get('pku') else 'no'}"
     rows = [
-        ("started", f'{e(_fmt_time(run.started))} <span class="muted">(took {e(_fmt_duration(run.duration_s))}, '
-                    f'pytest exit status {e(run.exit_status)})</span>'),
-        ("host", f'{e(host.get("hostname", "?"))}: Linux {e(host.get("kernel", "?"))} {e(host.get("machine", ""))}, '
-                 f'{e(host.get("glibc") or "libc ?")}'),
+        (
+            "started",
+            f'{e(_fmt_time(run.started))} <span class="muted">(took {e(_fmt_duration(run.duration_s))}, '
+            f"pytest exit status {e(run.exit_status)})</span>",
+        ),
+        (
+            "host",
+            f"{e(host.get('hostname', '?'))}: Linux {e(host.get('kernel', '?'))} {e(host.get('machine', ''))}, "
+            f"{e(host.get('glibc') or 'libc ?')}",
+        ),
         ("cpu", cpu_line),
         ("commit", commit_text),
         ("python", e(run.python or "–")),
-        ("pytest", f'<code>{e(" ".join(run.pytest_args) or "(no arguments)")}</code>'),
-        ("container", f'<code>{e(run.container_exe)}</code>' if run.container_exe else "this project's component_container"),
+        ("pytest", f"<code>{e(' '.join(run.pytest_args) or '(no arguments)')}</code>"),
+        (
+            "container",
+            f"<code>{e(run.container_exe)}</code>" if run.container_exe else "this project's component_container",
+        ),
         ("deep mode", "on" if run.deep else "off"),
     ]
     if run.junit:
         rows.append(("junit", f'<a href="{e(run.junit)}">{e(run.junit)}</a>'))
     meta = "".join(f"<tr><th>{e(k)}</th><td>{v}</td></tr>" for k, v in rows)
     label = f'<p class="muted">{e(run.label)}</p>' if run.label else ""
-    return (f'<header><h1>Crash-resilience report <span class="mono">{e(run.id)}</span></h1>{label}'
-            f'<div class="totals">{"".join(badges)}</div><table class="meta">{meta}</table></header>')
+    return (
+        f'<header><h1>Crash-resilience report <span class="mono">{e(run.id)}</span></h1>{label}'
+        f'<div class="totals">{"".join(badges)}</div><table class="meta">{meta}</table></header>'
+    )
 
 
 def _legend() -> str:
-    items = [("green", "expectations met, or every trial survived"),
-             ("amber", f"no expectation and survival {AMBER_FROM:.0%}–<100%"),
-             ("red", f"test failed, an expectation not met, or survival <{AMBER_FROM:.0%} without one"),
-             ("grey", "no trials")]
-    return '<p class="legend small">' + "".join(
-        f'<span><i class="st-{c}"></i>{e(t)}</span>' for c, t in items) + "</p>"
+    items = [
+        ("green", "expectations met, or every trial survived"),
+        ("amber", f"no expectation and survival {AMBER_FROM:.0%}–<100%"),
+        ("red", f"test failed, an expectation not met, or survival <{AMBER_FROM:.0%} without one"),
+        ("grey", "no trials"),
+    ]
+    return '<p class="legend small">' + "".join(f'<span><i class="st-{c}"></i>{e(t)}</span>' for c, t in items) + "</p>"
 
 
 def _matrix(report: Report, ids: dict[int, str]) -> str:
@@ -273,10 +303,14 @@ def _matrix(report: Report, ids: dict[int, str]) -> str:
     if others:
         links = ", ".join(
             f'<a href="#{e(ids[i])}" class="st-{scenario_status(report.scenarios[i])[0]}" style="padding:0 4px">'
-            f"{e(report.scenarios[i].name)}</a>" for i in others)
+            f"{e(report.scenarios[i].name)}</a>"
+            for i in others
+        )
         rest = f'<p class="small">Tests without a fault or profile: {links}</p>'
-    return (f'<table class="grid matrix"><thead><tr><th>fault \\ profile</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table>{rest}{_legend()}')
+    return (
+        f'<table class="grid matrix"><thead><tr><th>fault \\ profile</th>{head}</tr></thead>'
+        f"<tbody>{''.join(rows)}</tbody></table>{rest}{_legend()}"
+    )
 
 
 def _matrix_entry(s: Scenario, anchor: str, distinguish: bool) -> str:
@@ -284,8 +318,13 @@ def _matrix_entry(s: Scenario, anchor: str, distinguish: bool) -> str:
     p = s.survival()
     lines = []
     if distinguish:
-        lines.append(f'<div class="sub"><b>{e(s.name)}</b>'
-                     f'{" · " + e(_mitigations(s.mitigations)) if s.mitigations else ""}</div>')
+        lines.append(
+            f'<div class="sub"><b>{e(s.name)}</b>'
+            f"{' · ' + e(_mitigations(s.mitigations)) if s.mitigations else ''}</div>"
+        )
+    deaths = s.counts().get(CONTAINER_DEATH, 0)
+    if deaths and s.isolated:
+        lines.append(f'<div class="big death">{deaths} container death{"" if deaths == 1 else "s"}</div>')
     if p.trials:
         lines.append(f'<div class="big">{p.successes}/{p.trials} survived</div>')
         lines.append(f'<div class="sub">{e(pct(p.rate))} (95% CI {e(ci_text(p))})</div>')
@@ -310,8 +349,10 @@ def _counts_table(s: Scenario) -> str:
         n = counts.get(outcome, 0)
         share = f"{n / total * 100:.1f}%" if total else "–"
         color = charts.OUTCOME_COLORS.get(outcome, "#999")
-        rows.append(f'<tr><td><i style="display:inline-block;width:10px;height:10px;background:{color};'
-                    f'margin-right:6px"></i>{e(outcome)}</td><td class="num">{n}</td><td class="num">{share}</td></tr>')
+        rows.append(
+            f'<tr><td><i style="display:inline-block;width:10px;height:10px;background:{color};'
+            f'margin-right:6px"></i>{e(outcome)}</td><td class="num">{n}</td><td class="num">{share}</td></tr>'
+        )
     return f'<table class="counts">{"".join(rows)}</table>'
 
 
@@ -320,13 +361,20 @@ def _expectations(s: Scenario) -> str:
         return '<p class="muted">No expectation recorded.</p>'
     rows = []
     for x in s.expectations:
-        verdict = {True: '<span class="ok">✓ met</span>', False: '<span class="no">✗ not met</span>',
-                   None: '<span class="muted">judged when the shards are merged</span>'}[x.met]
+        verdict = {
+            True: '<span class="ok">✓ met</span>',
+            False: '<span class="no">✗ not met</span>',
+            None: '<span class="muted">judged when the shards are merged</span>',
+        }[x.met]
         ci = f"{x.ci_low * 100:.1f}–{x.ci_high * 100:.1f}%" if x.trials else "–"
-        rows.append(f"<tr><td>{e(x.outcome)}</td><td>{e(x.requirement())}</td>"
-                    f'<td class="num">{e(pct(x.rate))} ({x.successes}/{x.trials})</td><td>{e(ci)}</td><td>{verdict}</td></tr>')
-    return ('<table class="grid"><thead><tr><th>outcome</th><th>promised rate</th><th class="num">measured</th>'
-            f'<th>95% CI</th><th></th></tr></thead><tbody>{"".join(rows)}</tbody></table>')
+        rows.append(
+            f"<tr><td>{e(x.outcome)}</td><td>{e(x.requirement())}</td>"
+            f'<td class="num">{e(pct(x.rate))} ({x.successes}/{x.trials})</td><td>{e(ci)}</td><td>{verdict}</td></tr>'
+        )
+    return (
+        '<table class="grid"><thead><tr><th>outcome</th><th>promised rate</th><th class="num">measured</th>'
+        f"<th>95% CI</th><th></th></tr></thead><tbody>{''.join(rows)}</tbody></table>"
+    )
 
 
 def _latency(s: Scenario) -> str:
@@ -337,11 +385,17 @@ def _latency(s: Scenario) -> str:
     head = "".join(f'<th class="num">{h}</th>' for h in ("n", "min", "median", "p90", "p99", "max", "mean"))
     rows = []
     for name, summ in summaries.items():
-        cells = [str(summ.n)] + [charts.fmt_ms(getattr(summ, k)) for k in ("min", "median", "p90", "p99", "max", "mean")]
-        rows.append(f"<tr><td><code>{e(name)}</code></td>" + "".join(f'<td class="num">{e(c)}</td>' for c in cells) + "</tr>")
+        cells = [str(summ.n)] + [
+            charts.fmt_ms(getattr(summ, k)) for k in ("min", "median", "p90", "p99", "max", "mean")
+        ]
+        rows.append(
+            f"<tr><td><code>{e(name)}</code></td>" + "".join(f'<td class="num">{e(c)}</td>' for c in cells) + "</tr>"
+        )
     plots = "".join(charts.latency_strip(name, values) for name, values in series.items() if values)
-    return (f'<h4>Latency (ms)</h4><table class="grid"><thead><tr><th>series</th>{head}</tr></thead>'
-            f'<tbody>{"".join(rows)}</tbody></table>{plots}')
+    return (
+        f'<h4>Latency (ms)</h4><table class="grid"><thead><tr><th>series</th>{head}</tr></thead>'
+        f"<tbody>{''.join(rows)}</tbody></table>{plots}"
+    )
 
 
 def _hang_anchor(anchor: str, trial) -> str:
@@ -351,7 +405,7 @@ def _hang_anchor(anchor: str, trial) -> str:
 def _hangs(s: Scenario, anchor: str) -> str:
     if not s.hangs:
         return ""
-    hung = s.counts().get("hung", 0)
+    hung = s.counts().get(TrialOutcome.HUNG, 0)
     out = [f"<h4>Hangs ({len(s.hangs)} diagnosed, {hung} trial{'s' if hung != 1 else ''} hung)</h4>"]
     seen = set()
     for h in s.hangs:
@@ -369,8 +423,7 @@ def _hangs(s: Scenario, anchor: str) -> str:
         stacks = ""
         if h.stacks:
             n_lines = h.stacks.count("\n") + 1
-            stacks = (f"<details><summary>stacks ({n_lines} lines)</summary>"
-                      f"<pre>{e(h.stacks)}</pre></details>")
+            stacks = f"<details><summary>stacks ({n_lines} lines)</summary><pre>{e(h.stacks)}</pre></details>"
         id_attr = ""
         if h.trial is not None and h.trial not in seen:
             seen.add(h.trial)
@@ -396,20 +449,26 @@ def _trials_table(s: Scenario, anchor: str) -> str:
         outcome = e(t.outcome)
         if t.index in diagnosed:
             outcome = f'<a href="#{e(_hang_anchor(anchor, t.index))}">{outcome} (diagnosis)</a>'
-        rows.append(f'<tr><td class="num">{e(t.index)}</td><td style="color:{color};font-weight:600">{outcome}</td>'
-                    f'<td class="mono">{e(t.seed if t.seed is not None else "–")}</td>{"".join(lat)}'
-                    f'<td class="mono small">{details}</td></tr>')
-    return (f"<details><summary>all {len(s.trials)} trials</summary>"
-            f'<table class="grid small"><thead><tr><th class="num">#</th><th>outcome</th><th>seed</th>{head}'
-            f'<th>details</th></tr></thead><tbody>{"".join(rows)}</tbody></table></details>')
+        rows.append(
+            f'<tr><td class="num">{e(t.index)}</td><td style="color:{color};font-weight:600">{outcome}</td>'
+            f'<td class="mono">{e(t.seed if t.seed is not None else "–")}</td>{"".join(lat)}'
+            f'<td class="mono small">{details}</td></tr>'
+        )
+    return (
+        f"<details><summary>all {len(s.trials)} trials</summary>"
+        f'<table class="grid small"><thead><tr><th class="num">#</th><th>outcome</th><th>seed</th>{head}'
+        f"<th>details</th></tr></thead><tbody>{''.join(rows)}</tbody></table></details>"
+    )
 
 
 def _scenario(s: Scenario, anchor: str) -> str:
     status, why = scenario_status(s)
     p = s.survival()
-    chips = [f"<span>fault: <b>{e(s.fault or '–')}</b></span>",
-             f"<span>profile: <b>{e(s.profile or '–')}</b></span>",
-             f"<span>mitigations: <b>{e(_mitigations(s.mitigations))}</b></span>"]
+    chips = [
+        f"<span>fault: <b>{e(s.fault or '–')}</b></span>",
+        f"<span>profile: <b>{e(s.profile or '–')}</b></span>",
+        f"<span>mitigations: <b>{e(_mitigations(s.mitigations))}</b></span>",
+    ]
     outcome = s.outcome or "did not finish"
     parts = [
         f'<article class="scenario st-{status}" id="{e(anchor)}">',
@@ -421,17 +480,23 @@ def _scenario(s: Scenario, anchor: str) -> str:
     if s.claim:
         parts.append(f'<blockquote class="claim">Claim: {e(s.claim)}</blockquote>')
     if s.message:
-        parts.append(f'<p><b>{e(outcome)}:</b> <span class="mono" style="white-space:pre-wrap">{e(s.message)}</span></p>')
+        parts.append(
+            f'<p><b>{e(outcome)}:</b> <span class="mono" style="white-space:pre-wrap">{e(s.message)}</span></p>'
+        )
     if s.longrepr:
         parts.append(f"<details><summary>pytest output</summary><pre>{e(s.longrepr)}</pre></details>")
     if p.trials:
-        survival = (f'<p><b>{p.successes}/{p.trials} survived</b> — {e(pct(p.rate))} '
-                    f'<span class="muted">(95% Wilson CI {e(ci_text(p))})</span></p>'
-                    f"{charts.outcome_bar(s.counts())}{_counts_table(s)}")
+        survival = (
+            f"<p><b>{p.successes}/{p.trials} survived</b> — {e(pct(p.rate))} "
+            f'<span class="muted">(95% Wilson CI {e(ci_text(p))})</span></p>'
+            f"{charts.outcome_bar(s.counts())}{_counts_table(s)}"
+        )
     else:
         survival = '<p class="muted">No trials recorded.</p>'
-    parts.append(f'<div class="cols"><div><h4>Trials</h4>{survival}</div>'
-                 f'<div><h4>Expectations</h4>{_expectations(s)}</div></div>')
+    parts.append(
+        f'<div class="cols"><div><h4>Trials</h4>{survival}</div>'
+        f"<div><h4>Expectations</h4>{_expectations(s)}</div></div>"
+    )
     if s.notes:
         parts.append("<h4>Notes</h4><ul>" + "".join(f"<li>{e(n)}</li>" for n in s.notes) + "</ul>")
     parts.append(_latency(s))
@@ -454,10 +519,12 @@ def render_html(report: Report) -> str:
         f'<footer>cloneguard crash-resilience report · run <span class="mono">{e(report.run.id)}</span> · '
         "data in report.json · re-render with <code>python -m cloneguard.harness render</code></footer>",
     ]
-    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            '<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>cloneguard report {e(report.run.id)}</title><style>{CSS}</style></head>"
-            f"<body>{''.join(body)}</body></html>\n")
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"<title>cloneguard report {e(report.run.id)}</title><style>{CSS}</style></head>"
+        f"<body>{''.join(body)}</body></html>\n"
+    )
 
 
 def write_html(report: Report, path: str | Path | None = None) -> Path:

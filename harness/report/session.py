@@ -6,13 +6,14 @@ the run's report directory and points ``reports/latest`` at it.
 
 The plugin (collect.py) makes it and registers it as a plugin of its own.
 """
+
 from __future__ import annotations
 
 import os
 import shutil
 import time
 import traceback
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -45,7 +46,7 @@ def _args_run_scenarios(config) -> bool:
         text = str(arg).split("::", 1)[0]
         if not text or text.startswith("-"):
             continue
-        path = (base / text)
+        path = base / text
         if _under_scenarios(path, Path(config.rootpath)) or path.name == SCENARIO_DIR:
             return True
         if path.is_dir() and (path / SCENARIO_DIR).is_dir():
@@ -62,10 +63,10 @@ class ReportSession:
     def __init__(self, config):
         self.config = config
         self.started = time.time()
-        self.records: dict[str, Scenario] = {}      # every test seen, in order
-        self.in_scope: set[str] = set()             # ... that go in the report
+        self.records: dict[str, Scenario] = {}  # every test seen, in order
+        self.in_scope: set[str] = set()  # ... that go in the report
         self.workers: set[str] = set()
-        self.reports_root = paths.default_reports_root()
+        self.reports_root = paths.default_reports_root(config.rootpath)
         option_dir = config.getoption("--report-dir", default=None)
         chosen = option_dir or os.environ.get(paths.ENV_REPORT_DIR) or None
         if chosen:
@@ -75,7 +76,7 @@ class ReportSession:
             self.run_dir = path
             self.run_id = path.name
         else:
-            self.run_id = paths.new_run_id(datetime.fromtimestamp(self.started, timezone.utc))
+            self.run_id = paths.new_run_id(datetime.fromtimestamp(self.started, UTC))
             self.run_dir = self.reports_root / self.run_id
         self.explicit_dir = bool(chosen)
         self.junit_mode: str | None = None
@@ -153,7 +154,7 @@ class ReportSession:
             record.message = (record.message + "\n" if record.message and when == "teardown" else "") + prefix + message
             text = rep.longreprtext
             if len(text) > LONGREPR_LIMIT:
-                text = text[:LONGREPR_LIMIT // 2] + "\n[... cut ...]\n" + text[-LONGREPR_LIMIT // 2:]
+                text = text[: LONGREPR_LIMIT // 2] + "\n[... cut ...]\n" + text[-LONGREPR_LIMIT // 2 :]
             record.longrepr = (record.longrepr + "\n\n" if record.longrepr else "") + text
             return
         if when == "call":
@@ -171,8 +172,10 @@ class ReportSession:
             path = Path(self.config.rootpath) / report.nodeid.split("::", 1)[0]
             if not (report.nodeid and _under_scenarios(path, Path(self.config.rootpath))):
                 return
-            record = self.records.setdefault(report.nodeid, Scenario(
-                nodeid=report.nodeid, name=report.nodeid.rsplit("/", 1)[-1], started=_iso(time.time())))
+            record = self.records.setdefault(
+                report.nodeid,
+                Scenario(nodeid=report.nodeid, name=report.nodeid.rsplit("/", 1)[-1], started=_iso(time.time())),
+            )
             self.in_scope.add(report.nodeid)
             record.outcome = "error"
             text = report.longreprtext
@@ -218,7 +221,7 @@ class ReportSession:
             pytest_args=[str(a) for a in config.invocation_params.args],
             python=env.python_version(),
             host=env.host_info(),
-            git=env.git_info(paths.repo_root()),
+            git=env.git_info(Path(config.rootpath)),
             container_exe=None if container_exe is None else str(container_exe),
             deep=bool(deep_opt) or os.environ.get(ENV_DEEP, "") == "1",
             workers=len(self.workers),
@@ -267,10 +270,11 @@ class ReportSession:
         tr.write_sep("-", "cloneguard resilience report")
         where = f" on {len(self.workers)} workers" if self.workers else ""
         shard = self.config.getoption("--shard", default=None)
-        tr.write_line(f"{len(records)} scenario(s), {total} trial(s){where}: {detail}"
-                      + (f"; {unmet} expectation(s) not met" if unmet else "")
-                      + (f"; shard {shard}: expectations are judged by `python -m cloneguard.harness merge`"
-                         if shard else ""))
+        tr.write_line(
+            f"{len(records)} scenario(s), {total} trial(s){where}: {detail}"
+            + (f"; {unmet} expectation(s) not met" if unmet else "")
+            + (f"; shard {shard}: expectations are judged by `python -m cloneguard.harness merge`" if shard else "")
+        )
         tr.write_line(f"report: {self.written / REPORT_HTML}")
         tr.write_line(f"data:   {self.written / 'report.json'}")
 

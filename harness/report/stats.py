@@ -3,12 +3,13 @@ intervals, a two-proportion z-test, and latency summaries.
 
 Only the standard library; everything here is a pure function of its inputs.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from statistics import NormalDist
-from typing import Iterable, Sequence
 
 #: Confidence level of every interval in the reports.
 CONFIDENCE = 0.95
@@ -61,6 +62,15 @@ class Proportion:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def percent(rate: float | None, none: str = "–") -> str:
+    """A rate in percent: one decimal, or two significant digits between 0
+    and 1% (a 95% upper bound of none in 9,000 trials is 0.043%, not 0.0%)."""
+    if rate is None:
+        return none
+    value = rate * 100
+    return f"{value:.2g}%" if 0 < value < 1 else f"{value:.1f}%"
 
 
 def proportion(successes: int, trials: int, confidence: float = CONFIDENCE) -> Proportion:

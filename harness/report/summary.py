@@ -1,21 +1,24 @@
-"""A report as a Markdown summary: the run, a table of every scenario's
-trials (survived, rate, 95% interval, expectation) and every trial that did
-not survive with its diagnosis, for docs and closing notes.
+"""A report as a Markdown summary: the run, its container deaths, a table of
+every scenario's trials (container deaths, survived, rate, 95% interval,
+expectation) and every trial that did not survive with its diagnosis
+(container deaths first), for docs and closing notes.
 
     python -m cloneguard.harness summary reports/deep [--hang-chars 240]
 """
+
 from __future__ import annotations
 
 import re
 
-from .model import Report, Scenario
+from . import stats
+from .model import CONTAINER_DEATH, Report, Scenario, TrialOutcome
 
 #: more non-survivals than this in one scenario are grouped by cause
 GROUP_OVER = 5
 
 
 def _pct(x: float | None) -> str:
-    return "-" if x is None else f"{100 * x:.1f}%"
+    return stats.percent(x, none="-")
 
 
 def _expectation(s: Scenario) -> str:
@@ -32,7 +35,12 @@ def _cell(s: Scenario) -> str:
 
 
 def _others(counts: dict[str, int]) -> str:
-    return ", ".join(f"{n} {k}" for k, n in sorted(counts.items()) if k != "survived" and n) or "-"
+    return (
+        ", ".join(
+            f"{n} {k}" for k, n in sorted(counts.items()) if k not in (TrialOutcome.SURVIVED, CONTAINER_DEATH) and n
+        )
+        or "-"
+    )
 
 
 def _cause(text: str) -> str:
@@ -51,13 +59,27 @@ def markdown(report: Report, *, hang_chars: int = 240) -> str:
         f"Run `{run.id}` at commit `{commit}`, {run.duration_s or 0:.0f} s"
         + (f" on {run.workers} workers" if run.workers else "")
         + (f", {len(run.shards)} shards merged" if run.shards else "")
-        + (f"; host: {host.get('cpu_count', '?')} CPUs, kernel {host.get('kernel', '?')}, "
-           f"{host.get('glibc', 'glibc ?')}" if host else ""),
+        + (
+            f"; host: {host.get('cpu_count', '?')} CPUs, kernel {host.get('kernel', '?')}, "
+            f"{host.get('glibc', 'glibc ?')}"
+            if host
+            else ""
+        ),
         "",
         f"    python -m pytest {' '.join(run.pytest_args)}",
         "",
-        "| scenario | profile | trials | survived | rate | 95% interval | other outcomes | expectation |",
-        "|---|---|---:|---:|---:|---|---|---|",
+    ]
+    deaths = report.container_deaths()
+    if deaths.trials:
+        lines += [
+            f"Container deaths (every node at once) in the isolated cells: **{deaths.successes}** in "
+            f"{deaths.trials} trials (95% upper bound {_pct(deaths.high)}).",
+            "",
+        ]
+    lines += [
+        "| scenario | profile | trials | container deaths | survived | rate | 95% interval | other outcomes "
+        "| expectation |",
+        "|---|---|---:|---:|---:|---:|---|---|---|",
     ]
     for s in sorted(report.scenarios, key=lambda s: (s.fault or "", s.nodeid)):
         if not s.trials:
@@ -65,15 +87,21 @@ def markdown(report: Report, *, hang_chars: int = 240) -> str:
         p = s.survival()
         counts = s.counts()
         lines.append(
-            f"| {_cell(s)} | {s.profile or '-'} | {p.trials} | {p.successes} | {_pct(p.rate)} "
-            f"| {_pct(p.low)}–{_pct(p.high)} | {_others(counts)} | {_expectation(s)} |")
-    troubled = [s for s in report.scenarios if any(t.outcome != "survived" for t in s.trials)]
+            f"| {_cell(s)} | {s.profile or '-'} | {p.trials} | {counts.get(CONTAINER_DEATH, 0)} | {p.successes} "
+            f"| {_pct(p.rate)} | {_pct(p.low)}–{_pct(p.high)} | {_others(counts)} | {_expectation(s)} |"
+        )
+    troubled = [s for s in report.scenarios if any(not t.survived for t in s.trials)]
     if troubled:
-        lines += ["", "Every trial that did not survive (thread-mode baselines, whose trials are",
-                  "expected to crash, are left out when all of them did):", ""]
-    for s in sorted(troubled, key=lambda s: s.nodeid):
-        bad = [t for t in s.trials if t.outcome != "survived"]
-        if s.profile == "threads" and all(t.outcome == "crashed" for t in bad):
+        lines += [
+            "",
+            "Every trial that did not survive (thread-mode baselines, whose trials are",
+            "expected to crash, are left out when all of them did):",
+            "",
+        ]
+    # Cells with container deaths first, and in each its container deaths first.
+    for s in sorted(troubled, key=lambda s: (not (s.isolated and s.counts().get(CONTAINER_DEATH)), s.nodeid)):
+        bad = sorted((t for t in s.trials if not t.survived), key=lambda t: (t.outcome != CONTAINER_DEATH, t.index))
+        if not s.isolated and all(t.outcome == CONTAINER_DEATH for t in bad):
             continue
         hangs = {h.trial: h for h in s.hangs}
         lines.append(f"- **{_cell(s)}** ({s.profile}): {len(bad)} of {len(s.trials)}")
@@ -83,11 +111,15 @@ def markdown(report: Report, *, hang_chars: int = 240) -> str:
             diagnosis = hangs[t.index].summary if t.index in hangs else ""
             key = _cause(diagnosis or why) if len(bad) > GROUP_OVER else str(t.index)
             groups.setdefault(key, []).append((t, why, diagnosis))
-        for members in sorted(groups.values(), key=len, reverse=True):
+        for members in sorted(groups.values(), key=lambda m: (m[0][0].outcome != CONTAINER_DEATH, -len(m))):
             t, why, diagnosis = members[0]
-            text = (f"  - trial {t.index} (seed {t.seed}), {t.outcome}" if len(members) == 1 else
-                    f"  - {len(members)} trials ({', '.join(str(m[0].index) for m in members[:12])}"
-                    f"{' …' if len(members) > 12 else ''}), {t.outcome} alike; the first")
+            what = "a container death" if t.outcome == CONTAINER_DEATH else t.outcome
+            text = (
+                f"  - trial {t.index} (seed {t.seed}), {what}"
+                if len(members) == 1
+                else f"  - {len(members)} trials ({', '.join(str(m[0].index) for m in members[:12])}"
+                f"{' …' if len(members) > 12 else ''}), {what} alike; the first"
+            )
             text += f": {why}" if why else ""
             if diagnosis:
                 cut = diagnosis if len(diagnosis) <= hang_chars else diagnosis[:hang_chars] + " …"

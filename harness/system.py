@@ -1,0 +1,228 @@
+"""Your own nodes under test: a composition of your components loaded into
+a real container, faults injected from outside (nothing in your nodes
+changes), and checks over what your topics and services did
+(docs/testing-your-nodes.md).
+
+Public, and kept stable (a change that breaks a scenario written against
+it is named in CHANGELOG.md first): ``NodeSpec``, ``System`` and its
+methods below, ``rate``, ``longest_gap``, ``call_latency``, and the
+``system_factory`` fixture of the pytest plugin. The rest of
+``cloneguard.harness`` is the project's own test rig and may change.
+
+Times are ``time.monotonic_ns()`` of the test process: what a Recorder
+stamps each message with, and what ``kill``/``freeze`` return.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+from cloneguard_interfaces.msg import ComponentEvent
+
+from .client import ContainerClient, Recorder
+from .errors import HarnessTimeout
+from .factory import ContainerFactory
+from .process import ContainerProcess
+
+#: How long a load, a death's CRASHED event or a restart is waited for.
+WAIT_S = 15.0
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the composition: what ``ros2 component load`` takes.
+    ``name`` and ``namespace`` empty: the component's own."""
+
+    package: str
+    plugin: str
+    name: str = ""
+    namespace: str = ""
+    parameters: Mapping[str, object] = field(default_factory=dict)
+    remaps: Mapping[str, str] = field(default_factory=dict)
+    extra_arguments: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Running:
+    """A node of the composition as the container loaded it."""
+
+    spec: NodeSpec
+    unique_id: int
+    full_name: str
+    pid: int  # its own process in isolated mode; the container's in thread mode
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault ``System`` injected: into which node, what, from when to when."""
+
+    node: str
+    what: str
+    start_ns: int
+    end_ns: int
+
+
+class System:
+    """A container (``container_args``: ``--isolated`` by default) with
+    ``nodes`` loaded in order. Made by the ``system_factory`` fixture,
+    which stops it after the test."""
+
+    def __init__(
+        self, factory: ContainerFactory, nodes: Sequence[NodeSpec], container_args: Sequence[str] = ("--isolated",)
+    ):
+        if not nodes:
+            raise ValueError("a System needs at least one node")
+        self._factory = factory
+        self.specs = tuple(nodes)
+        self.container_args = list(container_args)
+        self.faults: list[Fault] = []
+        self.proc: ContainerProcess
+        self.client: ContainerClient
+        self.nodes: dict[str, Running] = {}
+        self._start()
+
+    def _start(self) -> None:
+        self.proc = self._factory.start(self.container_args)
+        self.client = self._factory.connect(self.proc)
+        self.nodes = {}
+        for spec in self.specs:
+            running = self._load(spec)
+            self.nodes[running.full_name] = running
+
+    def _load(self, spec: NodeSpec) -> Running:
+        resp = self.client.load(
+            spec.package,
+            spec.plugin,
+            node_name=spec.name,
+            node_namespace=spec.namespace,
+            parameters=dict(spec.parameters),
+            remap_rules=[f"{a}:={b}" for a, b in spec.remaps.items()],
+            extra_arguments=dict(spec.extra_arguments),
+            timeout=WAIT_S,
+        )
+        if not resp.success:
+            raise AssertionError(f"{spec.package}/{spec.plugin} did not load: {resp.error_message}")
+        ev = self.client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id, timeout=WAIT_S)
+        return Running(spec, resp.unique_id, resp.full_node_name, ev.pid)
+
+    # -- what to watch ------------------------------------------------------------
+
+    def topic(self, msg_type, name: str, qos=10) -> Recorder:
+        """Every message on ``name`` from now on, stamped on arrival."""
+        return self.client.subscribe(msg_type, name, qos)
+
+    def service(self, srv_type, name: str):
+        """An rclpy client of ``name``, for ``call_latency``."""
+        return self.client.service_client(srv_type, name)
+
+    def node(self, full_name: str) -> Running:
+        try:
+            return self.nodes[full_name]
+        except KeyError:
+            raise KeyError(f"no node {full_name!r} in this system; it has {sorted(self.nodes)}") from None
+
+    def alive(self) -> bool:
+        """Is the container process still running?"""
+        return self.proc.alive()
+
+    # -- faults from outside --------------------------------------------------------
+
+    def _own_process(self, full_name: str) -> Running:
+        running = self.node(full_name)
+        if running.pid == self.proc.pid:
+            raise ValueError(
+                f"{full_name} runs in the container's own process (thread mode): a signal to it is the "
+                "container's; start the System with --isolated to hit one node"
+            )
+        return running
+
+    def kill(self, full_name: str, sig: int = signal.SIGKILL) -> int:
+        """Send ``sig`` to the node's process; when it was sent."""
+        running = self._own_process(full_name)
+        at = time.monotonic_ns()
+        os.kill(running.pid, sig)
+        self.faults.append(Fault(full_name, signal.Signals(sig).name, at, at))
+        return at
+
+    def freeze(self, full_name: str, seconds: float) -> tuple[int, int]:
+        """Stop the node's process for ``seconds`` (SIGSTOP, then SIGCONT);
+        when it was stopped and let go."""
+        if not 0 < seconds <= 600:
+            raise ValueError("freeze for 0-600 s")
+        running = self._own_process(full_name)
+        start = time.monotonic_ns()
+        os.kill(running.pid, signal.SIGSTOP)
+        try:
+            time.sleep(seconds)
+        finally:
+            os.kill(running.pid, signal.SIGCONT)
+        end = time.monotonic_ns()
+        self.faults.append(Fault(full_name, f"freeze {seconds:g} s", start, end))
+        return start, end
+
+    def wait_crashed(self, full_name: str, timeout: float = WAIT_S) -> ComponentEvent:
+        """The container's CRASHED event for the node's current process."""
+        running = self.node(full_name)
+        return self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=running.unique_id, timeout=timeout)
+
+    def wait_back(self, full_name: str, timeout: float = WAIT_S) -> Running:
+        """Under ``--restart-policy on-crash``: wait until the node is loaded
+        again after its death; the new process becomes the node's."""
+        old = self.node(full_name)
+
+        def again(ev) -> bool:
+            return (
+                ev.event_type == ComponentEvent.LOADED
+                and ev.full_node_name == full_name
+                and ev.unique_id != old.unique_id
+            )
+
+        ev = self.client.events.wait_for(again, timeout, f"LOADED of {full_name} again")
+        running = Running(old.spec, ev.unique_id, full_name, ev.pid)
+        self.nodes[full_name] = running
+        return running
+
+    def restart(self) -> None:
+        """A fresh container with the whole composition loaded again (after
+        a trial that did not survive, say)."""
+        self.proc.stop()
+        self._start()
+
+
+# -- checks over what arrived -----------------------------------------------------------
+
+
+def _between(rec: Recorder, since_ns: int, until_ns: int | None) -> tuple[list[int], int]:
+    until = time.monotonic_ns() if until_ns is None else until_ns
+    if until <= since_ns:
+        raise ValueError("the window ends before it starts")
+    return [r.at_ns for r in rec.items() if since_ns <= r.at_ns <= until], until
+
+
+def rate(rec: Recorder, since_ns: int, until_ns: int | None = None) -> float:
+    """Messages per second on ``rec`` between the two times (until now)."""
+    stamps, until = _between(rec, since_ns, until_ns)
+    return len(stamps) / ((until - since_ns) / 1e9)
+
+
+def longest_gap(rec: Recorder, since_ns: int, until_ns: int | None = None) -> float:
+    """The longest time, in seconds, without a message on ``rec`` between
+    the two times (until now), the window's edges counted."""
+    stamps, until = _between(rec, since_ns, until_ns)
+    edges = [since_ns, *stamps, until]
+    return max(b - a for a, b in zip(edges, edges[1:], strict=False)) / 1e9
+
+
+def call_latency(system: System, client, request, timeout: float = 5.0) -> float:
+    """Seconds from sending ``request`` on ``client`` (``System.service``)
+    to its answer; HarnessTimeout (an AssertionError) if the service is not
+    offered, or does not answer, within ``timeout``."""
+    if not client.wait_for_service(timeout_sec=timeout):  # discovery is not the call's latency
+        raise HarnessTimeout(f"{client.srv_name} is not offered within {timeout:.1f} s")
+    start = time.monotonic()
+    system.client.call(client, request, timeout)
+    return time.monotonic() - start
