@@ -1,20 +1,25 @@
 """SIGKILL of one node's process from outside, at a random instant."""
+
 import pytest
 
 from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.rig import TrialOutcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
 def test_random_sigkill_of_a_busy_node(profile, rig_factory, resilience, run_trials):
     resilience.describe(
-        fault="sigkill-outside", profile=profile, mitigations={},
+        fault="sigkill-outside",
+        profile=profile,
+        mitigations={},
         claim="a node's process SIGKILLed at a random instant while it publishes at "
-              "500 Hz is reported CRASHED (SIGKILL) and the rest goes on",
+        "500 Hz is reported CRASHED (SIGKILL) and the rest goes on",
     )
     fault = FAULTS["sigkill-outside"](rig_factory(profile))
-    run_trials(fault.trial, fault.settle, quick=5, deep=300)
+    run_trials(fault.trial, fault.settle, quick=5, deep=300, rig=fault.rig)
     floor = FLOOR[profile] if len(resilience.scenario.trials) >= 100 else QUICK_FLOOR[profile]
-    resilience.expect_rate("survived", at_least=floor)
+    resilience.expect_no_container_death()
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=floor)
 
 
 # Per-node: 1,199 of 1,200 over deep-5..8 (docs/evidence.md); the one hang

@@ -1,21 +1,26 @@
 """A node dies holding a lock of the container's (a robust mutex)."""
+
 import pytest
 
 from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.rig import TrialOutcome
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
 def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resilience, run_trials):
     resilience.describe(
-        fault="die-holding-robust-mutex", profile=profile, mitigations={"robust_mutex": True},
+        fault="die-holding-robust-mutex",
+        profile=profile,
+        mitigations={"robust_mutex": True},
         claim="a node that dies holding the container's progress-board lock, its slot "
-              "half-written: the next locker gets EOWNERDEAD, repairs the slot, and "
-              "everyone goes on",
+        "half-written: the next locker gets EOWNERDEAD, repairs the slot, and "
+        "everyone goes on",
     )
     fault = FAULTS["die-holding-robust-mutex"](rig_factory(profile))
-    run_trials(fault.trial, fault.settle, quick=3, deep=200)
+    run_trials(fault.trial, fault.settle, quick=3, deep=200, rig=fault.rig)
     deep = len(resilience.scenario.trials) >= 100
-    resilience.expect_rate("survived", at_least=FLOOR if deep else QUICK_FLOOR)
+    resilience.expect_no_container_death()
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if deep else QUICK_FLOOR)
 
 
 # Per-node 399 of 400 over deep-5 and deep-8, shared 400 of 400. deep-8's

@@ -1,30 +1,43 @@
 """Fast DDS shared-memory segments: none under the harness profile, none
 after a graceful stop, and after a SIGKILL only the orphans are removed."""
+
 import signal
 
 from cloneguard.faults.outside import sigkill_container
 from cloneguard.harness import procfs, rest, shm
 from cloneguard.harness.process import SHM_PROFILE
-from cloneguard.harness.rig import Outcome, Rig
+from cloneguard.harness.rig import Outcome, Rig, TrialOutcome
 
 
 def test_no_shm_profile_creates_no_segment(rig_factory, resilience, record_trial, trial_plan):
     [(index, seed)] = trial_plan(1, 1)
-    resilience.describe(fault="none", profile="per-node", mitigations={"fastdds_profile": "no-shm"},
-                        claim="under fixtures/fastdds_no_shm.xml no /dev/shm/fastrtps_* file is created")
+    resilience.describe(
+        fault="none",
+        profile="per-node",
+        mitigations={"fastdds_profile": "no-shm"},
+        claim="under fixtures/fastdds_no_shm.xml no /dev/shm/fastrtps_* file is created",
+    )
     before = shm.segments()
     rig = rig_factory("per-node")
     rig.client.load_ok("cloneguard", "cloneguard::Talker")
     created = shm.segments() - before
-    record_trial(index, seed, Outcome("survived" if not created else "failed", details={"created": sorted(created)}))
-    resilience.expect_rate("survived", at_least=1.0)
+    record_trial(
+        index,
+        seed,
+        Outcome(TrialOutcome.SURVIVED if not created else TrialOutcome.FAILED, details={"created": sorted(created)}),
+    )
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)
 
 
 def test_graceful_stop_with_shm_leaks_nothing(rig_factory, resilience, record_trial, trial_plan):
     [(index, seed)] = trial_plan(1, 1)
-    resilience.describe(fault="sigterm-container", profile="per-node", mitigations={"fastdds_profile": "shm"},
-                        claim="with the SHM transport on, a graceful stop (SIGTERM) removes every "
-                              "segment the container and its children made")
+    resilience.describe(
+        fault="sigterm-container",
+        profile="per-node",
+        mitigations={"fastdds_profile": "shm"},
+        claim="with the SHM transport on, a graceful stop (SIGTERM) removes every "
+        "segment the container and its children made",
+    )
     before = shm.segments()
     rig = rig_factory("per-node", fastdds_profile=SHM_PROFILE)
     rig.client.load_ok("cloneguard", "cloneguard::Talker")
@@ -35,9 +48,15 @@ def test_graceful_stop_with_shm_leaks_nothing(rig_factory, resilience, record_tr
     code = rig.proc.wait(timeout=10)
     left = shm.segments() & created
     ok = created and not left and code == 0
-    record_trial(index, seed, Outcome("survived" if ok else "failed",
-                               details={"created": len(created), "left": sorted(left), "exit_code": code}))
-    resilience.expect_rate("survived", at_least=1.0)
+    record_trial(
+        index,
+        seed,
+        Outcome(
+            TrialOutcome.SURVIVED if ok else TrialOutcome.FAILED,
+            details={"created": len(created), "left": sorted(left), "exit_code": code},
+        ),
+    )
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)
 
 
 class _Named:
@@ -58,14 +77,19 @@ class _Named:
 
 
 def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
-        container_factory, rig_factory, resilience, record_trial, trial_plan):
+    container_factory, rig_factory, resilience, record_trial, trial_plan
+):
     [(index, seed)] = trial_plan(1, 1)
-    resilience.describe(fault="sigkill-container", profile="per-node", mitigations={"fastdds_profile": "shm"},
-                        claim="a SIGKILLed container leaves orphaned SHM segments; the harness finds "
-                              "them the way Fast DDS does (their lock files can be locked) and removes "
-                              "only those, leaving the segments of a live container alone; the ports the "
-                              "death orphans in a live peer (lock-less: found by no live process mapping "
-                              "them) are removed once that peer has stopped, so none is left")
+    resilience.describe(
+        fault="sigkill-container",
+        profile="per-node",
+        mitigations={"fastdds_profile": "shm"},
+        claim="a SIGKILLed container leaves orphaned SHM segments; the harness finds "
+        "them the way Fast DDS does (their lock files can be locked) and removes "
+        "only those, leaving the segments of a live container alone; the ports the "
+        "death orphans in a live peer (lock-less: found by no live process mapping "
+        "them) are removed once that peer has stopped, so none is left",
+    )
     before = shm.segments()
     bystander = Rig(_Named(container_factory, "bystander"), "per-node", fastdds_profile=SHM_PROFILE)
     victim = rig_factory("per-node", fastdds_profile=SHM_PROFILE)
@@ -75,9 +99,12 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
     rest.wait_for_spare(victim.client.node, victim.proc.pid)
     victim.client.close()
     # What the bystander owns (holds the lock of): nothing of it may go while it lives.
-    bystanders_own = {seg.name: seg.files for seg in shm.classify(
-        shm.locked_by(set(bystander.proc.group_members()))) if not set(seg.files) & before}
-    ours = victim.proc.record_shm()          # what it maps: the only candidates
+    bystanders_own = {
+        seg.name: seg.files
+        for seg in shm.classify(shm.locked_by(set(bystander.proc.group_members())))
+        if not set(seg.files) & before
+    }
+    ours = victim.proc.record_shm()  # what it maps: the only candidates
     sigkill_container(victim.proc)
     victim.proc.wait(timeout=10)
     # Its node processes die of PR_SET_PDEATHSIG right after it.
@@ -91,8 +118,11 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
     # Until it drops the dead participants, the bystander probes their ports'
     # lock files, and removes and re-creates ports it sends to: the victim's
     # ports are judged after it stops. Its participant segments now.
-    left_orphans = [seg.name for seg in shm.classify(present - before)
-                    if seg.orphan and seg.name in ours and not seg.name.startswith("fastrtps_port")]
+    left_orphans = [
+        seg.name
+        for seg in shm.classify(present - before)
+        if seg.orphan and seg.name in ours and not seg.name.startswith("fastrtps_port")
+    ]
     went_on = bystander.goes_on()
 
     # The victim died holding references to the bystander's ports, so the
@@ -105,18 +135,39 @@ def test_sigkilled_container_leaves_orphans_that_are_found_and_removed(
     bystander_gone = procfs.wait_group_empty(bystander.proc.pgid, timeout=10)
     owners = victim.proc.shm_seen | bystander.proc.shm_seen
     late = shm.remove_orphans_of(shm.segments() - before, owners)
-    still_orphaned = [seg.name for seg in shm.classify(shm.segments() - before)
-                      if seg.orphan and seg.name in owners]
+    still_orphaned = [seg.name for seg in shm.classify(shm.segments() - before) if seg.orphan and seg.name in owners]
 
-    ok = (victim_gone and removed and kept and not left_orphans and went_on is None
-          and bystander_gone and not still_orphaned)
-    record_trial(index, seed, Outcome("survived" if ok else "failed", details={
-        "orphans_removed": [s.name for s in removed], "bystanders_own_kept": len(bystanders_own) if kept else False,
-        "orphans_left": left_orphans, "bystander": went_on or "went on",
-        "bystander_stop_forced": stopped.forced, "late_orphans_removed": [s.name for s in late],
-        "orphans_left_at_end": still_orphaned}))
-    resilience.note(f"{len(removed)} orphaned segment(s) removed while the bystander ran; its "
-                    f"{len(bystanders_own)} own segment(s) kept")
-    resilience.note(f"{len(late)} segment(s) orphaned by the death, left when the bystander stopped "
-                    f"({sum(s.lockless for s in late)} lock-less port(s)), removed after it")
-    resilience.expect_rate("survived", at_least=1.0)
+    ok = (
+        victim_gone
+        and removed
+        and kept
+        and not left_orphans
+        and went_on is None
+        and bystander_gone
+        and not still_orphaned
+    )
+    record_trial(
+        index,
+        seed,
+        Outcome(
+            TrialOutcome.SURVIVED if ok else TrialOutcome.FAILED,
+            details={
+                "orphans_removed": [s.name for s in removed],
+                "bystanders_own_kept": len(bystanders_own) if kept else False,
+                "orphans_left": left_orphans,
+                "bystander": went_on or "went on",
+                "bystander_stop_forced": stopped.forced,
+                "late_orphans_removed": [s.name for s in late],
+                "orphans_left_at_end": still_orphaned,
+            },
+        ),
+    )
+    resilience.note(
+        f"{len(removed)} orphaned segment(s) removed while the bystander ran; its "
+        f"{len(bystanders_own)} own segment(s) kept"
+    )
+    resilience.note(
+        f"{len(late)} segment(s) orphaned by the death, left when the bystander stopped "
+        f"({sum(s.lockless for s in late)} lock-less port(s)), removed after it"
+    )
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)

@@ -6,6 +6,7 @@ died was reported CRASHED exactly once; the container is alive. Each example
 (one container, a sequence of steps) is one trial: failed if any step or
 invariant raised (hypothesis then shrinks: each replay is a trial too).
 """
+
 import collections
 import functools
 import os
@@ -18,7 +19,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import Bundle, RuleBasedStateMachine, consumes, invariant, rule, run_state_machine_as_test
 
 from cloneguard.harness.plan import trial_count
-from cloneguard.harness.rig import Outcome
+from cloneguard.harness.rig import Outcome, TrialOutcome
 
 PLUGINS = ["cloneguard::Talker", "cloneguard::Listener", "cloneguard::Heartbeat", "cloneguard::EchoService"]
 
@@ -26,6 +27,7 @@ PLUGINS = ["cloneguard::Talker", "cloneguard::Listener", "cloneguard::Heartbeat"
 def checked(step):
     """A rule or invariant that marks the example failed when it raises
     (teardown runs for failing examples too)."""
+
     @functools.wraps(step)
     def run(self, *args, **kwargs):
         try:
@@ -33,6 +35,7 @@ def checked(step):
         except BaseException as exc:
             self.failure = self.failure or f"{step.__name__}: {type(exc).__name__}: {exc}"
             raise
+
     return run
 
 
@@ -91,7 +94,8 @@ def make_machine(start_rig, on_example_end):
         @checked
         def every_death_reported_once(self):
             counts = collections.Counter(
-                e.unique_id for e in self.cli.events.messages() if e.event_type == ComponentEvent.CRASHED)
+                e.unique_id for e in self.cli.events.messages() if e.event_type == ComponentEvent.CRASHED
+            )
             assert set(counts) == self.crashed and all(n == 1 for n in counts.values()), counts
 
         def teardown(self):
@@ -101,13 +105,16 @@ def make_machine(start_rig, on_example_end):
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
-def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, resilience, record_trial,
-                                                        trial_plan, request):
+def test_random_operation_sequences_keep_the_invariants(
+    profile, rig_factory, resilience, record_trial, trial_plan, request
+):
     resilience.describe(
-        fault="random load/unload/crash sequences", profile=profile, mitigations={},
+        fault="random load/unload/crash sequences",
+        profile=profile,
+        mitigations={},
         claim="any sequence of load, unload, unload of a missing id and crash (SIGKILL, "
-              "SIGSEGV, SIGABRT from outside) keeps ListNodes equal to the model and "
-              "reports every death exactly once",
+        "SIGSEGV, SIGABRT from outside) keeps ListNodes equal to the model and "
+        "reports every death exactly once",
     )
     rigs = []
 
@@ -120,15 +127,24 @@ def test_random_operation_sequences_keep_the_invariants(profile, rig_factory, re
         details = {"model_size": len(machine.model)}
         if machine.failure:
             details["why"] = machine.failure
-        record_trial(len(rigs) - 1, 0, Outcome("failed" if machine.failure else "survived", details=details))
+        record_trial(
+            len(rigs) - 1,
+            0,
+            Outcome(TrialOutcome.FAILED if machine.failure else TrialOutcome.SURVIVED, details=details),
+        )
         machine.rig.client.close()
         machine.rig.proc.stop()
 
-    trial_plan(1, 1)                 # hypothesis draws the examples; one shard runs them
+    trial_plan(1, 1)  # hypothesis draws the examples; one shard runs them
     examples = trial_count(request.config, 3, 200)
     run_state_machine_as_test(
         make_machine(start, end),
-        settings=settings(max_examples=examples, stateful_step_count=8, deadline=None,
-                          suppress_health_check=list(HealthCheck), database=None),
+        settings=settings(
+            max_examples=examples,
+            stateful_step_count=8,
+            deadline=None,
+            suppress_health_check=list(HealthCheck),
+            database=None,
+        ),
     )
-    resilience.expect_rate("survived", at_least=1.0)
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)

@@ -1,4 +1,5 @@
 """ROS nodes inside the test process, for tests of code that runs in one."""
+
 from contextlib import contextmanager
 
 import rclpy

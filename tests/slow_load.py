@@ -1,4 +1,5 @@
 """A LoadNode of faults::SlowConstructor, sent from a thread of the test."""
+
 import threading
 import time
 
@@ -11,8 +12,11 @@ class SlowLoad:
 
     def __init__(self, client, seconds: float, timeout: float = 30.0):
         self._answers = []
-        self._thread = threading.Thread(target=lambda: self._answers.append(client.load(
-            RIG, "faults::SlowConstructor", parameters={"seconds": seconds}, timeout=timeout)))
+        self._thread = threading.Thread(
+            target=lambda: self._answers.append(
+                client.load(RIG, "faults::SlowConstructor", parameters={"seconds": seconds}, timeout=timeout)
+            )
+        )
         self._thread.start()
         deadline = time.monotonic() + 10
         while "slow" not in client.node.get_node_names():

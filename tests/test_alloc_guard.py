@@ -218,8 +218,9 @@ def run(case: str, backend: str) -> dict:
         preload.append(allocator.jemalloc_path())
     env["LD_PRELOAD"] = " ".join(preload)
     script = PRELUDE + textwrap.dedent(CASES[case]) + "\nprint(json.dumps(out))\n"
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          env=env, cwd=REPO, timeout=180)
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=REPO, timeout=180
+    )
     assert proc.returncode == 0, proc.stderr[-4000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -228,7 +229,7 @@ def run(case: str, backend: str) -> dict:
 def test_blocks_freed_by_others_go_back_to_their_owner(backend):
     out = run("hand_back", backend)
     assert out["quarantined"] == [False, False]
-    assert out["slot2"] == out["slot1"]                 # the context was reused
+    assert out["slot2"] == out["slot1"]  # the context was reused
     before, after_free, after_reuse = out["before"], out["after_free"], out["after_reuse"]
     assert before["state"] == "idle"
     # the child's own frees handed nothing; the container's 50 were handed back
@@ -261,7 +262,7 @@ def test_children_one_after_another_reuse_one_context(backend):
     out = run("reuse", backend)
     assert len(out["slots"]) == 1, out["slots"]
     if backend == "glibc":
-        assert out["glibc_arenas"] == 1           # the context's own, reused
+        assert out["glibc_arenas"] == 1  # the context's own, reused
     else:
         assert out["narenas"] == out["arena"] + 1  # one arena made, none since
 
@@ -282,4 +283,4 @@ def test_when_every_slot_is_taken_a_spawn_is_refused_saying_so():
     assert out["spawned"] == 511 and out["errno"] == 12
     assert "no allocator slot is free: 0 of 511 are quarantined" in out["message"]
     assert "511 in use" in out["message"]
-    assert out["after"] == 0          # slots come back as their processes end
+    assert out["after"] == 0  # slots come back as their processes end

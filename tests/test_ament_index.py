@@ -8,6 +8,7 @@ launch_ros's ExecutableInPackage takes get_package_prefix(package), then
 <prefix>/lib/<package>, then the executable found there; ros2component's
 `types` reads the `rclcpp_components` resource and keeps what is before ';'.
 """
+
 import os
 import shutil
 import signal

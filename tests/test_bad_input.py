@@ -1,5 +1,6 @@
 """Every malformed LoadNode gets success=false with a clear message, changes
 nothing, and the container goes on serving."""
+
 import time
 
 import pytest
@@ -22,47 +23,103 @@ def _param(name, type_):
 BAD_REQUESTS = [
     pytest.param(dict(package_name="", plugin_name=TALKER), "Could not find requested resource", id="empty-package"),
     pytest.param(dict(package_name=PKG, plugin_name=""), "Failed to find class", id="empty-plugin"),
-    pytest.param(dict(package_name="nope", plugin_name=TALKER), "Could not find requested resource", id="unknown-package"),
+    pytest.param(
+        dict(package_name="nope", plugin_name=TALKER), "Could not find requested resource", id="unknown-package"
+    ),
     pytest.param(dict(package_name=PKG, plugin_name="cloneguard::Nope"), "Failed to find class", id="unknown-plugin"),
-    pytest.param(dict(package_name=PKG, plugin_name="cloneguard.container.components.talker:Talker"),
-                 "Failed to find class", id="module-path-is-not-a-plugin"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_name="bad name"),
-                 "Couldn't parse remap rule: '-r __node:=bad name'", id="invalid-node-name"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_name="9lives"),
-                 "Couldn't parse remap rule: '-r __node:=9lives'", id="node-name-starts-with-digit"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_namespace="/a//b"),
-                 "Couldn't parse remap rule: '-r __ns:=/a//b'", id="invalid-namespace"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, node_namespace="relative"),
-                 "Couldn't parse remap rule: '-r __ns:=relative'", id="relative-namespace"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["nocolon"]),
-                 "Couldn't parse remap rule: '-r nocolon'", id="remap-without-separator"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b c"]),
-                 "Couldn't parse remap rule: '-r a:=b c'", id="remap-with-space"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b", ":=x"]),
-                 "Couldn't parse remap rule: '-r :=x'", id="remap-empty-side"),
-    pytest.param(dict(package_name="CLONEGUARD", plugin_name=TALKER),
-                 "Could not find requested resource", id="package-name-case"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 0)]),
-                 "Invalid parameter 'period': its value type is not set", id="parameter-not-set"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 99)]),
-                 "Invalid parameter 'period'", id="parameter-unknown-type"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("", 2)]),
-                 "the name is empty", id="parameter-empty-name"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, parameters={"period": "fast"}),
-                 "expecting type 'DOUBLE'", id="parameter-wrong-type"),
-    pytest.param(dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"use_intra_process_comms": "yes"}),
-                 "Extra component argument 'use_intra_process_comms' must be a boolean", id="extra-argument-type"),
-    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::Raises"),
-                 "sensor not found on /dev/imaginary", id="constructor-raises"),
-    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::NotANode"),
-                 "is not a subclass of rclpy.node.Node", id="not-a-node"),
-    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::IgnoresOptions"),
-                 "unexpected keyword argument", id="constructor-takes-no-options"),
-    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::Missing"),
-                 "Failed to import component 'misfits::Missing'", id="plugin-module-missing"),
-    pytest.param(dict(package_name="misfit-components", plugin_name="misfits::DeclaresInteger",
-                      parameters={"count": "three"}),
-                 "expecting type 'INTEGER'", id="misfit-parameter-type"),
+    pytest.param(
+        dict(package_name=PKG, plugin_name="cloneguard.container.components.talker:Talker"),
+        "Failed to find class",
+        id="module-path-is-not-a-plugin",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, node_name="bad name"),
+        "Couldn't parse remap rule: '-r __node:=bad name'",
+        id="invalid-node-name",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, node_name="9lives"),
+        "Couldn't parse remap rule: '-r __node:=9lives'",
+        id="node-name-starts-with-digit",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, node_namespace="/a//b"),
+        "Couldn't parse remap rule: '-r __ns:=/a//b'",
+        id="invalid-namespace",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, node_namespace="relative"),
+        "Couldn't parse remap rule: '-r __ns:=relative'",
+        id="relative-namespace",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, remap_rules=["nocolon"]),
+        "Couldn't parse remap rule: '-r nocolon'",
+        id="remap-without-separator",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b c"]),
+        "Couldn't parse remap rule: '-r a:=b c'",
+        id="remap-with-space",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, remap_rules=["a:=b", ":=x"]),
+        "Couldn't parse remap rule: '-r :=x'",
+        id="remap-empty-side",
+    ),
+    pytest.param(
+        dict(package_name="CLONEGUARD", plugin_name=TALKER), "Could not find requested resource", id="package-name-case"
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 0)]),
+        "Invalid parameter 'period': its value type is not set",
+        id="parameter-not-set",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("period", 99)]),
+        "Invalid parameter 'period'",
+        id="parameter-unknown-type",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, parameters=[_param("", 2)]),
+        "the name is empty",
+        id="parameter-empty-name",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, parameters={"period": "fast"}),
+        "expecting type 'DOUBLE'",
+        id="parameter-wrong-type",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"use_intra_process_comms": "yes"}),
+        "Extra component argument 'use_intra_process_comms' must be a boolean",
+        id="extra-argument-type",
+    ),
+    pytest.param(
+        dict(package_name="misfit-components", plugin_name="misfits::Raises"),
+        "sensor not found on /dev/imaginary",
+        id="constructor-raises",
+    ),
+    pytest.param(
+        dict(package_name="misfit-components", plugin_name="misfits::NotANode"),
+        "is not a subclass of rclpy.node.Node",
+        id="not-a-node",
+    ),
+    pytest.param(
+        dict(package_name="misfit-components", plugin_name="misfits::IgnoresOptions"),
+        "unexpected keyword argument",
+        id="constructor-takes-no-options",
+    ),
+    pytest.param(
+        dict(package_name="misfit-components", plugin_name="misfits::Missing"),
+        "Failed to import component 'misfits::Missing'",
+        id="plugin-module-missing",
+    ),
+    pytest.param(
+        dict(package_name="misfit-components", plugin_name="misfits::DeclaresInteger", parameters={"count": "three"}),
+        "expecting type 'INTEGER'",
+        id="misfit-parameter-type",
+    ),
 ]
 
 
@@ -89,5 +146,5 @@ def test_log_level_applies_to_the_node(client, container):
         assert time.monotonic() < deadline, "the nodes' timers never logged"
         time.sleep(0.05)
     # Each node logs its debug line before its info line, so both are in.
-    debug_lines = [l for l in container.log_text().splitlines() if "debug line from a timer" in l]
+    debug_lines = [ln for ln in container.log_text().splitlines() if "debug line from a timer" in ln]
     assert len(debug_lines) == 1 and "[chatty]" in debug_lines[0]

@@ -1,5 +1,6 @@
 """The benchmarks (bench/) run end to end with tiny counts and write their
 tables. Structure only: no figure here is compared with anything."""
+
 import json
 import subprocess
 import sys
@@ -17,41 +18,120 @@ EXPECTED_TABLES = {
         ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"],
     ],
     "memory": [
-        ["mode", "processes @2", "address spaces @2", "PSS @1 (MiB)", "PSS @2 (MiB)", "marginal PSS / node (MiB)",
-         "marginal USS / node (MiB)", "marginal page tables / node (KiB)", "process-per-node ÷ this (marginal PSS)"],
+        [
+            "mode",
+            "processes @2",
+            "address spaces @2",
+            "PSS @1 (MiB)",
+            "PSS @2 (MiB)",
+            "marginal PSS / node (MiB)",
+            "marginal USS / node (MiB)",
+            "marginal page tables / node (KiB)",
+            "process-per-node ÷ this (marginal PSS)",
+        ],
         ["mode", "@1", "@2"],
     ],
     "crash_latency": [
-        ["profile", "signal", "n", "lost (no CRASHED in 10 s)",
-         "container stuck afterwards (next LoadNode unanswered)", "→ CRASHED stamp: median", "stamp: p90",
-         "stamp: max", "→ CRASHED at client: median", "at client: p90", "median vs goal 1 ms"],
-        ["profile", "signal", "n", "CRASHED stamped (published)", "'died' error logged (manager)",
-         "'left in memory' warning logged (host)"],
-        ["signal", "n", "monitor detected: median", "detected: p90", "detected: max", "on_event called: median",
-         "on_event: p90"],
+        [
+            "profile",
+            "signal",
+            "n",
+            "lost (no CRASHED in 10 s)",
+            "container stuck afterwards (next LoadNode unanswered)",
+            "→ CRASHED stamp: median",
+            "stamp: p90",
+            "stamp: max",
+            "→ CRASHED at client: median",
+            "at client: p90",
+            "median vs goal 1 ms",
+        ],
+        [
+            "profile",
+            "signal",
+            "n",
+            "CRASHED stamped (published)",
+            "'died' error logged (manager)",
+            "'left in memory' warning logged (host)",
+        ],
+        [
+            "signal",
+            "n",
+            "monitor detected: median",
+            "detected: p90",
+            "detected: max",
+            "on_event called: median",
+            "on_event: p90",
+        ],
     ],
     "load_latency": [
-        ["mode", "n", "→ LOADED at client: median", "→ LOADED: p90", "LoadNode round trip: median",
-         "round trip: p90", "→ LOADED published (container clock): median", "cold first load → LOADED",
-         "UnloadNode round trip: median", "LOADED median vs goal 20 ms"],
+        [
+            "mode",
+            "n",
+            "→ LOADED at client: median",
+            "→ LOADED: p90",
+            "LoadNode round trip: median",
+            "round trip: p90",
+            "→ LOADED published (container clock): median",
+            "cold first load → LOADED",
+            "UnloadNode round trip: median",
+            "LOADED median vs goal 20 ms",
+        ],
     ],
     "shutdown": [
-        ["mode", "nodes", "processes before", "n", "→ container exited: median", "exited: p90", "exited: max",
-         "→ process group empty: median", "exit codes", "timed out / forced", "children SIGKILLed after 500 ms",
-         "vs goal (≤ 1 s with 20 isolated nodes)"],
+        [
+            "mode",
+            "nodes",
+            "processes before",
+            "n",
+            "→ container exited: median",
+            "exited: p90",
+            "exited: max",
+            "→ process group empty: median",
+            "exit codes",
+            "timed out / forced",
+            "children SIGKILLed after 500 ms",
+            "vs goal (≤ 1 s with 20 isolated nodes)",
+        ],
     ],
     "intra": [
-        ["size", "transport", "n", "latency: median", "latency: p90", "latency: max", "period (ms)",
-         "latency > period", "burst: received / sent", "burst: msgs/s", "burst: MiB/s",
-         "burst: source's publish rate (msgs/s)", "lost", "KEEP_LAST dropped", "publish() call: median",
-         "build (not in latency): median", "sent over DDS (source)"],
+        [
+            "size",
+            "transport",
+            "n",
+            "latency: median",
+            "latency: p90",
+            "latency: max",
+            "period (ms)",
+            "latency > period",
+            "burst: received / sent",
+            "burst: msgs/s",
+            "burst: MiB/s",
+            "burst: source's publish rate (msgs/s)",
+            "lost",
+            "KEEP_LAST dropped",
+            "publish() call: median",
+            "build (not in latency): median",
+            "sent over DDS (source)",
+        ],
         ["ratio", "numerator", "denominator", "measured", "goal", "verdict"],
+    ],
+    "python_locks": [["case", "CPython", "ours", "ours ÷ CPython", "ours p90"]],
+    "lock_doctor": [
+        ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"]
     ],
 }
 # Rows of the first table: one per mode (or profile × signal, or measure; intra:
 # 2 sizes × 3 transports and the floor).
-EXPECTED_ROWS = {"child_start": 8, "memory": 3, "crash_latency": 4, "load_latency": 2, "shutdown": 5,
-                 "intra": 7}
+EXPECTED_ROWS = {
+    "child_start": 8,
+    "memory": 3,
+    "crash_latency": 4,
+    "load_latency": 2,
+    "shutdown": 5,
+    "intra": 7,
+    "python_locks": 6,  # 3 uncontended, contended at 2, 4, 8 threads
+    "lock_doctor": 2,  # one per node count
+}
 
 
 @pytest.fixture(scope="module")
@@ -102,8 +182,21 @@ def test_summary_has_a_row_per_measure(tiny_run):
 
 def test_a_benchmark_runs_as_its_documented_command(tmp_path):
     done = subprocess.run(
-        [sys.executable, "-m", "cloneguard.bench.load_latency", "--n", "1", "--modes", "thread", "--out", str(tmp_path)],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=60,
+        [
+            sys.executable,
+            "-m",
+            "cloneguard.bench.load_latency",
+            "--n",
+            "1",
+            "--modes",
+            "thread",
+            "--out",
+            str(tmp_path),
+        ],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "| mode | n | → LOADED at client: median |" in done.stdout

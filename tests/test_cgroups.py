@@ -1,4 +1,5 @@
 """--cgroups: each isolated node born in its own cgroup, with an optional CPU quota."""
+
 import os
 import signal
 import subprocess
@@ -31,7 +32,7 @@ def _cgroup_dirs(container_pid):
 def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, container):
     uid = client.load_ok(PKG, "cloneguard::Heartbeat").unique_id
     pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=uid).pid
-    v2_line = [l for l in Path(f"/proc/{pid}/cgroup").read_text().splitlines() if l.startswith("0::")][0]
+    v2_line = [ln for ln in Path(f"/proc/{pid}/cgroup").read_text().splitlines() if ln.startswith("0::")][0]
     assert v2_line == f"0::/cloneguard-{container.pid}/node-{uid}"
     assert (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").is_dir()
     client.unload(uid)
@@ -41,8 +42,12 @@ def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, containe
 @needs_cpu
 @pytest.mark.parametrize("container_args", [CG_ARGS])
 def test_a_cpu_quota_throttles_a_busy_node(client, container):
-    resp = client.load_ok(RIG, "faults::HangInCallback", parameters={"mode": "spin", "delay": 0.0},
-                          extra_arguments={"cloneguard.cpu_quota": 0.2})
+    resp = client.load_ok(
+        RIG,
+        "faults::HangInCallback",
+        parameters={"mode": "spin", "delay": 0.0},
+        extra_arguments={"cloneguard.cpu_quota": 0.2},
+    )
     pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id).pid
     v1 = v1_cpu_mount()
     group = (v1 if v1 else cgroup2_mount()) / f"cloneguard-{container.pid}" / f"node-{resp.unique_id}"
@@ -127,7 +132,7 @@ def test_a_closed_node_cgroups_janitor_ends_and_is_no_child_of_ours(request):
 
     cgroups = NodeCgroups(f"cloneguard-test-janitor-{os.getpid()}")
     request.addfinalizer(cgroups.close)
-    [janitor] = _janitors_of(cgroups.v2_root)          # waiting for us
+    [janitor] = _janitors_of(cgroups.v2_root)  # waiting for us
     assert janitor not in procfs.children_of(os.getpid())
     cgroups.remove(cgroups.create(3))
     assert cgroups.close() == []
@@ -156,7 +161,7 @@ def test_an_empty_cgroup_left_under_our_name_is_reclaimed(request):
     request.addfinalizer(cgroups.close)
     assert cgroups.reclaimed == [str(r) for r in roots]
     assert not (roots[0] / "node-7").exists()
-    cg = cgroups.create(7)                # the name a stale node held is free again
+    cg = cgroups.create(7)  # the name a stale node held is free again
     cgroups.remove(cg)
     assert cgroups.close() == []
     assert not any(r.exists() for r in roots)
@@ -178,6 +183,7 @@ def test_a_cgroup_under_our_name_with_a_live_process_is_refused_not_touched():
         sleeper.kill()
         sleeper.wait()
         from cloneguard.container.isolated.cgroups import _rmdir
+
         for root in roots:
             for d in sorted((d for d in root.rglob("*") if d.is_dir()), reverse=True) + [root]:
                 _rmdir(d)

@@ -1,4 +1,5 @@
 """The container's services behave like rclcpp_components' ComponentManager."""
+
 import time
 
 import pytest
@@ -45,9 +46,7 @@ def test_lookup_failures_do_not_use_up_ids(client):
 
 
 def test_upstream_error_texts(client):
-    assert client.load("no_such_package", TALKER).error_message == (
-        "Could not find requested resource in ament index"
-    )
+    assert client.load("no_such_package", TALKER).error_message == ("Could not find requested resource in ament index")
     assert client.load(PKG, "cloneguard::NoSuchThing").error_message == (
         "Failed to find class with the requested plugin name."
     )
@@ -83,7 +82,8 @@ def test_node_name_and_namespace_overrides(client, name, namespace, expected):
 def test_remap_rules_and_parameters_reach_the_node(client):
     heard = client.subscribe(String, "/renamed_topic")
     client.load_ok(
-        PKG, TALKER,
+        PKG,
+        TALKER,
         remap_rules=["chatter:=renamed_topic"],
         parameters={"message": "bonjour", "period": 0.02},
     )
@@ -117,7 +117,7 @@ def test_renamed_and_namespaced_container(container_factory):
 @pytest.mark.parametrize("container_args", [[], ["--isolated", "--profile", "shared"]], ids=["threads", "shared"])
 def test_an_unloaded_node_takes_its_type_description_service_with_it(client):
     # Nodes that share the container's Context: rclpy alone would leave the
-    # service's DDS endpoints behind (container/factory.py).
+    # service's DDS endpoints behind (container/construction.py).
     service = "/tds/get_type_description"
 
     def offered():

@@ -6,6 +6,7 @@ a drain blocked inside jemalloc, a container thread on glibc's main arena.
 The end-to-end checks (gdb on real hung containers) are the scenarios'
 baselines, whose hangs must come out named.
 """
+
 from cloneguard.harness.diagnose import BlockedOn, Diagnosis, _lock_wait, _state, parse_threads
 
 HOLDER = """\
@@ -78,23 +79,44 @@ Thread 3 (Thread 0x7f5729ffb6c0 (LWP 24196) "python"):
 def test_a_mutex_is_described_by_the_function_that_takes_it_and_a_shared_one_says_so():
     [t] = parse_threads(POOL, pid=24190)
     kind, addr, taker = _lock_wait(t)
-    assert (kind, addr, taker) == ("pthread mutex", "0x55d08e863088",
-                                   "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload")
-    b = BlockedOn(tid=24196, kind=kind, address=addr, owner_tid=31910, owner_node=None, owner_dead=True,
-                  where="container", taker=taker)
+    assert (kind, addr, taker) == (
+        "pthread mutex",
+        "0x55d08e863088",
+        "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload",
+    )
+    b = BlockedOn(
+        tid=24196,
+        kind=kind,
+        address=addr,
+        owner_tid=31910,
+        owner_node=None,
+        owner_dead=True,
+        where="container",
+        taker=taker,
+    )
     assert b.describe() == (
         "tid 24196 (container) waits on the pthread mutex at 0x55d08e863088 (taken in "
         "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload: Fast DDS's payload pool of one "
         "topic, shared by every participant in the process (TopicPayloadPoolRegistry)), "
-        "owned by tid 31910 (a dead process)")
+        "owned by tid 31910 (a dead process)"
+    )
 
 
 def test_a_wait_on_the_gils_own_mutex_is_named_so():
-    b = BlockedOn(tid=7, kind="pthread mutex", address="0x7f00", owner_tid=9, owner_node=None, owner_dead=True,
-                  where="container", taker="take_gil")
+    b = BlockedOn(
+        tid=7,
+        kind="pthread mutex",
+        address="0x7f00",
+        owner_tid=9,
+        owner_node=None,
+        owner_dead=True,
+        where="container",
+        taker="take_gil",
+    )
     assert b.describe() == (
         "tid 7 (container) waits on the pthread mutex at 0x7f00 (taken in take_gil: the GIL's own mutex "
-        "(CPython's gil->mutex), taken by every thread that takes the GIL), owned by tid 9 (a dead process)")
+        "(CPython's gil->mutex), taken by every thread that takes the GIL), owned by tid 9 (a dead process)"
+    )
 
 
 def test_a_lock_taken_inside_jemalloc_is_named_so():
@@ -113,20 +135,42 @@ def test_a_glibc_arena_lock_is_named_by_its_arena_and_idle_and_running_threads_a
 
 def test_without_a_lock_the_summary_says_what_the_main_threads_do():
     from cloneguard.harness.diagnose import ThreadState
-    d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container", 11: "/drain"},
-                  states=[ThreadState(10, 10, "idle", "epoll_wait"),
-                          ThreadState(11, 11, "running", "drain_some [Python: _drain (components.py:225)]")])
-    assert d.summary() == ("no thread waits on a lock; /drain (pid 11) main thread running: "
-                           "drain_some [Python: _drain (components.py:225)]")
+
+    d = Diagnosis(
+        pid=10,
+        stacks_text="",
+        threads=[],
+        blocked=[],
+        names={10: "container", 11: "/drain"},
+        states=[
+            ThreadState(10, 10, "idle", "epoll_wait"),
+            ThreadState(11, 11, "running", "drain_some [Python: _drain (components.py:225)]"),
+        ],
+    )
+    assert d.summary() == (
+        "no thread waits on a lock; /drain (pid 11) main thread running: "
+        "drain_some [Python: _drain (components.py:225)]"
+    )
 
 
 def test_a_thread_that_burns_cpu_while_nothing_progresses_is_called_spinning():
     from cloneguard.harness.diagnose import ThreadState
-    d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container"},
-                  states=[ThreadState(10, 10, "idle", "epoll_wait"),
-                          ThreadState(12, 10, "running", "process_data_message", cpu_percent=97)])
-    assert d.summary() == ("no thread waits on a lock; container tid 12 spinning (97% of a CPU while "
-                           "nothing progressed): process_data_message")
+
+    d = Diagnosis(
+        pid=10,
+        stacks_text="",
+        threads=[],
+        blocked=[],
+        names={10: "container"},
+        states=[
+            ThreadState(10, 10, "idle", "epoll_wait"),
+            ThreadState(12, 10, "running", "process_data_message", cpu_percent=97),
+        ],
+    )
+    assert d.summary() == (
+        "no thread waits on a lock; container tid 12 spinning (97% of a CPU while "
+        "nothing progressed): process_data_message"
+    )
 
 
 def test_a_live_busy_loop_is_told_from_a_sleeper():
@@ -137,10 +181,13 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
     import pytest
 
     from cloneguard.harness.diagnose import diagnose, gdb_available
+
     if not gdb_available():
         pytest.skip("no gdb here")
-    code = "import threading, time\nthreading.Thread(target=lambda: [None for _ in iter(int, 1)], daemon=True).start()\n" \
-           "print('ready', flush=True)\ntime.sleep(60)\n"
+    code = (
+        "import threading, time\nthreading.Thread(target=lambda: [None for _ in iter(int, 1)], daemon=True).start()\n"
+        "print('ready', flush=True)\ntime.sleep(60)\n"
+    )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
@@ -157,16 +204,27 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
 
 def test_an_owner_in_no_process_looked_into_is_described_from_proc():
     from cloneguard.harness.diagnose import BlockedOn
-    b = BlockedOn(tid=5, kind="GIL", address="", owner_tid=77, owner_node=None, owner_dead=False,
-                  where="container", note="tid 77: state D (disk sleep), thread group 70")
-    assert b.describe() == ("tid 5 (container) waits on the GIL, owned by tid 77 "
-                            "(tid 77: state D (disk sleep), thread group 70)")
+
+    b = BlockedOn(
+        tid=5,
+        kind="GIL",
+        address="",
+        owner_tid=77,
+        owner_node=None,
+        owner_dead=False,
+        where="container",
+        note="tid 77: state D (disk sleep), thread group 70",
+    )
+    assert b.describe() == (
+        "tid 5 (container) waits on the GIL, owned by tid 77 (tid 77: state D (disk sleep), thread group 70)"
+    )
 
 
 def test_proc_facts_of_a_live_task_name_its_state_and_group():
     import os
 
     from cloneguard.harness import procfs
+
     facts = procfs.task_facts(os.getpid())
     assert facts.startswith("state R") or facts.startswith("state S"), facts
     assert f"thread group {os.getpid()}" in facts
@@ -199,6 +257,7 @@ def test_a_child_no_event_named_is_looked_into_too(container_factory):
 
     from cloneguard.harness import rest
     from cloneguard.harness.diagnose import UNNAMED_CHILD, diagnose, gdb_available
+
     if not gdb_available():
         pytest.skip("no gdb here")
     proc = container_factory.start(["--isolated"])
@@ -208,3 +267,24 @@ def test_a_child_no_event_named_is_looked_into_too(container_factory):
     assert d.names[spare] == UNNAMED_CHILD
     assert f"===== {UNNAMED_CHILD} (pid {spare}) =====" in d.stacks_text
     assert any(t.pid == spare for t in d.threads)
+
+
+def test_what_the_container_said_of_a_lock_it_left_comes_first():
+    from cloneguard.container import repairs
+    from cloneguard.harness.diagnose import CONTAINER_NOT_REPAIRED, not_repaired_lines
+
+    assert CONTAINER_NOT_REPAIRED == repairs.NOT_REPAIRED  # the container's own words
+    log = (
+        "[INFO] [1.0] [ComponentManager]: Loaded faults::X as /x\n"
+        "[WARN] [2.0] [ComponentManager]: lock not repaired: /w (pid 7) thread 7 is blocked on native NORMAL "
+        "mutex 0x10 in libm.so's data (m+0), whose owner thread 9 is gone but was not seen in a dead node "
+        "process: not released\n"
+        "[WARN] [2.5] [ComponentManager]: lock not repaired: /w (pid 7) thread 7 is blocked on native NORMAL "
+        "mutex 0x10 in libm.so's data (m+0), whose owner thread 9 is gone but was not seen in a dead node "
+        "process: not released\n"
+    )
+    said = not_repaired_lines(log)
+    assert len(said) == 1 and said[0].startswith("/w (pid 7) thread 7 is blocked on native NORMAL mutex 0x10")
+    d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container"}, container_said=said)
+    assert d.summary().startswith("the container said: /w (pid 7) thread 7 is blocked on native NORMAL mutex")
+    assert d.summary().endswith("no thread waits on a lock; every thread is idle (waiting for work that never comes)")

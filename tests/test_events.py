@@ -1,4 +1,5 @@
 """ComponentEvent: one per load, failed load and unload, with its fields."""
+
 import time
 
 from cloneguard_interfaces.msg import ComponentEvent
@@ -13,7 +14,7 @@ def test_loaded_and_unloaded_events_carry_the_node(client, container):
     loaded = client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id)
     assert loaded.full_node_name == "/ns/t1"
     assert (loaded.package_name, loaded.plugin_name) == (PKG, TALKER)
-    assert loaded.pid == container.pid          # thread mode: the container's own pid
+    assert loaded.pid == container.pid  # thread mode: the container's own pid
     assert before <= loaded.start_time <= time.time_ns()
     assert (loaded.exit_signal, loaded.exit_code, loaded.error_message) == (0, 0, "")
     assert client.unload(resp.unique_id).success

@@ -1,4 +1,5 @@
 """The fault components' firing line has one definition (harness/firing.py)."""
+
 import pytest
 
 from cloneguard.harness import firing

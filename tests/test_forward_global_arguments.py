@@ -1,6 +1,7 @@
 """LoadNode's extra argument forward_global_arguments, as rclcpp_components
 handles it: false (the default) builds the node without the container's
 global ROS arguments, true with them (and a warning); not a boolean: refused."""
+
 import pytest
 from std_msgs.msg import String
 
@@ -17,8 +18,13 @@ def test_a_node_sees_the_containers_global_arguments_only_when_asked(client, con
     client.load_ok("cloneguard", "cloneguard::Talker", node_name="own", parameters={"period": 0.02})
     plain.wait_count(3, timeout=10)
     assert "forward_global_arguments" not in container.log_text()
-    client.load_ok("cloneguard", "cloneguard::Talker", node_name="forwarded", parameters={"period": 0.02},
-                   extra_arguments={"forward_global_arguments": True})
+    client.load_ok(
+        "cloneguard",
+        "cloneguard::Talker",
+        node_name="forwarded",
+        parameters={"period": 0.02},
+        extra_arguments={"forward_global_arguments": True},
+    )
     remapped.wait_count(3, timeout=10)
     assert FORWARD_GLOBAL_WARNING in container.log_text()
 
@@ -26,5 +32,7 @@ def test_a_node_sees_the_containers_global_arguments_only_when_asked(client, con
 def test_forward_global_arguments_must_be_a_boolean(client):
     resp = client.load("cloneguard", "cloneguard::Talker", extra_arguments={"forward_global_arguments": "yes"})
     assert (resp.success, resp.error_message) == (
-        False, "Extra component argument 'forward_global_arguments' must be a boolean")
+        False,
+        "Extra component argument 'forward_global_arguments' must be a boolean",
+    )
     assert client.list() == []

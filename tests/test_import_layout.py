@@ -9,6 +9,7 @@
 - The product never depends on its test rig.
 - The harness treats the container as a black box: it never imports it.
 """
+
 import ast
 from pathlib import Path
 
@@ -45,11 +46,15 @@ def test_no_source_imports_a_bare_top_level_name():
     assert bare == [], "import them as cloneguard.<name>: " + ", ".join(bare)
 
 
-@pytest.mark.parametrize("folder, forbidden", [
-    ("container", ("cloneguard.harness", "cloneguard.faults", "cloneguard.bench")),
-    ("harness", ("cloneguard.container",)),
-])
+@pytest.mark.parametrize(
+    "folder, forbidden",
+    [
+        ("container", ("cloneguard.harness", "cloneguard.faults", "cloneguard.bench")),
+        ("harness", ("cloneguard.container",)),
+    ],
+)
 def test_dependencies_run_one_way(folder, forbidden):
-    found = offenders(sorted((REPO / folder).rglob("*.py")),
-                      lambda m: any(m == f or m.startswith(f + ".") for f in forbidden))
+    found = offenders(
+        sorted((REPO / folder).rglob("*.py")), lambda m: any(m == f or m.startswith(f + ".") for f in forbidden)
+    )
     assert found == []

@@ -9,6 +9,7 @@
 
 Run `python scripts/build_interfaces.py` first.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -25,8 +26,8 @@ try:
     from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 except ImportError as exc:  # pragma: no cover - message for a missing build
     raise ImportError(
-        f"{exc}: the interface packages are not installed in this venv; "
-        "run `python scripts/build_interfaces.py` first") from exc
+        f"{exc}: the interface packages are not installed in this venv; run `python scripts/build_interfaces.py` first"
+    ) from exc
 
 from rclpy.type_support import check_for_type_support
 from ros_support import ros_nodes
@@ -87,6 +88,7 @@ SHARE = Path(sys.prefix) / "share"
 # the type hash from its get_type_hash_func (and announces it in discovery),
 # so calling that function reads exactly what goes on the wire.  The layouts
 # are rosidl_runtime_c's (Jazzy) message_/service_type_support_struct.h.
+
 
 class _TypeHash(ctypes.Structure):  # rosidl_type_hash_t
     _fields_ = [("version", ctypes.c_uint8), ("value", ctypes.c_uint8 * 32)]
@@ -165,6 +167,7 @@ def installed_json_hashes(package: str, kind: str, name: str) -> dict[str, str]:
 
 # --- composition_interfaces -------------------------------------------------
 
+
 @pytest.mark.parametrize("name", sorted(SERVICES))
 def test_type_support_hashes_equal_upstream_jazzy(name):
     assert service_type_hashes(SERVICES[name]) == UPSTREAM_HASHES[name]
@@ -208,6 +211,7 @@ def test_load_node_fields():
 
 # --- cloneguard_interfaces ----------------------------------------------------
 
+
 def test_component_event_constants():
     for name, value in COMPONENT_EVENT_CONSTANTS.items():
         assert getattr(ComponentEvent, name) == value
@@ -223,7 +227,8 @@ def test_component_event_constant_types():
     idl = parse_idl_file(IdlLocator(SHARE / "cloneguard_interfaces", "msg/ComponentEvent.idl"))
     (message,) = idl.content.get_elements_of_type(Message)
     assert [(c.name, c.type.typename, c.value) for c in message.constants] == [
-        (name, "uint8", value) for name, value in COMPONENT_EVENT_CONSTANTS.items()]
+        (name, "uint8", value) for name, value in COMPONENT_EVENT_CONSTANTS.items()
+    ]
 
 
 def test_component_event_fields():
@@ -236,13 +241,23 @@ def test_component_event_serialization_round_trip():
     from rclpy.serialization import deserialize_message, serialize_message
 
     msg = ComponentEvent(
-        stamp=Time(sec=1, nanosec=2), event_type=255, unique_id=2**64 - 1,
-        full_node_name="/ns/talker", package_name="cloneguard", plugin_name="cloneguard::Talker",
-        error_message="killed by SIGSEGV", pid=-2**31, exit_signal=2**31 - 1, exit_code=-1,
-        start_time=2**64 - 1, allocator_quarantined=True, repaired_state="progress-board")
+        stamp=Time(sec=1, nanosec=2),
+        event_type=255,
+        unique_id=2**64 - 1,
+        full_node_name="/ns/talker",
+        package_name="cloneguard",
+        plugin_name="cloneguard::Talker",
+        error_message="killed by SIGSEGV",
+        pid=-(2**31),
+        exit_signal=2**31 - 1,
+        exit_code=-1,
+        start_time=2**64 - 1,
+        allocator_quarantined=True,
+        repaired_state="progress-board",
+    )
     back = deserialize_message(serialize_message(msg), ComponentEvent)
     assert back == msg
-    assert back.pid == -2**31 and back.exit_code == -1 and back.start_time == 2**64 - 1
+    assert back.pid == -(2**31) and back.exit_code == -1 and back.start_time == 2**64 - 1
 
 
 def test_component_event_hash_consistent():
@@ -260,8 +275,9 @@ def ros():
 
 
 def _endpoints(node, topic):
-    return (node.get_publishers_info_by_topic(topic, no_mangle=True)
-            + node.get_subscriptions_info_by_topic(topic, no_mangle=True))
+    return node.get_publishers_info_by_topic(topic, no_mangle=True) + node.get_subscriptions_info_by_topic(
+        topic, no_mangle=True
+    )
 
 
 def test_discovery_announces_upstream_hashes(ros):
@@ -276,8 +292,10 @@ def test_discovery_announces_upstream_hashes(ros):
     try:
         for name in SERVICES:
             base = f"hash_check/{name.lower()}"
-            topics = {f"rq/{base}Request": UPSTREAM_HASHES[name]["request"],
-                      f"rr/{base}Reply": UPSTREAM_HASHES[name]["response"]}
+            topics = {
+                f"rq/{base}Request": UPSTREAM_HASHES[name]["request"],
+                f"rr/{base}Reply": UPSTREAM_HASHES[name]["response"],
+            }
             for topic, expected in topics.items():
                 deadline = time.monotonic() + 10
                 infos = _endpoints(node, topic)
@@ -309,11 +327,18 @@ def test_load_node_round_trip(ros):
     try:
         assert client.wait_for_service(timeout_sec=10.0), "LoadNode service never appeared"
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+
         request = LoadNode.Request(
-            package_name="cloneguard", plugin_name="cloneguard::Talker", node_name="talker",
-            node_namespace="/smoke", log_level=20, remap_rules=["chatter:=talk"],
-            parameters=[Parameter(name="rate", value=ParameterValue(
-                type=ParameterType.PARAMETER_DOUBLE, double_value=5.0))])
+            package_name="cloneguard",
+            plugin_name="cloneguard::Talker",
+            node_name="talker",
+            node_namespace="/smoke",
+            log_level=20,
+            remap_rules=["chatter:=talk"],
+            parameters=[
+                Parameter(name="rate", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=5.0))
+            ],
+        )
         future = client.call_async(request)
         executor.spin_until_future_complete(future, timeout_sec=10.0)
         assert future.done(), "no LoadNode response within 10 s"
@@ -334,10 +359,17 @@ def test_component_event_pub_sub(ros):
     publisher = node.create_publisher(ComponentEvent, "smoke/component_events", 10)
     try:
         sent = ComponentEvent(
-            event_type=ComponentEvent.LOAD_FAILED, unique_id=7, full_node_name="/smoke/talker",
-            package_name="cloneguard", plugin_name="cloneguard::Talker",
-            error_message="no such plugin", pid=os.getpid(), exit_signal=0, exit_code=1,
-            start_time=time.time_ns())
+            event_type=ComponentEvent.LOAD_FAILED,
+            unique_id=7,
+            full_node_name="/smoke/talker",
+            package_name="cloneguard",
+            plugin_name="cloneguard::Talker",
+            error_message="no such plugin",
+            pid=os.getpid(),
+            exit_signal=0,
+            exit_code=1,
+            start_time=time.time_ns(),
+        )
         sent.stamp = node.get_clock().now().to_msg()
         deadline = time.monotonic() + 10
         while not received and time.monotonic() < deadline:

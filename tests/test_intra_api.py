@@ -4,6 +4,7 @@ Real rclpy and Fast DDS (loopback profile, a leased domain); endpoints are
 made with ``intra_process=True`` (in a container, LoadNode's
 ``use_intra_process_comms`` decides).
 """
+
 import threading
 import time
 
@@ -38,8 +39,7 @@ class Inbox:
 
     def wait(self, n, timeout=10.0):
         with self.cond:
-            assert self.cond.wait_for(lambda: len(self.items) >= n, timeout), \
-                f"{len(self.items)} of {n} messages"
+            assert self.cond.wait_for(lambda: len(self.items) >= n, timeout), f"{len(self.items)} of {n} messages"
         return self.items
 
 
@@ -59,9 +59,9 @@ def test_the_subscriber_gets_the_published_object_itself(ros):
     for m in msgs:
         pub.publish(m)
     got = inbox.wait(5)
-    assert all(a is b for a, b in zip(got, msgs))
+    assert all(a is b for a, b in zip(got, msgs, strict=True))
     assert sub.received_intra == 5 and sub.received_dds == 0
-    assert pub.sent_intra == 5 and pub.sent_dds == 0       # no one outside: DDS untouched
+    assert pub.sent_intra == 5 and pub.sent_dds == 0  # no one outside: DDS untouched
 
 
 def test_keep_last_depth_bounds_the_queue(ros):
@@ -85,16 +85,23 @@ def test_keep_last_depth_bounds_the_queue(ros):
 def test_a_reliable_subscription_does_not_match_a_best_effort_publisher(ros):
     pub_node, sub_node = ros
     inbox = Inbox()
-    intra.create_subscription(sub_node, String, "/c", inbox,
-                              QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE), intra_process=True)
-    pub = intra.create_publisher(pub_node, String, "/c",
-                                 QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
-                                 intra_process=True)
+    intra.create_subscription(
+        sub_node, String, "/c", inbox, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE), intra_process=True
+    )
+    pub = intra.create_publisher(
+        pub_node, String, "/c", QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT), intra_process=True
+    )
     pub.publish(String(data="x"))
     assert pub.sent_intra == 0
     be_inbox = Inbox()
-    intra.create_subscription(sub_node, String, "/c", be_inbox,
-                              QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT), intra_process=True)
+    intra.create_subscription(
+        sub_node,
+        String,
+        "/c",
+        be_inbox,
+        QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
+        intra_process=True,
+    )
     pub.publish(String(data="y"))
     assert [m.data for m in be_inbox.wait(1)] == ["y"] and inbox.items == []
 
@@ -144,25 +151,26 @@ def test_a_plain_publisher_reaches_an_intra_subscription_over_dds(ros):
 def test_a_loan_reaches_loaned_and_plain_subscriptions(ros):
     pub_node, sub_node = ros
     loaned_inbox, plain_inbox = Inbox(), Inbox()
-    intra.create_subscription(sub_node, UInt8MultiArray, "/h", loaned_inbox, 10,
-                              intra_process=True, loaned_field="data")
+    intra.create_subscription(
+        sub_node, UInt8MultiArray, "/h", loaned_inbox, 10, intra_process=True, loaned_field="data"
+    )
     intra.create_subscription(sub_node, UInt8MultiArray, "/h", plain_inbox, 10, intra_process=True)
     pub = intra.create_publisher(pub_node, UInt8MultiArray, "/h", 10, intra_process=True)
-    payload = bytes(range(256)) * 4096            # 1 MiB
+    payload = bytes(range(256)) * 4096  # 1 MiB
     loan = pub.loan(len(payload))
     loan.buffer[:] = payload
     template = UInt8MultiArray()
     template.layout.data_offset = 7
     pub.publish_loan(loan, template, "data")
     with pytest.raises(ValueError, match="read-only"):
-        loan.buffer                                 # sealed by publishing
+        _ = loan.buffer  # sealed by publishing
     with pytest.raises(ValueError, match="already published"):
         pub.publish_loan(loan, template, "data")
     got = loaned_inbox.wait(1)[0]
     assert isinstance(got, LoanedMessage) and got.loaned
     assert got.message is template and bytes(got.payload) == payload
     with pytest.raises(TypeError):
-        got.payload[0] = 0                          # subscribers get read-only views
+        got.payload[0] = 0  # subscribers get read-only views
     full = plain_inbox.wait(1)[0]
     assert isinstance(full, UInt8MultiArray) and full.layout.data_offset == 7
     assert full.data.tobytes() == payload
@@ -171,8 +179,7 @@ def test_a_loan_reaches_loaned_and_plain_subscriptions(ros):
 def test_a_loaned_subscription_sees_dds_messages_through_the_same_interface(ros):
     pub_node, sub_node = ros
     inbox = Inbox()
-    intra.create_subscription(sub_node, UInt8MultiArray, "/i", inbox, 10,
-                              intra_process=True, loaned_field="data")
+    intra.create_subscription(sub_node, UInt8MultiArray, "/i", inbox, 10, intra_process=True, loaned_field="data")
     plain = pub_node.create_publisher(UInt8MultiArray, "/i", 10)
     _wait(lambda: plain.get_subscription_count() == 1, "matched")
     plain.publish(UInt8MultiArray(data=b"abc"))
@@ -185,8 +192,7 @@ def test_a_loan_can_only_stand_for_a_byte_array_field(ros):
     with pytest.raises(ValueError, match="a loan can only be a uint8"):
         intra.create_subscription(sub_node, String, "/j", print, 10, intra_process=True, loaned_field="data")
     with pytest.raises(ValueError, match="has no field 'pixels'"):
-        intra.create_subscription(sub_node, UInt8MultiArray, "/j", print, 10,
-                                  intra_process=True, loaned_field="pixels")
+        intra.create_subscription(sub_node, UInt8MultiArray, "/j", print, 10, intra_process=True, loaned_field="pixels")
 
 
 def test_endpoints_follow_the_load_they_were_made_in_and_are_forgotten_with_it(ros):
@@ -195,6 +201,6 @@ def test_endpoints_follow_the_load_they_were_made_in_and_are_forgotten_with_it(r
     with intra.api.constructing(owner=4242, enabled=True):
         sub = intra.create_subscription(sub_node, String, "/k", print, 10)
     assert sub.intra and bus.subscriptions("/k")[0].owner == 4242
-    off = intra.create_publisher(pub_node, String, "/k2", 10)      # no load: plain
+    off = intra.create_publisher(pub_node, String, "/k2", 10)  # no load: plain
     assert not off.intra
     assert bus.forget(4242) == 1 and bus.subscriptions("/k") == ()

@@ -4,6 +4,7 @@ The demo talker and listener use container.intra; the listener publishes,
 per message, how many it has received (``~/received``) and how many of those
 were handed over by reference (``~/by_reference``).
 """
+
 import os
 import signal
 import time
@@ -37,8 +38,9 @@ def _wait_discovered(client, topic: str) -> None:
 
 
 def _load_listener(client, topic, intra=True, name="lis"):
-    client.load_ok(PKG, "cloneguard::Listener", node_name=name, parameters={"topic": topic},
-                   extra_arguments=INTRA if intra else {})
+    client.load_ok(
+        PKG, "cloneguard::Listener", node_name=name, parameters={"topic": topic}, extra_arguments=INTRA if intra else {}
+    )
     counts = client.subscribe(UInt64, f"/{name}/received"), client.subscribe(UInt64, f"/{name}/by_reference")
     for topic in (f"/{name}/received", f"/{name}/by_reference"):
         _wait_discovered(client, topic)
@@ -46,9 +48,13 @@ def _load_listener(client, topic, intra=True, name="lis"):
 
 
 def _load_talker(client, topic, intra=True, limit=N):
-    return client.load_ok(PKG, "cloneguard::Talker", node_name="tlk",
-                          parameters={"topic": topic, "period": 0.01, "limit": limit},
-                          extra_arguments=INTRA if intra else {})
+    return client.load_ok(
+        PKG,
+        "cloneguard::Talker",
+        node_name="tlk",
+        parameters={"topic": topic, "period": 0.01, "limit": limit},
+        extra_arguments=INTRA if intra else {},
+    )
 
 
 @pytest.mark.parametrize("container_args", MODES)
@@ -67,7 +73,7 @@ def test_an_outside_subscriber_gets_it_over_dds_and_inside_nothing_is_doubled(cl
     outside = client.subscribe(String, "/intra_b")
     received, by_ref = _load_listener(client, "/intra_b")
     _load_talker(client, "/intra_b", limit=0)
-    outside.wait_count(20, timeout=15)       # the talker saw a subscriber outside: DDS too
+    outside.wait_count(20, timeout=15)  # the talker saw a subscriber outside: DDS too
     # 20 more by reference while DDS carries them too: the received count
     # (same callback) must not have run ahead of the by-reference one.
     target = _values(by_ref)[-1] + 20
@@ -83,7 +89,7 @@ def test_an_outside_publisher_reaches_an_intra_process_subscription(client):
     received, by_ref = _load_listener(client, "/intra_c")
     pub = client.node.create_publisher(String, "/intra_c", 10)
     deadline = time.monotonic() + 15
-    while pub.get_subscription_count() == 0:       # discovery: a condition, bounded
+    while pub.get_subscription_count() == 0:  # discovery: a condition, bounded
         assert time.monotonic() < deadline, "the listener's DDS reader never matched"
         time.sleep(0.01)
     _wait_discovered(client, "/lis/received")
@@ -123,6 +129,11 @@ def test_a_dead_publisher_leaves_the_subscriber_receiving_from_the_next(client):
     os.kill(pid, signal.SIGKILL)
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=tlk_id)
     seen = _values(by_ref)[-1]
-    client.load_ok(PKG, "cloneguard::Talker", node_name="tlk2", parameters={"topic": "/intra_f", "period": 0.01},
-                   extra_arguments=INTRA)
+    client.load_ok(
+        PKG,
+        "cloneguard::Talker",
+        node_name="tlk2",
+        parameters={"topic": "/intra_f", "period": 0.01},
+        extra_arguments=INTRA,
+    )
     by_ref.wait_for(lambda m: m.data >= seen + 5, timeout=10)

@@ -5,6 +5,7 @@ intraprocess delivery off, no shared memory), two nodes in this process on
 one executor, a ROS domain leased for the module. Each test has topics of its
 own, so nothing one test publishes reaches another's readers.
 """
+
 from __future__ import annotations
 
 import time
@@ -14,17 +15,17 @@ import pytest
 from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
+from ros_support import ros_nodes
 from std_msgs.msg import String, UInt8MultiArray
 
 from cloneguard.container.intra.dds_reader import GID_SIZE, GidFilteredReader, publisher_gid
 
 # Reliable and keeping everything: a test that counts messages must not lose
 # any to history depth.
-QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
-                 durability=DurabilityPolicy.VOLATILE)
+QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE
+)
 DEADLINE = 20.0  # seconds any single condition may take
-
-from ros_support import ros_nodes
 
 
 @pytest.fixture(scope="module")
@@ -45,9 +46,13 @@ def spin_until(executor, condition, timeout=DEADLINE) -> bool:
 
 def wait_matched(executor, publishers, reader, timeout=DEADLINE) -> None:
     """Both ends discovered: volatile messages published before are lost."""
-    assert spin_until(executor, lambda: reader.get_publisher_count() == len(publishers)
-                      and all(p.get_subscription_count() >= 1 for p in publishers), timeout), \
-        "publishers and reader did not match"
+    assert spin_until(
+        executor,
+        lambda: (
+            reader.get_publisher_count() == len(publishers) and all(p.get_subscription_count() >= 1 for p in publishers)
+        ),
+        timeout,
+    ), "publishers and reader did not match"
 
 
 class Recorder:
@@ -55,7 +60,7 @@ class Recorder:
 
     def __init__(self, drop=lambda gid: False):
         self.messages: list = []
-        self.offered: list[bytes] = []   # every gid drop_from was asked about
+        self.offered: list[bytes] = []  # every gid drop_from was asked about
         self._drop = drop
 
     def __call__(self, msg) -> None:
@@ -108,8 +113,7 @@ def test_reader_gets_every_message_of_two_publishers_with_their_gids(ros):
         for i in range(n):
             a.publish(String(data=f"A-{i}"))
             b.publish(String(data=f"B-{i}"))
-        assert spin_until(executor, lambda: len(rec.messages) >= 2 * n), \
-            f"got {len(rec.messages)} of {2 * n}"
+        assert spin_until(executor, lambda: len(rec.messages) >= 2 * n), f"got {len(rec.messages)} of {2 * n}"
         spin_until(executor, lambda: False, timeout=0.3)  # nothing more may come
         texts = [m.data for m in rec.messages]
         assert sorted(texts) == sorted([f"A-{i}" for i in range(n)] + [f"B-{i}" for i in range(n)])
@@ -143,8 +147,7 @@ def test_messages_from_a_dropped_publisher_are_counted_not_delivered(ros):
                 a.publish(String(data=f"A-{i}"))
             if i < n_b:
                 b.publish(String(data=f"B-{i}"))
-        assert spin_until(executor, lambda: len(rec.offered) >= n_a + n_b), \
-            f"saw {len(rec.offered)} of {n_a + n_b}"
+        assert spin_until(executor, lambda: len(rec.offered) >= n_a + n_b), f"saw {len(rec.offered)} of {n_a + n_b}"
         spin_until(executor, lambda: False, timeout=0.3)
         assert [m.data for m in rec.messages] == [f"B-{i}" for i in range(n_b)]
         assert reader.dropped == n_a
@@ -161,8 +164,7 @@ def test_16_mib_message_round_trips_intact_and_the_buffer_is_reused(ros):
     topic = "big"
     pub = pub_node.create_publisher(UInt8MultiArray, topic, QOS)
     rec = Recorder()
-    reader = GidFilteredReader(sub_node, UInt8MultiArray, topic, QOS, rec,
-                               drop_from=rec.drop_from)
+    reader = GidFilteredReader(sub_node, UInt8MultiArray, topic, QOS, rec, drop_from=rec.drop_from)
     try:
         wait_matched(executor, [pub], reader)
         size = 16 * 1024 * 1024
@@ -174,15 +176,16 @@ def test_16_mib_message_round_trips_intact_and_the_buffer_is_reused(ros):
         # message's length, not the buffer's capacity, is what is taken (the
         # deserializer would not notice trailing bytes; taken_bytes does).
         pub.publish(UInt8MultiArray(data=b"tail"))
-        assert spin_until(executor, lambda: len(rec.messages) >= 2, timeout=60), \
-            f"got {len(rec.messages)} of 2"
+        assert spin_until(executor, lambda: len(rec.messages) >= 2, timeout=60), f"got {len(rec.messages)} of 2"
         big, tail = rec.messages
         assert len(big.data) == size
         assert big.data.tobytes() == payload
         assert tail.data.tobytes() == b"tail"
         assert rec.offered == [publisher_gid(pub)] * 2
-        assert reader.taken_bytes == (len(serialize_message(UInt8MultiArray(data=payload)))
-                                      + len(serialize_message(UInt8MultiArray(data=b"tail"))))
+        assert reader.taken_bytes == (
+            len(serialize_message(UInt8MultiArray(data=payload)))
+            + len(serialize_message(UInt8MultiArray(data=b"tail")))
+        )
         assert reader.dropped == 0
     finally:
         reader.destroy()
@@ -203,8 +206,9 @@ def test_destroy_leaves_the_node_and_executor_usable(ros):
     reader.destroy()  # idempotent
     assert reader not in list(sub_node.waitables)
     # The DDS reader is gone: the publisher stops matching it.
-    assert spin_until(executor, lambda: pub.get_subscription_count() == 0), \
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 0), (
         "the destroyed reader's DDS endpoint is still matched"
+    )
     pub.publish(String(data="after destroy"))  # to nobody
     spin_until(executor, lambda: False, timeout=0.3)
     assert [m.data for m in rec.messages] == ["before"]
@@ -270,6 +274,5 @@ def test_invalid_topic_is_rejected_like_create_subscription(ros):
     _, sub_node, _ = ros
     before = list(sub_node.waitables)
     with pytest.raises(InvalidTopicNameException):
-        GidFilteredReader(sub_node, String, "not a topic!", QOS, print,
-                          drop_from=lambda gid: False)
+        GidFilteredReader(sub_node, String, "not a topic!", QOS, print, drop_from=lambda gid: False)
     assert list(sub_node.waitables) == before

@@ -3,6 +3,7 @@
 Deaths are real: a clone(CLONE_VM) child of the core takes the lock and is
 SIGKILLed in the middle of a put or a take.
 """
+
 import gc
 import threading
 import time
@@ -25,7 +26,7 @@ def core():
 
 def test_queue_is_fifo_and_reports_when_it_was_empty():
     q = MessageQueue(3)
-    assert q.put("a") is True          # empty before: wake the subscriber
+    assert q.put("a") is True  # empty before: wake the subscriber
     assert q.put("b") is False
     assert q.take_all() == ["a", "b"]
     assert len(q) == 0 and q.take_all() == []
@@ -159,6 +160,7 @@ def test_bus_lock_owner_death_is_recovered(core):
 
 # -- loan pool -----------------------------------------------------------------
 
+
 def test_size_classes():
     assert size_class(0) == MIN_BLOCK and size_class(MIN_BLOCK) == MIN_BLOCK
     assert size_class(MIN_BLOCK + 1) == 2 * MIN_BLOCK
@@ -173,7 +175,7 @@ def test_loan_is_writable_until_published_then_read_only():
     loan.buffer[:] = b"0123456789"
     loan.seal()
     with pytest.raises(ValueError, match="read-only"):
-        loan.buffer
+        _ = loan.buffer
     view = loan.view()
     assert bytes(view) == b"0123456789" and len(view) == 10
     with pytest.raises(TypeError):
@@ -211,7 +213,7 @@ def test_a_loan_outlives_the_child_that_filled_it(core):
         loan.buffer[:4] = b"abcd"
         loan.seal()
         held.append(loan)
-        del loan        # a killed frame keeps its locals alive for good
+        del loan  # a killed frame keeps its locals alive for good
         filled.set()
         time.sleep(60)
 
@@ -224,4 +226,3 @@ def test_a_loan_outlives_the_child_that_filled_it(core):
     held.clear()
     gc.collect()
     assert pool.stats.returned == 1
-

@@ -1,4 +1,5 @@
 """The shared profile's rclpy Context lock survives a child killed holding it."""
+
 import logging
 import threading
 import time
@@ -44,7 +45,7 @@ def test_context_ok_goes_on_after_a_child_died_holding_its_lock(context):
 
 
 def test_a_context_without_the_expected_lock_is_left_alone(context, caplog):
-    context._lock = threading.RLock()          # not what rclpy 7.1 has
+    context._lock = threading.RLock()  # not what rclpy 7.1 has
     with caplog.at_level(logging.WARNING):
         _robust_context_lock(context, logging.getLogger("test"))
     assert isinstance(context._lock, type(threading.RLock()))

@@ -27,13 +27,12 @@ from pathlib import Path
 import pytest
 
 from cloneguard.container.isolated.assumptions import IsolationUnavailable, self_check
-from cloneguard.container.isolated.core import (CloneCore, Death, StopRequested, in_child,
-                                                stop_requested, wait_for_go)
+from cloneguard.container.isolated.core import CloneCore, Death, StopRequested, in_child, stop_requested, wait_for_go
 from cloneguard.container.robust import MutexNotRecoverable, RobustMutex
 
 libc = ctypes.CDLL(None, use_errno=True)
-SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 1   # KCMP_VM is 1 (0 is KCMP_FILE)
-NR_CLOCK_NANOSLEEP = 230          # what time.sleep blocks in (3.11, x86_64)
+SYS_exit, SYS_kcmp, KCMP_VM = 60, 312, 1  # KCMP_VM is 1 (0 is KCMP_FILE)
+NR_CLOCK_NANOSLEEP = 230  # what time.sleep blocks in (3.11, x86_64)
 
 
 class Recorder:
@@ -43,7 +42,7 @@ class Recorder:
         self.events: list = []
         self.cond = threading.Condition()
         self.threads: set[str] = set()
-        self.arrived_ns: dict[int, int] = {}     # serial -> on_event time
+        self.arrived_ns: dict[int, int] = {}  # serial -> on_event time
 
     def __call__(self, event) -> None:
         now = time.monotonic_ns()
@@ -106,6 +105,7 @@ def run(core, target, timeout: float = 10.0) -> Death:
 # --------------------------------------------------------------------------
 # self_check
 
+
 def test_self_check_passes_and_reports_layout():
     report = self_check()
     assert report.glibc == "2.36" and report.machine == "x86_64"
@@ -113,19 +113,22 @@ def test_self_check_passes_and_reports_layout():
     assert "isolation available" in str(report)
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(glibc_version="2.35"), "glibc version '2.35' is not supported"),
-    (dict(machine="aarch64"), "machine 'aarch64' is not supported"),
-    (dict(python_version=(3, 12)), "Python cpython 3.12 is not supported"),
-    (dict(kernel_release="5.4.0-150-generic"), "kernel 5.4.0-150-generic is older"),
-    (dict(overrides={"tid": 724}), "offset tid=724 does not hold"),
-    (dict(overrides={"robust_head": 744}), "offset robust_head=744 does not hold"),
-    (dict(overrides={"specific_1stblock": 800}), "specific_1stblock=800 does not hold"),
-    (dict(overrides={"self": 0x08}), "offset self=0x8 does not hold"),
-    (dict(overrides={"resp_tls": -144}), "offset resp_tls=-144 does not hold"),
-    (dict(overrides={"robust_futex_offset": -24}), "robust_futex_offset=-24 does not hold"),
-    (dict(overrides={"tid": 1 << 20}), "offset tid=1048576 lies outside struct pthread"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(glibc_version="2.35"), "glibc version '2.35' is not supported"),
+        (dict(machine="aarch64"), "machine 'aarch64' is not supported"),
+        (dict(python_version=(3, 12)), "Python cpython 3.12 is not supported"),
+        (dict(kernel_release="5.4.0-150-generic"), "kernel 5.4.0-150-generic is older"),
+        (dict(overrides={"tid": 724}), "offset tid=724 does not hold"),
+        (dict(overrides={"robust_head": 744}), "offset robust_head=744 does not hold"),
+        (dict(overrides={"specific_1stblock": 800}), "specific_1stblock=800 does not hold"),
+        (dict(overrides={"self": 0x08}), "offset self=0x8 does not hold"),
+        (dict(overrides={"resp_tls": -144}), "offset resp_tls=-144 does not hold"),
+        (dict(overrides={"robust_futex_offset": -24}), "robust_futex_offset=-24 does not hold"),
+        (dict(overrides={"tid": 1 << 20}), "offset tid=1048576 lies outside struct pthread"),
+    ],
+)
 def test_self_check_refuses_with_a_message_naming_the_failure(kwargs, message):
     with pytest.raises(IsolationUnavailable, match=message):
         self_check(**kwargs)
@@ -138,6 +141,7 @@ def test_self_check_rejects_unknown_override():
 
 # --------------------------------------------------------------------------
 # the child: own pid, shared memory, working libc
+
 
 def test_child_has_own_pid_and_shares_the_address_space(core):
     seen = {}
@@ -158,7 +162,7 @@ def test_child_has_own_pid_and_shares_the_address_space(core):
     assert seen["ppid"] == os.getpid()
     assert seen["ident"] != threading.get_ident()
     assert seen["in_child"] and not in_child()
-    assert seen["kcmp"] == 0          # same mm as its parent
+    assert seen["kcmp"] == 0  # same mm as its parent
     assert bytes(shared[:5]) == b"hello"
     core.release(c)
 
@@ -168,16 +172,15 @@ def test_libc_and_python_work_in_the_child(core):
 
     def child():
         x = 2.5
-        out["fmt"] = (f"{1.5:f}", "%f" % x, "{:.3e}".format(x))
-        out["ctype"] = ("é".isalpha(), "7".isalpha(), libc.isalpha(ord("a")) != 0,
-                        libc.isalpha(ord("1")) != 0)
+        out["fmt"] = (f"{1.5:f}", "%f" % x, f"{x:.3e}")  # noqa: UP031 (printf's own %f path, in a child)
+        out["ctype"] = ("é".isalpha(), "7".isalpha(), libc.isalpha(ord("a")) != 0, libc.isalpha(ord("1")) != 0)
         buf = ctypes.create_string_buffer(64)
         libc.snprintf(buf, 64, b"%f|%d", ctypes.c_double(3.25), 42)
         out["snprintf"] = buf.value
         libc.malloc.restype = ctypes.c_void_p
         libc.free.argtypes = [ctypes.c_void_p]
         ptrs = []
-        for i in range(20000):                       # tcache and bins
+        for i in range(20000):  # tcache and bins
             ptrs.append(libc.malloc(16 + (i * 37) % 4096))
             if len(ptrs) > 64:
                 libc.free(ptrs.pop(0))
@@ -213,11 +216,10 @@ def _iconv(src: bytes, to: bytes, frm: bytes = b"UTF-8") -> bytes:
     out = ctypes.create_string_buffer(4 * len(src) + 8)
     inp, outp = ctypes.c_char_p(ctypes.addressof(inbuf)), ctypes.c_char_p(ctypes.addressof(out))
     inleft, outleft = ctypes.c_size_t(len(src)), ctypes.c_size_t(len(out))
-    n = libc.iconv(cd, ctypes.byref(inp), ctypes.byref(inleft),
-                   ctypes.byref(outp), ctypes.byref(outleft))
+    n = libc.iconv(cd, ctypes.byref(inp), ctypes.byref(inleft), ctypes.byref(outp), ctypes.byref(outleft))
     libc.iconv_close(cd)
     assert n != 2**64 - 1 and inleft.value == 0
-    return out.raw[:len(out) - outleft.value]
+    return out.raw[: len(out) - outleft.value]
 
 
 def test_child_uses_the_parents_mangled_pointers(core):
@@ -233,20 +235,33 @@ def test_child_uses_the_parents_mangled_pointers(core):
 def test_child_thread_descriptor_is_initialised(core):
     """The child's struct pthread holds what glibc's start_thread would give."""
     from cloneguard.container.isolated._clonecore import ffi, lib
+
     lay = self_check().layout
 
     def fields():
         tp = lib.cg_thread_pointer()
-        u64 = lambda off: int(ffi.cast("uint64_t *", tp + off)[0])
-        i32 = lambda off: int(ffi.cast("int32_t *", tp + off)[0])
-        return dict(tp=tp, tcb=u64(lay.tcb), self=u64(lay.self),
-                    multiple_threads=i32(lay.multiple_threads),
-                    stack_guard=u64(lay.stack_guard), pointer_guard=u64(lay.pointer_guard),
-                    tid=i32(lay.tid), gettid=lib.cg_gettid(),
-                    robust=lib.cg_robust_list_head(),
-                    futex_offset=int(ffi.cast("int64_t *", tp + lay.robust_head + 8)[0]),
-                    specific0=u64(lay.specific), rseq_cpu_id=i32(lay.rseq_cpu_id),
-                    resp=u64(lay.resp_tls))
+
+        def u64(off):
+            return int(ffi.cast("uint64_t *", tp + off)[0])
+
+        def i32(off):
+            return int(ffi.cast("int32_t *", tp + off)[0])
+
+        return dict(
+            tp=tp,
+            tcb=u64(lay.tcb),
+            self=u64(lay.self),
+            multiple_threads=i32(lay.multiple_threads),
+            stack_guard=u64(lay.stack_guard),
+            pointer_guard=u64(lay.pointer_guard),
+            tid=i32(lay.tid),
+            gettid=lib.cg_gettid(),
+            robust=lib.cg_robust_list_head(),
+            futex_offset=int(ffi.cast("int64_t *", tp + lay.robust_head + 8)[0]),
+            specific0=u64(lay.specific),
+            rseq_cpu_id=i32(lay.rseq_cpu_id),
+            resp=u64(lay.resp_tls),
+        )
 
     parent = fields()
     out = {}
@@ -269,14 +284,14 @@ def test_child_can_fork_and_run_subprocesses(core):
     """fork() in a child walks glibc's thread lists from the child's struct
     pthread (its list link must be valid); subprocess and the resolver work."""
     import socket
+
     out = {}
 
     def child():
-        out["sub"] = subprocess.run(["echo", "sub ok"], capture_output=True,
-                                    text=True).stdout.strip()
+        out["sub"] = subprocess.run(["echo", "sub ok"], capture_output=True, text=True).stdout.strip()
         pid = os.fork()
         if pid == 0:
-            os._exit(42)      # the forked copy, not the clone child
+            os._exit(42)  # the forked copy, not the clone child
         out["fork"] = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
         out["addr"] = socket.getaddrinfo("localhost", 80, socket.AF_INET)[0][4]
 
@@ -292,6 +307,7 @@ def test_stop_requested_outside_a_child_raises():
 # --------------------------------------------------------------------------
 # deaths
 
+
 def _return():
     pass
 
@@ -305,27 +321,29 @@ def _sys_exit():
 
 
 def _segv():
-    libc.strlen(ctypes.c_void_p(0))      # a real fault, GIL released
+    libc.strlen(ctypes.c_void_p(0))  # a real fault, GIL released
 
 
 def _segv_faulthandler():
-    faulthandler._sigsegv(True)          # release_gil=True
+    faulthandler._sigsegv(True)  # release_gil=True
 
 
 def _abort():
     libc.abort()
 
 
-@pytest.mark.parametrize("target, code, sig", [
-    (_return, 0, None),
-    (_raise, 1, None),
-    (_sys_exit, 7, None),
-    (_segv, None, signal.SIGSEGV),
-    (_segv_faulthandler, None, signal.SIGSEGV),
-    (_abort, None, signal.SIGABRT),
-])
-def test_each_death_is_reported_once_and_parent_survives(core, rec, tmp_path,
-                                                         monkeypatch, target, code, sig):
+@pytest.mark.parametrize(
+    "target, code, sig",
+    [
+        (_return, 0, None),
+        (_raise, 1, None),
+        (_sys_exit, 7, None),
+        (_segv, None, signal.SIGSEGV),
+        (_segv_faulthandler, None, signal.SIGSEGV),
+        (_abort, None, signal.SIGABRT),
+    ],
+)
+def test_each_death_is_reported_once_and_parent_survives(core, rec, tmp_path, monkeypatch, target, code, sig):
     # Dumps on for the container: the child's own RLIMIT_CORE must still stop
     # a dump of the shared address space (and the kernel would write it here).
     old = resource.getrlimit(resource.RLIMIT_CORE)
@@ -358,7 +376,7 @@ def test_outside_sigkill_is_reported(core, rec):
     assert core.kill(child, signal.SIGKILL)
     death = core.wait(child, 10)
     assert (death.exit_signal, death.si_code) == (signal.SIGKILL, os.CLD_KILLED)
-    assert core.kill(child) is False      # dead: pidfd says ESRCH
+    assert core.kill(child) is False  # dead: pidfd says ESRCH
     rec.wait_for(lambda: death in rec.events)
     assert rec.of(child) == [death]
     core.release(child)
@@ -371,7 +389,7 @@ def test_child_runs_with_core_dumps_off_and_parent_keeps_its_limit(core):
     child = core.spawn(lambda: time.sleep(60))
     wait_sleeping(child)
     limits = Path(f"/proc/{child.pid}/limits").read_text()
-    line = next(l for l in limits.splitlines() if l.startswith("Max core file size"))
+    line = next(ln for ln in limits.splitlines() if ln.startswith("Max core file size"))
     assert line.split()[4:6] == ["1", "1"], line
     assert resource.getrlimit(resource.RLIMIT_CORE) != (1, 1)
     core.kill(child)
@@ -382,11 +400,13 @@ def test_child_runs_with_core_dumps_off_and_parent_keeps_its_limit(core):
 # --------------------------------------------------------------------------
 # robust mutexes
 
+
 def _hold_then(mutex, ready: threading.Event, then):
     def child():
         mutex.lock()
         ready.set()
         then()
+
     return child
 
 
@@ -408,7 +428,7 @@ def test_robust_mutex_owner_death_is_repaired(core, how):
         with pytest.raises(TimeoutError):
             m.lock(timeout=0.05)
         core.kill(child)
-    else:   # SYS_exit through ctypes: dies holding the mutex, GIL released
+    else:  # SYS_exit through ctypes: dies holding the mutex, GIL released
         child = core.spawn(_hold_then(m, ready, lambda: libc.syscall(SYS_exit, 3)))
     death = core.wait(child, 10)
     assert death is not None
@@ -418,7 +438,7 @@ def test_robust_mutex_owner_death_is_repaired(core, how):
     # Consistent again: plain lock/unlock, no further repair.
     assert m.lock(timeout=1) is False
     m.unlock()
-    with m as repaired:                         # the plain form
+    with m as repaired:  # the plain form
         assert not repaired
     assert state["repairs"] == 1
     core.release(child)
@@ -481,6 +501,7 @@ def test_robust_mutex_relock_by_owner_is_an_error():
 # --------------------------------------------------------------------------
 # graceful stop
 
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=lambda s: s.name)
 def test_stop_signal_sets_the_stop_flag_and_the_child_ends_cleanly(core, rec, sig):
     """SIGINT as SIGTERM: Ctrl-C in a terminal signals the whole foreground
@@ -519,11 +540,12 @@ def test_a_stop_signal_landing_on_a_thread_the_child_created_reaches_the_child(c
 
         def helper():
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-            armed.set()                  # only now can a process-directed SIGINT land here
+            armed.set()  # only now can a process-directed SIGINT land here
             quit_helper.wait(30)
 
         t = threading.Thread(target=helper)
         t.start()
+
         # Pending on this task itself (SigPnd), forwarded by the helper's
         # handler: sigpending() also counts the process-wide set (ShdPnd),
         # where the signal sits until the helper takes it, and unblocking
@@ -548,8 +570,7 @@ def test_a_stop_signal_landing_on_a_thread_the_child_created_reaches_the_child(c
     core.kill(c, signal.SIGINT)
     death = core.wait(c, 20)
     assert death.exit_code == 0, death
-    assert state == {"pending_on_main": True, "before_unblock": False,
-                     "after_unblock": True}
+    assert state == {"pending_on_main": True, "before_unblock": False, "after_unblock": True}
     rec.wait_for(lambda: death in rec.events)
     assert rec.of(c)[0].signal == signal.SIGINT
     core.release(c)
@@ -567,7 +588,7 @@ def test_parent_request_stop(core, rec):
     c = core.spawn(child)
     assert looping.wait(10)
     assert core.request_stop(c) is True
-    assert core.request_stop(c) is False      # already set
+    assert core.request_stop(c) is False  # already set
     death = core.wait(c, 10)
     assert death.exit_code == 5
     rec.wait_for(lambda: death in rec.events)
@@ -578,6 +599,7 @@ def test_parent_request_stop(core, rec):
 
 # --------------------------------------------------------------------------
 # the gate: wait_for_go / go
+
 
 def spawn_waiting_three_times(core):
     """A child that waits at its gate three times; what each wait returned."""
@@ -593,7 +615,7 @@ def spawn_waiting_three_times(core):
 def test_each_go_lets_one_wait_through_and_none_is_lost(core):
     c, passed = spawn_waiting_three_times(core)
     core.go(c)
-    core.go(c)                 # both, maybe before the child waits at all
+    core.go(c)  # both, maybe before the child waits at all
     wait_until(lambda: len(passed) == 2, what="two waits through")
     # The third waits; a broken gate would let it through and the child end.
     assert core.wait(c, timeout=0.3) is None
@@ -637,8 +659,7 @@ CONTAINER_SCRIPT = textwrap.dedent("""
 
 
 def test_children_die_with_the_container():
-    proc = subprocess.Popen([sys.executable, "-c", CONTAINER_SCRIPT],
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", CONTAINER_SCRIPT], stdout=subprocess.PIPE, text=True)
     try:
         child_pid = int(proc.stdout.readline())
         pidfd = os.pidfd_open(child_pid)
@@ -661,6 +682,7 @@ def test_children_die_with_the_container():
 # --------------------------------------------------------------------------
 # CLONE_INTO_CGROUP
 
+
 def test_spawn_into_a_cgroup2_directory(core, request):
     root = Path("/sys/fs/cgroup/unified")
     if not (root / "cgroup.procs").exists():
@@ -681,28 +703,27 @@ def test_spawn_into_a_cgroup2_directory(core, request):
         finally:
             os.close(fd)
     finally:
-        wait_until(lambda: not (cg / "cgroup.procs").read_text().strip(),
-                   what="cgroup to empty")
+        wait_until(lambda: not (cg / "cgroup.procs").read_text().strip(), what="cgroup to empty")
         cg.rmdir()
 
 
 # --------------------------------------------------------------------------
 # release frees what spawn took
 
+
 def _usage() -> dict[str, int]:
     out = {"fds": len(os.listdir("/proc/self/fd"))}
     for line in Path("/proc/self/status").read_text().splitlines():
         key, _, value = line.partition(":")
         if key in ("VmSize", "VmRSS"):
-            out[key] = int(value.split()[0])   # KiB
+            out[key] = int(value.split()[0])  # KiB
     return out
 
 
 def test_release_frees_stack_tls_and_pidfd_over_many_cycles(core):
     def cycles(n: int, killed: bool) -> None:
         for _ in range(n):
-            c = core.spawn((lambda: time.sleep(60)) if killed else
-                           (lambda: [str(i) for i in range(100)]))
+            c = core.spawn((lambda: time.sleep(60)) if killed else (lambda: [str(i) for i in range(100)]))
             if killed:
                 wait_sleeping(c)
                 core.kill(c)
@@ -748,14 +769,16 @@ def test_spawns_of_any_stack_size_free_everything_by_close(rec):
     try:
         depth = []
         for size in (1 << 20, 1 << 20, 8 << 20, 256 << 10, 8 << 20):
-            def deep(n=0):      # uses most of a 256 KiB stack
+
+            def deep(n=0):  # uses most of a 256 KiB stack
                 return n if n >= 120 else deep(n + 1)
+
             c = core.spawn(lambda: depth.append(deep()), stack_size=size)
             assert core.wait(c, 10).exit_code == 0
             core.release(c)
         assert depth == [120] * 5
         with pytest.raises(OSError, match="Invalid argument"):
-            core.spawn(lambda: None, stack_size=4096)   # below 16 pages
+            core.spawn(lambda: None, stack_size=4096)  # below 16 pages
     finally:
         core.close()
     # The listener thread has ended; every child's state and the one made
@@ -799,6 +822,7 @@ def test_close_lets_a_death_still_being_reported_finish_before_releasing():
 # --------------------------------------------------------------------------
 # contracts
 
+
 def test_api_contracts(core):
     with pytest.raises(TypeError):
         core.spawn(42)
@@ -837,6 +861,7 @@ def _raised_by(call) -> tuple[str, str] | None:
 
 def test_mitigations_are_chosen_per_core():
     from cloneguard.container.isolated.core import Mitigations
+
     with pytest.raises(TypeError, match="unknown mitigation"):
         CloneCore(gil_repairs=False)
     with pytest.raises(ValueError, match="jemalloc_arena"):
@@ -844,10 +869,23 @@ def test_mitigations_are_chosen_per_core():
     base = Mitigations(crash_report=False)
     core = CloneCore(mitigations=base, condvar_repair=False)
     try:
-        # alloc_guard None resolves to whether the guard is preloaded (not here)
-        assert core.mitigations == Mitigations(crash_report=False, condvar_repair=False,
-                                               alloc_guard=False)
-        assert Mitigations() == Mitigations(True, True, True, "own", True)
+        # alloc_guard None resolves to whether the guard is preloaded (not
+        # here), mutex_repair and pybind11_ahead None to whether their checks pass
+        assert core.mitigations == Mitigations(
+            crash_report=False, condvar_repair=False, alloc_guard=False, mutex_repair=True, pybind11_ahead=True
+        )
+        assert Mitigations() == Mitigations(
+            gil_repair=True,
+            condvar_repair=True,
+            interp_repair=True,
+            crash_report=True,
+            jemalloc_arena="own",
+            jemalloc_tcache=True,
+            container_gc=True,
+            alloc_guard=None,
+            mutex_repair=None,
+            pybind11_ahead=None,
+        )
     finally:
         core.close()
 
@@ -869,6 +907,7 @@ def test_close_kills_and_reaps_live_children(rec):
 # --------------------------------------------------------------------------
 # latency (measured, not asserted)
 
+
 def test_death_to_event_latency(core, rec):
     """Fault (or outside SIGKILL) -> monitor noticed -> on_event called."""
     detect, deliver, kill_detect = [], [], []
@@ -882,7 +921,7 @@ def test_death_to_event_latency(core, rec):
         c = core.spawn(crash)
         death = core.wait(c, 10)
         assert death.exit_signal == signal.SIGSEGV
-        rec.wait_for(lambda: death in rec.events)
+        rec.wait_for(lambda death=death: death in rec.events)
         detect.append(death.detected_monotonic_ns - shared[0])
         deliver.append(rec.arrived_ns[c.serial] - shared[0])
         core.release(c)
@@ -897,5 +936,23 @@ def test_death_to_event_latency(core, rec):
 
     def us(xs):
         return f"median {statistics.median(xs) / 1e3:.0f} us, max {max(xs) / 1e3:.0f} us"
-    print(f"\nSIGSEGV -> monitor: {us(detect)}; SIGSEGV -> on_event: {us(deliver)}; "
-          f"outside SIGKILL -> monitor: {us(kill_detect)}")
+
+    print(
+        f"\nSIGSEGV -> monitor: {us(detect)}; SIGSEGV -> on_event: {us(deliver)}; "
+        f"outside SIGKILL -> monitor: {us(kill_detect)}"
+    )
+
+
+def test_the_monitor_blocks_every_signal_but_those_a_fault_raises():
+    # A fault signal it blocked would kill the container silently (the
+    # kernel delivers it with the default action, no handler run, no report).
+    with CloneCore():
+        tasks = Path(f"/proc/{os.getpid()}/task")
+        [status] = [
+            (t / "status").read_text() for t in tasks.iterdir() if (t / "comm").read_text().strip() == "cg-monitor"
+        ]
+        blocked = int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("SigBlk:")), 16)
+    for sig in (signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT, signal.SIGTRAP):
+        assert not blocked & (1 << (sig - 1)), f"{sig.name} is blocked on the monitor"
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD, signal.SIGUSR1):
+        assert blocked & (1 << (sig - 1)), f"{sig.name} is not blocked on the monitor"

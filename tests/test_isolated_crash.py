@@ -45,6 +45,7 @@ def _bus():
 def _sent(sig):
     def target():
         os.kill(os.getpid(), sig)
+
     return target
 
 
@@ -55,14 +56,18 @@ def core():
     c.close()
 
 
-@pytest.mark.parametrize("target, sig, fault", [
-    (_segv_gil_released, signal.SIGSEGV, True),
-    (_segv_gil_held, signal.SIGSEGV, True),
-    (_bus, signal.SIGBUS, True),
-    (_abort, signal.SIGABRT, False),
-    (_sent(signal.SIGFPE), signal.SIGFPE, False),
-    (_sent(signal.SIGILL), signal.SIGILL, False),
-], ids=["segv", "segv-gil-held", "bus", "abort", "fpe-sent", "ill-sent"])
+@pytest.mark.parametrize(
+    "target, sig, fault",
+    [
+        (_segv_gil_released, signal.SIGSEGV, True),
+        (_segv_gil_held, signal.SIGSEGV, True),
+        (_bus, signal.SIGBUS, True),
+        (_abort, signal.SIGABRT, False),
+        (_sent(signal.SIGFPE), signal.SIGFPE, False),
+        (_sent(signal.SIGILL), signal.SIGILL, False),
+    ],
+    ids=["segv", "segv-gil-held", "bus", "abort", "fpe-sent", "ill-sent"],
+)
 def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, target, sig, fault):
     c = core.spawn(target)
     death = core.wait(c, 10)
@@ -85,10 +90,13 @@ def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, targ
     frames = err[python:native].splitlines()[1:]
     assert frames and all(re.fullmatch(r'  File ".+", line \d+ in \S+', f) for f in frames), frames
     first = target.__code__.co_firstlineno
-    lines = [int(m.group(1)) for f in frames
-             if (m := re.fullmatch(rf'  File "{re.escape(__file__)}", line (\d+) in {target.__name__}', f))]
+    lines = [
+        int(m.group(1))
+        for f in frames
+        if (m := re.fullmatch(rf'  File "{re.escape(__file__)}", line (\d+) in {target.__name__}', f))
+    ]
     assert len(lines) == 1 and first < lines[0] <= first + 8, frames
-    assert "libc.so.6" in err[native:] and "_clonecore" in err[native:]              # frames, symbolized
+    assert "libc.so.6" in err[native:] and "_clonecore" in err[native:]  # frames, symbolized
     assert err.count("cloneguard: pid") == 3 and "cloneguard: native stack:" not in err
     core.release(c)
 
@@ -102,7 +110,7 @@ def test_a_deep_python_stack_is_written_to_its_innermost_100_frames(core, capfd)
     assert core.flush_crash_reports(10)
     err = capfd.readouterr().err
     python = err.index(f"cloneguard: pid {c.pid} Python stack (most recent call first):\n")
-    frames = err[python:err.index(f"cloneguard: pid {c.pid} native stack:\n")].splitlines()[1:]
+    frames = err[python : err.index(f"cloneguard: pid {c.pid} native stack:\n")].splitlines()[1:]
     assert len(frames) == 101 and frames[-1] == "  ..."
     assert frames[0].endswith(" in _segv_gil_released") and all(f.endswith(" in deep") for f in frames[1:-1])
     core.release(c)
@@ -118,8 +126,11 @@ def test_a_crash_in_a_thread_the_child_created_is_reported_too(core, capfd):
     death = core.wait(c, 10)
     assert death.exit_signal == signal.SIGSEGV
     err = capfd.readouterr().err
-    m = re.search(rf"cloneguard: pid {c.pid} caught SIGSEGV at 0x0 \(pc 0x[0-9a-f]+\)\n"
-                  r"cloneguard: si_code \d+, thread (\d+)\n", err)
+    m = re.search(
+        rf"cloneguard: pid {c.pid} caught SIGSEGV at 0x0 \(pc 0x[0-9a-f]+\)\n"
+        r"cloneguard: si_code \d+, thread (\d+)\n",
+        err,
+    )
     assert m and int(m.group(1)) != c.pid, err
     # That thread has no control block of its own: it symbolized in place.
     assert core.flush_crash_reports(10)

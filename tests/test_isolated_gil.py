@@ -24,6 +24,7 @@ import pytest
 
 from cloneguard.bench import random_kill as killbench
 from cloneguard.container.isolated.core import CloneCore, Repair
+from cloneguard.container.isolated.core_events import INTERPRETER_REPAIRS
 from cloneguard.faults._gilfault import lib as gilfault
 
 REPO = Path(__file__).resolve().parent.parent
@@ -79,14 +80,15 @@ def assert_process_goes_on(core: CloneCore, counter: Counter) -> None:
     assert death is not None and death.exit_code == 0
     assert out == {"x": 499500}
     core.release(child)
-    sys._current_frames()            # no thread state points at a freed stack
+    sys._current_frames()  # no thread state points at a freed stack
 
 
 # --------------------------------------------------------------------------
 # the child dies holding the GIL
 
+
 def _string_at_zero():
-    ctypes.string_at(0)             # PYFUNCTYPE: the GIL stays held
+    ctypes.string_at(0)  # PYFUNCTYPE: the GIL stays held
 
 
 def _abort():
@@ -97,17 +99,21 @@ def _kill_self():
     os.kill(os.getpid(), signal.SIGSEGV)
 
 
-@pytest.mark.parametrize("target, sig", [
-    (_string_at_zero, signal.SIGSEGV),
-    (_abort, signal.SIGABRT),
-    (_kill_self, signal.SIGSEGV),
-], ids=["string_at(0)", "os.abort", "os.kill-self"])
+@pytest.mark.parametrize(
+    "target, sig",
+    [
+        (_string_at_zero, signal.SIGSEGV),
+        (_abort, signal.SIGABRT),
+        (_kill_self, signal.SIGSEGV),
+    ],
+    ids=["string_at(0)", "os.abort", "os.kill-self"],
+)
 def test_a_child_dying_with_the_gil_is_repaired(core, counter, target, sig):
     seen = {}
 
     def child():
         seen["ident"] = threading.get_ident()
-        for _ in range(1000):       # run a little: the GIL changes hands
+        for _ in range(1000):  # run a little: the GIL changes hands
             sum(range(100))
         target()
 
@@ -128,21 +134,32 @@ def test_a_child_dying_with_the_gil_is_repaired(core, counter, target, sig):
 # --------------------------------------------------------------------------
 # the child dies inside the GIL's machinery (simulated at exact points)
 
-@pytest.mark.parametrize("where, expect", [
-    (gilfault.GILFAULT_DROP_GIL_LOCKED, Repair.GIL_MUTEX | Repair.GIL_RELEASED),
-    (gilfault.GILFAULT_TAKE_GIL_HANDOVER,
-     Repair.GIL_MUTEX | Repair.SWITCH_MUTEX | Repair.GIL_RELEASED),
-    (gilfault.GILFAULT_TAKE_GIL_CHECKING, Repair.GIL_MUTEX),
-    (gilfault.GILFAULT_SWITCH_MUTEX, Repair.SWITCH_MUTEX),
-    (gilfault.GILFAULT_DROP_GIL_SIGNALLING, Repair.GIL_MUTEX | Repair.COND_LOCK),
-], ids=["drop_gil-holding-mutex", "take_gil-hand-over", "take_gil-checking",
-        "holding-switch_mutex", "drop_gil-inside-cond_signal"])
+
+@pytest.mark.parametrize(
+    "where, expect",
+    [
+        (gilfault.GILFAULT_DROP_GIL_LOCKED, Repair.GIL_MUTEX | Repair.GIL_RELEASED),
+        (gilfault.GILFAULT_TAKE_GIL_HANDOVER, Repair.GIL_MUTEX | Repair.SWITCH_MUTEX | Repair.GIL_RELEASED),
+        (gilfault.GILFAULT_TAKE_GIL_CHECKING, Repair.GIL_MUTEX),
+        (gilfault.GILFAULT_SWITCH_MUTEX, Repair.SWITCH_MUTEX),
+        (gilfault.GILFAULT_DROP_GIL_SIGNALLING, Repair.GIL_MUTEX | Repair.COND_LOCK),
+    ],
+    ids=[
+        "drop_gil-holding-mutex",
+        "take_gil-hand-over",
+        "take_gil-checking",
+        "holding-switch_mutex",
+        "drop_gil-inside-cond_signal",
+    ],
+)
 def test_a_child_dying_inside_take_gil_or_drop_gil_is_repaired(core, counter, where, expect):
     c = core.spawn(lambda: gilfault.gilfault_die_in_gil(where))
     death = core.wait(c, 10)
     assert death is not None, "death not reported: the monitor is stuck"
     assert death.exit_signal == signal.SIGKILL
-    assert death.repairs == expect, death.repairs
+    # The GIL's own repairs exactly (what the interpreter needed besides,
+    # after a death with the GIL held, depends on what it was doing).
+    assert death.repairs & ~INTERPRETER_REPAIRS == expect, death.repairs
     core.release(c)
     assert_process_goes_on(core, counter)
 
@@ -161,7 +178,7 @@ def test_a_child_killed_while_waiting_for_the_gil_is_cancelled(core, counter):
     c = core.spawn(child)
     assert running.wait(10)
     killer = subprocess.Popen(["sh", "-c", f"sleep 0.3; kill -9 {c.pid}"])
-    ctypes.PyDLL(None).usleep(800_000)         # the GIL held throughout
+    ctypes.PyDLL(None).usleep(800_000)  # the GIL held throughout
     killer.wait(10)
     death = core.wait(c, 10)
     assert death is not None and death.exit_signal == signal.SIGKILL
@@ -179,6 +196,7 @@ def test_a_child_killed_while_waiting_for_the_gil_is_cancelled(core, counter):
 # --------------------------------------------------------------------------
 # random kills (the container side runs in subprocesses: see bench/random_kill.py)
 
+
 def test_random_kills_in_a_tight_python_loop_all_survived():
     res = killbench.run(120, seed=20261122, hang_s=5.0, budget_s=150)
     print("\n" + res.line())
@@ -191,8 +209,7 @@ def test_random_kills_in_a_tight_python_loop_all_survived():
 def test_without_condvar_repair_random_kills_hang():
     """What condvar repair buys: without it a waiter's death soon hangs the
     next thread that signals the GIL's condvar (measured ~1 kill in 2)."""
-    res = killbench.run(40, condvar_repair=False, seed=5, hang_s=3.0,
-                        budget_s=90, max_hangs=1)
+    res = killbench.run(40, condvar_repair=False, seed=5, hang_s=3.0, budget_s=90, max_hangs=1)
     print("\n" + res.line())
     assert res.hung >= 1, res.line()
 
@@ -221,9 +238,13 @@ FREEZE_SCRIPT = textwrap.dedent("""
 
 def _run_freeze_script(gil_repair: bool, timeout: float) -> tuple[list[str], bool]:
     """Lines printed within ``timeout``, and whether it was still running."""
-    proc = subprocess.Popen([sys.executable, "-c", FREEZE_SCRIPT.format(gil_repair=gil_repair)],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            cwd=REPO, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", FREEZE_SCRIPT.format(gil_repair=gil_repair)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        start_new_session=True,
+    )
     lines, buf = [], b""
     deadline = time.monotonic() + timeout
     try:

@@ -54,14 +54,19 @@ def run(settings: dict, preload: bool = True) -> dict:
     env.pop("LD_PRELOAD", None)
     if preload:
         env["LD_PRELOAD"] = str(JEMALLOC)
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps(settings)],
-                          capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", SCRIPT, json.dumps(settings)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-needs_jemalloc = pytest.mark.skipif(not JEMALLOC.exists(),
-                                    reason="libjemalloc2 is not installed")
+needs_jemalloc = pytest.mark.skipif(not JEMALLOC.exists(), reason="libjemalloc2 is not installed")
 
 
 @needs_jemalloc
@@ -81,7 +86,7 @@ def test_each_child_gets_an_arena_of_its_own():
 @needs_jemalloc
 def test_auto_leaves_the_choice_to_jemalloc_and_the_tcache_can_be_off():
     out = run({"jemalloc_arena": "auto", "jemalloc_tcache": False})
-    assert out["narenas_after"] == out["narenas_before"]     # none created
+    assert out["narenas_after"] == out["narenas_before"]  # none created
     assert all(c["arena"] < out["narenas_before"] for c in out["children"])
     assert all(c["tcache"] is False for c in out["children"])
 

@@ -56,7 +56,7 @@ def test_a_child_creates_and_joins_threads_100_times(core):
         assert death is not None and death.exit_code == 0, death
         core.release(c)
         assert out["rounds"] == 100
-        assert out["pids"] == {c.pid}          # in the child's thread group
+        assert out["pids"] == {c.pid}  # in the child's thread group
         assert c.pid not in out["tids"] and len(out["tids"]) > 1
         out.update(rounds=0, pids=set(), tids=set())
 
@@ -67,9 +67,8 @@ def test_native_threads_created_in_a_child_run_and_join(core):
 
     def child():
         START = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p)
-        start = START(lambda arg: (arg or 0) + 1)     # runs with the GIL
-        libc.pthread_create.argtypes = [ctypes.POINTER(ctypes.c_ulong), ctypes.c_void_p,
-                                        START, ctypes.c_void_p]
+        start = START(lambda arg: (arg or 0) + 1)  # runs with the GIL
+        libc.pthread_create.argtypes = [ctypes.POINTER(ctypes.c_ulong), ctypes.c_void_p, START, ctypes.c_void_p]
         libc.pthread_join.argtypes = [ctypes.c_ulong, ctypes.POINTER(ctypes.c_void_p)]
         results = []
         for i in range(100):
@@ -90,6 +89,7 @@ def test_native_threads_created_in_a_child_run_and_join(core):
 def test_the_child_is_reported_dead_once_its_last_thread_is_gone(core):
     """The child's main task ends (raw exit) while a thread it created runs:
     the thread group, and so the child, lives until that thread ends."""
+
     def child():
         threading.Thread(target=time.sleep, args=(0.3,), daemon=True).start()
 

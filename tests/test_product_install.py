@@ -7,6 +7,7 @@ packages, cffi) from this venv's site-packages through a directory of links
 that leaves out both cloneguard distributions, so nothing of the rig can
 leak in.
 """
+
 import os
 import shutil
 import subprocess
@@ -41,8 +42,19 @@ def product(tmp_path_factory) -> tuple[Path, Path]:
         if (REPO / name).is_file():
             (source / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(REPO / name, source / name)
-    _run(sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-         "-w", str(root / "dist"), str(source), cwd=root)
+    _run(
+        sys.executable,
+        "-m",
+        "pip",
+        "wheel",
+        "--no-deps",
+        "--no-build-isolation",
+        "-q",
+        "-w",
+        str(root / "dist"),
+        str(source),
+        cwd=root,
+    )
     [wheel] = (root / "dist").glob("cloneguard-*.whl")
     venv = root / "venv"
     _run(sys.executable, "-m", "venv", "--without-pip", str(venv))
@@ -51,11 +63,24 @@ def product(tmp_path_factory) -> tuple[Path, Path]:
     for entry in Path(sysconfig.get_paths()["purelib"]).iterdir():
         if not entry.name.startswith(OURS) and entry.name != "cloneguard":
             (deps / entry.name).symlink_to(entry)
-    site = Path(_run(str(venv / "bin" / "python"), "-c",
-                     "import sysconfig; print(sysconfig.get_paths()['purelib'])").stdout.strip())
+    site = Path(
+        _run(
+            str(venv / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"
+        ).stdout.strip()
+    )
     (site / "deps.pth").write_text(f"{deps}\n")
-    _run(sys.executable, "-m", "pip", "--python", str(venv / "bin" / "python"), "install",
-         "--no-deps", "--no-index", "-q", str(wheel))
+    _run(
+        sys.executable,
+        "-m",
+        "pip",
+        "--python",
+        str(venv / "bin" / "python"),
+        "install",
+        "--no-deps",
+        "--no-index",
+        "-q",
+        str(wheel),
+    )
     return wheel, venv
 
 
@@ -70,13 +95,15 @@ def test_the_product_wheel_holds_only_the_container(product):
     # holding only the container.
     assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"cloneguard"}, tops
     assert {n.split("/")[1] for n in names if n.startswith("cloneguard/")} == {"container"}, names
-    assert "cloneguard/__init__.py" not in names    # a namespace the rig's distribution shares
+    assert "cloneguard/__init__.py" not in names  # a namespace the rig's distribution shares
     # Besides the package, only the ament index entries (ament/README.md).
     data = sorted(n.split(".data/data/")[1] for n in names if ".data/" in n)
-    assert data == ["lib/cloneguard/cloneguard-python-components.not-a-library",
-                    "lib/cloneguard/component_container",
-                    "share/ament_index/resource_index/packages/cloneguard",
-                    "share/ament_index/resource_index/rclcpp_components/cloneguard"], data
+    assert data == [
+        "lib/cloneguard/cloneguard-python-components.not-a-library",
+        "lib/cloneguard/component_container",
+        "share/ament_index/resource_index/packages/cloneguard",
+        "share/ament_index/resource_index/rclcpp_components/cloneguard",
+    ], data
     assert "faults" not in declared and "bench" not in declared and "pytest11" not in declared, declared
     assert any(n.startswith("cloneguard/container/isolated/_clonecore") for n in names)
 
@@ -100,19 +127,28 @@ def test_a_product_install_serves_loads_and_refuses_every_fault_component(produc
             # The container runs the installed product, not this checkout.
             maps = Path(f"/proc/{container.pid}/maps").read_text()
             assert str(venv) in maps and str(REPO / "container") not in maps
-            for plugin in ("faults::SegfaultInCallback", "faults::DieHoldingContainerLock",
-                           "faults::MallocHammer", "bench::PayloadSource"):
+            for plugin in (
+                "faults::SegfaultInCallback",
+                "faults::DieHoldingContainerLock",
+                "faults::MallocHammer",
+                "bench::PayloadSource",
+            ):
                 # As upstream answers: no such package, or no such class in it.
                 resp = client.load(RIG, plugin)
-                assert (resp.success, resp.error_message) == (
-                    False, "Could not find requested resource in ament index")
+                assert (resp.success, resp.error_message) == (False, "Could not find requested resource in ament index")
                 resp = client.load("cloneguard", plugin)
                 assert (resp.success, resp.error_message) == (
-                    False, "Failed to find class with the requested plugin name.")
+                    False,
+                    "Failed to find class with the requested plugin name.",
+                )
             # The rig's fault switches do not exist there: this one is an
             # unknown extra argument, ignored, and LOADED is sent.
-            dropped = client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="still_announced",
-                                     extra_arguments={"cloneguard.fault.drop_loaded_event": True})
+            dropped = client.load_ok(
+                "cloneguard",
+                "cloneguard::Heartbeat",
+                node_name="still_announced",
+                extra_arguments={"cloneguard.fault.drop_loaded_event": True},
+            )
             client.wait_for_event(ComponentEvent.LOADED, unique_id=dropped.unique_id)
             assert client.list() == [(ok.unique_id, "/heartbeat"), (dropped.unique_id, "/still_announced")]
         finally:

@@ -1,5 +1,6 @@
 """Components registered for rclpy's composition proposal (entry-point group
 ``rclpy_components``, ros2/rclpy PR #599) load unchanged."""
+
 import pytest
 
 

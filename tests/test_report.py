@@ -1,5 +1,6 @@
 """Crash-resilience reports: statistics, the pytest plugin end to end (in
 pytester sessions), report.html, compare and render."""
+
 from __future__ import annotations
 
 import json
@@ -21,7 +22,13 @@ from cloneguard.harness.plan import ENV_DEEP
 from cloneguard.harness.report import charts, paths, stats
 from cloneguard.harness.report.compare import compare_reports, format_comparison, match_scenarios
 from cloneguard.harness.report.model import (
-    Hang, Report, RunInfo, Scenario, Trial, load_report, resolve_report_path,
+    Hang,
+    Report,
+    RunInfo,
+    Scenario,
+    Trial,
+    load_report,
+    resolve_report_path,
 )
 from cloneguard.harness.report.render import render_html, scenario_status
 
@@ -67,8 +74,11 @@ def test_wilson_interval_edges():
     assert lo99 < lo95 < 0.7 < hi95 < hi99
 
 
-@given(st.integers(min_value=1, max_value=2000).flatmap(
-    lambda n: st.tuples(st.integers(min_value=0, max_value=n), st.just(n))))
+@given(
+    st.integers(min_value=1, max_value=2000).flatmap(
+        lambda n: st.tuples(st.integers(min_value=0, max_value=n), st.just(n))
+    )
+)
 def test_wilson_interval_properties(kn):
     k, n = kn
     low, high = stats.wilson_interval(k, n)
@@ -116,7 +126,7 @@ def plugin_args() -> list[str]:
 
 STACKS = 'Thread 1 "<main>":\n  #0 futex_wait (lock=0x7f00) at futex.c:12\n  #1 if (a && b > c) <lock>'
 
-SCENARIO = f'''
+SCENARIO = f"""
 import pytest
 
 STACKS = {STACKS!r}
@@ -147,7 +157,7 @@ def test_abort(resilience):
 
 def test_plain():
     pass
-'''
+"""
 
 
 def run_session(pytester, *args, files=None):
@@ -162,15 +172,23 @@ def report_root(tmp_path, monkeypatch):
     """The plugin's default reports root, moved into tmp_path, and no
     report directory named through the environment."""
     root = tmp_path / "reports-root"
-    monkeypatch.setattr(paths, "default_reports_root", lambda: root)
+    monkeypatch.setattr(paths, "default_reports_root", lambda rootdir: root)
     monkeypatch.delenv(paths.ENV_REPORT_DIR, raising=False)
     return root
 
 
 def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_root):
     out = tmp_path / "run-1"
-    result = run_session(pytester, "--report-dir", str(out), "--run-label", "smoke <1>",
-                         "--container-exe", "/opt/fake/component_container", "scenarios")
+    result = run_session(
+        pytester,
+        "--report-dir",
+        str(out),
+        "--run-label",
+        "smoke <1>",
+        "--container-exe",
+        "/opt/fake/component_container",
+        "scenarios",
+    )
     result.assert_outcomes(passed=3, failed=1)
     result.stdout.fnmatch_lines(["*cloneguard resilience report*", f"report: {out / 'report.html'}"])
 
@@ -200,11 +218,14 @@ def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_ro
     assert per_node["used_resilience"] is True
     assert len(per_node["trials"]) == 10
     assert per_node["trials"][3] == {
-        "index": 3, "outcome": "survived", "seed": 103,
+        "index": 3,
+        "outcome": "survived",
+        "seed": 103,
         "latency_ms": {"death_to_event": 1.0, "load_to_loaded": [10.0, 20.0]},
-        "details": {"victim": "/victim"}, "time": per_node["trials"][3]["time"],
+        "details": {"victim": "/victim"},
+        "time": per_node["trials"][3]["time"],
     }
-    assert per_node["stats"]["counts"] == {"survived": 9, "hung": 1, "crashed": 0, "failed": 0}
+    assert per_node["stats"]["counts"] == {"survived": 9, "hung": 1, "crashed": 0, "failed": 0, "corrupted": 0}
     survival = per_node["stats"]["survival"]
     assert (survival["successes"], survival["trials"]) == (9, 10)
     assert (survival["low"], survival["high"]) == pytest.approx(stats.wilson_interval(9, 10))
@@ -214,10 +235,19 @@ def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_ro
     (hang,) = per_node["hangs"]
     assert hang["trial"] == 9 and hang["lock"] == "0x7f0012345678"
     assert hang["owner_tid"] == 1234 and hang["owner_node"] == "/victim" and hang["stacks"] == STACKS
-    assert per_node["expectations"] == [{
-        "outcome": "survived", "at_least": 0.8, "at_most": None, "successes": 9, "trials": 10,
-        "rate": 0.9, "ci_low": survival["low"], "ci_high": survival["high"], "met": True,
-    }]
+    assert per_node["expectations"] == [
+        {
+            "outcome": "survived",
+            "at_least": 0.8,
+            "at_most": None,
+            "successes": 9,
+            "trials": 10,
+            "rate": 0.9,
+            "ci_low": survival["low"],
+            "ci_high": survival["high"],
+            "met": True,
+        }
+    ]
     assert per_node["notes"] == ["checked with <valgrind> & friends"]
 
     shared = by_id["scenarios/test_fake.py::test_segfault[shared]"]
@@ -243,7 +273,11 @@ def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_ro
     assert len(suite.findall(".//failure")) == 1
 
 
-def test_default_directory_and_latest_link(pytester, report_root):
+def test_default_directory_is_the_projects_own_and_latest_link(pytester, monkeypatch):
+    # reports/ under the run's root directory: the project under test's,
+    # not this harness's checkout.
+    monkeypatch.delenv(paths.ENV_REPORT_DIR, raising=False)
+    report_root = pytester.path / "reports"
     first = run_session(pytester, "scenarios")
     first.assert_outcomes(passed=3, failed=1)
     runs = sorted(p for p in report_root.iterdir() if p.name != "latest")
@@ -269,7 +303,8 @@ def test_no_report_without_scenarios(pytester, report_root):
 def test_resilience_outside_scenarios_still_reports(pytester, report_root):
     """Nothing on the command line said "scenarios", so pytest's JUnit writer
     was not redirected: the plugin writes junit.xml itself."""
-    pytester.makepyfile(test_odd=textwrap.dedent("""
+    pytester.makepyfile(
+        test_odd=textwrap.dedent("""
         def test_uses_fixture(resilience):
             resilience.describe(fault="kill", profile="thread")
             resilience.trial("crashed")
@@ -278,7 +313,8 @@ def test_resilience_outside_scenarios_still_reports(pytester, report_root):
         def test_fails(resilience):
             resilience.trial("survived")
             assert False, "boom <here>"
-    """))
+    """)
+    )
     result = pytester.runpytest(*plugin_args())
     result.assert_outcomes(passed=1, failed=1)
     (run_dir,) = [p for p in report_root.iterdir() if p.name != "latest"]
@@ -307,10 +343,17 @@ def test_report_dir_from_environment_and_user_junit(pytester, tmp_path, report_r
 def test_deep_mode_and_broken_scenario_file(pytester, tmp_path, report_root, monkeypatch):
     monkeypatch.setenv(ENV_DEEP, "1")
     out = tmp_path / "run"
-    result = run_session(pytester, "--report-dir", str(out), "--continue-on-collection-errors", "scenarios", files={
-        "test_ok.py": "def test_ok(resilience):\n    resilience.trial('survived')\n",
-        "test_broken.py": "import no_such_module_here\n",
-    })
+    result = run_session(
+        pytester,
+        "--report-dir",
+        str(out),
+        "--continue-on-collection-errors",
+        "scenarios",
+        files={
+            "test_ok.py": "def test_ok(resilience):\n    resilience.trial('survived')\n",
+            "test_broken.py": "import no_such_module_here\n",
+        },
+    )
     assert result.ret != 0
     data = json.loads((out / "report.json").read_text())
     assert data["run"]["deep"] is True
@@ -324,7 +367,13 @@ def test_deep_mode_and_broken_scenario_file(pytester, tmp_path, report_root, mon
 
 def test_fixture_rejects_bad_input(pytester, tmp_path, report_root):
     out = tmp_path / "run"
-    result = run_session(pytester, "--report-dir", str(out), "scenarios", files={"test_bad.py": """
+    result = run_session(
+        pytester,
+        "--report-dir",
+        str(out),
+        "scenarios",
+        files={
+            "test_bad.py": """
         import math
         import pytest
 
@@ -347,7 +396,9 @@ def test_fixture_rejects_bad_input(pytester, tmp_path, report_root):
             with pytest.raises(AssertionError, match=r"1/2 trials hung"):
                 resilience.expect_rate("hung", at_most=0.25)
             resilience.hang(trial=1, summary="no lock found", lock="")
-    """})
+    """
+        },
+    )
     result.assert_outcomes(passed=1)
     (scenario,) = json.loads((out / "report.json").read_text())["scenarios"]
     assert [t["latency_ms"] for t in scenario["trials"]] == [{"y": 2.0}, {}]
@@ -382,22 +433,34 @@ def make_scenario(nodeid, survived, total, *, fault="segv", profile="per-node", 
     for i in range(total):
         lat = {"death_to_event": latency(i)} if latency else {}
         trials.append(Trial(index=i, outcome="survived" if i < survived else "crashed", seed=i, latency_ms=lat))
-    return Scenario(nodeid=nodeid, name=nodeid.split("::")[-1], fault=fault, profile=profile,
-                    outcome="passed", trials=trials, **kw)
+    return Scenario(
+        nodeid=nodeid, name=nodeid.split("::")[-1], fault=fault, profile=profile, outcome="passed", trials=trials, **kw
+    )
 
 
 def test_html_escapes_everything_and_colours_cells():
     evil = Scenario(
-        nodeid="scenarios/x.py::test_<evil>", name="test_<evil>", fault="<img src=x>", profile='"quoted"',
-        claim="survives </section><script>alert(1)</script>", outcome="failed",
-        message="assert 1 < 2 & 3 > 4", longrepr="E   <trace>",
+        nodeid="scenarios/x.py::test_<evil>",
+        name="test_<evil>",
+        fault="<img src=x>",
+        profile='"quoted"',
+        claim="survives </section><script>alert(1)</script>",
+        outcome="failed",
+        message="assert 1 < 2 & 3 > 4",
+        longrepr="E   <trace>",
         hangs=[Hang(summary="blocked <on> lock", stacks="<frame>", lock="0x1", details={"k": "<v>"})],
-        notes=["<note>"], mitigations={"<m>": "<x>"},
+        notes=["<note>"],
+        mitigations={"<m>": "<x>"},
     )
-    report = Report(RunInfo(id="r<1>", label="<label>", git={"commit": "abc", "branch": "<br>"}),
-                    [evil, make_scenario("s.py::test_ok", 10, 10),
-                     make_scenario("s.py::test_meh", 9, 10, profile="shared"),
-                     make_scenario("s.py::test_bad", 2, 10, profile="third")])
+    report = Report(
+        RunInfo(id="r<1>", label="<label>", git={"commit": "abc", "branch": "<br>"}),
+        [
+            evil,
+            make_scenario("s.py::test_ok", 10, 10),
+            make_scenario("s.py::test_meh", 9, 10, profile="shared"),
+            make_scenario("s.py::test_bad", 2, 10, profile="third"),
+        ],
+    )
     html = render_html(report)
     for raw in ("<script", "<img", "<evil>", "<frame>", "<note>", "<trace>", "<on>", "<label>", "<br>", "<m>", "<v>"):
         assert raw not in html
@@ -407,6 +470,7 @@ def test_html_escapes_everything_and_colours_cells():
     assert 'class="entry st-amber"' in html
     # every matrix link has its target
     import re
+
     for target in re.findall(r'href="#([^"]+)"', html):
         assert f'id="{target}"' in html
 
@@ -436,17 +500,25 @@ def save(tmp_path, name, scenarios) -> Path:
 
 
 def test_compare_detects_significant_regression(tmp_path, capsys):
-    a = save(tmp_path, "a", [
-        make_scenario("scenarios/t.py::test_segv", 19, 20, latency=lambda i: 0.4),
-        make_scenario("scenarios/t.py::test_abort", 20, 20, fault="abort"),
-        make_scenario("scenarios/t.py::test_gone", 5, 5, fault="gone"),
-    ])
-    b = save(tmp_path, "b", [
-        make_scenario("scenarios/t.py::test_segv", 8, 20, latency=lambda i: 0.6),
-        # renamed test: matched by fault+profile
-        make_scenario("scenarios/t2.py::test_abort_renamed", 19, 20, fault="abort"),
-        make_scenario("scenarios/t.py::test_new", 1, 1, fault="new"),
-    ])
+    a = save(
+        tmp_path,
+        "a",
+        [
+            make_scenario("scenarios/t.py::test_segv", 19, 20, latency=lambda i: 0.4),
+            make_scenario("scenarios/t.py::test_abort", 20, 20, fault="abort"),
+            make_scenario("scenarios/t.py::test_gone", 5, 5, fault="gone"),
+        ],
+    )
+    b = save(
+        tmp_path,
+        "b",
+        [
+            make_scenario("scenarios/t.py::test_segv", 8, 20, latency=lambda i: 0.6),
+            # renamed test: matched by fault+profile
+            make_scenario("scenarios/t2.py::test_abort_renamed", 19, 20, fault="abort"),
+            make_scenario("scenarios/t.py::test_new", 1, 1, fault="new"),
+        ],
+    )
     assert harness_main(["compare", str(a), str(b)]) == 0
     text = capsys.readouterr().out
     assert "two-proportion z-test" in text
@@ -478,8 +550,10 @@ def test_compare_methods_disagree_where_expected(tmp_path):
 
 
 def test_match_is_by_nodeid_first_and_never_ambiguous():
-    a = Report(RunInfo(id="a"), [make_scenario("t::one", 1, 1), make_scenario("t::two", 1, 1),
-                                  make_scenario("t::same", 1, 1, fault="f")])
+    a = Report(
+        RunInfo(id="a"),
+        [make_scenario("t::one", 1, 1), make_scenario("t::two", 1, 1), make_scenario("t::same", 1, 1, fault="f")],
+    )
     b = Report(RunInfo(id="b"), [make_scenario("u::three", 1, 1), make_scenario("t::same", 1, 1, fault="g")])
     pairs, only_a, only_b = match_scenarios(a, b)
     # t::same matches by node id although its fault changed; "segv/per-node"
@@ -508,22 +582,103 @@ def test_render_regenerates_html(tmp_path, capsys):
 def test_python_dash_m_harness(tmp_path):
     a = save(tmp_path, "a", [make_scenario("t::x", 20, 20)])
     b = save(tmp_path, "b", [make_scenario("t::x", 2, 20)])
-    done = subprocess.run([sys.executable, "-m", "cloneguard.harness", "compare", str(a), str(b), "--fail-on-regression"],
-                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "cloneguard.harness", "compare", str(a), str(b), "--fail-on-regression"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 1, done.stderr
     assert "WORSE (significant)" in done.stdout
-    helped = subprocess.run([sys.executable, "-m", "cloneguard.harness", "--help"], cwd=REPO,
-                            capture_output=True, text=True, timeout=60)
+    helped = subprocess.run(
+        [sys.executable, "-m", "cloneguard.harness", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
     assert helped.returncode == 0 and "compare" in helped.stdout and "render" in helped.stdout
 
 
 def test_report_round_trips_through_json(tmp_path):
-    original = Report(RunInfo(id="x", host={"kernel": "6.1"}), [
-        make_scenario("t::x", 3, 4, latency=lambda i: math.pi * i, claim="c", notes=["n"],
-                      hangs=[Hang(summary="s", trial=3, stacks="st", lock="0x1", owner_tid=7, owner_node="/n")])])
+    original = Report(
+        RunInfo(id="x", host={"kernel": "6.1"}),
+        [
+            make_scenario(
+                "t::x",
+                3,
+                4,
+                latency=lambda i: math.pi * i,
+                claim="c",
+                notes=["n"],
+                hangs=[Hang(summary="s", trial=3, stacks="st", lock="0x1", owner_tid=7, owner_node="/n")],
+            )
+        ],
+    )
     original.save_json(tmp_path)
     loaded = load_report(tmp_path)
     assert loaded.to_dict() == original.to_dict()
     assert loaded.directory == tmp_path
     with pytest.raises(ValueError):
         Report.from_dict({"schema": "something-else"})
+
+
+# --------------------------------------------------------------------------
+# container deaths: counted on their own, shown first
+# --------------------------------------------------------------------------
+def _cells_with_deaths() -> Report:
+    def cell(name, profile, outcomes):
+        s = Scenario(nodeid=f"scenarios/test_x.py::{name}", name=name, fault="sigkill-outside", profile=profile)
+        s.trials = [Trial(index=i, outcome=o, seed=i, details={"why": f"{o} {i}"}) for i, o in enumerate(outcomes)]
+        return s
+
+    return Report(
+        run=RunInfo(id="r1"),
+        scenarios=[
+            cell("test_busy[per-node]", "per-node", ["survived", "hung", "survived", "crashed", "survived"]),
+            cell("test_busy[shared]", "shared", ["survived"] * 5),
+            cell("test_baseline", "threads", ["crashed"] * 5),  # thread mode: not counted
+        ],
+    )
+
+
+def test_container_deaths_of_isolated_cells_are_counted_apart_from_other_outcomes():
+    report = _cells_with_deaths()
+    deaths = report.container_deaths()
+    assert (deaths.successes, deaths.trials) == (1, 10)
+    assert report.summary()["container_deaths"]["successes"] == 1
+
+
+def test_the_summary_shows_container_deaths_first():
+    from cloneguard.harness.report.summary import markdown
+
+    text = markdown(_cells_with_deaths())
+    headline = text.index("Container deaths (every node at once) in the isolated cells: **1** in 10 trials")
+    assert headline < text.index("| scenario |")
+    assert "| busy[per-node] | per-node | 5 | 1 | 3 |" in text
+    listing = text[text.index("Every trial that did not survive") :]
+    assert listing.index("trial 3 (seed 3), a container death") < listing.index("trial 1 (seed 1), hung")
+    assert "**baseline**" not in listing
+
+
+def test_the_html_report_shows_container_deaths_first():
+    html = render_html(_cells_with_deaths())
+    badge = html.index("1 container death in 10 isolated trials")
+    assert badge < html.index("trials:")  # before the other totals
+    assert '<div class="big death">1 container death</div>' in html
+
+
+def test_a_small_rate_keeps_two_significant_digits():
+    # A 95% upper bound of no container death in 9,000 trials is 0.043%,
+    # which one decimal would print as 0.0%.
+    upper = stats.proportion(0, 9000).high
+    assert stats.percent(upper) == "0.043%"
+    assert stats.percent(0.0) == "0.0%" and stats.percent(0.9951) == "99.5%" and stats.percent(0.0019) == "0.19%"
+    assert stats.percent(None) == "–" and stats.percent(None, none="-") == "-"
+
+
+def test_no_failed_test_is_not_said_in_red():
+    from cloneguard.harness.report.model import Report, RunInfo, Scenario
+    from cloneguard.harness.report.render import render_html
+
+    report = Report(run=RunInfo(id="r"), scenarios=[Scenario(nodeid="t.py::test_ok", name="test_ok", outcome="passed")])
+    html = render_html(report)
+    assert '<span class="badge b-passed">1 passed</span>' in html
+    assert '<span class="badge ">0 failed</span>' in html and 'b-failed">0 failed' not in html

@@ -7,8 +7,9 @@ every answer is consistent with it (an id is never given twice and only
 grows, valid loads succeed, failures say why, an unload succeeds exactly
 when its id is live). After every example (a sequence of steps, then
 everything unloaded): no node process is left, nothing the example loaded
-is still in the ROS graph, and the container's fds and threads are within
-what it had after a warm-up burst.
+is still in the ROS graph, no failed load left its node's process in
+memory, and the container's fds and threads are within what it had after a
+warm-up burst.
 
 The quick budget runs with the tests; ``--deep`` (or ``--trials N``: N
 requests) makes at least DEEP_REQUESTS requests per set-up. Examples are
@@ -16,6 +17,7 @@ not shrunk: the container's history is part of each example's starting
 state, so a replay would not be the same example; a failure prints the
 steps as they ran.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,11 +29,11 @@ import rclpy
 from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule, run_state_machine_as_test
+from rclpy.context import Context
 
 from cloneguard.container.isolated.cgroups import cgroup2_mount
 from cloneguard.harness import fuzz, procfs, rest
 from cloneguard.harness.plan import long_run
-from rclpy.context import Context
 
 MODES = {
     "threads": [],
@@ -45,9 +47,9 @@ KEEPS_A_SPARE = {"per-node"}
 QUICK = dict(examples=3, steps=12)
 DEEP_REQUESTS = 1000
 DEEP = dict(examples=20, steps=40)
-MAX_LIVE = 12                  # more would only slow the run (per-node: a process each)
-GRAPH_SETTLE_S = 10.0          # discovery of a node's departure
-OBSERVE_S = 3.0                # a new observer's look at the graph, once it sees the container
+MAX_LIVE = 12  # more would only slow the run (per-node: a process each)
+GRAPH_SETTLE_S = 10.0  # discovery of a node's departure
+OBSERVE_S = 3.0  # a new observer's look at the graph, once it sees the container
 
 
 class World:
@@ -67,7 +69,7 @@ class World:
         self.fds = self.threads = 0
         self.rss_kib: list[int] = []
         self.examples = 0
-        self.stale_ghosts = 0      # left only in the long-lived client's graph cache
+        self.stale_ghosts = 0  # left only in the long-lived client's graph cache
 
     def graph(self) -> set[str]:
         """The nodes the client's graph holds, but the placeholder of a live
@@ -90,8 +92,11 @@ class World:
 
     def resources(self) -> tuple[int, int, int]:
         pid = self.container.pid
-        return (len(os.listdir(f"/proc/{pid}/fd")), len(os.listdir(f"/proc/{pid}/task")),
-                int(procfs.status_field(pid, "VmRSS").split()[0]))
+        return (
+            len(os.listdir(f"/proc/{pid}/fd")),
+            len(os.listdir(f"/proc/{pid}/task")),
+            int(procfs.status_field(pid, "VmRSS").split()[0]),
+        )
 
     def warm_up(self) -> None:
         """A burst as wide as the container's thread pools, so that they
@@ -159,6 +164,11 @@ def make_machine(world: World):
         def load_hostile(self, load):
             model.apply_load(load, client.send_load(load.request, 70.0))
 
+        @precondition(lambda self: len(model.live) < MAX_LIVE)
+        @rule(load=fuzz.hostile_parameter_loads())
+        def load_hostile_parameters(self, load):
+            model.apply_load(load, client.send_load(load.request, 70.0))
+
         @rule(data=st.data())
         def unload(self, data):
             uid = data.draw(fuzz.unload_ids(sorted(model.live), model.gone[-20:]), label="unique_id")
@@ -178,8 +188,11 @@ def make_machine(world: World):
             plan = data.draw(st.lists(st.sampled_from(kinds), min_size=2, max_size=6), label="burst")
             if len(model.live) + plan.count("valid") > MAX_LIVE:
                 plan = [k for k in plan if k != "valid"] or ["list", "list"]
-            loads = [data.draw(fuzz.valid_loads(cgroups=world.cgroups) if k == "valid" else fuzz.hostile_loads(),
-                               label=k) for k in plan if k in ("valid", "hostile")]
+            loads = [
+                data.draw(fuzz.valid_loads(cgroups=world.cgroups) if k == "valid" else fuzz.hostile_loads(), label=k)
+                for k in plan
+                if k in ("valid", "hostile")
+            ]
             unloads = [data.draw(st.sampled_from(live), label="unload") for k in plan if k == "unload"]
             same = data.draw(st.sampled_from(live), label="unload-same") if "unload-same" in plan else None
             unloads += [same] * (2 * plan.count("unload-same"))
@@ -199,8 +212,10 @@ def make_machine(world: World):
             missing = [i for i in range(len(calls)) if i not in results]
             assert not missing, f"{len(missing)} of {len(calls)} concurrent requests got no answer"
             # Loads in the order of the ids they got (ids only grow).
-            answered = sorted(zip(loads, (results[i] for i in range(len(loads)))),
-                              key=lambda lr: lr[1].unique_id if lr[1].success else 0)
+            answered = sorted(
+                zip(loads, (results[i] for i in range(len(loads))), strict=True),
+                key=lambda lr: lr[1].unique_id if lr[1].success else 0,
+            )
             for load, resp in answered:
                 model.apply_load(load, resp)
             by_id: dict[int, list] = {}
@@ -225,6 +240,9 @@ def make_machine(world: World):
                 model.apply_unload(uid, client.unload(uid, timeout=70.0))
             assert client.list() == []
             assert len(world.at_rest()) == (1 if world.spare else 0), "node processes left at rest"
+            # No request crashes a node's process, so none may leave one's
+            # objects behind (a failed construction whose process did not end).
+            assert "left in memory" not in world.container.log_text(), "a failed load leaked its node's process"
             ghosts = world.ghosts(GRAPH_SETTLE_S)
             if ghosts:
                 # A graph cache that outlived many participants can keep
@@ -232,8 +250,10 @@ def make_machine(world: World):
                 # is what a new observer discovers.
                 seen = fresh_observer_graph(world.container.domain_id, world.container.fqn) & ghosts
                 world.stale_ghosts += len(ghosts - seen)
-                assert not seen, (f"nodes still in the ROS graph {GRAPH_SETTLE_S:g} s after their unload, "
-                                  f"also for a new observer: {sorted(seen)}")
+                assert not seen, (
+                    f"nodes still in the ROS graph {GRAPH_SETTLE_S:g} s after their unload, "
+                    f"also for a new observer: {sorted(seen)}"
+                )
             fds, threads, rss = world.resources()
             world.rss_kib.append(rss)
             assert fds <= world.fds, f"open fds {world.fds} -> {fds}"
@@ -248,8 +268,9 @@ def test_hostile_requests_never_end_wedge_or_drain_the_container(mode, request, 
     if mode == "cgroups" and cgroup2_mount() is None:
         pytest.skip("no cgroup2 here")
     container = container_factory.start(MODES[mode])
-    world = World(container, container_factory.connect(container), cgroups=mode == "cgroups",
-                  spare=mode in KEEPS_A_SPARE)
+    world = World(
+        container, container_factory.connect(container), cgroups=mode == "cgroups", spare=mode in KEEPS_A_SPARE
+    )
     world.warm_up()
     config = request.config
     deep = long_run(config)
@@ -258,15 +279,27 @@ def test_hostile_requests_never_end_wedge_or_drain_the_container(mode, request, 
     rounds = 0
     while True:
         rounds += 1
-        run_state_machine_as_test(make_machine(world), settings=settings(
-            max_examples=budget["examples"], stateful_step_count=budget["steps"], deadline=None,
-            derandomize=not deep, database=None, phases=[Phase.generate], report_multiple_bugs=False,
-            suppress_health_check=list(HealthCheck)))
+        run_state_machine_as_test(
+            make_machine(world),
+            settings=settings(
+                max_examples=budget["examples"],
+                stateful_step_count=budget["steps"],
+                deadline=None,
+                derandomize=not deep,
+                database=None,
+                phases=[Phase.generate],
+                report_multiple_bugs=False,
+                suppress_health_check=list(HealthCheck),
+            ),
+        )
         if world.model.requests >= target:
             break
     rss = world.rss_kib
-    print(f"{mode}: {world.model.requests} requests in {world.examples} examples ({rounds} round(s)); "
-          f"ids given {len(world.model.given)}; {world.stale_ghosts} stale in the client's graph only; fds {world.fds}, threads {world.threads} at most; "
-          f"RSS {rss[0] / 1024:.1f} -> {rss[-1] / 1024:.1f} MiB at rest")
+    print(
+        f"{mode}: {world.model.requests} requests in {world.examples} examples ({rounds} round(s)); "
+        f"ids given {len(world.model.given)}; {world.stale_ghosts} stale in the client's graph only; "
+        f"fds {world.fds}, threads {world.threads} at most; "
+        f"RSS {rss[0] / 1024:.1f} -> {rss[-1] / 1024:.1f} MiB at rest"
+    )
     container.stop()
     assert container.exit_status.returncode == 0 and not container.exit_status.forced

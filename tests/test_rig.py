@@ -1,5 +1,9 @@
 """The scenario rig (harness/rig.py) on a real container."""
+
+import os
 import signal
+
+from cloneguard_interfaces.msg import ComponentEvent
 
 from cloneguard.harness.rig import Rig
 
@@ -21,12 +25,62 @@ def test_a_container_that_died_in_a_trial_is_crashed_with_its_last_log_lines(con
 
 def test_a_long_fault_dump_keeps_the_faulting_threads_stack():
     from cloneguard.harness.rig import fatal_excerpt
-    others = "".join(f'Thread 0x{i:x} (most recent call first):\n  File "x.py", line {i} in f\n\n'
-                     for i in range(400))
-    current = 'Current thread 0xbeef (most recent call first):\n  Garbage-collecting\n  File "core.py", line 498 in _listen\n'
+
+    others = "".join(f'Thread 0x{i:x} (most recent call first):\n  File "x.py", line {i} in f\n\n' for i in range(400))
+    current = (
+        'Current thread 0xbeef (most recent call first):\n  Garbage-collecting\n  File "core.py", line 498 in _listen\n'
+    )
     dump = "Fatal Python error: Segmentation fault\n\n" + others + current + "\nExtension modules: yaml\n"
     cut = fatal_excerpt(dump, 4000)
     assert len(cut) <= 4000
     assert cut.startswith("Fatal Python error: Segmentation fault\nCurrent thread 0xbeef")
     assert current in cut and "more characters of the dump left out" in cut
     assert fatal_excerpt("Fatal Python error: x\n", 4000) == "Fatal Python error: x\n"
+
+
+def test_an_isolated_container_that_died_leaves_its_native_stack_and_the_deaths_before_it(container_factory):
+    """Isolated mode: the container's own report of a fatal signal (its
+    native stack, symbolized where the libraries allow) comes before
+    faulthandler's dump, and the node deaths before it are kept with it."""
+    import os
+
+    from cloneguard_interfaces.msg import ComponentEvent
+
+    rig = Rig(container_factory, "per-node")
+    victim = rig.client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="victim")
+    pid = rig.loaded_pid(victim.unique_id)
+    os.kill(pid, signal.SIGKILL)
+    rig.client.wait_for_event(ComponentEvent.CRASHED, unique_id=victim.unique_id)
+    rig.proc.signal(signal.SIGSEGV)
+    assert rig.proc.wait(timeout=20) is not None
+    out = rig.not_survived("the container is gone")
+    native = out.details["native_stack"]
+    assert native.startswith(f"cloneguard: container pid {rig.proc.pid} caught SIGSEGV"), native[:300]
+    assert "cloneguard: native stack:" in native and "libc.so.6" in native
+    assert " = " in native  # a frame named by addr2line
+    assert out.details["fatal_error"].startswith("Fatal Python error: Segmentation fault")
+    assert [d["node"] for d in out.details["deaths_before"]] == ["/victim"]
+    assert "SIGKILL" in out.details["deaths_before"][0]["reason"]
+
+
+def test_a_rig_replaces_its_container_after_its_bound_of_node_deaths(container_factory, monkeypatch):
+    """Each dead per-node node leaves its participant's sockets in the
+    container: a rig's container is replaced after DEATHS_PER_CONTAINER of
+    them, survived or not, and not before."""
+    from cloneguard.harness import rig as rig_module
+    from cloneguard.harness.rig import Outcome, TrialOutcome
+
+    monkeypatch.setattr(rig_module, "DEATHS_PER_CONTAINER", 2)
+    rig = Rig(container_factory, "per-node")
+    first = rig.proc.pid
+    survived = Outcome(TrialOutcome.SURVIVED)
+    for n in (1, 2):
+        uid = rig.client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name=f"victim{n}").unique_id
+        [pid] = [e.pid for e in rig.client.events.messages() if e.unique_id == uid and e.pid]
+        os.kill(pid, signal.SIGKILL)
+        rig.client.wait_for_event(ComponentEvent.CRASHED, unique_id=uid, timeout=10)
+        assert rig.node_deaths() == n
+        assert rig.settle(survived) is (n == 2)
+    assert rig.proc.pid != first and rig.restarts == 1
+    assert rig.node_deaths() == 0  # a fresh container, and the survivor beats in it
+    rig.beats.wait_count(3, timeout=10)

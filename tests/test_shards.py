@@ -4,21 +4,21 @@ The scenarios here are stand-ins whose outcome is a function of the trial's
 seed, so that which trials ran, with which seeds, is all that can differ
 between an unsharded run, its shards merged, and an xdist run.
 """
+
 from __future__ import annotations
 
 import json
 
 import pytest
+from test_report import plugin_args
 
 from cloneguard.harness.__main__ import main as harness_main
 from cloneguard.harness.report.merge import MergeError, merge_reports
 from cloneguard.harness.report.model import load_report
 
-from test_report import plugin_args
-
 pytest_plugins = ["pytester"]
 
-CELLS = '''
+CELLS = """
 from cloneguard.harness.rig import Outcome
 
 def by_seed(seed, index):
@@ -36,7 +36,7 @@ def test_unmet(resilience, run_trials):
 def test_single(resilience, record_trial, trial_plan):
     [(index, seed)] = trial_plan(1, 1)
     record_trial(index, seed, Outcome("survived"))
-'''
+"""
 
 
 @pytest.fixture
@@ -46,8 +46,9 @@ def cells(pytester):
 
 
 def run(pytester, out, *args) -> dict:
-    pytester.runpytest(*plugin_args(), "-p", "no:cacheprovider", "--report-dir", str(out),
-                       "--seed", "5", *args, "scenarios")
+    pytester.runpytest(
+        *plugin_args(), "-p", "no:cacheprovider", "--report-dir", str(out), "--seed", "5", *args, "scenarios"
+    )
     return load_report(out)
 
 
@@ -64,7 +65,7 @@ def test_three_shards_merged_are_the_unsharded_run(cells, tmp_path):
         cell = next(s for s in shard.scenarios if s.name == "test_cell")
         assert [t.index % 3 for t in cell.trials] == [k - 1] * len(cell.trials)
     single = {s.name: s.outcome for s in shards[1].scenarios}["test_single"]
-    assert single == "skipped"             # its one trial fell to shard 1
+    assert single == "skipped"  # its one trial fell to shard 1
 
     merged = merge_reports(shards)
     assert trials_of(merged) == trials_of(whole)
@@ -82,7 +83,7 @@ def test_merge_command_writes_a_report_and_fails_on_unmet(cells, tmp_path, capsy
     for k, out in enumerate(parts, 1):
         run(cells, out, "--shard", f"{k}/2")
     code = harness_main(["merge", *map(str, parts), "--out", str(tmp_path / "merged")])
-    assert code == 1                        # test_unmet's expectation is not met
+    assert code == 1  # test_unmet's expectation is not met
     merged = load_report(tmp_path / "merged")
     assert {"report.json", "report.html", "junit.xml"} <= {p.name for p in (tmp_path / "merged").iterdir()}
     assert sum(len(s.trials) for s in merged.scenarios) == 11 + 11 + 1
@@ -112,6 +113,13 @@ def test_bad_shard_is_a_usage_error(cells, tmp_path):
     assert "K must be between 1 and N" in result.stderr.str()
 
 
+@pytest.mark.parametrize("count", ["0", "-1"])
+def test_a_trial_count_below_one_is_a_usage_error(cells, count):
+    result = cells.runpytest(*plugin_args(), "--trials", count, "scenarios")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    assert "argument --trials: a trial count is at least 1" in result.stderr.str()
+
+
 def test_xdist_workers_make_one_report(cells, tmp_path):
     pytest.importorskip("xdist")
     serial = run(cells, tmp_path / "serial")
@@ -120,8 +128,42 @@ def test_xdist_workers_make_one_report(cells, tmp_path):
     assert trials_of(parallel) == trials_of(serial)
     assert {s.name: s.outcome for s in parallel.scenarios} == {s.name: s.outcome for s in serial.scenarios}
     assert {s.name: [e.met for e in s.expectations] for s in parallel.scenarios} == {
-        "test_cell": [True], "test_unmet": [False], "test_single": []}
+        "test_cell": [True],
+        "test_unmet": [False],
+        "test_single": [],
+    }
     data = json.loads((tmp_path / "parallel" / "report.json").read_text())
     assert data["summary"]["tests"] == 3
     junit = (tmp_path / "parallel" / "junit.xml").read_text()
     assert junit.count("<testcase") == 3
+
+
+UNANSWERED = """
+from cloneguard.harness.client import HarnessTimeout
+from cloneguard.harness.rig import Outcome
+
+
+class StandInRig:
+    def not_survived(self, why):
+        return Outcome("hung", details={"why": why})
+
+
+def stuck_every_third(seed, index):
+    if index % 3 == 2:
+        raise HarnessTimeout("no answer from /ComponentManager/_container/load_node within 15.0 s")
+    return Outcome("survived")
+
+
+def test_cell(resilience, run_trials):
+    resilience.describe(fault="stand-in", profile="p", claim="a load goes unanswered every third trial")
+    run_trials(stuck_every_third, lambda out: None, quick=6, deep=6, rig=StandInRig())
+"""
+
+
+def test_a_trial_whose_request_goes_unanswered_is_a_hang_not_an_error(pytester, tmp_path):
+    pytester.mkdir("scenarios").joinpath("test_unanswered.py").write_text(UNANSWERED)
+    report = run(pytester, tmp_path / "out")
+    [cell] = report.scenarios
+    assert cell.outcome == "passed"
+    assert [t.outcome for t in cell.trials] == ["survived", "survived", "hung"] * 2
+    assert cell.trials[2].details["why"].startswith("the trial's request went unanswered: no answer from")

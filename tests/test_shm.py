@@ -5,6 +5,7 @@ harness.shm takes the directory to look in). The cases about Fast DDS's port
 mutex need glibc's semaphore directory, /dev/shm: they use port numbers no
 Fast DDS port can have (above 65535) and remove only the files they made.
 """
+
 import fcntl
 import mmap
 import os
@@ -47,8 +48,9 @@ class Peer:
 
     def __init__(self, code: str):
         script = textwrap.dedent(code) + "\nimport sys\nprint('ready', flush=True)\nsys.stdin.readline()\n"
-        self.proc = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
         assert self.proc.stdout.readline().strip() == "ready"
 
     def stop(self):
@@ -57,6 +59,7 @@ class Peer:
 
 
 # -- segments with a lock file: Fast DDS's own rule -------------------------------------------
+
 
 def test_a_segment_whose_lock_is_held_is_in_use_and_one_whose_lock_is_free_is_an_orphan(tmp_path):
     make(tmp_path, PARTICIPANT, PARTICIPANT + "_el")
@@ -95,6 +98,7 @@ def test_a_lock_file_decides_even_when_a_live_process_maps_the_segment(tmp_path)
 
 
 # -- ports with no lock file ----------------------------------------------------------------------
+
 
 def test_a_lockless_port_mapped_by_this_process_is_in_use_and_unmapped_an_orphan(tmp_path):
     files = {"fastrtps_port7414", "sem.fastrtps_port7414_mutex"}
@@ -167,8 +171,9 @@ def test_a_lock_file_makes_a_port_not_lockless(tmp_path):
 
 
 def test_only_orphans_of_our_owners_are_removed(tmp_path):
-    make(tmp_path, "fastrtps_port7424", "sem.fastrtps_port7424_mutex",
-         "fastrtps_port7426", "sem.fastrtps_port7426_mutex")
+    make(
+        tmp_path, "fastrtps_port7424", "sem.fastrtps_port7424_mutex", "fastrtps_port7426", "sem.fastrtps_port7426_mutex"
+    )
     removed = shm.remove_orphans_of(shm.segments(tmp_path), {"fastrtps_port7424"}, tmp_path)
     assert [s.name for s in removed] == ["fastrtps_port7424"]
     assert shm.segments(tmp_path) == {"fastrtps_port7426", "sem.fastrtps_port7426_mutex"}
@@ -247,8 +252,11 @@ def test_a_port_whose_mutex_a_live_process_holds_is_being_opened(dev_shm_port):
 
 
 def test_an_orphaned_port_with_a_free_mutex_goes_with_it(dev_shm_port):
-    holder = Peer(SEM_CODE.format(name=f"/{dev_shm_port}_mutex".encode()).replace(
-        "assert libc.sem_wait(sem) == 0", "assert libc.sem_close(sem) == 0"))
+    holder = Peer(
+        SEM_CODE.format(name=f"/{dev_shm_port}_mutex".encode()).replace(
+            "assert libc.sem_wait(sem) == 0", "assert libc.sem_close(sem) == 0"
+        )
+    )
     holder.stop()
     assert (shm.SHM_DIR / f"sem.{dev_shm_port}_mutex").exists()
     assert [s.name for s in shm.remove_orphans({dev_shm_port})] == [dev_shm_port]

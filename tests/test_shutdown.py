@@ -1,4 +1,5 @@
 """SIGINT/SIGTERM: every node destroyed, exit 0, nothing left behind."""
+
 import signal
 import time
 

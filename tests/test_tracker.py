@@ -1,4 +1,5 @@
 """The launcher-side node-state tracker, on real containers."""
+
 import os
 import signal
 

@@ -1,5 +1,6 @@
 """cloneguard.container.intra's wakers: a post wakes the guard condition's executor, and
 a closed waker stays safe for the publishers that still hold it."""
+
 import threading
 
 import pytest
@@ -67,7 +68,7 @@ def test_a_late_post_to_a_closed_waker_lands_in_a_waker_and_wakes_nothing_it_sho
         # waker's table (the same slot index, another subscription).
         assert token == old_token
         old.remove(old_token)
-        old.post(old_token)          # late post from a publisher: one spurious wake at most
+        old.post(old_token)  # late post from a publisher: one spurious wake at most
         new.post(token)
         assert wakes.wait_for(1)
     finally:

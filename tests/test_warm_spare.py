@@ -1,6 +1,7 @@
 """The per-node profile's warm spare (container/isolated/spare.py), seen from
 outside: the container's child processes, the LOADED events' pids, the
 graph and the log."""
+
 import os
 import signal
 import time
@@ -30,9 +31,11 @@ def wait_until(pred, timeout: float = 10.0, what: str = "condition"):
 
 def the_spare(container, not_pids=()) -> int:
     """The pid of the container's one child that is no node's (waits for it)."""
+
     def one():
         spares = [p for p in procfs.children_of(container.pid) if p not in not_pids]
         return spares[0] if len(spares) == 1 else None
+
     return wait_until(one, what="the spare process")
 
 
@@ -54,8 +57,9 @@ def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, co
     client.subscribe(UInt64, "/hb/heartbeat").wait_count(3, timeout=10)
     nxt = the_spare(container, not_pids={spare})
     assert nxt != spare
-    wait_until(lambda: placeholders(client) == {f"{PLACEHOLDER}{nxt}"},
-               what="only the new spare's placeholder in the graph")
+    wait_until(
+        lambda: placeholders(client) == {f"{PLACEHOLDER}{nxt}"}, what="only the new spare's placeholder in the graph"
+    )
     # Placeholders have no services, so none is left behind in the node's process.
     assert not [name for name, _ in client.node.get_service_names_and_types() if PLACEHOLDER in name]
     # An unloaded node's process goes; the spare stays for the next load.
@@ -67,8 +71,7 @@ def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, co
 @pytest.mark.parametrize("container_args", [["--isolated"]])
 def test_a_load_that_needs_a_context_of_its_own_leaves_the_spare_alone(client, container):
     spare = the_spare(container)
-    uid = client.load_ok(PKG, "cloneguard::Heartbeat",
-                         extra_arguments={"forward_global_arguments": True}).unique_id
+    uid = client.load_ok(PKG, "cloneguard::Heartbeat", extra_arguments={"forward_global_arguments": True}).unique_id
     pid = loaded_pid(client, uid)
     assert pid != spare
     assert sorted(procfs.children_of(container.pid)) == sorted([spare, pid])
@@ -99,12 +102,17 @@ def test_a_failed_construction_in_the_spare_answers_and_a_new_spare_is_made(cont
     assert loaded_pid(client, client.load_ok(PKG, "cloneguard::Heartbeat").unique_id) == nxt
 
 
-@pytest.mark.parametrize("container_args", [
-    ["--isolated", "--no-warm-spare"],
-    ["--isolated", "--profile", "shared"],
-    pytest.param(["--isolated", "--cgroups"], marks=pytest.mark.skipif(
-        cgroup2_mount() is None, reason="no cgroup2 here")),
-], ids=["no-warm-spare", "shared", "cgroups"])
+@pytest.mark.parametrize(
+    "container_args",
+    [
+        ["--isolated", "--no-warm-spare"],
+        ["--isolated", "--profile", "shared"],
+        pytest.param(
+            ["--isolated", "--cgroups"], marks=pytest.mark.skipif(cgroup2_mount() is None, reason="no cgroup2 here")
+        ),
+    ],
+    ids=["no-warm-spare", "shared", "cgroups"],
+)
 def test_no_spare_is_kept_when_switched_off_in_the_shared_profile_or_with_cgroups(client, container):
     # With --cgroups each node's process is born in its cgroup: none is made ahead.
     uid = client.load_ok(PKG, "cloneguard::Heartbeat").unique_id

@@ -1,4 +1,5 @@
 """The watchdog ends a container whose executor stopped making progress."""
+
 import signal
 import time
 
@@ -60,9 +61,9 @@ def test_an_idle_container_is_not_a_stalled_one(client, container):
     import time
 
     client.load_ok("cloneguard", "cloneguard::Talker")
-    deadline = time.monotonic() + 5      # > twice the watchdog timeout
+    deadline = time.monotonic() + 5  # > twice the watchdog timeout
     while time.monotonic() < deadline:
-        assert client.list()              # still answering
+        assert client.list()  # still answering
         time.sleep(0.5)
     assert container.alive()
 
@@ -81,7 +82,7 @@ def test_a_node_whose_callback_hangs_is_aborted_alone_with_its_stacks(client, co
     beating = client.load_ok("cloneguard", "cloneguard::Heartbeat")
     hung = client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
     crash = client.wait_for_event(ComponentEvent.CRASHED, unique_id=hung.unique_id, timeout=15)
-    assert crash.exit_signal == 6, crash                     # SIGABRT, sent by the container
+    assert crash.exit_signal == 6, crash  # SIGABRT, sent by the container
     assert "longer than --node-watchdog 1.5 s (" in crash.error_message, crash.error_message
     assert "callback(s) had run before it)" in crash.error_message
     # Its crash report says where it hung (its stacks are written by the
@@ -102,7 +103,7 @@ def test_idle_and_busy_nodes_are_not_aborted(client, container):
     # short ones all the time: neither is a hung callback.
     client.load_ok("cloneguard", "cloneguard::Listener")
     client.load_ok("cloneguard", "cloneguard::Heartbeat")
-    time.sleep(4)                        # > twice the limit
+    time.sleep(4)  # > twice the limit
     assert len(client.list()) == 2
     assert "node watchdog" in container.log_text() and "aborting" not in container.log_text()
 

@@ -5,6 +5,7 @@ container still serves in thread mode, intra-process messaging included, and
 ``--isolated`` refuses with the reason. Simulated here by a container whose
 interpreter cannot import ``container.isolated._clonecore``.
 """
+
 import sys
 
 import pytest
