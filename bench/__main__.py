@@ -8,6 +8,7 @@ Each benchmark writes its own <name>.md / <name>.json beside summary.md; the
 summary's table (one row per measure and mode, with the goal and whether it
 was met) is meant to be pasted into the README.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -16,7 +17,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from . import child_start, crash_latency, intra, load_latency, memory, shutdown
+from . import child_start, crash_latency, intra, load_latency, lock_doctor, memory, python_locks, shutdown
 from .cli import DEFAULT_OUT, command_line
 from .results import SUMMARY_COLUMNS, Table, host, host_line
 
@@ -27,6 +28,8 @@ BENCHMARKS = {
     "load_latency": load_latency,
     "shutdown": shutdown,
     "intra": intra,
+    "python_locks": python_locks,
+    "lock_doctor": lock_doctor,
 }
 PRESETS = {
     "default": {
@@ -36,6 +39,8 @@ PRESETS = {
         "load_latency": {"n": 15},
         "shutdown": {"reps": 2, "counts": [1, 5, 20]},
         "intra": {"sizes": ["1KiB", "64KiB", "1MiB", "16MiB"], "count": 100},
+        "python_locks": {"rounds": 15, "ops": 200_000},
+        "lock_doctor": {"nodes": [1, 10, 40], "threads": 4, "seconds": 5.0},
     },
     "tiny": {
         "child_start": {"n": 2, "n_raw": 2},
@@ -43,8 +48,9 @@ PRESETS = {
         "crash_latency": {"n": 2, "n_monitor": 2, "settle": 0.02},
         "load_latency": {"n": 2, "modes": ["isolated-per-node", "thread"]},
         "shutdown": {"reps": 1, "counts": [1, 2], "settle": 0.1, "modes": ["isolated-per-node", "thread"]},
-        "intra": {"sizes": ["1KiB", "1MiB"], "count": 2, "warmup": 1, "burst": 5, "burst_seconds": 0.5,
-                  "settle": 0.2},
+        "intra": {"sizes": ["1KiB", "1MiB"], "count": 2, "warmup": 1, "burst": 5, "burst_seconds": 0.5, "settle": 0.2},
+        "python_locks": {"rounds": 3, "ops": 2000},
+        "lock_doctor": {"nodes": [1, 2], "threads": 1, "seconds": 0.5},
     },
 }
 
@@ -56,22 +62,43 @@ def summary_markdown(results: dict, failures: dict, command: str) -> str:
             for row in results[name].summary:
                 table.add(*(row[c] for c in SUMMARY_COLUMNS))
     info = next(iter(results.values())).host if results else host()
-    out = ["# Benchmarks: summary", "",
-           f"Command (from the repository root, venv active): `{command}`", "",
-           f"Host: {host_line(info)}", "",
-           "Medians and p90 measured side by side in one run on this host; ratios are of medians. "
-           "Details, methods and the exact command of each: the `<benchmark>.md` files beside this one.", "",
-           table.markdown(), ""]
+    out = [
+        "# Benchmarks: summary",
+        "",
+        f"Command (from the repository root, venv active): `{command}`",
+        "",
+        f"Host: {host_line(info)}",
+        "",
+        "Medians and p90 measured side by side in one run on this host; ratios are of medians. "
+        "Details, methods and the exact command of each: the `<benchmark>.md` files beside this one.",
+        "",
+        table.markdown(),
+        "",
+    ]
     if failures:
         out += ["Failed: " + "; ".join(f"{name}: {err}" for name, err in failures.items()), ""]
     dirty = [f"{name}: {'; '.join(r.cleanup)}" for name, r in results.items() if r.cleanup]
-    out += ["Clean-up: " + ("every benchmark stopped all it started; no process or /dev/shm segment left."
-                            if not dirty else "PROBLEMS: " + " | ".join(dirty)), ""]
+    out += [
+        "Clean-up: "
+        + (
+            "every benchmark stopped all it started; no process or /dev/shm segment left."
+            if not dirty
+            else "PROBLEMS: " + " | ".join(dirty)
+        ),
+        "",
+    ]
     return "\n".join(out)
 
 
-def run_all(*, preset: str = "default", only: list[str] | None = None, out=DEFAULT_OUT,
-            keep_logs: bool = False, quiet: bool = False, command: str | None = None):
+def run_all(
+    *,
+    preset: str = "default",
+    only: list[str] | None = None,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+    command: str | None = None,
+):
     """Run the benchmarks; return (results by name, failures by name, summary path)."""
     out = Path(out)
     results, failures = {}, {}
@@ -83,11 +110,12 @@ def run_all(*, preset: str = "default", only: list[str] | None = None, out=DEFAU
             print(f"\n=== {name}: {command_line(name, params)}\n", flush=True)
         try:
             results[name] = module.run(out=out, keep_logs=keep_logs, quiet=quiet, **params)
-        except Exception as exc:    # the others still run; the summary says what failed
+        except Exception as exc:  # the others still run; the summary says what failed
             traceback.print_exc()
             failures[name] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-    command = command or shlex.join(["python", "-m", "cloneguard.bench", "--preset", preset]
-                                    + (["--only", *only] if only else []))
+    command = command or shlex.join(
+        ["python", "-m", "cloneguard.bench", "--preset", preset] + (["--only", *only] if only else [])
+    )
     text = summary_markdown(results, failures, command)
     path = out / "summary.md"
     out.mkdir(parents=True, exist_ok=True)
@@ -100,8 +128,9 @@ def run_all(*, preset: str = "default", only: list[str] | None = None, out=DEFAU
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cloneguard.bench", description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", choices=list(PRESETS), default="default",
-                        help="counts to run with (default: %(default)s)")
+    parser.add_argument(
+        "--preset", choices=list(PRESETS), default="default", help="counts to run with (default: %(default)s)"
+    )
     parser.add_argument("--only", nargs="+", choices=list(BENCHMARKS), default=None)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--keep-logs", action="store_true")

@@ -9,6 +9,7 @@ runs rclpy clients, so these run here, started by the benchmarks:
 It prints one JSON object (lists of nanoseconds) on stdout. rclpy is
 imported first so the process has the heap and mappings of a container.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,7 +26,7 @@ import rclpy  # noqa: F401  (a container-sized process: see the docstring)
 from cloneguard.container.isolated.core import CloneCore
 
 STAMP = "import os,time;os.write(1,b'%d'%time.monotonic_ns())"
-NR_CLOCK_NANOSLEEP = 230     # what time.sleep blocks in (x86_64)
+NR_CLOCK_NANOSLEEP = 230  # what time.sleep blocks in (x86_64)
 
 
 def _exec_stamp(argv: list[str]) -> tuple[int, int]:
@@ -53,8 +54,18 @@ def _fork_stamp() -> tuple[int, int]:
 
 
 def spawn(n: int) -> dict:
-    out = {k: [] for k in ("clone_first_line", "clone_spawn_returned", "clone_cloned",
-                           "forkexec_site", "forkexec_nosite", "fork_first_line", "clone_hot_first_line")}
+    out = {
+        k: []
+        for k in (
+            "clone_first_line",
+            "clone_spawn_returned",
+            "clone_cloned",
+            "forkexec_site",
+            "forkexec_nosite",
+            "fork_first_line",
+            "clone_hot_first_line",
+        )
+    }
     stamps: list[int] = []
 
     def target() -> None:
@@ -62,7 +73,7 @@ def spawn(n: int) -> dict:
 
     core = CloneCore()
     try:
-        for _ in range(n):      # interleaved, so drift on a noisy host hits all alike
+        for _ in range(n):  # interleaved, so drift on a noisy host hits all alike
             t0 = time.monotonic_ns()
             child = core.spawn(target)
             t1 = time.monotonic_ns()
@@ -72,12 +83,12 @@ def spawn(n: int) -> dict:
             core.release(child)
             out["clone_first_line"].append(stamps[-1] - t0)
             out["clone_spawn_returned"].append(t1 - t0)
-            out["clone_cloned"].append(child.start_time_ns - t0)   # the monitor, just before clone3
+            out["clone_cloned"].append(child.start_time_ns - t0)  # the monitor, just before clone3
             t0, t = _exec_stamp([sys.executable, "-c", STAMP])
             out["forkexec_site"].append(t - t0)
             t0, t = _exec_stamp([sys.executable, "-I", "-S", "-c", STAMP])
             out["forkexec_nosite"].append(t - t0)
-        for _ in range(n):      # and back to back, nothing in between (a best case)
+        for _ in range(n):  # and back to back, nothing in between (a best case)
             t0 = time.monotonic_ns()
             child = core.spawn(target)
             if core.wait(child, 10) is None:
@@ -134,7 +145,7 @@ def kill(n: int) -> dict:
                 if death is None:
                     raise RuntimeError(f"child {child.pid} not reaped within 10 s of {sig.name}")
                 with cond:
-                    if not cond.wait_for(lambda: child.serial in arrived, 10):
+                    if not cond.wait_for(lambda child=child: child.serial in arrived, 10):
                         raise RuntimeError(f"no on_event for child {child.pid} within 10 s")
                 detect.append(death.detected_monotonic_ns - t0)
                 deliver.append(arrived[child.serial] - t0)

@@ -11,6 +11,7 @@ if not seen within the timeout). ros2cli spins 0.5 s before it asks, so a
 container whose service_s is above 0.5 is missing from `ros2 component
 list`. The ROS environment (domain, Fast DDS profile) comes from the caller.
 """
+
 import argparse
 import json
 import os

@@ -13,6 +13,7 @@ C (faults/hammer.c), so the figures are the allocator's, not Python's:
 
     python -m cloneguard.bench.alloc_guard [--pairs 2000000] [--blocks 200000] [--repeat 5]
 """
+
 from __future__ import annotations
 
 import json
@@ -40,6 +41,7 @@ SIZES = (64, 4096)
 
 def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
     from cloneguard.container import allocator
+
     allocator.glibc_arena_per_task()
     from cloneguard.container.isolated.core import CloneCore
     from cloneguard.faults._hammer import ffi, lib
@@ -50,6 +52,7 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
         out.setdefault(key, []).append(ns / n)
 
     with CloneCore(alloc_guard=activate) as core:
+
         def in_child(fn) -> None:
             child = core.spawn(fn)
             assert core.wait(child, 60).exit_code == 0
@@ -58,15 +61,15 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
         for _ in range(repeat):
             for size in SIZES:
                 add(f"pair {size} B, container thread", lib.hammer_pairs(size, pairs), pairs)
-                in_child(lambda size=size: add(f"pair {size} B, node process",
-                                               lib.hammer_pairs(size, pairs), pairs))
+                in_child(lambda size=size: add(f"pair {size} B, node process", lib.hammer_pairs(size, pairs), pairs))
             arr = ffi.new("void *[]", blocks)
-            in_child(lambda: lib.hammer_alloc_many(arr, 256, blocks))
+            in_child(lambda arr=arr: lib.hammer_alloc_many(arr, 256, blocks))
             add("free of a node's 256 B block by the container", lib.hammer_free_many(arr, blocks), blocks)
             # The next child in that context frees them into its arena at
             # its first allocation (with the guard; without, they are freed).
-            in_child(lambda: add("owner frees what was handed back (first malloc after)",
-                                 lib.hammer_pairs(64, 1), blocks))
+            in_child(
+                lambda: add("owner frees what was handed back (first malloc after)", lib.hammer_pairs(64, 1), blocks)
+            )
     return out
 
 
@@ -82,14 +85,30 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(_worker(bool(activate), pairs, blocks, repeat)))
         return 0
     from cloneguard.container import allocator
+
     raw = {}
     for label, preload, activate, jemalloc in CONFIGS:
         env = dict(os.environ)
-        env["LD_PRELOAD"] = " ".join(([allocator.GUARD_PATH] if preload else [])
-                                     + ([allocator.jemalloc_path()] if jemalloc else []))
-        proc = subprocess.run([sys.executable, "-m", "cloneguard.bench.alloc_guard", "--worker", str(int(activate)),
-                               str(args.pairs), str(args.blocks), str(args.repeat)],
-                              capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=1800)
+        env["LD_PRELOAD"] = " ".join(
+            ([allocator.GUARD_PATH] if preload else []) + ([allocator.jemalloc_path()] if jemalloc else [])
+        )
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "cloneguard.bench.alloc_guard",
+                "--worker",
+                str(int(activate)),
+                str(args.pairs),
+                str(args.blocks),
+                str(args.repeat),
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=REPO_ROOT,
+            timeout=1800,
+        )
         if proc.returncode != 0:
             raise SystemExit(f"worker ({label}) failed:\n{proc.stderr[-3000:]}")
         raw[label] = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -98,24 +117,32 @@ def main(argv: list[str] | None = None) -> int:
     for m in measures:
         table.add(m, *[f"{statistics.median(raw[c[0]][m]):.1f}" for c in CONFIGS])
     result = Result(
-        name="alloc_guard", title="Allocator guard: cost per malloc/free",
-        command=command_line("alloc_guard", {"pairs": args.pairs, "blocks": args.blocks,
-                                             "repeat": args.repeat}),
-        params=vars(args) | {"out": str(args.out)}, tables=[table], goals=[],
-        notes=["Loops in C (faults/hammer.c: hammer_pairs, hammer_alloc_many, hammer_free_many), "
-               "each configuration in a fresh process with its own LD_PRELOAD.",
-               "'guard preloaded, off': the interposer is in place but cga_activate was not called "
-               "(isolated mode not started): every call passes straight through.",
-               "The last row is the first allocation of the next node process in the same context "
-               "divided by the number of blocks it frees then; without the guard nothing was handed "
-               "back, and the row is one malloc/free pair spread over that many blocks."],
-        summary=[], raw=raw, cleanup=[])
+        name="alloc_guard",
+        title="Allocator guard: cost per malloc/free",
+        command=command_line("alloc_guard", {"pairs": args.pairs, "blocks": args.blocks, "repeat": args.repeat}),
+        params=vars(args) | {"out": str(args.out)},
+        tables=[table],
+        goals=[],
+        notes=[
+            "Loops in C (faults/hammer.c: hammer_pairs, hammer_alloc_many, hammer_free_many), "
+            "each configuration in a fresh process with its own LD_PRELOAD.",
+            "'guard preloaded, off': the interposer is in place but cga_activate was not called "
+            "(isolated mode not started): every call passes straight through.",
+            "The last row is the first allocation of the next node process in the same context "
+            "divided by the number of blocks it frees then; without the guard nothing was handed "
+            "back, and the row is one malloc/free pair spread over that many blocks.",
+        ],
+        summary=[],
+        raw=raw,
+        cleanup=[],
+    )
     finish(result, args.out)
     return 0
 
 
 def argparse_hidden() -> str:
     import argparse
+
     return argparse.SUPPRESS
 
 

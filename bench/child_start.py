@@ -20,6 +20,7 @@ full start of a node -> it is ready
 
 Goal: clone ≥ 100× faster than fork+exec, judged on each comparison.
 """
+
 from __future__ import annotations
 
 import sys
@@ -40,7 +41,7 @@ CONTAINER_MODES = ["isolated-per-node", "isolated-shared", "thread"]
 
 def measure_full(session: Session, n: int) -> dict:
     running = {mode: session.start(mode) for mode in CONTAINER_MODES}
-    lease = session.lease()             # the process-per-node runners' own domain
+    lease = session.lease()  # the process-per-node runners' own domain
     data = {mode: {"cold": None, "loaded": []} for mode in CONTAINER_MODES}
     ppn = {"cold": None, "ready": [], "first_line": [], "imports": [], "context": [], "build": []}
     for i in range(n + 1):
@@ -71,8 +72,7 @@ def measure_full(session: Session, n: int) -> dict:
     return data
 
 
-def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = False,
-        quiet: bool = False) -> Result:
+def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
     params = {"n": n, "n_raw": n_raw, "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
     try:
@@ -84,41 +84,71 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
     clone = stats(ms(raw["clone_first_line"]))
     raw_rows = [
         ("clone3(CLONE_VM) child: CloneCore.spawn() called → the target's first line", clone),
-        ("  of which: spawn() called → the monitor thread calls clone3 (Child.start_time_ns)",
-         stats(ms(raw["clone_cloned"]))),
+        (
+            "  of which: spawn() called → the monitor thread calls clone3 (Child.start_time_ns)",
+            stats(ms(raw["clone_cloned"])),
+        ),
         ("CloneCore.spawn() called → it returns (pid known)", stats(ms(raw["clone_spawn_returned"]))),
-        ("clone child back to back (n spawns in a row, nothing between: a best case) → first line",
-         stats(ms(raw["clone_hot_first_line"]))),
-        ("fork+exec `python -c` (site on, as the baseline runner starts) → its first line",
-         stats(ms(raw["forkexec_site"]))),
-        ("fork+exec `python -I -S -c` (no site: a lower bound) → its first line",
-         stats(ms(raw["forkexec_nosite"]))),
-        ("fork+exec of the baseline runner `python -m cloneguard.bench.process_per_node` → its module's first line",
-         stats(ms(full[PROCESS_PER_NODE]["first_line"]))),
+        (
+            "clone child back to back (n spawns in a row, nothing between: a best case) → first line",
+            stats(ms(raw["clone_hot_first_line"])),
+        ),
+        (
+            "fork+exec `python -c` (site on, as the baseline runner starts) → its first line",
+            stats(ms(raw["forkexec_site"])),
+        ),
+        ("fork+exec `python -I -S -c` (no site: a lower bound) → its first line", stats(ms(raw["forkexec_nosite"]))),
+        (
+            "fork+exec of the baseline runner `python -m cloneguard.bench.process_per_node` → its module's first line",
+            stats(ms(full[PROCESS_PER_NODE]["first_line"])),
+        ),
         ("os.fork() without exec (reference) → the child's first line", stats(ms(raw["fork_first_line"]))),
     ]
-    t_raw = Table(f"Raw spawn → running Python (ms; worker process, n={n_raw} interleaved)",
-                  ["measure", "n", "median", "p90", "max", "÷ clone child (medians)"])
+    t_raw = Table(
+        f"Raw spawn → running Python (ms; worker process, n={n_raw} interleaved)",
+        ["measure", "n", "median", "p90", "max", "÷ clone child (medians)"],
+    )
     for what, st in raw_rows:
-        t_raw.add(what, st["n"], fmt_ms(st["median"]), fmt_ms(st["p90"]), fmt_ms(st["max"]),
-                  fmt_ratio(ratio(st["median"], clone["median"])))
+        t_raw.add(
+            what,
+            st["n"],
+            fmt_ms(st["median"]),
+            fmt_ms(st["p90"]),
+            fmt_ms(st["max"]),
+            fmt_ratio(ratio(st["median"], clone["median"])),
+        )
 
     ppn = full[PROCESS_PER_NODE]
     ppn_ready = stats(ms(ppn["ready"]))
     mode_stats = {mode: stats(ms(full[mode]["loaded"])) for mode in CONTAINER_MODES}
-    t_full = Table(f"Full start of a node → ready (ms; n={n} interleaved rounds, the cold round 0 apart)",
-                   ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"])
+    t_full = Table(
+        f"Full start of a node → ready (ms; n={n} interleaved rounds, the cold round 0 apart)",
+        ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"],
+    )
     for mode in CONTAINER_MODES:
         st = mode_stats[mode]
-        t_full.add(f"{label(mode)}: LoadNode sent → LOADED at client", st["n"], fmt_ms(st["median"]),
-                   fmt_ms(st["p90"]), fmt_ms(full[mode]["cold"] / 1e6),
-                   fmt_ratio(ratio(ppn_ready["median"], st["median"])))
-    t_full.add("process per node: fork+exec → ready line read from its pipe", ppn_ready["n"],
-               fmt_ms(ppn_ready["median"]), fmt_ms(ppn_ready["p90"]), fmt_ms(ppn["cold"] / 1e6), "1.0×")
-    for key, what in (("first_line", "fork+exec → the runner's first line"),
-                      ("imports", "imports (rclpy, container.registry)"),
-                      ("context", "registry lookup + rclpy Context (DDS participant)"),
-                      ("build", "node built and on its executor")):
+        t_full.add(
+            f"{label(mode)}: LoadNode sent → LOADED at client",
+            st["n"],
+            fmt_ms(st["median"]),
+            fmt_ms(st["p90"]),
+            fmt_ms(full[mode]["cold"] / 1e6),
+            fmt_ratio(ratio(ppn_ready["median"], st["median"])),
+        )
+    t_full.add(
+        "process per node: fork+exec → ready line read from its pipe",
+        ppn_ready["n"],
+        fmt_ms(ppn_ready["median"]),
+        fmt_ms(ppn_ready["p90"]),
+        fmt_ms(ppn["cold"] / 1e6),
+        "1.0×",
+    )
+    for key, what in (
+        ("first_line", "fork+exec → the runner's first line"),
+        ("imports", "imports (rclpy, container.registry)"),
+        ("context", "registry lookup + rclpy Context (DDS participant)"),
+        ("build", "node built and on its executor"),
+    ):
         st = stats(ms(ppn[key]))
         t_full.add(f"  of which: {what}", st["n"], fmt_ms(st["median"]), fmt_ms(st["p90"]), "", "")
 
@@ -127,38 +157,61 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
     r_pernode = ratio(ppn_ready["median"], mode_stats["isolated-per-node"]["median"])
     r_shared = ratio(ppn_ready["median"], mode_stats["isolated-shared"]["median"])
     goals = [
-        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw)",
-                            "raw: fork+exec `python -c` (site on) ÷ clone child, to first line",
-                            r_raw, GOAL_RATIO),
-        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (raw, strict)",
-                            "raw: fork+exec `python -I -S -c` ÷ clone child, to first line",
-                            r_raw_strict, GOAL_RATIO),
-        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
-                            "full: process-per-node spawn → ready ÷ isolated per-node LoadNode → LOADED",
-                            r_pernode, GOAL_RATIO),
-        goal_at_least_ratio("clone ≥ 100× faster than fork+exec (full load)",
-                            "full: process-per-node spawn → ready ÷ isolated shared LoadNode → LOADED",
-                            r_shared, GOAL_RATIO),
+        goal_at_least_ratio(
+            "clone ≥ 100× faster than fork+exec (raw)",
+            "raw: fork+exec `python -c` (site on) ÷ clone child, to first line",
+            r_raw,
+            GOAL_RATIO,
+        ),
+        goal_at_least_ratio(
+            "clone ≥ 100× faster than fork+exec (raw, strict)",
+            "raw: fork+exec `python -I -S -c` ÷ clone child, to first line",
+            r_raw_strict,
+            GOAL_RATIO,
+        ),
+        goal_at_least_ratio(
+            "clone ≥ 100× faster than fork+exec (full load)",
+            "full: process-per-node spawn → ready ÷ isolated per-node LoadNode → LOADED",
+            r_pernode,
+            GOAL_RATIO,
+        ),
+        goal_at_least_ratio(
+            "clone ≥ 100× faster than fork+exec (full load)",
+            "full: process-per-node spawn → ready ÷ isolated shared LoadNode → LOADED",
+            r_shared,
+            GOAL_RATIO,
+        ),
     ]
     med = lambda st: f"{fmt_ms(st['median'])} ms"  # noqa: E731
     fe = stats(ms(raw["forkexec_site"]))
     summary = [
-        summary_row("child start", "raw spawn → running Python: clone child vs fork+exec `python -c`",
-                    "isolated (CloneCore.spawn)", clone,
-                    median=f"{med(clone)} vs {med(fe)} ({fmt_ratio(r_raw)})",
-                    p90=f"{fmt_ms(clone['p90'])} vs {fmt_ms(fe['p90'])} ms",
-                    goal="≥ 100× faster", verdict=goals[0].verdict),
+        summary_row(
+            "child start",
+            "raw spawn → running Python: clone child vs fork+exec `python -c`",
+            "isolated (CloneCore.spawn)",
+            clone,
+            median=f"{med(clone)} vs {med(fe)} ({fmt_ratio(r_raw)})",
+            p90=f"{fmt_ms(clone['p90'])} vs {fmt_ms(fe['p90'])} ms",
+            goal="≥ 100× faster",
+            verdict=goals[0].verdict,
+        ),
     ]
     for mode, r, g in (("isolated-per-node", r_pernode, goals[2]), ("isolated-shared", r_shared, goals[3])):
         st = mode_stats[mode]
-        summary.append(summary_row(
-            "child start", "full: LoadNode → LOADED vs process-per-node spawn → ready", label(mode), st,
-            median=f"{med(st)} vs {med(ppn_ready)} ({fmt_ratio(r)})",
-            p90=f"{fmt_ms(st['p90'])} vs {fmt_ms(ppn_ready['p90'])} ms",
-            goal="≥ 100× faster", verdict=g.verdict))
+        summary.append(
+            summary_row(
+                "child start",
+                "full: LoadNode → LOADED vs process-per-node spawn → ready",
+                label(mode),
+                st,
+                median=f"{med(st)} vs {med(ppn_ready)} ({fmt_ratio(r)})",
+                p90=f"{fmt_ms(st['p90'])} vs {fmt_ms(ppn_ready['p90'])} ms",
+                goal="≥ 100× faster",
+                verdict=g.verdict,
+            )
+        )
     st = mode_stats["thread"]
-    summary.append(summary_row("child start", "full: LoadNode → LOADED (reference)", label("thread"),
-                               st))
+    summary.append(summary_row("child start", "full: LoadNode → LOADED (reference)", label("thread"), st))
     notes = [
         "Raw figures come from one worker process (python -m cloneguard.bench._core_worker spawn) that imports "
         "rclpy first (a container-sized heap) and holds a CloneCore; each round does one clone child, "
@@ -178,8 +231,18 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
         "points) and builds it on its own rclpy Context, as the per-node profile does in its child.",
         "Every load is of cloneguard::Heartbeat and is unloaded (or the runner stopped) before the next.",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, {"n": n, "n_raw": n_raw}), params,
-                    [t_raw, t_full], goals, notes, summary, {"raw_ns": raw, "full_ns": full}, problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(NAME, {"n": n, "n_raw": n_raw}),
+        params,
+        [t_raw, t_full],
+        goals,
+        notes,
+        summary,
+        {"raw_ns": raw, "full_ns": full},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 

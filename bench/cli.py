@@ -1,5 +1,6 @@
 """A benchmark as a command: its options, the command line that repeats a
 run, and the end of a run (the report written and printed)."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,10 +16,10 @@ DEFAULT_OUT = REPO_ROOT / "reports" / "bench"
 
 def arg_parser(name: str, description: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=f"python -m cloneguard.bench.{name}", description=description)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
-                        help="directory for <name>.md and <name>.json (default: reports/bench)")
-    parser.add_argument("--keep-logs", action="store_true",
-                        help="keep the container logs (their directory is printed)")
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="directory for <name>.md and <name>.json (default: reports/bench)"
+    )
+    parser.add_argument("--keep-logs", action="store_true", help="keep the container logs (their directory is printed)")
     return parser
 
 

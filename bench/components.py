@@ -44,6 +44,7 @@ trigger, from a timer callback like the source's, stores a stamp
 waiter's guard-condition callback reads CLOCK_MONOTONIC first thing. Same
 phases (warm-up, one per ``period``, end), same ``~/stats`` reports.
 """
+
 from __future__ import annotations
 
 import json
@@ -60,15 +61,23 @@ HEADER = struct.Struct("<QIB")
 WARMUP, LATENCY, BURST, END = 0, 1, 2, 3
 PHASES = {WARMUP: "warmup", LATENCY: "latency", BURST: "burst", END: "end"}
 
-STATS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
-HOUSEKEEPING_PERIOD = 0.1   # s: both nodes keep a timer, so UnloadNode finds them awake
+STATS_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+HOUSEKEEPING_PERIOD = 0.1  # s: both nodes keep a timer, so UnloadNode finds them awake
 
 
 def payload_qos(depth: int) -> QoSProfile:
     """What both ends of the payload topic use: reliable, volatile, KEEP_LAST ``depth``."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+    )
 
 
 class _Sender(Node):
@@ -146,12 +155,12 @@ class _Sender(Node):
                     self._next_at = now + self._period
                     return
                 self._state = "final"
-                self._next_at = now + max(self._period, 0.2)   # let the last one arrive first
+                self._next_at = now + max(self._period, 0.2)  # let the last one arrive first
                 return
             if self._state == "final":
                 self._final()
                 self._finish()
-        except Exception as exc:   # reported, not raised: the benchmark must hear of it
+        except Exception as exc:  # reported, not raised: the benchmark must hear of it
             self._error = f"{type(exc).__name__}: {exc}"
             self._finish()
 
@@ -159,9 +168,12 @@ class _Sender(Node):
         self._state = "done"
         self._timer.cancel()
         self._housekeeping = self.create_timer(HOUSEKEEPING_PERIOD, lambda: None)
-        stats = {"sent": self._sent, "error": self._error,
-                 "match_s": None if self._matched_ns is None else (self._matched_ns - self._started_ns) / 1e9,
-                 **self._stats()}
+        stats = {
+            "sent": self._sent,
+            "error": self._error,
+            "match_s": None if self._matched_ns is None else (self._matched_ns - self._started_ns) / 1e9,
+            **self._stats(),
+        }
         self._stats_pub.publish(String(data=json.dumps(stats)))
 
 
@@ -201,9 +213,13 @@ class _Receiver(Node):
         if self._done:
             return
         self._done = True
-        stats = {"complete": complete, "received": self._received,
-                 "latency_us": [v / 1e3 for v in self._latency_ns], "latency_seq": self._latency_seq,
-                 **self._stats()}
+        stats = {
+            "complete": complete,
+            "received": self._received,
+            "latency_us": [v / 1e3 for v in self._latency_ns],
+            "latency_seq": self._latency_seq,
+            **self._stats(),
+        }
         self._stats_pub.publish(String(data=json.dumps(stats)))
 
 
@@ -226,8 +242,8 @@ class PayloadSource(_Sender):
         # What every message carries beyond its header (copied into each new message).
         self._pattern = (bytes(range(256)) * (self._size // 256 + 1))[: self._size]
         self._pub = intra.create_publisher(self, UInt8MultiArray, topic, payload_qos(depth))
-        self._build_ns: list[int] = []       # building a message (not in the latency)
-        self._publish_ns: list[int] = []     # inside publish()/publish_loan(), latency phase
+        self._build_ns: list[int] = []  # building a message (not in the latency)
+        self._publish_ns: list[int] = []  # inside publish()/publish_loan(), latency phase
         self._burst_first_stamp = None
         self._burst_end_ns = None
         self._start_timer()
@@ -246,7 +262,7 @@ class PayloadSource(_Sender):
         t0 = time.monotonic_ns()
         if self._payload == "plain":
             msg = UInt8MultiArray()
-            msg.data = self._pattern    # the setter copies it into a fresh array.array (one copy)
+            msg.data = self._pattern  # the setter copies it into a fresh array.array (one copy)
             stamp = time.monotonic_ns()
             HEADER.pack_into(msg.data, 0, stamp, seq, phase)
             self._pub.publish(msg)
@@ -279,12 +295,18 @@ class PayloadSource(_Sender):
 
     def _stats(self) -> dict:
         return {
-            "role": "source", "payload": self._payload, "size": self._size, "intra": self._pub.intra,
-            "build_ns": self._build_ns, "publish_ns": self._publish_ns,
+            "role": "source",
+            "payload": self._payload,
+            "size": self._size,
+            "intra": self._pub.intra,
+            "build_ns": self._build_ns,
+            "publish_ns": self._publish_ns,
             "burst_first_stamp_ns": self._burst_first_stamp,
-            "burst_publish_ns": (None if self._burst_first_stamp is None
-                                 else self._burst_end_ns - self._burst_first_stamp),
-            "sent_intra": self._pub.sent_intra, "sent_dds": self._pub.sent_dds,
+            "burst_publish_ns": (
+                None if self._burst_first_stamp is None else self._burst_end_ns - self._burst_first_stamp
+            ),
+            "sent_intra": self._pub.sent_intra,
+            "sent_dds": self._pub.sent_dds,
         }
 
 
@@ -300,8 +322,9 @@ class PayloadSink(_Receiver):
         self._burst_last_ns = None
         self._sizes: set[int] = set()
         self._by_loan = 0
-        self._sub = intra.create_subscription(self, UInt8MultiArray, topic, self._on_message,
-                                              payload_qos(depth), loaned_field="data" if loaned else None)
+        self._sub = intra.create_subscription(
+            self, UInt8MultiArray, topic, self._on_message, payload_qos(depth), loaned_field="data" if loaned else None
+        )
 
     def _on_message(self, msg) -> None:
         now = time.monotonic_ns()
@@ -322,11 +345,16 @@ class PayloadSink(_Receiver):
     def _stats(self) -> dict:
         sub = self._sub
         return {
-            "role": "sink", "intra": sub.intra, "loaned": sub.loaned_field is not None,
-            "sizes": sorted(self._sizes), "by_loan": self._by_loan,
-            "burst_first_stamp_ns": self._burst_first_stamp, "burst_last_ns": self._burst_last_ns,
+            "role": "sink",
+            "intra": sub.intra,
+            "loaned": sub.loaned_field is not None,
+            "sizes": sorted(self._sizes),
+            "by_loan": self._by_loan,
+            "burst_first_stamp_ns": self._burst_first_stamp,
+            "burst_last_ns": self._burst_last_ns,
             "burst_latency_us": [v / 1e3 for v in self._burst_latency_ns],
-            "received_intra": sub.received_intra, "received_dds": sub.received_dds,
+            "received_intra": sub.received_intra,
+            "received_dds": sub.received_dds,
             "queue_dropped": sub.queue.dropped if sub.intra else None,
         }
 
@@ -353,7 +381,7 @@ class FloorTrigger(_Sender):
     def __init__(self, **kwargs):
         super().__init__("floor_trigger", **kwargs)
         self._channel = self.declare_parameter("channel", "bench_floor").value
-        self._trigger_ns: list[int] = []     # inside .trigger(), latency phase
+        self._trigger_ns: list[int] = []  # inside .trigger(), latency phase
         self._target: FloorChannel | None = None
         self._start_timer()
 
@@ -362,8 +390,10 @@ class FloorTrigger(_Sender):
         return self._target is not None
 
     def _unmatched(self) -> str:
-        return (f"no FloorWaiter on channel {self._channel!r} within {self._match_timeout} s "
-                "(it must run in this interpreter: thread or isolated mode)")
+        return (
+            f"no FloorWaiter on channel {self._channel!r} within {self._match_timeout} s "
+            "(it must run in this interpreter: thread or isolated mode)"
+        )
 
     def _emit(self, phase: int, seq: int) -> None:
         target = self._target

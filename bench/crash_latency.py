@@ -23,6 +23,7 @@ outside -> the monitor's detection stamp, and -> the Python on_event call.
 
 Goal: median ≤ 1 ms (fault -> CRASHED).
 """
+
 from __future__ import annotations
 
 import os
@@ -88,37 +89,57 @@ def _crash(running, trial, sig: signal.Signals, settle: float) -> dict:
     t_mono = time.monotonic_ns()
     os.kill(trial.pid, sig)
     item = event_received(running.client, ComponentEvent.CRASHED, trial.unique_id, EVENT_TIMEOUT_S)
-    return {"stamp_ns": stamp_ns(item.msg) - t_wall, "client_ns": item.at_ns - t_mono,
-            "exit_signal": item.msg.exit_signal, "pid": trial.pid, "unique_id": trial.unique_id,
-            "kill_wall_ns": t_wall}
+    return {
+        "stamp_ns": stamp_ns(item.msg) - t_wall,
+        "client_ns": item.at_ns - t_mono,
+        "exit_signal": item.msg.exit_signal,
+        "pid": trial.pid,
+        "unique_id": trial.unique_id,
+        "kill_wall_ns": t_wall,
+    }
 
 
 def _stuck(running, what: str, error: Exception, victims: dict[int, str]) -> dict:
     """What to keep about a container that stopped answering: the error, its
     log's tail and, where gdb is installed, what its threads wait on."""
-    out = {"profile": running.mode, "what": what, "error": str(error).splitlines()[0],
-           "log_tail": log_tail(running.proc.log_text(), 40)}
+    out = {
+        "profile": running.mode,
+        "what": what,
+        "error": str(error).splitlines()[0],
+        "log_tail": log_tail(running.proc.log_text(), 40),
+    }
     if diagnose.gdb_available() and running.proc.alive():
         try:
             d = diagnose.diagnose(running.proc.pid, nodes_by_pid=victims, dead_pids=set(victims))
             out["diagnosis"] = d.summary()
             out["stacks"] = d.stacks_text
-        except Exception as exc:     # a diagnosis is a bonus; the trial is counted either way
+        except Exception as exc:  # a diagnosis is a bonus; the trial is counted either way
             out["diagnosis"] = f"gdb failed: {type(exc).__name__}: {exc}"
     return out
 
 
-def measure(session: Session, profiles: list[str], signals: list[str], n: int, settle: float,
-            recycle: int) -> dict:
+def measure(session: Session, profiles: list[str], signals: list[str], n: int, settle: float, recycle: int) -> dict:
     running = {p: session.start(p) for p in profiles}
     crashes = {p: 0 for p in profiles}
-    last = {p: None for p in profiles}          # the signal of the container's last crash
-    victims = {p: {} for p in profiles}         # pid -> node name, this container's dead nodes
-    data = {p: {s: {"stamp": [], "client": [], "leak_logged": [], "died_logged": [], "lost": 0,
-                    "hung_after": 0, "wrong_signal": 0} for s in signals}
-            for p in profiles}
+    last = {p: None for p in profiles}  # the signal of the container's last crash
+    victims = {p: {} for p in profiles}  # pid -> node name, this container's dead nodes
+    data = {
+        p: {
+            s: {
+                "stamp": [],
+                "client": [],
+                "leak_logged": [],
+                "died_logged": [],
+                "lost": 0,
+                "hung_after": 0,
+                "wrong_signal": 0,
+            }
+            for s in signals
+        }
+        for p in profiles
+    }
     stuck = []
-    done = []       # (container process, its trial, the data it goes to)
+    done = []  # (container process, its trial, the data it goes to)
 
     def fresh(p):
         running[p] = session.restart(running[p])
@@ -130,7 +151,7 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
                 if crashes[p] >= recycle:
                     fresh(p)
                 d = data[p][s]
-                for attempt in range(2):       # a load a hung container never answers: once more, fresh
+                for _ in range(2):  # a load a hung container never answers: once more, fresh
                     try:
                         trial = _load(running[p], i)
                         break
@@ -160,7 +181,7 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
     for r in running.values():
         session.stop(r)
     logs = {}
-    for proc, r, d in done:        # where the time went, from the containers' own log stamps
+    for proc, r, d in done:  # where the time went, from the containers' own log stamps
         if proc.pid not in logs:
             logs[proc.pid] = log_stamps(proc.log_text())
         stamps = logs[proc.pid]
@@ -171,11 +192,27 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
     return {"trials": data, "stuck": stuck}
 
 
-def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int = 25,
-        profiles: list[str] = PROFILES, signals: list[str] = SIGNALS, out=DEFAULT_OUT,
-        keep_logs: bool = False, quiet: bool = False) -> Result:
-    params = {"n": n, "n_monitor": n_monitor, "settle": settle, "recycle": recycle,
-              "profiles": list(profiles), "signals": list(signals), "out": str(out)}
+def run(
+    *,
+    n: int = 100,
+    n_monitor: int = 50,
+    settle: float = 0.05,
+    recycle: int = 25,
+    profiles: list[str] = PROFILES,
+    signals: list[str] = SIGNALS,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
+    params = {
+        "n": n,
+        "n_monitor": n_monitor,
+        "settle": settle,
+        "recycle": recycle,
+        "profiles": list(profiles),
+        "signals": list(signals),
+        "out": str(out),
+    }
     session = Session(NAME, keep_logs=keep_logs)
     try:
         measured = measure(session, list(profiles), list(signals), n, settle, recycle)
@@ -184,54 +221,116 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
     finally:
         problems = session.close()
 
-    table = Table(f"Container: os.kill() of a node's process → CRASHED (ms; n={n} per row, interleaved)", [
-        "profile", "signal", "n", "lost (no CRASHED in 10 s)", "container stuck afterwards (next LoadNode "
-        "unanswered)", "→ CRASHED stamp: median", "stamp: p90", "stamp: max", "→ CRASHED at client: median",
-        "at client: p90", "median vs goal 1 ms"])
+    table = Table(
+        f"Container: os.kill() of a node's process → CRASHED (ms; n={n} per row, interleaved)",
+        [
+            "profile",
+            "signal",
+            "n",
+            "lost (no CRASHED in 10 s)",
+            "container stuck afterwards (next LoadNode unanswered)",
+            "→ CRASHED stamp: median",
+            "stamp: p90",
+            "stamp: max",
+            "→ CRASHED at client: median",
+            "at client: p90",
+            "median vs goal 1 ms",
+        ],
+    )
     goals, summary = [], []
     for p in profiles:
         for s in signals:
             d = data[p][s]
             st, cl = stats(ms(d["stamp"])), stats(ms(d["client"]))
-            g = goal_at_most("median ≤ 1 ms", f"{label(p)}, {s}: kill → CRASHED stamp",
-                             st["median"], GOAL_MS, "ms")
+            g = goal_at_most("median ≤ 1 ms", f"{label(p)}, {s}: kill → CRASHED stamp", st["median"], GOAL_MS, "ms")
             goals.append(g)
-            table.add(label(p), s, st["n"], d["lost"], d["hung_after"], fmt_ms(st["median"]),
-                      fmt_ms(st["p90"]), fmt_ms(st["max"]), fmt_ms(cl["median"]), fmt_ms(cl["p90"]), g.verdict)
-            summary.append(summary_row("crash latency", f"outside {s} → CRASHED (event stamp)",
-                                       label(p), st, goal="median ≤ 1 ms", verdict=g.verdict))
-    steps = Table("On the container's side: its CRASHED stamp and the rcutils stamps of the log lines it "
-                  "writes about the death (ms from os.kill(); medians)", [
-                      "profile", "signal", "n", "CRASHED stamped (published)",
-                      "'died' error logged (manager)", "'left in memory' warning logged (host)"])
+            table.add(
+                label(p),
+                s,
+                st["n"],
+                d["lost"],
+                d["hung_after"],
+                fmt_ms(st["median"]),
+                fmt_ms(st["p90"]),
+                fmt_ms(st["max"]),
+                fmt_ms(cl["median"]),
+                fmt_ms(cl["p90"]),
+                g.verdict,
+            )
+            summary.append(
+                summary_row(
+                    "crash latency",
+                    f"outside {s} → CRASHED (event stamp)",
+                    label(p),
+                    st,
+                    goal="median ≤ 1 ms",
+                    verdict=g.verdict,
+                )
+            )
+    steps = Table(
+        "On the container's side: its CRASHED stamp and the rcutils stamps of the log lines it "
+        "writes about the death (ms from os.kill(); medians)",
+        [
+            "profile",
+            "signal",
+            "n",
+            "CRASHED stamped (published)",
+            "'died' error logged (manager)",
+            "'left in memory' warning logged (host)",
+        ],
+    )
     for p in profiles:
         for s in signals:
             d = data[p][s]
             leak, died, st = stats(ms(d["leak_logged"])), stats(ms(d["died_logged"])), stats(ms(d["stamp"]))
-            steps.add(label(p), s, st["n"], fmt_ms(st["median"]), fmt_ms(died["median"]),
-                      fmt_ms(leak["median"]))
+            steps.add(label(p), s, st["n"], fmt_ms(st["median"]), fmt_ms(died["median"]), fmt_ms(leak["median"]))
     tables = [table, steps]
     if monitor:
-        mt = Table(f"Standalone CloneCore (worker process): os.kill() of an idle child → (ms; n={n_monitor})", [
-            "signal", "n", "monitor detected: median", "detected: p90", "detected: max",
-            "on_event called: median", "on_event: p90"])
+        mt = Table(
+            f"Standalone CloneCore (worker process): os.kill() of an idle child → (ms; n={n_monitor})",
+            [
+                "signal",
+                "n",
+                "monitor detected: median",
+                "detected: p90",
+                "detected: max",
+                "on_event called: median",
+                "on_event: p90",
+            ],
+        )
         for s in ("SIGKILL", "SIGSEGV"):
             det, ev = stats(ms(monitor[f"{s}_monitor"])), stats(ms(monitor[f"{s}_on_event"]))
-            mt.add(s, det["n"], fmt_ms(det["median"]), fmt_ms(det["p90"]), fmt_ms(det["max"]),
-                   fmt_ms(ev["median"]), fmt_ms(ev["p90"]))
-            summary.append(summary_row("crash latency", f"outside {s} → monitor detected (standalone core)",
-                                       "CloneCore", det, goal="(reference)"))
+            mt.add(
+                s,
+                det["n"],
+                fmt_ms(det["median"]),
+                fmt_ms(det["p90"]),
+                fmt_ms(det["max"]),
+                fmt_ms(ev["median"]),
+                fmt_ms(ev["p90"]),
+            )
+            summary.append(
+                summary_row(
+                    "crash latency",
+                    f"outside {s} → monitor detected (standalone core)",
+                    "CloneCore",
+                    det,
+                    goal="(reference)",
+                )
+            )
         tables.append(mt)
     gap = ""
     if monitor and "SIGKILL" in signals:
         on_event = stats(ms(monitor["SIGKILL_on_event"]))["median"]
         stamped = [stats(ms(data[p]["SIGKILL"]["stamp"]))["median"] for p in profiles]
         if on_event is not None and None not in stamped:
-            gap = (f" For SIGKILL, a standalone core reaches on_event {fmt_ms(on_event)} ms after the kill; "
-                   f"the container stamps CRASHED at {' / '.join(fmt_ms(t) for t in stamped)} ms "
-                   f"({' / '.join(label(p).split(', ')[1] for p in profiles)}), so about "
-                   f"{' / '.join(fmt_ms(t - on_event) for t in stamped)} ms go between the core's listener "
-                   "and the publish.")
+            gap = (
+                f" For SIGKILL, a standalone core reaches on_event {fmt_ms(on_event)} ms after the kill; "
+                f"the container stamps CRASHED at {' / '.join(fmt_ms(t) for t in stamped)} ms "
+                f"({' / '.join(label(p).split(', ')[1] for p in profiles)}), so about "
+                f"{' / '.join(fmt_ms(t - on_event) for t in stamped)} ms go between the core's listener "
+                "and the publish."
+            )
     lost = sum(data[p][s]["lost"] for p in profiles for s in signals)
     hung = sum(data[p][s]["hung_after"] for p in profiles for s in signals)
     wrong = sum(data[p][s]["wrong_signal"] for p in profiles for s in signals)
@@ -255,29 +354,60 @@ def run(*, n: int = 100, n_monitor: int = 50, settle: float = 0.05, recycle: int
         f"{wrong}.",
     ]
     for k in stuck:
-        notes.append(f"Stuck container ({label(k['profile'])}, {k['what']}): {k['error']}"
-                     + (f"; gdb: {k['diagnosis']}" if k.get("diagnosis") else "")
-                     + " (log tail and stacks in the JSON).")
-    result = Result(NAME, TITLE, command_line(NAME, {
-        "n": n, "n_monitor": n_monitor, "settle": settle, "recycle": recycle,
-        "profiles": list(profiles), "signals": list(signals)}),
-        params, tables, goals, notes, summary, {"container_ns": data, "stuck": stuck, "monitor_ns": monitor},
-        problems)
+        notes.append(
+            f"Stuck container ({label(k['profile'])}, {k['what']}): {k['error']}"
+            + (f"; gdb: {k['diagnosis']}" if k.get("diagnosis") else "")
+            + " (log tail and stacks in the JSON)."
+        )
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(
+            NAME,
+            {
+                "n": n,
+                "n_monitor": n_monitor,
+                "settle": settle,
+                "recycle": recycle,
+                "profiles": list(profiles),
+                "signals": list(signals),
+            },
+        ),
+        params,
+        tables,
+        goals,
+        notes,
+        summary,
+        {"container_ns": data, "stuck": stuck, "monitor_ns": monitor},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
     parser = arg_parser(NAME, TITLE)
     parser.add_argument("--n", type=int, default=100, help="trials per profile and signal (default: %(default)s)")
-    parser.add_argument("--n-monitor", type=int, default=50,
-                        help="standalone CloneCore trials per signal; 0: skip (default: %(default)s)")
+    parser.add_argument(
+        "--n-monitor",
+        type=int,
+        default=50,
+        help="standalone CloneCore trials per signal; 0: skip (default: %(default)s)",
+    )
     parser.add_argument("--settle", type=float, default=0.05, help="seconds between LOADED and the kill")
     parser.add_argument("--recycle", type=int, default=25, help="crashes per container before a fresh one")
     parser.add_argument("--profiles", nargs="+", choices=PROFILES, default=PROFILES)
     parser.add_argument("--signals", nargs="+", choices=SIGNALS, default=SIGNALS)
     opts = parser.parse_args(argv)
-    result = run(n=opts.n, n_monitor=opts.n_monitor, settle=opts.settle, recycle=opts.recycle,
-                 profiles=opts.profiles, signals=opts.signals, out=opts.out, keep_logs=opts.keep_logs)
+    result = run(
+        n=opts.n,
+        n_monitor=opts.n_monitor,
+        settle=opts.settle,
+        recycle=opts.recycle,
+        profiles=opts.profiles,
+        signals=opts.signals,
+        out=opts.out,
+        keep_logs=opts.keep_logs,
+    )
     return 1 if result.cleanup else 0
 
 

@@ -14,6 +14,7 @@ daemon spins 0.5 s and then asks, so the share of probes that saw the
 service within 0.5 s is the share of `ros2 component list` calls that find
 the container.
 """
+
 from __future__ import annotations
 
 import json
@@ -39,16 +40,30 @@ PROBE_TIMEOUT_S = 5.0
 
 def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
     env = process_environment(running.domain_id)
-    done = subprocess.run([sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn,
-                           "--timeout", str(timeout)], cwd=REPO_ROOT, env=env,
-                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout + 30)
+    done = subprocess.run(
+        [sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn, "--timeout", str(timeout)],
+        cwd=REPO_ROOT,
+        env=env,
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=timeout + 30,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"discovery probe exited with {done.returncode}: {done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAULT_MODES,
-        settle: float = 2.0, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+def run(
+    *,
+    probes: int = 20,
+    nodes: list[int] = (0, 4),
+    modes: list[str] = DEFAULT_MODES,
+    settle: float = 2.0,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
     nodes, modes = list(nodes), list(modes)
     params = {"probes": probes, "nodes": nodes, "modes": modes, "settle": settle, "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
@@ -60,17 +75,28 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
                 try:
                     for i in range(count):
                         timed_load(running, node_name=f"n{i}")
-                    time.sleep(settle)      # the container's own discovery traffic has settled
+                    time.sleep(settle)  # the container's own discovery traffic has settled
                     data[f"{mode}|{count}"] = [probe(running) for _ in range(probes)]
                 finally:
                     session.stop(running)
     finally:
         problems = session.close()
 
-    table = Table(f"A fresh participant finds the container (ms from its node's creation; {probes} probes, "
-                  "one after another, per row)", [
-        "mode", "nodes loaded", "n", "node seen: median", "service seen: median", "service: p90",
-        "service: max", f"seen within {ROS2CLI_SPIN_S:g} s (ros2 component list finds it)", "not seen in 5 s"])
+    table = Table(
+        f"A fresh participant finds the container (ms from its node's creation; {probes} probes, "
+        "one after another, per row)",
+        [
+            "mode",
+            "nodes loaded",
+            "n",
+            "node seen: median",
+            "service seen: median",
+            "service: p90",
+            "service: max",
+            f"seen within {ROS2CLI_SPIN_S:g} s (ros2 component list finds it)",
+            "not seen in 5 s",
+        ],
+    )
     summary = []
     for count in nodes:
         for mode in modes:
@@ -79,10 +105,26 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
             svc_st = stats([t["service_s"] * 1e3 for t in trials if t["service_s"] is not None])
             within = sum(t["service_s"] is not None and t["service_s"] <= ROS2CLI_SPIN_S for t in trials)
             missing = sum(t["service_s"] is None for t in trials)
-            table.add(label(mode), count, len(trials), fmt_ms(node_st["median"]), fmt_ms(svc_st["median"]),
-                      fmt_ms(svc_st["p90"]), fmt_ms(svc_st["max"]), f"{within}/{len(trials)}", missing)
-            summary.append(summary_row("discovery", f"fresh process → list_nodes seen, {count} nodes",
-                                       label(mode), svc_st, goal="as thread mode"))
+            table.add(
+                label(mode),
+                count,
+                len(trials),
+                fmt_ms(node_st["median"]),
+                fmt_ms(svc_st["median"]),
+                fmt_ms(svc_st["p90"]),
+                fmt_ms(svc_st["max"]),
+                f"{within}/{len(trials)}",
+                missing,
+            )
+            summary.append(
+                summary_row(
+                    "discovery",
+                    f"fresh process → list_nodes seen, {count} nodes",
+                    label(mode),
+                    svc_st,
+                    goal="as thread mode",
+                )
+            )
     notes = [
         "Each probe is a new process with a new DDS participant (the ROS environment and Fast DDS profile "
         "the harness uses: UDP on loopback, participant discovery by multicast on lo, every participant "
@@ -92,8 +134,18 @@ def run(*, probes: int = 20, nodes: list[int] = (0, 4), modes: list[str] = DEFAU
         "'seen within' is the share of such calls that list the container.",
         f"The container is loaded, then left {settle:g} s before the first probe.",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, {"probes": probes, "nodes": nodes, "modes": modes}),
-                    params, [table], [], notes, summary, {"trials": data}, problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(NAME, {"probes": probes, "nodes": nodes, "modes": modes}),
+        params,
+        [table],
+        [],
+        notes,
+        summary,
+        {"trials": data},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 
@@ -104,8 +156,14 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", nargs="+", choices=list(MODES), default=DEFAULT_MODES)
     parser.add_argument("--settle", type=float, default=2.0)
     args = parser.parse_args(argv)
-    result = run(probes=args.probes, nodes=args.nodes, modes=args.modes, settle=args.settle,
-                 out=args.out, keep_logs=args.keep_logs)
+    result = run(
+        probes=args.probes,
+        nodes=args.nodes,
+        modes=args.modes,
+        settle=args.settle,
+        out=args.out,
+        keep_logs=args.keep_logs,
+    )
     return 1 if result.cleanup else 0
 
 

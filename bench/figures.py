@@ -4,6 +4,7 @@ milliseconds, ratios of medians, and how each is written in a table.
 Kept apart from ``harness.report.stats`` (whose quantile is the same type 7
 interpolation): its arithmetic differs in the last bits and it turns whole
 numbers into floats, so the reports' raw figures would change."""
+
 from __future__ import annotations
 
 import math

@@ -1,5 +1,6 @@
 """A benchmark's goals: what was asked, the figure measured, and whether it
 was met or by how much it was missed."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,11 +10,11 @@ from .figures import fmt_ms, fmt_ratio
 
 @dataclass
 class Goal:
-    goal: str           # what was asked, e.g. "median ≤ 1 ms"
-    measure: str        # what it is judged on
-    measured: str       # the figure, formatted
-    met: bool | None    # None: could not be measured
-    verdict: str        # "met", or by how much it is missed
+    goal: str  # what was asked, e.g. "median ≤ 1 ms"
+    measure: str  # what it is judged on
+    measured: str  # the figure, formatted
+    met: bool | None  # None: could not be measured
+    verdict: str  # "met", or by how much it is missed
 
     def row(self) -> dict:
         return {"goal": self.goal, "judged on": self.measure, "measured": self.measured, "verdict": self.verdict}
@@ -25,8 +26,9 @@ def goal_at_most(goal: str, measure: str, value: float | None, limit: float, uni
     shown = f"{fmt_ms(value)} {unit}"
     if value <= limit:
         return Goal(goal, measure, shown, True, "met")
-    return Goal(goal, measure, shown, False,
-                f"missed by {fmt_ms(value - limit)} {unit} ({fmt_ratio(value / limit)} the goal)")
+    return Goal(
+        goal, measure, shown, False, f"missed by {fmt_ms(value - limit)} {unit} ({fmt_ratio(value / limit)} the goal)"
+    )
 
 
 def goal_at_least_ratio(goal: str, measure: str, value: float | None, target: float) -> Goal:
@@ -35,9 +37,14 @@ def goal_at_least_ratio(goal: str, measure: str, value: float | None, target: fl
     if value >= target:
         return Goal(goal, measure, fmt_ratio(value), True, "met")
     short = target / value
-    return Goal(goal, measure, fmt_ratio(value), False,
-                f"missed: {fmt_ratio(value)} of {fmt_ratio(target)} "
-                f"({f'{short:.2f}×' if short < 2 else fmt_ratio(short)} short)")
+    return Goal(
+        goal,
+        measure,
+        fmt_ratio(value),
+        False,
+        f"missed: {fmt_ratio(value)} of {fmt_ratio(target)} "
+        f"({f'{short:.2f}×' if short < 2 else fmt_ratio(short)} short)",
+    )
 
 
 def ratio_verdict(value: float, limit: float) -> str:

@@ -38,6 +38,7 @@ Goals (from the issue): intra 16 MiB median latency ≤ 2× intra 1 KiB, and
 intra ≥ 50× faster than DDS at 16 MiB (ratio of median latencies); intra
 median ≤ 2× the floor's at 1 KiB and 16 MiB.
 """
+
 from __future__ import annotations
 
 import json
@@ -70,15 +71,15 @@ TRANSPORTS = {
     "dds": ("DDS (UDP loopback profile)", False, "plain", False),
 }
 DEFAULT_SIZES = ["1KiB", "64KiB", "1MiB", "16MiB"]
-LARGE = MIB                 # from this size on: the large period; above it over DDS: its own period and count
-LATENCY_GOAL_RATIO = 2.0    # intra: 16 MiB median ≤ 2× 1 KiB median
-DDS_GOAL_RATIO = 50.0       # DDS median ≥ 50× intra median at 16 MiB
-FLOOR_GOAL_RATIO = 2.0      # intra median ≤ 2× the floor's median
+LARGE = MIB  # from this size on: the large period; above it over DDS: its own period and count
+LATENCY_GOAL_RATIO = 2.0  # intra: 16 MiB median ≤ 2× 1 KiB median
+DDS_GOAL_RATIO = 50.0  # DDS median ≥ 50× intra median at 16 MiB
+FLOOR_GOAL_RATIO = 2.0  # intra median ≤ 2× the floor's median
 GOAL_SMALL, GOAL_LARGE = 1024, 16 * MIB
 
 
 def parse_size(text: str | int) -> int:
-    """"1KiB", "64KiB", "16MiB", "4096" -> bytes."""
+    """ "1KiB", "64KiB", "16MiB", "4096" -> bytes."""
     if isinstance(text, int):
         return text
     m = re.fullmatch(r"\s*(\d+)\s*(B|KiB|MiB|GiB)?\s*", str(text), re.IGNORECASE)
@@ -102,45 +103,97 @@ def plan(size: int, transport: str, p: dict) -> dict:
     count = min(p["count"], p["dds_large_count"]) if huge_dds else p["count"]
     period = p["dds_large_period"] if huge_dds else p["large_period"] if size >= LARGE else p["period"]
     burst = max(2, min(p["burst"], p["burst_bytes"] // size))
-    depth = p["warmup"] + count + burst + 2        # every message fits: KEEP_LAST never has to drop
+    depth = p["warmup"] + count + burst + 2  # every message fits: KEEP_LAST never has to drop
     duration = p["settle"] + (p["warmup"] + count) * period + max(period, 0.2) + p["burst_seconds"]
-    return {"size": size, "transport": transport, "count": count, "period": float(period), "burst": burst,
-            "depth": depth, "warmup": p["warmup"], "match_timeout": 30.0,
-            "sink_timeout": 30.0 + duration + 60.0, "wait": 30.0 + duration + 75.0}
+    return {
+        "size": size,
+        "transport": transport,
+        "count": count,
+        "period": float(period),
+        "burst": burst,
+        "depth": depth,
+        "warmup": p["warmup"],
+        "match_timeout": 30.0,
+        "sink_timeout": 30.0 + duration + 60.0,
+        "wait": 30.0 + duration + 75.0,
+    }
 
 
 def run_pair(running: Running, index: int, pl: dict, p: dict) -> dict:
     """Load a sink and a source, wait for both reports, unload them."""
     _, intra_on, payload, loaned = TRANSPORTS[pl["transport"]]
     topic = f"/bench_intra/payload_{index}"
-    return _run_loads(running, pl, {"use_intra_process_comms": True} if intra_on else {}, [
-        ("sink", SINK, f"bench_sink_{index}", {"topic": topic, "loaned": loaned, "depth": pl["depth"],
-                                               "timeout": float(pl["sink_timeout"])}),
-        ("source", SOURCE, f"bench_src_{index}", {
-            "topic": topic, "size": pl["size"], "payload": payload, "count": pl["count"],
-            "period": pl["period"], "warmup": pl["warmup"], "burst": pl["burst"],
-            "burst_seconds": float(p["burst_seconds"]), "depth": pl["depth"],
-            "settle": float(p["settle"]), "match_timeout": pl["match_timeout"]}),
-    ])
+    return _run_loads(
+        running,
+        pl,
+        {"use_intra_process_comms": True} if intra_on else {},
+        [
+            (
+                "sink",
+                SINK,
+                f"bench_sink_{index}",
+                {"topic": topic, "loaned": loaned, "depth": pl["depth"], "timeout": float(pl["sink_timeout"])},
+            ),
+            (
+                "source",
+                SOURCE,
+                f"bench_src_{index}",
+                {
+                    "topic": topic,
+                    "size": pl["size"],
+                    "payload": payload,
+                    "count": pl["count"],
+                    "period": pl["period"],
+                    "warmup": pl["warmup"],
+                    "burst": pl["burst"],
+                    "burst_seconds": float(p["burst_seconds"]),
+                    "depth": pl["depth"],
+                    "settle": float(p["settle"]),
+                    "match_timeout": pl["match_timeout"],
+                },
+            ),
+        ],
+    )
 
 
 def floor_plan(p: dict) -> dict:
     """What the floor pair runs: the latency phase of a small-size pair, no burst."""
     duration = p["settle"] + (p["warmup"] + p["count"]) * p["period"] + max(p["period"], 0.2)
-    return {"count": p["count"], "period": float(p["period"]), "warmup": p["warmup"], "match_timeout": 30.0,
-            "sink_timeout": 30.0 + duration + 60.0, "wait": 30.0 + duration + 75.0}
+    return {
+        "count": p["count"],
+        "period": float(p["period"]),
+        "warmup": p["warmup"],
+        "match_timeout": 30.0,
+        "sink_timeout": 30.0 + duration + 60.0,
+        "wait": 30.0 + duration + 75.0,
+    }
 
 
 def run_floor(running: Running, pl: dict, p: dict) -> dict:
     """Load a FloorWaiter and a FloorTrigger (the "sink" and "source" of the
     floor), wait for both reports, unload them."""
     channel = f"bench_intra_floor_{running.proc.pid}"
-    return _run_loads(running, pl, {}, [
-        ("sink", FLOOR_WAITER, "bench_floor_waiter", {"channel": channel, "timeout": float(pl["sink_timeout"])}),
-        ("source", FLOOR_TRIGGER, "bench_floor_trigger", {
-            "channel": channel, "count": pl["count"], "period": pl["period"], "warmup": pl["warmup"],
-            "settle": float(p["settle"]), "match_timeout": pl["match_timeout"]}),
-    ])
+    return _run_loads(
+        running,
+        pl,
+        {},
+        [
+            ("sink", FLOOR_WAITER, "bench_floor_waiter", {"channel": channel, "timeout": float(pl["sink_timeout"])}),
+            (
+                "source",
+                FLOOR_TRIGGER,
+                "bench_floor_trigger",
+                {
+                    "channel": channel,
+                    "count": pl["count"],
+                    "period": pl["period"],
+                    "warmup": pl["warmup"],
+                    "settle": float(p["settle"]),
+                    "match_timeout": pl["match_timeout"],
+                },
+            ),
+        ],
+    )
 
 
 def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, str, str, dict]]) -> dict:
@@ -149,8 +202,12 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
 
-    stats_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    stats_qos = QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
     cli = running.client
     names = {role: name for role, _, name, _ in loads}
     rec = {role: cli.subscribe(String, f"/{name}/stats", stats_qos) for role, name in names.items()}
@@ -158,8 +215,7 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
     loaded = []
     try:
         for _, plugin, name, params in loads:
-            resp = cli.load(RIG, plugin, node_name=name, parameters=params,
-                            extra_arguments=extra, timeout=30.0)
+            resp = cli.load(RIG, plugin, node_name=name, parameters=params, extra_arguments=extra, timeout=30.0)
             if not resp.success:
                 raise RuntimeError(f"LoadNode {plugin} failed: {resp.error_message}")
             loaded.append(resp.unique_id)
@@ -170,7 +226,7 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
             out["error"] = "source: " + out["source"]["error"]
         elif not out["sink"]["complete"]:
             out["error"] = "sink: no end message within its timeout"
-    except Exception as exc:     # this pair failed; the others still run
+    except Exception as exc:  # this pair failed; the others still run
         out["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
     finally:
         for uid in reversed(loaded):
@@ -194,7 +250,7 @@ def measure(session: Session, sizes: list[int], transports: list[str], p: dict, 
             data["floor"] = run_floor(running, floor_plan(p), p)
             if not running.proc.alive():
                 raise RuntimeError("the container exited:\n" + log_tail(running.proc.log_text()))
-        for size in sizes:                   # transports in turn at each size
+        for size in sizes:  # transports in turn at each size
             for transport in transports:
                 index += 1
                 data[(size, transport)] = run_pair(running, index, plan(size, transport, p), p)
@@ -208,7 +264,7 @@ def measure(session: Session, sizes: list[int], transports: list[str], p: dict, 
 def summarize(d: dict) -> dict:
     """Figures of one pair from its two reports."""
     pl, src, sink = d["plan"], d["source"] or {}, d["sink"] or {}
-    lat = stats([v / 1e3 for v in sink.get("latency_us", [])])          # ms
+    lat = stats([v / 1e3 for v in sink.get("latency_us", [])])  # ms
     sent, got = src.get("sent", {}), sink.get("received", {})
     first, last = sink.get("burst_first_stamp_ns"), sink.get("burst_last_ns")
     burst_n = got.get("burst", 0)
@@ -218,16 +274,22 @@ def summarize(d: dict) -> dict:
     return {
         "latency": lat,
         "over_period": sum(1 for v in sink.get("latency_us", []) if v / 1e6 > pl["period"]),
-        "burst_sent": sent.get("burst", 0), "burst_received": burst_n, "burst_s": dur,
-        "msgs_s": msgs_s, "mib_s": msgs_s * pl["size"] / MIB if msgs_s else None,
-        "published_msgs_s": (sent.get("burst", 0) / (src["burst_publish_ns"] / 1e9)
-                             if src.get("burst_publish_ns") else None),
+        "burst_sent": sent.get("burst", 0),
+        "burst_received": burst_n,
+        "burst_s": dur,
+        "msgs_s": msgs_s,
+        "mib_s": msgs_s * pl["size"] / MIB if msgs_s else None,
+        "published_msgs_s": (
+            sent.get("burst", 0) / (src["burst_publish_ns"] / 1e9) if src.get("burst_publish_ns") else None
+        ),
         "lost": lost if d["source"] and d["sink"] else None,
         "dropped": sink.get("queue_dropped"),
         "publish": stats([v / 1e6 for v in src.get("publish_ns", [])]),
         "build": stats([v / 1e6 for v in src.get("build_ns", [])]),
-        "sent_dds": src.get("sent_dds"), "received_dds": sink.get("received_dds"),
-        "received_intra": sink.get("received_intra"), "by_loan": sink.get("by_loan"),
+        "sent_dds": src.get("sent_dds"),
+        "received_dds": sink.get("received_dds"),
+        "received_intra": sink.get("received_intra"),
+        "by_loan": sink.get("by_loan"),
         "sizes": sink.get("sizes"),
     }
 
@@ -238,8 +300,11 @@ def summarize_floor(d: dict) -> dict:
     return {
         "latency": stats([v / 1e3 for v in sink.get("latency_us", [])]),
         "over_period": sum(1 for v in sink.get("latency_us", []) if v / 1e6 > d["plan"]["period"]),
-        "lost": (sum(max(0, sent.get(k, 0) - got.get(k, 0)) for k in ("warmup", "latency", "end"))
-                 if d["source"] and d["sink"] else None),
+        "lost": (
+            sum(max(0, sent.get(k, 0) - got.get(k, 0)) for k in ("warmup", "latency", "end"))
+            if d["source"] and d["sink"]
+            else None
+        ),
         "trigger": stats([v / 1e6 for v in src.get("trigger_ns", [])]),
     }
 
@@ -254,15 +319,38 @@ def size_ratio_goal(goal: str, measure: str, value: float | None, limit: float, 
     return goal_ratio_at_most(goal, measure, value, limit)
 
 
-def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
-        transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS), count: int = 100, warmup: int = 5,
-        period: float = 0.02, large_period: float = 0.1, dds_large_period: float = 0.5, dds_large_count: int = 20,
-        burst: int = 1000, burst_bytes: int = 256 * MIB, burst_seconds: float = 3.0, settle: float = 0.5,
-        no_floor: bool = False, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+def run(
+    *,
+    sizes: list | tuple = tuple(DEFAULT_SIZES),
+    transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS),
+    count: int = 100,
+    warmup: int = 5,
+    period: float = 0.02,
+    large_period: float = 0.1,
+    dds_large_period: float = 0.5,
+    dds_large_count: int = 20,
+    burst: int = 1000,
+    burst_bytes: int = 256 * MIB,
+    burst_seconds: float = 3.0,
+    settle: float = 0.5,
+    no_floor: bool = False,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
     sizes_b = [parse_size(s) for s in sizes]
-    p = {"count": count, "warmup": warmup, "period": period, "large_period": large_period,
-         "dds_large_period": dds_large_period, "dds_large_count": dds_large_count, "burst": burst,
-         "burst_bytes": burst_bytes, "burst_seconds": burst_seconds, "settle": settle}
+    p = {
+        "count": count,
+        "warmup": warmup,
+        "period": period,
+        "large_period": large_period,
+        "dds_large_period": dds_large_period,
+        "dds_large_count": dds_large_count,
+        "burst": burst,
+        "burst_bytes": burst_bytes,
+        "burst_seconds": burst_seconds,
+        "settle": settle,
+    }
     args = {"sizes": [str(s) for s in sizes], "transports": list(transports), **p, "no_floor": no_floor}
     session = Session(NAME, keep_logs=keep_logs)
     try:
@@ -273,19 +361,52 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
     floor = fig.get("floor")
     floor_med = floor["latency"]["median"] if floor and not data["floor"]["error"] else None
 
-    table = Table("Per size and transport (one isolated per-node container; latency in ms)", [
-        "size", "transport", "n", "latency: median", "latency: p90", "latency: max", "period (ms)",
-        "latency > period", "burst: received / sent", "burst: msgs/s", "burst: MiB/s",
-        "burst: source's publish rate (msgs/s)", "lost", "KEEP_LAST dropped",
-        "publish() call: median", "build (not in latency): median", "sent over DDS (source)"])
+    table = Table(
+        "Per size and transport (one isolated per-node container; latency in ms)",
+        [
+            "size",
+            "transport",
+            "n",
+            "latency: median",
+            "latency: p90",
+            "latency: max",
+            "period (ms)",
+            "latency > period",
+            "burst: received / sent",
+            "burst: msgs/s",
+            "burst: MiB/s",
+            "burst: source's publish rate (msgs/s)",
+            "lost",
+            "KEEP_LAST dropped",
+            "publish() call: median",
+            "build (not in latency): median",
+            "sent over DDS (source)",
+        ],
+    )
     if floor is not None:
         lat = floor["latency"]
         if data["floor"]["error"]:
             table.add("–", FLOOR_LABEL, lat["n"], "failed: " + data["floor"]["error"], *["–"] * 13)
         else:
-            table.add("–", FLOOR_LABEL, lat["n"], fmt_ms(lat["median"]), fmt_ms(lat["p90"]), fmt_ms(lat["max"]),
-                      fmt_ms(period * 1e3), floor["over_period"], "–", "–", "–", "–", _fmt(floor["lost"], "d"),
-                      "–", fmt_ms(floor["trigger"]["median"]) + " (trigger())", "–", "–")
+            table.add(
+                "–",
+                FLOOR_LABEL,
+                lat["n"],
+                fmt_ms(lat["median"]),
+                fmt_ms(lat["p90"]),
+                fmt_ms(lat["max"]),
+                fmt_ms(period * 1e3),
+                floor["over_period"],
+                "–",
+                "–",
+                "–",
+                "–",
+                _fmt(floor["lost"], "d"),
+                "–",
+                fmt_ms(floor["trigger"]["median"]) + " (trigger())",
+                "–",
+                "–",
+            )
     for size in sizes_b:
         for t in transports:
             d, f = data[(size, t)], fig[(size, t)]
@@ -293,12 +414,25 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
             if d["error"]:
                 table.add(size_name(size), TRANSPORTS[t][0], lat["n"], "failed: " + d["error"], *["–"] * 13)
                 continue
-            table.add(size_name(size), TRANSPORTS[t][0], lat["n"], fmt_ms(lat["median"]), fmt_ms(lat["p90"]),
-                      fmt_ms(lat["max"]), fmt_ms(d["plan"]["period"] * 1e3), f["over_period"],
-                      f"{f['burst_received']} / {f['burst_sent']}", _fmt(f["msgs_s"]), _fmt(f["mib_s"]),
-                      _fmt(f["published_msgs_s"]), _fmt(f["lost"], "d"),
-                      "–" if f["dropped"] is None else f["dropped"],
-                      fmt_ms(f["publish"]["median"]), fmt_ms(f["build"]["median"]), _fmt(f["sent_dds"], "d"))
+            table.add(
+                size_name(size),
+                TRANSPORTS[t][0],
+                lat["n"],
+                fmt_ms(lat["median"]),
+                fmt_ms(lat["p90"]),
+                fmt_ms(lat["max"]),
+                fmt_ms(d["plan"]["period"] * 1e3),
+                f["over_period"],
+                f"{f['burst_received']} / {f['burst_sent']}",
+                _fmt(f["msgs_s"]),
+                _fmt(f["mib_s"]),
+                _fmt(f["published_msgs_s"]),
+                _fmt(f["lost"], "d"),
+                "–" if f["dropped"] is None else f["dropped"],
+                fmt_ms(f["publish"]["median"]),
+                fmt_ms(f["build"]["median"]),
+                _fmt(f["sent_dds"], "d"),
+            )
 
     small, large = min(sizes_b), max(sizes_b)
     judged = small == GOAL_SMALL and large == GOAL_LARGE
@@ -309,21 +443,30 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
             return None
         return fig[(size, t)]["latency"]["median"]
 
-    ratios = Table("Ratios (of medians, this run)", ["ratio", "numerator", "denominator", "measured", "goal",
-                                                     "verdict"])
+    ratios = Table(
+        "Ratios (of medians, this run)", ["ratio", "numerator", "denominator", "measured", "goal", "verdict"]
+    )
     goals = []
     size_goal = {}
     for t in intra_ts:
         r = ratio(med(large, t), med(small, t))
-        g = size_ratio_goal(f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the "
-                            f"{size_name(GOAL_SMALL)} median",
-                            f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
-                            r, LATENCY_GOAL_RATIO, judged)
+        g = size_ratio_goal(
+            f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the {size_name(GOAL_SMALL)} median",
+            f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
+            r,
+            LATENCY_GOAL_RATIO,
+            judged,
+        )
         goals.append(g)
         size_goal[t] = g
-        ratios.add(f"{TRANSPORTS[t][0]}: {size_name(large)} ÷ {size_name(small)} latency",
-                   f"{fmt_ms(med(large, t))} ms", f"{fmt_ms(med(small, t))} ms", fmt_ratio(r),
-                   f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)}", g.verdict)
+        ratios.add(
+            f"{TRANSPORTS[t][0]}: {size_name(large)} ÷ {size_name(small)} latency",
+            f"{fmt_ms(med(large, t))} ms",
+            f"{fmt_ms(med(small, t))} ms",
+            fmt_ratio(r),
+            f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)}",
+            g.verdict,
+        )
     floor_goal = {}
     if floor is not None:
         for t in intra_ts:
@@ -336,13 +479,22 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
                     verdict = f"(reference: the goal is at {size_name(GOAL_SMALL)} and {size_name(GOAL_LARGE)})"
                 else:
                     verdict = ratio_verdict(r, FLOOR_GOAL_RATIO)
-                ratios.add(f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ the floor, latency",
-                           f"{fmt_ms(med(size, t))} ms", f"{fmt_ms(floor_med)} ms", fmt_ratio(r),
-                           f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)}", verdict)
+                ratios.add(
+                    f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ the floor, latency",
+                    f"{fmt_ms(med(size, t))} ms",
+                    f"{fmt_ms(floor_med)} ms",
+                    fmt_ratio(r),
+                    f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)}",
+                    verdict,
+                )
                 if judged_here:
-                    g = Goal(f"intra median ≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor's at {size_name(size)}",
-                             f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ floor (latency medians)",
-                             fmt_ratio(r), None if r is None else r <= FLOOR_GOAL_RATIO, verdict)
+                    g = Goal(
+                        f"intra median ≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor's at {size_name(size)}",
+                        f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ floor (latency medians)",
+                        fmt_ratio(r),
+                        None if r is None else r <= FLOOR_GOAL_RATIO,
+                        verdict,
+                    )
                     goals.append(g)
                     floor_goal[(size, t)] = g
     dds_goal = {}
@@ -350,33 +502,62 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
         for t in intra_ts:
             r = ratio(med(large, "dds"), med(large, t))
             if r is None:
-                g = Goal(f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                         f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}", "–", None, "not measured")
+                g = Goal(
+                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
+                    "–",
+                    None,
+                    "not measured",
+                )
             elif large != GOAL_LARGE:
-                g = Goal(f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                         f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}", fmt_ratio(r), None,
-                         f"not judged (the goal is at {size_name(GOAL_LARGE)})")
+                g = Goal(
+                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
+                    fmt_ratio(r),
+                    None,
+                    f"not judged (the goal is at {size_name(GOAL_LARGE)})",
+                )
             else:
                 g = goal_at_least_ratio(
                     f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)", r, DDS_GOAL_RATIO)
+                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)",
+                    r,
+                    DDS_GOAL_RATIO,
+                )
                 if g.met:
                     g.verdict = f"met ({fmt_ratio(r)})"
             goals.append(g)
             dds_goal[t] = g
-            ratios.add(f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}, latency",
-                       f"{fmt_ms(med(large, 'dds'))} ms", f"{fmt_ms(med(large, t))} ms", fmt_ratio(r),
-                       f"≥ {fmt_ratio(DDS_GOAL_RATIO)}", g.verdict)
+            ratios.add(
+                f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}, latency",
+                f"{fmt_ms(med(large, 'dds'))} ms",
+                f"{fmt_ms(med(large, t))} ms",
+                fmt_ratio(r),
+                f"≥ {fmt_ratio(DDS_GOAL_RATIO)}",
+                g.verdict,
+            )
         for t in intra_ts:
             a, b = fig.get((large, t), {}).get("mib_s"), fig.get((large, "dds"), {}).get("mib_s")
-            ratios.add(f"{TRANSPORTS[t][0]} ÷ DDS at {size_name(large)}, burst throughput",
-                       f"{_fmt(a)} MiB/s", f"{_fmt(b)} MiB/s", fmt_ratio(ratio(a, b)), "(reference)", "")
+            ratios.add(
+                f"{TRANSPORTS[t][0]} ÷ DDS at {size_name(large)}, burst throughput",
+                f"{_fmt(a)} MiB/s",
+                f"{_fmt(b)} MiB/s",
+                fmt_ratio(ratio(a, b)),
+                "(reference)",
+                "",
+            )
 
     summary = []
     if floor is not None:
-        summary.append(summary_row("intra-process", "floor: guard-condition trigger → callback (another child)",
-                                   "isolated per-node, rclpy only (reference)", floor["latency"],
-                                   verdict=("failed: " + data["floor"]["error"]) if data["floor"]["error"] else ""))
+        summary.append(
+            summary_row(
+                "intra-process",
+                "floor: guard-condition trigger → callback (another child)",
+                "isolated per-node, rclpy only (reference)",
+                floor["latency"],
+                verdict=("failed: " + data["floor"]["error"]) if data["floor"]["error"] else "",
+            )
+        )
     for t in transports:
         for size in sorted({small, large}):
             f = fig[(size, t)]
@@ -386,39 +567,65 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
                 verdict = size_goal[t].verdict
             if size == large and t == "dds" and dds_goal:
                 goal = f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster"
-                verdict = "; ".join(f"{'loan' if TRANSPORTS[i][3] else 'plain'}: {g.verdict}"
-                                    for i, g in dds_goal.items())
+                verdict = "; ".join(
+                    f"{'loan' if TRANSPORTS[i][3] else 'plain'}: {g.verdict}" for i, g in dds_goal.items()
+                )
             if (size, t) in floor_goal:
                 goal = "; ".join(x for x in (goal, f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor") if x)
                 verdict = "; ".join(x for x in (verdict, f"floor: {floor_goal[(size, t)].verdict}") if x)
             if data[(size, t)]["error"]:
                 verdict = "failed: " + data[(size, t)]["error"]
-            summary.append(summary_row("intra-process", f"publish → callback latency, {size_name(size)}",
-                                       f"isolated per-node, {TRANSPORTS[t][0]}", f["latency"],
-                                       goal=goal, verdict=verdict))
+            summary.append(
+                summary_row(
+                    "intra-process",
+                    f"publish → callback latency, {size_name(size)}",
+                    f"isolated per-node, {TRANSPORTS[t][0]}",
+                    f["latency"],
+                    goal=goal,
+                    verdict=verdict,
+                )
+            )
         f = fig[(large, t)]
-        summary.append(summary_row(
-            "intra-process", f"burst throughput, {size_name(large)}", f"isolated per-node, {TRANSPORTS[t][0]}",
-            {"n": f["burst_received"]}, median=f"{_fmt(f['msgs_s'])} msgs/s = {_fmt(f['mib_s'])} MiB/s",
-            p90=""))
+        summary.append(
+            summary_row(
+                "intra-process",
+                f"burst throughput, {size_name(large)}",
+                f"isolated per-node, {TRANSPORTS[t][0]}",
+                {"n": f["burst_received"]},
+                median=f"{_fmt(f['msgs_s'])} msgs/s = {_fmt(f['mib_s'])} MiB/s",
+                p90="",
+            )
+        )
 
     dds_large = [size_name(s) for s in sizes_b if s > LARGE]
     notes = [
-        *([f"The floor (first row): a bench::FloorWaiter and a bench::FloorTrigger loaded into the same "
-           "container (two clone children, one GIL). The waiter makes an rclpy guard condition on its own node "
-           "and leaves the object in a module-level registry; the trigger, from a timer callback like the "
-           "source's, stores a CLOCK_MONOTONIC stamp and calls .trigger(); the waiter's callback reads the "
-           f"clock first thing. {warmup} warm-up triggers, then {count}, {period * 1e3:g} ms apart. It is "
-           "rclpy's own wake-up, wait-set rebuild and Task dispatch between two children, with no queue and "
-           "no waker: the 'publish() call' column holds the trigger() call's median. Ratios to it are of "
-           "this run's medians."] if floor is not None else []),
-        *([f"The floor's median ({fmt_ms(floor_med)} ms) is above the issue's 0.1 ms guess at it, so the goal "
-           "judged is the floor-relative one (intra ≤ 2× the floor). Where rclpy's own wake-up goes (stamps "
-           "taken while writing this row): the triggering child keeps the one GIL through the rest of its "
-           "callback and two passes of rclpy's wait-set rebuild (its executor triggers its own guard condition "
-           "after every callback, so its first wait returns at once), ~0.35 ms; only its second wait lets the "
-           "woken child have the GIL, which then runs rclpy's post-wait Python (ready entities, a Task) before "
-           "the callback, ~0.1 ms."] if floor_med is not None and floor_med > 0.1 else []),
+        *(
+            [
+                f"The floor (first row): a bench::FloorWaiter and a bench::FloorTrigger loaded into the same "
+                "container (two clone children, one GIL). The waiter makes an rclpy guard condition on its own node "
+                "and leaves the object in a module-level registry; the trigger, from a timer callback like the "
+                "source's, stores a CLOCK_MONOTONIC stamp and calls .trigger(); the waiter's callback reads the "
+                f"clock first thing. {warmup} warm-up triggers, then {count}, {period * 1e3:g} ms apart. It is "
+                "rclpy's own wake-up, wait-set rebuild and Task dispatch between two children, with no queue and "
+                "no waker: the 'publish() call' column holds the trigger() call's median. Ratios to it are of "
+                "this run's medians."
+            ]
+            if floor is not None
+            else []
+        ),
+        *(
+            [
+                f"The floor's median ({fmt_ms(floor_med)} ms) is above the issue's 0.1 ms guess at it, so the goal "
+                "judged is the floor-relative one (intra ≤ 2× the floor). Where rclpy's own wake-up goes (stamps "
+                "taken while writing this row): the triggering child keeps the one GIL through the rest of its "
+                "callback and two passes of rclpy's wait-set rebuild (its executor triggers its own guard condition "
+                "after every callback, so its first wait returns at once), ~0.35 ms; only its second wait lets the "
+                "woken child have the GIL, which then runs rclpy's post-wait Python (ready entities, a Task) before "
+                "the callback, ~0.1 ms."
+            ]
+            if floor_med is not None and floor_med > 0.1
+            else []
+        ),
         "One container, `component_container --isolated --profile per-node`, launched as the harness does "
         "(no-SHM Fast DDS profile: UDPv4 on loopback only, Fast DDS's own intraprocess delivery off). Every "
         "pair (a bench::PayloadSink loaded first, then a bench::PayloadSource) runs in two clone children, "
@@ -434,10 +641,13 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
         f"from {size_name(LARGE)} on, except over DDS above {size_name(LARGE)}: {dds_large_period * 1e3:g} ms. "
         "'latency > period' counts messages that took longer than the period (they could have queued "
         "behind each other).",
-        (f"Over DDS, sizes above {size_name(LARGE)} ({', '.join(dds_large)}) send only "
-         f"{min(count, dds_large_count)} latency messages (n column), not {count}, "
-         f"{dds_large_period * 1e3:g} ms apart, to keep the run short." if dds_large and "dds" in transports else
-         f"Over DDS, sizes above {size_name(LARGE)} would send at most {dds_large_count} latency messages."),
+        (
+            f"Over DDS, sizes above {size_name(LARGE)} ({', '.join(dds_large)}) send only "
+            f"{min(count, dds_large_count)} latency messages (n column), not {count}, "
+            f"{dds_large_period * 1e3:g} ms apart, to keep the run short."
+            if dds_large and "dds" in transports
+            else f"Over DDS, sizes above {size_name(LARGE)} would send at most {dds_large_count} latency messages."
+        ),
         f"Throughput: a burst of up to {burst} messages back to back (at most {burst_bytes // MIB} MiB per "
         f"burst, at least 2 messages, stopped after {burst_seconds} s), each built anew; msgs/s = received ÷ "
         "(last arrival at the sink − first message's publish stamp). It includes building each message "
@@ -450,16 +660,32 @@ def run(*, sizes: list | tuple = tuple(DEFAULT_SIZES),
         "'sent over DDS (source)' is the intra publisher's own DDS publish count: 0 means intra-process "
         "delivery never touched DDS (no subscriber outside the container).",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, args), {**args, "out": str(out)}, [table, ratios],
-                    goals, notes, summary,
-                    {"pairs": [{"size": key[0], "transport": key[1], **d, "figures": fig[key]}
-                               for key, d in data.items() if key != "floor"],
-                     "floor": ({**data["floor"], "figures": fig["floor"]} if "floor" in data else None)},
-                    problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(NAME, args),
+        {**args, "out": str(out)},
+        [table, ratios],
+        goals,
+        notes,
+        summary,
+        {
+            "pairs": [
+                {"size": key[0], "transport": key[1], **d, "figures": fig[key]}
+                for key, d in data.items()
+                if key != "floor"
+            ],
+            "floor": ({**data["floor"], "figures": fig["floor"]} if "floor" in data else None),
+        },
+        problems,
+    )
     finish(result, out, quiet=quiet)
-    failed = [("floor" if key == "floor" else f"{size_name(key[0])} {key[1]}") + f": {d['error']}"
-              for key, d in data.items() if d["error"]]
-    if failed:      # the report is written (with the failures in it); the run still failed
+    failed = [
+        ("floor" if key == "floor" else f"{size_name(key[0])} {key[1]}") + f": {d['error']}"
+        for key, d in data.items()
+        if d["error"]
+    ]
+    if failed:  # the report is written (with the failures in it); the run still failed
         raise RuntimeError(f"{len(failed)} of {len(data)} pairs failed: " + "; ".join(failed))
     return result
 
@@ -478,16 +704,29 @@ def main(argv=None) -> int:
     parser.add_argument("--burst-bytes", type=int, default=256 * MIB, help="bytes per burst (at most)")
     parser.add_argument("--burst-seconds", type=float, default=3.0)
     parser.add_argument("--settle", type=float, default=0.5, help="s after a subscriber matched")
-    parser.add_argument("--no-floor", action="store_true",
-                        help="skip the floor (guard-condition trigger → callback) reference row")
+    parser.add_argument(
+        "--no-floor", action="store_true", help="skip the floor (guard-condition trigger → callback) reference row"
+    )
     opts = parser.parse_args(argv)
     for s in opts.sizes:
         parse_size(s)
-    result = run(sizes=opts.sizes, transports=opts.transports, count=opts.count, warmup=opts.warmup,
-                 period=opts.period, large_period=opts.large_period, dds_large_period=opts.dds_large_period,
-                 dds_large_count=opts.dds_large_count, burst=opts.burst, burst_bytes=opts.burst_bytes,
-                 burst_seconds=opts.burst_seconds, settle=opts.settle, no_floor=opts.no_floor, out=opts.out,
-                 keep_logs=opts.keep_logs)
+    result = run(
+        sizes=opts.sizes,
+        transports=opts.transports,
+        count=opts.count,
+        warmup=opts.warmup,
+        period=opts.period,
+        large_period=opts.large_period,
+        dds_large_period=opts.dds_large_period,
+        dds_large_count=opts.dds_large_count,
+        burst=opts.burst,
+        burst_bytes=opts.burst_bytes,
+        burst_seconds=opts.burst_seconds,
+        settle=opts.settle,
+        no_floor=opts.no_floor,
+        out=opts.out,
+        keep_logs=opts.keep_logs,
+    )
     return 1 if result.cleanup else 0
 
 

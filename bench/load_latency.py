@@ -15,6 +15,7 @@ received (round trip); and, on the wall clock, request sent -> the LOADED
 event's stamp (when the container published it). Goals: median ≤ 20 ms;
 the per-node profile's median within 1.3× of thread mode's.
 """
+
 from __future__ import annotations
 
 import sys
@@ -30,23 +31,26 @@ from .session import Session
 NAME = "load_latency"
 TITLE = "LoadNode → LOADED latency"
 GOAL_MS = 20.0
-PER_NODE_VS_THREAD = 1.3        # per-node median ÷ thread mode's, at most
+PER_NODE_VS_THREAD = 1.3  # per-node median ÷ thread mode's, at most
 DEFAULT_MODES = ["isolated-per-node", "isolated-shared", "thread", "thread-mt"]
 
 
 def measure(session: Session, modes: list[str], n: int) -> dict:
     """{mode: {"cold": LoadTrial fields, "loaded": [ns], "round_trip": [ns], ...}}"""
     running = {mode: session.start(mode) for mode in modes}
-    data = {mode: {"cold": None, "loaded": [], "round_trip": [], "published": [], "unload": []}
-            for mode in modes}
+    data = {mode: {"cold": None, "loaded": [], "round_trip": [], "published": [], "unload": []} for mode in modes}
     for i in range(n + 1):
         for mode in modes:
             trial = timed_load(running[mode], node_name=f"hb{i}")
             unload = timed_unload(running[mode], trial.unique_id)
             d = data[mode]
             if i == 0:
-                d["cold"] = {"loaded": trial.loaded_ns, "round_trip": trial.round_trip_ns,
-                             "published": trial.published_ns, "unload": unload}
+                d["cold"] = {
+                    "loaded": trial.loaded_ns,
+                    "round_trip": trial.round_trip_ns,
+                    "published": trial.published_ns,
+                    "unload": unload,
+                }
                 continue
             d["loaded"].append(trial.loaded_ns)
             d["round_trip"].append(trial.round_trip_ns)
@@ -73,8 +77,9 @@ def registry_lookup(n: int) -> list[int]:
     return out[1:]
 
 
-def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
-        keep_logs: bool = False, quiet: bool = False) -> Result:
+def run(
+    *, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False
+) -> Result:
     params = {"n": n, "modes": list(modes), "out": str(out)}
     session = Session(NAME, keep_logs=keep_logs)
     try:
@@ -83,33 +88,71 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
         problems = session.close()
     lookup = registry_lookup(max(n, 5))
 
-    table = Table(f"Latency per mode (ms; n={n} warm loads each, the cold first load apart)", [
-        "mode", "n", "→ LOADED at client: median", "→ LOADED: p90", "LoadNode round trip: median",
-        "round trip: p90",
-        "→ LOADED published (container clock): median", "cold first load → LOADED",
-        "UnloadNode round trip: median", "LOADED median vs goal 20 ms"])
+    table = Table(
+        f"Latency per mode (ms; n={n} warm loads each, the cold first load apart)",
+        [
+            "mode",
+            "n",
+            "→ LOADED at client: median",
+            "→ LOADED: p90",
+            "LoadNode round trip: median",
+            "round trip: p90",
+            "→ LOADED published (container clock): median",
+            "cold first load → LOADED",
+            "UnloadNode round trip: median",
+            "LOADED median vs goal 20 ms",
+        ],
+    )
     goals, summary = [], []
     for mode in modes:
         d = data[mode]
         loaded, rt, pub, unl = (stats(ms(d[k])) for k in ("loaded", "round_trip", "published", "unload"))
-        goal = goal_at_most("median ≤ 20 ms", f"{MODES[mode][0]}: request → LOADED at client",
-                            loaded["median"], GOAL_MS, "ms")
+        goal = goal_at_most(
+            "median ≤ 20 ms", f"{MODES[mode][0]}: request → LOADED at client", loaded["median"], GOAL_MS, "ms"
+        )
         goals.append(goal)
-        table.add(MODES[mode][0], loaded["n"], fmt_ms(loaded["median"]), fmt_ms(loaded["p90"]),
-                  fmt_ms(rt["median"]), fmt_ms(rt["p90"]), fmt_ms(pub["median"]),
-                  fmt_ms(d["cold"]["loaded"] / 1e6), fmt_ms(unl["median"]), goal.verdict)
-        summary.append(summary_row("load latency", "LoadNode sent → LOADED at client", MODES[mode][0],
-                                   loaded, goal="median ≤ 20 ms", verdict=goal.verdict))
+        table.add(
+            MODES[mode][0],
+            loaded["n"],
+            fmt_ms(loaded["median"]),
+            fmt_ms(loaded["p90"]),
+            fmt_ms(rt["median"]),
+            fmt_ms(rt["p90"]),
+            fmt_ms(pub["median"]),
+            fmt_ms(d["cold"]["loaded"] / 1e6),
+            fmt_ms(unl["median"]),
+            goal.verdict,
+        )
+        summary.append(
+            summary_row(
+                "load latency",
+                "LoadNode sent → LOADED at client",
+                MODES[mode][0],
+                loaded,
+                goal="median ≤ 20 ms",
+                verdict=goal.verdict,
+            )
+        )
     if "isolated-per-node" in modes and "thread" in modes:
         per_node, thread = (stats(ms(data[m]["loaded"]))["median"] for m in ("isolated-per-node", "thread"))
-        goal = goal_ratio_at_most(f"≤ {fmt_ratio(PER_NODE_VS_THREAD)} thread mode",
-                                  "request → LOADED at client: per-node median ÷ thread mode's",
-                                  per_node / thread, PER_NODE_VS_THREAD)
+        goal = goal_ratio_at_most(
+            f"≤ {fmt_ratio(PER_NODE_VS_THREAD)} thread mode",
+            "request → LOADED at client: per-node median ÷ thread mode's",
+            per_node / thread,
+            PER_NODE_VS_THREAD,
+        )
         goals.append(goal)
-        summary.append(summary_row("load latency", "LoadNode → LOADED: per-node ÷ thread mode",
-                                   f"{MODES['isolated-per-node'][0]} vs {MODES['thread'][0]}", None,
-                                   median=f"{fmt_ms(per_node)} vs {fmt_ms(thread)} ms ({goal.measured})",
-                                   goal=goal.goal, verdict=goal.verdict))
+        summary.append(
+            summary_row(
+                "load latency",
+                "LoadNode → LOADED: per-node ÷ thread mode",
+                f"{MODES['isolated-per-node'][0]} vs {MODES['thread'][0]}",
+                None,
+                median=f"{fmt_ms(per_node)} vs {fmt_ms(thread)} ms ({goal.measured})",
+                goal=goal.goal,
+                verdict=goal.verdict,
+            )
+        )
     lk = stats(ms(lookup))
     notes = [
         f"Part of every LoadNode, in every mode: finding the class (container.registry.find scans the "
@@ -122,8 +165,7 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
         "sends the request, when the response future completes, and when the client's subscription "
         "callback records the LOADED event. 'Published' compares the benchmark's wall clock at "
         "sending with the event's stamp (set by the container just before it publishes).",
-        "The container publishes LOADED before it answers the request, so LOADED can arrive before "
-        "the response.",
+        "The container publishes LOADED before it answers the request, so LOADED can arrive before the response.",
         "UnloadNode in isolated mode returns once the child has ended and been reaped: the host sets its "
         "stop flag and triggers a guard condition of its executor, and the child leaves its spin loop, "
         "destroys its node (per-node: and its Context and participant) and exits.",
@@ -135,8 +177,18 @@ def run(*, n: int = 30, modes: list[str] = DEFAULT_MODES, out=DEFAULT_OUT,
         "Containers launched as the harness does (ContainerProcess: setpriv --pdeathsig, no-SHM Fast "
         "DDS profile), each on its own ROS domain (harness.domains.lease()).",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, {"n": n, "modes": list(modes)}), params,
-                    [table], goals, notes, summary, {"ns": data, "registry_lookup_ns": lookup}, problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(NAME, {"n": n, "modes": list(modes)}),
+        params,
+        [table],
+        goals,
+        notes,
+        summary,
+        {"ns": data, "registry_lookup_ns": lookup},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 

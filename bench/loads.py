@@ -1,5 +1,6 @@
 """LoadNode and UnloadNode, timed: a node loaded into a running container
 from the moment the request is sent, and the events that say so."""
+
 from __future__ import annotations
 
 import time
@@ -14,8 +15,10 @@ from .session import Running
 def event_received(cli: ContainerClient, event_type: int, unique_id: int, timeout: float) -> Received:
     """Wait for an event of ``unique_id``; return it with when the client got it."""
     msg = cli.events.wait_for(
-        lambda ev: ev.event_type == event_type and ev.unique_id == unique_id, timeout,
-        f"event {event_type} for unique_id {unique_id}")
+        lambda ev: ev.event_type == event_type and ev.unique_id == unique_id,
+        timeout,
+        f"event {event_type} for unique_id {unique_id}",
+    )
     for item in cli.events.items():
         if item.msg is msg:
             return item
@@ -30,13 +33,12 @@ def stamp_ns(msg) -> int:
 class LoadTrial:
     unique_id: int
     pid: int
-    round_trip_ns: int          # LoadNode request sent -> response received
-    loaded_ns: int              # request sent -> LOADED received by the client
-    published_ns: int           # request sent (wall clock) -> LOADED's stamp (container's wall clock)
+    round_trip_ns: int  # LoadNode request sent -> response received
+    loaded_ns: int  # request sent -> LOADED received by the client
+    published_ns: int  # request sent (wall clock) -> LOADED's stamp (container's wall clock)
 
 
-def timed_load(running: Running, *, node_name: str = "", plugin: str = HEARTBEAT,
-               timeout: float = 30.0) -> LoadTrial:
+def timed_load(running: Running, *, node_name: str = "", plugin: str = HEARTBEAT, timeout: float = 30.0) -> LoadTrial:
     """One LoadNode (a Heartbeat by default), timed from the moment the request is sent."""
     from cloneguard_interfaces.msg import ComponentEvent
 
@@ -48,8 +50,7 @@ def timed_load(running: Running, *, node_name: str = "", plugin: str = HEARTBEAT
     if not resp.success:
         raise AssertionError(f"LoadNode failed in {running.label}: {resp.error_message}")
     item = event_received(cli, ComponentEvent.LOADED, resp.unique_id, timeout)
-    return LoadTrial(resp.unique_id, item.msg.pid, answered - send, item.at_ns - send,
-                     stamp_ns(item.msg) - send_wall)
+    return LoadTrial(resp.unique_id, item.msg.pid, answered - send, item.at_ns - send, stamp_ns(item.msg) - send_wall)
 
 
 def timed_unload(running: Running, unique_id: int, timeout: float = 30.0) -> int:

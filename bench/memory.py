@@ -22,6 +22,7 @@ start_brk, arg/env bounds) are compared as a cross-check.
 Marginal per node = (footprint at N - footprint at 1) / (N - 1).
 Goal: isolated ≥ 20× smaller per node than process-per-node.
 """
+
 from __future__ import annotations
 
 import statistics
@@ -42,7 +43,7 @@ NAME = "memory"
 TITLE = "Memory: marginal footprint per node"
 GOAL_RATIO = 20.0
 DEFAULT_MODES = ["isolated-per-node", "isolated-shared", "thread", PROCESS_PER_NODE]
-_STAT_MM_FIELDS = (26, 27, 28, 45, 46, 47, 48, 49, 50, 51)   # 1-based, see proc(5)
+_STAT_MM_FIELDS = (26, 27, 28, 45, 46, 47, 48, 49, 50, 51)  # 1-based, see proc(5)
 
 
 def rollup(pid: int) -> dict[str, int] | None:
@@ -67,7 +68,7 @@ def stat_mm_fields(pid: int) -> tuple[int, ...] | None:
             raw = f.read().decode(errors="replace")
     except (FileNotFoundError, ProcessLookupError):
         return None
-    fields = raw.rpartition(")")[2].split()     # fields[0] is field 3 (state)
+    fields = raw.rpartition(")")[2].split()  # fields[0] is field 3 (state)
     return tuple(int(fields[n - 3]) for n in _STAT_MM_FIELDS)
 
 
@@ -106,9 +107,16 @@ def footprint(pids: list[int]) -> dict:
         uss += r.get("Private_Clean", 0) + r.get("Private_Dirty", 0)
         rss += r.get("Rss", 0)
         pte += _pte_kb(group[0])
-    stat_agrees &= len(set(keys)) == len(keys)      # distinct mms, distinct fields
-    return {"processes": len(live), "address_spaces": len(groups), "pss_kb": pss, "uss_kb": uss,
-            "rss_kb": rss, "pte_kb": pte, "stat_fields_agree_with_kcmp": stat_agrees}
+    stat_agrees &= len(set(keys)) == len(keys)  # distinct mms, distinct fields
+    return {
+        "processes": len(live),
+        "address_spaces": len(groups),
+        "pss_kb": pss,
+        "uss_kb": uss,
+        "rss_kb": rss,
+        "pte_kb": pte,
+        "stat_fields_agree_with_kcmp": stat_agrees,
+    }
 
 
 def sample(pids_fn, settle: float, samples: int = 3) -> dict:
@@ -133,8 +141,10 @@ def measure_container(session: Session, mode: str, nodes: int, settle: float) ->
     running = session.start(mode)
     points = {}
     try:
+
         def pids():
             return [running.proc.pid] + [p for p in running.proc.group_members() if p != running.proc.pid]
+
         for i in range(1, nodes + 1):
             timed_load(running, node_name=f"hb{i}")
             if i in checkpoints(nodes):
@@ -162,8 +172,15 @@ def measure_process_per_node(session: Session, nodes: int, settle: float) -> dic
     return points
 
 
-def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODES,
-        out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+def run(
+    *,
+    nodes: int = 20,
+    settle: float = 1.0,
+    modes: list[str] = DEFAULT_MODES,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
     if nodes < 2:
         raise ValueError("--nodes must be at least 2 (the marginal is taken from 1 to N)")
     params = {"nodes": nodes, "settle": settle, "modes": list(modes), "out": str(out)}
@@ -185,31 +202,60 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
         return (points[nodes][key] - points[1][key]) / (nodes - 1)
 
     ppn_marginal = marginal(data[PROCESS_PER_NODE], "pss_kb") if PROCESS_PER_NODE in data else None
-    table = Table(f"Footprint, 1 → {nodes} nodes", [
-        "mode", f"processes @{nodes}", f"address spaces @{nodes}", "PSS @1 (MiB)", f"PSS @{nodes} (MiB)",
-        "marginal PSS / node (MiB)", "marginal USS / node (MiB)", "marginal page tables / node (KiB)",
-        "process-per-node ÷ this (marginal PSS)"])
+    table = Table(
+        f"Footprint, 1 → {nodes} nodes",
+        [
+            "mode",
+            f"processes @{nodes}",
+            f"address spaces @{nodes}",
+            "PSS @1 (MiB)",
+            f"PSS @{nodes} (MiB)",
+            "marginal PSS / node (MiB)",
+            "marginal USS / node (MiB)",
+            "marginal page tables / node (KiB)",
+            "process-per-node ÷ this (marginal PSS)",
+        ],
+    )
     curve = Table("PSS (MiB) by node count", ["mode", *[f"@{c}" for c in checkpoints(nodes)]])
     goals, summary = [], []
     for mode in modes:
         points = data[mode]
         m_pss = marginal(points, "pss_kb")
-        table.add(label(mode), points[nodes]["processes"], points[nodes]["address_spaces"],
-                  f"{mib(points[1]['pss_kb']):.1f}", f"{mib(points[nodes]['pss_kb']):.1f}",
-                  f"{mib(m_pss):.2f}", f"{mib(marginal(points, 'uss_kb')):.2f}",
-                  f"{marginal(points, 'pte_kb'):.0f}", fmt_ratio(ratio(ppn_marginal, m_pss)))
+        table.add(
+            label(mode),
+            points[nodes]["processes"],
+            points[nodes]["address_spaces"],
+            f"{mib(points[1]['pss_kb']):.1f}",
+            f"{mib(points[nodes]['pss_kb']):.1f}",
+            f"{mib(m_pss):.2f}",
+            f"{mib(marginal(points, 'uss_kb')):.2f}",
+            f"{marginal(points, 'pte_kb'):.0f}",
+            fmt_ratio(ratio(ppn_marginal, m_pss)),
+        )
         curve.add(label(mode), *[f"{mib(points[c]['pss_kb']):.1f}" for c in checkpoints(nodes)])
         goal_text, verdict = "", ""
         if mode.startswith("isolated") and ppn_marginal is not None:
-            g = goal_at_least_ratio("isolated ≥ 20× smaller per node than process-per-node",
-                                    f"{label(mode)}: marginal PSS per node",
-                                    ratio(ppn_marginal, m_pss), GOAL_RATIO)
+            g = goal_at_least_ratio(
+                "isolated ≥ 20× smaller per node than process-per-node",
+                f"{label(mode)}: marginal PSS per node",
+                ratio(ppn_marginal, m_pss),
+                GOAL_RATIO,
+            )
             goals.append(g)
             goal_text = "≥ 20× smaller than process-per-node"
             verdict = f"met ({g.measured})" if g.met else g.verdict
-        summary.append(summary_row(
-            "memory", f"marginal PSS per node, 1 → {nodes} nodes", label(mode), None,
-            median=f"{mib(m_pss):.2f} MiB", p90="", goal=goal_text or "(reference)", verdict=verdict))
+        summary.append(
+            summary_row(
+                "memory",
+                f"marginal PSS per node, 1 → {nodes} nodes",
+                label(mode),
+                None,
+                median=f"{mib(m_pss):.2f} MiB",
+                p90="",
+                goal=goal_text or "(reference)",
+                verdict=verdict,
+            )
+        )
     mid = 10
     if mid in checkpoints(nodes) and nodes > mid:
         halves = []
@@ -218,9 +264,12 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
             first = (pts[mid]["pss_kb"] - pts[1]["pss_kb"]) / (mid - 1)
             last = (pts[nodes]["pss_kb"] - pts[mid]["pss_kb"]) / (nodes - mid)
             halves.append(f"{label(mode)} {mib(first):.2f} → {mib(last):.2f}")
-        curve_note = (f"Marginal PSS per node from 1 → {mid} vs {mid} → {nodes} nodes (MiB): " + "; ".join(halves)
-                      + ". (Not linear where the two differ: the marginal over 1 → N is then an average; "
-                      "this benchmark does not break the growth down.)")
+        curve_note = (
+            f"Marginal PSS per node from 1 → {mid} vs {mid} → {nodes} nodes (MiB): "
+            + "; ".join(halves)
+            + ". (Not linear where the two differ: the marginal over 1 → N is then an average; "
+            "this benchmark does not break the growth down.)"
+        )
     else:
         curve_note = "The curve (PSS by node count) is in the second table."
     agree = all(p["stat_fields_agree_with_kcmp"] for pts in data.values() for p in pts.values())
@@ -245,18 +294,27 @@ def run(*, nodes: int = 20, settle: float = 1.0, modes: list[str] = DEFAULT_MODE
         "participant and only their executors run in the children. Every clone child also has its own "
         "stack mapping (8 MiB reserved, only touched pages count).",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, {"nodes": nodes, "settle": settle,
-                                                     "modes": list(modes)}),
-                    params, [table, curve], goals, notes, summary,
-                    {"points": {m: {str(k): v for k, v in pts.items()} for m, pts in data.items()}}, problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(NAME, {"nodes": nodes, "settle": settle, "modes": list(modes)}),
+        params,
+        [table, curve],
+        goals,
+        notes,
+        summary,
+        {"points": {m: {str(k): v for k, v in pts.items()} for m, pts in data.items()}},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 
 def main(argv=None) -> int:
     parser = arg_parser(NAME, TITLE)
     parser.add_argument("--nodes", type=int, default=20, help="nodes at the end (default: %(default)s)")
-    parser.add_argument("--settle", type=float, default=1.0,
-                        help="seconds to wait before sampling (default: %(default)s)")
+    parser.add_argument(
+        "--settle", type=float, default=1.0, help="seconds to wait before sampling (default: %(default)s)"
+    )
     parser.add_argument("--modes", nargs="+", choices=DEFAULT_MODES, default=DEFAULT_MODES)
     opts = parser.parse_args(argv)
     if PROCESS_PER_NODE not in opts.modes:

@@ -1,11 +1,12 @@
 """What the benchmarks compare: the container modes measured side by side
 (``MODES``, plus the process-per-node baseline) and the components they
 load into them."""
+
 from __future__ import annotations
 
 PACKAGE = "cloneguard"
 HEARTBEAT = "cloneguard::Heartbeat"
-LISTENER = "cloneguard::Listener"       # no timer: idle unless a message arrives
+LISTENER = "cloneguard::Listener"  # no timer: idle unless a message arrives
 
 # Container modes: key -> (label, container arguments).
 MODES = {

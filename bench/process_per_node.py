@@ -17,9 +17,10 @@ running Python), rclpy and the registry imported, the Context initialised,
 the node built. ``--parent PID``: die (SIGKILL) with that process, and exit at
 once if it is already gone.
 """
+
 import time
 
-MAIN_NS = time.monotonic_ns()   # the first line: this process is running Python
+MAIN_NS = time.monotonic_ns()  # the first line: this process is running Python
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -36,12 +37,14 @@ def _die_with(parent: int) -> None:
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG)")
-    if os.getppid() != parent:      # it died before the line above
+    if os.getppid() != parent:  # it died before the line above
         os._exit(1)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m cloneguard.bench.process_per_node", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m cloneguard.bench.process_per_node", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("package")
     parser.add_argument("plugin")
     parser.add_argument("--node-name", default="")
@@ -61,6 +64,7 @@ def main(argv=None) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from cloneguard.container.registry import find
+
     imported_ns = time.monotonic_ns()
 
     cls = find(opts.package, opts.plugin).load_class()
@@ -73,11 +77,20 @@ def main(argv=None) -> int:
     executor.add_node(node)
     ready_ns = time.monotonic_ns()
 
-    line = "ready " + json.dumps({
-        "pid": os.getpid(), "main_ns": MAIN_NS, "imported_ns": imported_ns,
-        "context_ns": context_ns, "ready_ns": ready_ns,
-        "full_name": node.get_fully_qualified_name(),
-    }) + "\n"
+    line = (
+        "ready "
+        + json.dumps(
+            {
+                "pid": os.getpid(),
+                "main_ns": MAIN_NS,
+                "imported_ns": imported_ns,
+                "context_ns": context_ns,
+                "ready_ns": ready_ns,
+                "full_name": node.get_fully_qualified_name(),
+            }
+        )
+        + "\n"
+    )
     os.write(opts.ready_fd, line.encode())
     if opts.ready_fd > 2:
         os.close(opts.ready_fd)

@@ -8,7 +8,10 @@ waits for its death and checks that both counters still advance. The victim
 
 ``loop``      a tight Python loop: it holds, waits for and hands over the
               GIL all the time (what the GIL and condvar repairs are for);
-``pymalloc``  Python objects of <= 512 B (Python's own allocator, under the GIL);
+``pymalloc``  Python objects of <= 512 B (Python's object allocator, under the
+              GIL: the guard's pools of each process, or with
+              ``--python-pools 0`` CPython's pymalloc), tracked by the
+              garbage collector;
 ``malloc``    the malloc hammer in C (GIL released): 16 B .. 2 MiB blocks,
               one in eight handed to the container's counter thread, which
               frees them (what the allocator guard is for). The sibling then
@@ -25,7 +28,13 @@ subprocess died). Only the subprocess can freeze.
     python -m cloneguard.bench.random_kill --kills 300 --victim malloc
     python -m cloneguard.bench.random_kill --kills 300 --victim malloc --jemalloc
     python -m cloneguard.bench.random_kill --kills 100 --gil-repair 0
+    python -m cloneguard.bench.random_kill --kills 3000 --victim pymalloc [--python-pools 0] [--container-gc 0]
+                                           [--interp-repair 0]
+
+A ``crashed`` run (the container side died) is the container death the
+interpreter mitigations are for (container/isolated/interp.c, pyalloc.c).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,25 +56,27 @@ PROGRESS_TIMEOUT_S = 2.0
 # --------------------------------------------------------------------------
 # the container side
 
+
 def _victim_loop() -> None:
     x = 0
-    while True:                 # small ints only: no allocation
+    while True:  # small ints only: no allocation
         x = (x + 1) & 255
 
 
 def _victim_pymalloc() -> None:
     junk = []
-    while True:                 # allocates (pymalloc) all the time
+    while True:  # allocates (pymalloc) all the time
         junk.append([str(i) for i in range(20)])
         if len(junk) > 50:
             junk.clear()
 
 
-RING = 5                        # the malloc hammer's ring this bench uses
+RING = 5  # the malloc hammer's ring this bench uses
 
 
 def _victim_malloc() -> None:
     from cloneguard.faults._hammer import lib as hammer
+
     hammer.hammer_run(RING, int.from_bytes(os.urandom(8), "little") | 1)
 
 
@@ -74,7 +85,8 @@ VICTIMS = {"loop": _victim_loop, "pymalloc": _victim_pymalloc, "malloc": _victim
 
 def _serve(args) -> int:
     from cloneguard.container import allocator
-    allocator.glibc_arena_per_task()        # before a second thread starts
+
+    allocator.glibc_arena_per_task()  # before a second thread starts
     from cloneguard.container.isolated.core import CloneCore, stop_requested
     from cloneguard.faults._hammer import lib as hammer
 
@@ -86,13 +98,13 @@ def _serve(args) -> int:
         while True:
             counter[0] += 1
             if mallocs and counter[0] % 64 == 0:
-                hammer.drain_some(RING)     # frees the victims' blocks
+                hammer.drain_some(RING)  # frees the victims' blocks
 
     def sibling() -> None:
         while not stop_requested():
             sibling_count[0] += 1
             if mallocs:
-                bytes(1000 + sibling_count[0] % 4000)   # > 512 B: malloc
+                bytes(1000 + sibling_count[0] % 4000)  # > 512 B: malloc
 
     def advances(cell, timeout: float) -> bool:
         start = cell[0]
@@ -104,15 +116,20 @@ def _serve(args) -> int:
         return False
 
     threading.Thread(target=count, daemon=True).start()
-    core = CloneCore(gil_repair=bool(args.gil_repair),
-                     condvar_repair=bool(args.condvar_repair),
-                     crash_report=False, alloc_guard=allocator.guard_loaded())
+    core = CloneCore(
+        gil_repair=bool(args.gil_repair),
+        condvar_repair=bool(args.condvar_repair),
+        container_gc=bool(args.container_gc),
+        interp_repair=bool(args.interp_repair),
+        crash_report=False,
+        alloc_guard=allocator.guard_loaded(),
+    )
     sib = core.spawn(sibling)
     victim = VICTIMS[args.victim]
     print(f"ready {sib.pid}", flush=True)
     for i in range(args.kills):
         child = core.spawn(victim)
-        print(f"spawned {i} {child.pid}", flush=True)    # the outside kills it
+        print(f"spawned {i} {child.pid}", flush=True)  # the outside kills it
         death = core.wait(child, 30)
         if death is None:
             return _stuck(i, "no-death")
@@ -121,11 +138,14 @@ def _serve(args) -> int:
             return _stuck(i, "counter")
         if not advances(sibling_count, PROGRESS_TIMEOUT_S):
             return _stuck(i, "sibling")
-        print(f"ok {i} {int(death.repairs)} {death.exit_signal} {int(death.alloc_quarantined)}", flush=True)
+        print(
+            f"ok {i} {int(death.repairs)} {death.exit_signal} {int(death.alloc_quarantined)} {int(death.py_abandoned)}",
+            flush=True,
+        )
     core.request_stop(sib)
     core.wait(sib, PROGRESS_TIMEOUT_S)
     print("done", flush=True)
-    os._exit(0)   # the dead children's leftovers must not be finalized
+    os._exit(0)  # the dead children's leftovers must not be finalized
 
 
 def _stuck(i: int, what: str) -> int:
@@ -139,6 +159,7 @@ def _stuck(i: int, what: str) -> int:
 # --------------------------------------------------------------------------
 # the outside
 
+
 @dataclass
 class Result:
     settings: dict
@@ -147,35 +168,63 @@ class Result:
     hung: int = 0
     crashed: int = 0
     repairs: collections.Counter = field(default_factory=collections.Counter)
-    quarantined: int = 0        # victims that died inside the allocator
+    quarantined: int = 0  # victims that died inside the allocator
+    py_abandoned: int = 0  # ... inside Python's object allocator (pyalloc.c)
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
-    hangs: list[str] = field(default_factory=list)   # diagnosis summaries
+    hangs: list[str] = field(default_factory=list)  # diagnosis summaries
 
     def line(self) -> str:
         rep = ", ".join(f"{k} {v}" for k, v in sorted(self.repairs.items())) or "none"
-        return (f"{self.settings}: {self.survived}/{self.kills} survived, "
-                f"{self.hung} hung, {self.crashed} crashed "
-                f"({self.seconds:.0f} s; repairs: {rep}; {self.quarantined} died inside the allocator)")
+        return (
+            f"{self.settings}: {self.survived}/{self.kills} survived, "
+            f"{self.hung} hung, {self.crashed} crashed "
+            f"({self.seconds:.0f} s; repairs: {rep}; {self.quarantined} died inside malloc, "
+            f"{self.py_abandoned} inside Python's object allocator)"
+        )
 
 
-def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
-        victim: str = "loop", alloc_guard: bool = True, jemalloc: bool = False,
-        seed: int = 1, hang_s: float = 3.0,
-        max_delay_ms: float = 20.0, budget_s: float | None = None,
-        max_hangs: int | None = None, diagnose_dir: str | None = None) -> Result:
+def run(
+    kills: int,
+    *,
+    gil_repair: bool = True,
+    condvar_repair: bool = True,
+    victim: str = "loop",
+    alloc_guard: bool = True,
+    jemalloc: bool = False,
+    python_pools: bool = True,
+    container_gc: bool = True,
+    interp_repair: bool = True,
+    seed: int = 1,
+    hang_s: float = 3.0,
+    max_delay_ms: float = 20.0,
+    budget_s: float | None = None,
+    max_hangs: int | None = None,
+    diagnose_dir: str | None = None,
+) -> Result:
     """``kills`` random kills in as many fresh subprocesses as needed (fewer
     if ``budget_s`` runs out or ``max_hangs`` hangs were seen)."""
     from cloneguard.container import allocator
-    from cloneguard.container.isolated.events import Repair
+    from cloneguard.container.isolated.core_events import Repair
     from cloneguard.harness import diagnose
 
-    res = Result({"gil_repair": gil_repair, "condvar_repair": condvar_repair,
-                  "victim": victim, "alloc_guard": alloc_guard, "jemalloc": jemalloc})
+    res = Result(
+        {
+            "gil_repair": gil_repair,
+            "condvar_repair": condvar_repair,
+            "victim": victim,
+            "alloc_guard": alloc_guard,
+            "jemalloc": jemalloc,
+            "python_pools": python_pools and alloc_guard,
+            "container_gc": container_gc,
+            "interp_repair": interp_repair,
+        }
+    )
     env = dict(os.environ)
-    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + (
-        [allocator.jemalloc_path()] if jemalloc else [])
+    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + ([allocator.jemalloc_path()] if jemalloc else [])
     env["LD_PRELOAD"] = " ".join(preload)
+    if not python_pools:
+        env[allocator.PY_POOLS_OFF] = "0"
     t0 = time.monotonic()
     rng = random.Random(seed)
     run_no = 0
@@ -186,14 +235,32 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
         if max_hangs is not None and res.hung + res.crashed >= max_hangs:
             break
         run_no += 1
-        argv = [sys.executable, "-m", "cloneguard.bench.random_kill", "--serve",
-                "--kills", str(kills - res.kills),
-                "--gil-repair", str(int(gil_repair)),
-                "--condvar-repair", str(int(condvar_repair)),
-                "--victim", victim]
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                start_new_session=True)
+        argv = [
+            sys.executable,
+            "-m",
+            "cloneguard.bench.random_kill",
+            "--serve",
+            "--kills",
+            str(kills - res.kills),
+            "--gil-repair",
+            str(int(gil_repair)),
+            "--condvar-repair",
+            str(int(condvar_repair)),
+            "--container-gc",
+            str(int(container_gc)),
+            "--interp-repair",
+            str(int(interp_repair)),
+            "--victim",
+            victim,
+        ]
+        proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
+            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+            start_new_session=True,
+        )
         pids: dict[int, str] = {}
         dead: set[int] = set()
         buf = b""
@@ -233,6 +300,7 @@ def run(kills: int, *, gil_repair: bool = True, condvar_repair: bool = True,
                     for name in Repair(int(words[2])).names():
                         res.repairs[name] += 1
                     res.quarantined += int(words[4])
+                    res.py_abandoned += int(words[5])
                 elif words[0] == "stuck":
                     res.notes.append(" ".join(words))
                     outcome = "hung"
@@ -271,10 +339,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="for the kill delays")
     ap.add_argument("--gil-repair", type=int, default=1)
     ap.add_argument("--condvar-repair", type=int, default=1)
-    ap.add_argument("--victim", choices=sorted(VICTIMS), default="loop",
-                    help="what the victim does (default: %(default)s)")
+    ap.add_argument(
+        "--victim", choices=sorted(VICTIMS), default="loop", help="what the victim does (default: %(default)s)"
+    )
     ap.add_argument("--alloc-guard", type=int, default=1, help="preload the allocator guard (default 1)")
     ap.add_argument("--jemalloc", action="store_true", help="preload jemalloc too")
+    ap.add_argument(
+        "--python-pools",
+        type=int,
+        default=1,
+        help="Python objects from the guard's pools of each process (default 1; 0: pymalloc)",
+    )
+    ap.add_argument(
+        "--container-gc", type=int, default=1, help="collect garbage only on a container thread (default 1)"
+    )
+    ap.add_argument(
+        "--interp-repair", type=int, default=1, help="after a death with the GIL, mend the interpreter (default 1)"
+    )
     ap.add_argument("--max-delay-ms", type=float, default=20.0)
     ap.add_argument("--hang-s", type=float, default=3.0)
     ap.add_argument("--json", action="store_true")
@@ -282,11 +363,21 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.serve:
         return _serve(args)
-    res = run(args.kills, gil_repair=bool(args.gil_repair),
-              condvar_repair=bool(args.condvar_repair), victim=args.victim,
-              alloc_guard=bool(args.alloc_guard), jemalloc=args.jemalloc,
-              seed=args.seed, hang_s=args.hang_s, max_delay_ms=args.max_delay_ms,
-              diagnose_dir=args.diagnose)
+    res = run(
+        args.kills,
+        gil_repair=bool(args.gil_repair),
+        condvar_repair=bool(args.condvar_repair),
+        victim=args.victim,
+        alloc_guard=bool(args.alloc_guard),
+        jemalloc=args.jemalloc,
+        python_pools=bool(args.python_pools),
+        container_gc=bool(args.container_gc),
+        interp_repair=bool(args.interp_repair),
+        seed=args.seed,
+        hang_s=args.hang_s,
+        max_delay_ms=args.max_delay_ms,
+        diagnose_dir=args.diagnose,
+    )
     print(json.dumps(res.__dict__, default=dict) if args.json else res.line())
     for note in res.notes[:20]:
         print("  ", note)

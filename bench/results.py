@@ -1,5 +1,6 @@
 """A benchmark's report: its tables, the host it ran on, its result written
 as ``<name>.md`` and ``<name>.json``, and its rows of summary.md."""
+
 from __future__ import annotations
 
 import datetime
@@ -29,13 +30,16 @@ class Table:
     def add(self, *cells) -> None:
         if len(cells) != len(self.columns):
             raise ValueError(f"{self.title}: {len(cells)} cells for {len(self.columns)} columns")
-        self.rows.append(dict(zip(self.columns, (str(c) for c in cells))))
+        self.rows.append(dict(zip(self.columns, (str(c) for c in cells), strict=True)))
 
     def markdown(self) -> str:
         def esc(s: str) -> str:
             return s.replace("|", "\\|")
-        lines = ["| " + " | ".join(esc(c) for c in self.columns) + " |",
-                 "|" + "|".join("---" for _ in self.columns) + "|"]
+
+        lines = [
+            "| " + " | ".join(esc(c) for c in self.columns) + " |",
+            "|" + "|".join("---" for _ in self.columns) + "|",
+        ]
         lines += ["| " + " | ".join(esc(r[c]) for c in self.columns) + " |" for r in self.rows]
         return "\n".join(lines)
 
@@ -46,7 +50,7 @@ class Table:
 def host() -> dict:
     info = host_info()
     info["python"] = python_version()
-    info["date"] = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    info["date"] = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     info["git"] = git_info(REPO_ROOT)
     return info
 
@@ -54,9 +58,11 @@ def host() -> dict:
 def host_line(info: dict) -> str:
     git = info.get("git") or {}
     commit = (git.get("commit") or "?")[:10] + (" (with uncommitted changes)" if git.get("dirty") else "")
-    return (f"kernel {info['kernel']} ({info['machine']}), CPU {info['cpu_model']} "
-            f"({info['cpu_count']} CPUs, {info['cpu_usable']} usable), {info['glibc']}, "
-            f"{info['python']}, git {commit}, {info['date']}")
+    return (
+        f"kernel {info['kernel']} ({info['machine']}), CPU {info['cpu_model']} "
+        f"({info['cpu_count']} CPUs, {info['cpu_usable']} usable), {info['glibc']}, "
+        f"{info['python']}, git {commit}, {info['date']}"
+    )
 
 
 @dataclass
@@ -68,15 +74,20 @@ class Result:
     tables: list[Table]
     goals: list[Goal]
     notes: list[str]
-    summary: list[dict]         # rows for summary.md (see SUMMARY_COLUMNS)
+    summary: list[dict]  # rows for summary.md (see SUMMARY_COLUMNS)
     raw: dict
-    cleanup: list[str]          # problems found after clean-up; [] when clean
+    cleanup: list[str]  # problems found after clean-up; [] when clean
     host: dict = field(default_factory=host)
 
     def markdown(self) -> str:
-        out = [f"# {self.title}", "",
-               f"Command (from the repository root, venv active): `{self.command}`", "",
-               f"Host: {host_line(self.host)}", ""]
+        out = [
+            f"# {self.title}",
+            "",
+            f"Command (from the repository root, venv active): `{self.command}`",
+            "",
+            f"Host: {host_line(self.host)}",
+            "",
+        ]
         for table in self.tables:
             out += [f"## {table.title}", "", table.markdown(), ""]
         if self.goals:
@@ -86,19 +97,34 @@ class Result:
             out += ["## Goals", "", goals.markdown(), ""]
         if self.notes:
             out += ["## Method and notes", ""] + [f"- {n}" for n in self.notes] + [""]
-        out += ["Clean-up: " + ("every container stopped, no process or /dev/shm segment left."
-                                if not self.cleanup else "PROBLEMS: " + "; ".join(self.cleanup)), ""]
+        out += [
+            "Clean-up: "
+            + (
+                "every container stopped, no process or /dev/shm segment left."
+                if not self.cleanup
+                else "PROBLEMS: " + "; ".join(self.cleanup)
+            ),
+            "",
+        ]
         return "\n".join(out)
 
     def as_json(self) -> dict:
         return {
-            "name": self.name, "title": self.title, "command": self.command,
+            "name": self.name,
+            "title": self.title,
+            "command": self.command,
             "invoked_as": shlex.join([Path(sys.executable).name, *sys.argv]),
-            "host": self.host, "params": self.params,
+            "host": self.host,
+            "params": self.params,
             "tables": [t.as_json() for t in self.tables],
-            "goals": [{"goal": g.goal, "judged_on": g.measure, "measured": g.measured,
-                       "met": g.met, "verdict": g.verdict} for g in self.goals],
-            "notes": self.notes, "summary": self.summary, "cleanup": self.cleanup, "raw": self.raw,
+            "goals": [
+                {"goal": g.goal, "judged_on": g.measure, "measured": g.measured, "met": g.met, "verdict": g.verdict}
+                for g in self.goals
+            ],
+            "notes": self.notes,
+            "summary": self.summary,
+            "cleanup": self.cleanup,
+            "raw": self.raw,
         }
 
     def write(self, out_dir: Path) -> tuple[Path, Path]:
@@ -113,12 +139,25 @@ class Result:
 SUMMARY_COLUMNS = ["benchmark", "measure", "mode", "n", "median", "p90", "goal", "verdict"]
 
 
-def summary_row(benchmark: str, measure: str, mode: str, st: dict | None, unit: str = "ms",
-                goal: str = "", verdict: str = "", median: str | None = None, p90: str | None = None) -> dict:
+def summary_row(
+    benchmark: str,
+    measure: str,
+    mode: str,
+    st: dict | None,
+    unit: str = "ms",
+    goal: str = "",
+    verdict: str = "",
+    median: str | None = None,
+    p90: str | None = None,
+) -> dict:
     st = st or {}
     return {
-        "benchmark": benchmark, "measure": measure, "mode": mode, "n": str(st.get("n", "")),
+        "benchmark": benchmark,
+        "measure": measure,
+        "mode": mode,
+        "n": str(st.get("n", "")),
         "median": median if median is not None else (f"{fmt_ms(st.get('median'))} {unit}" if st else ""),
         "p90": p90 if p90 is not None else (f"{fmt_ms(st.get('p90'))} {unit}" if st else ""),
-        "goal": goal, "verdict": verdict,
+        "goal": goal,
+        "verdict": verdict,
     }

@@ -12,6 +12,7 @@ then checks that nothing is left.
 Importing this module sets up the benchmark's own ROS environment (UDP on
 loopback only), before any rclpy.init.
 """
+
 from __future__ import annotations
 
 import json
@@ -27,7 +28,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cloneguard.harness import domains, procfs, shm
-from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, ContainerProcess, process_environment, use_loopback_ros
+from cloneguard.harness.process import (
+    NO_SHM_PROFILE,
+    REPO_ROOT,
+    ContainerProcess,
+    process_environment,
+    use_loopback_ros,
+)
 
 # The benchmark's own participant (its clients) runs under the same rules as
 # the containers: UDP on loopback only. Set before any rclpy.init.
@@ -57,13 +64,23 @@ class Running:
 class NodeProcess:
     """One ``bench.process_per_node`` runner: fork+exec'd, own session."""
 
-    def __init__(self, domain_id: int, log_path: Path, *, package: str = PACKAGE,
-                 plugin: str = HEARTBEAT, node_name: str = ""):
+    def __init__(
+        self, domain_id: int, log_path: Path, *, package: str = PACKAGE, plugin: str = HEARTBEAT, node_name: str = ""
+    ):
         env = process_environment(domain_id, fastdds_profile=NO_SHM_PROFILE)
         env["PYTHONUNBUFFERED"] = "1"
         r, w = os.pipe2(os.O_CLOEXEC)
-        argv = [sys.executable, "-m", "cloneguard.bench.process_per_node", "--ready-fd", str(w),
-                "--parent", str(os.getpid()), package, plugin]
+        argv = [
+            sys.executable,
+            "-m",
+            "cloneguard.bench.process_per_node",
+            "--ready-fd",
+            str(w),
+            "--parent",
+            str(os.getpid()),
+            package,
+            plugin,
+        ]
         if node_name:
             argv[-2:-2] = ["--node-name", node_name]
         self.log_path = Path(log_path)
@@ -72,8 +89,14 @@ class NodeProcess:
         self.spawn_ns = time.monotonic_ns()
         try:
             self.popen = subprocess.Popen(
-                argv, cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL, stdout=self._log,
-                stderr=subprocess.STDOUT, pass_fds=(w,), start_new_session=True,
+                argv,
+                cwd=REPO_ROOT,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=self._log,
+                stderr=subprocess.STDOUT,
+                pass_fds=(w,),
+                start_new_session=True,
             )
         finally:
             os.close(w)
@@ -87,13 +110,16 @@ class NodeProcess:
         while not buf.endswith(b"\n"):
             left = deadline - time.monotonic()
             if left <= 0 or not select.select([self._ready_r], [], [], left)[0]:
-                raise HarnessTimeout(f"runner {self.pid} not ready within {timeout:.0f} s\n"
-                                     + log_tail(self.log_path.read_text(errors="replace")))
+                raise HarnessTimeout(
+                    f"runner {self.pid} not ready within {timeout:.0f} s\n"
+                    + log_tail(self.log_path.read_text(errors="replace"))
+                )
             chunk = os.read(self._ready_r, 4096)
             if not chunk:
-                raise AssertionError(f"runner {self.pid} exited before it was ready (code "
-                                     f"{self.popen.wait()})\n"
-                                     + log_tail(self.log_path.read_text(errors="replace")))
+                raise AssertionError(
+                    f"runner {self.pid} exited before it was ready (code "
+                    f"{self.popen.wait()})\n" + log_tail(self.log_path.read_text(errors="replace"))
+                )
             buf += chunk
         read_ns = time.monotonic_ns()
         self.ready = dict(json.loads(buf.decode().split(" ", 1)[1]), read_ns=read_ns, spawn_ns=self.spawn_ns)
@@ -156,8 +182,9 @@ class Session:
     def start(self, mode: str, *, extra_args: list[str] = ()) -> Running:
         """Start a container in ``mode`` on a domain of its own; return once it answers."""
         lease = self.lease()
-        proc = ContainerProcess([*MODES[mode][1], *extra_args], domain_id=lease.domain_id,
-                                log_path=self._log_path(f"container-{mode}"))
+        proc = ContainerProcess(
+            [*MODES[mode][1], *extra_args], domain_id=lease.domain_id, log_path=self._log_path(f"container-{mode}")
+        )
         self._pgids.append(proc.pgid)
         cli = ContainerClient(lease.domain_id, proc.fqn, name=f"bench_{os.getpid()}_{self._count}")
         running = Running(mode, proc, cli, lease, label(mode))
@@ -179,8 +206,7 @@ class Session:
         return self.start(running.mode)
 
     def runner(self, domain_id: int, *, node_name: str = "", plugin: str = HEARTBEAT) -> NodeProcess:
-        r = NodeProcess(domain_id, self._log_path(f"runner-{node_name or 'node'}"), plugin=plugin,
-                        node_name=node_name)
+        r = NodeProcess(domain_id, self._log_path(f"runner-{node_name or 'node'}"), plugin=plugin, node_name=node_name)
         self._pgids.append(r.pgid)
         self._runners.append(r)
         return r
@@ -195,12 +221,20 @@ class Session:
         """Run ``python -m cloneguard.bench._core_worker`` (its own CloneCore) and return its JSON."""
         log = self._log_path(f"core-worker-{what}")
         with open(log, "wb") as err:
-            done = subprocess.run([sys.executable, "-m", "cloneguard.bench._core_worker", what, "--n", str(n)],
-                                  cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                  stderr=err, timeout=timeout, check=False)
+            done = subprocess.run(
+                [sys.executable, "-m", "cloneguard.bench._core_worker", what, "--n", str(n)],
+                cwd=REPO_ROOT,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=err,
+                timeout=timeout,
+                check=False,
+            )
         if done.returncode != 0:
-            raise RuntimeError(f"cloneguard.bench._core_worker {what} exited with {done.returncode}\n"
-                               + log_tail(log.read_text(errors="replace")))
+            raise RuntimeError(
+                f"cloneguard.bench._core_worker {what} exited with {done.returncode}\n"
+                + log_tail(log.read_text(errors="replace"))
+            )
         return json.loads(done.stdout)
 
     def close(self) -> list[str]:
@@ -211,7 +245,7 @@ class Session:
         for running in list(self._running):
             try:
                 self.stop(running)
-            except Exception as exc:   # keep stopping the rest
+            except Exception as exc:  # keep stopping the rest
                 print(f"bench: stopping {running.label}: {exc}", file=sys.stderr)
         for r in list(self._runners):
             self.stop_runner(r)

@@ -15,6 +15,7 @@ Every container is then stopped with ContainerProcess.stop().
 
 Goal: ≤ 1 s with 20 isolated nodes.
 """
+
 from __future__ import annotations
 
 import os
@@ -58,15 +59,20 @@ def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) 
             os.close(pidfd)
         group_empty = code = None
         if exited:
-            code = running.proc.wait(5.0)       # reap it: a zombie leader still counts in its group
+            code = running.proc.wait(5.0)  # reap it: a zombie leader still counts in its group
             if procfs.wait_group_empty(running.proc.pgid, timeout=5.0):
                 group_empty = time.monotonic_ns() - t0
         sigkilled = running.proc.log_text().count("did not stop within")
     finally:
         status = session.stop(running)
-    return {"exit_ns": (t_exit - t0) if exited else None, "group_empty_ns": group_empty,
-            "code": code if code is not None else status.returncode, "forced": status.forced,
-            "processes": members, "children_sigkilled": sigkilled}
+    return {
+        "exit_ns": (t_exit - t0) if exited else None,
+        "group_empty_ns": group_empty,
+        "code": code if code is not None else status.returncode,
+        "forced": status.forced,
+        "processes": members,
+        "children_sigkilled": sigkilled,
+    }
 
 
 def configs(modes: list[str], counts: list[int], idle_node: bool) -> list[tuple[str, str, int]]:
@@ -77,12 +83,19 @@ def configs(modes: list[str], counts: list[int], idle_node: bool) -> list[tuple[
     return out
 
 
-def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
-        modes: list[str] = DEFAULT_MODES, idle_node: bool = True, out=DEFAULT_OUT,
-        keep_logs: bool = False, quiet: bool = False) -> Result:
+def run(
+    *,
+    reps: int = 3,
+    counts: list[int] = (1, 5, 20),
+    settle: float = 0.5,
+    modes: list[str] = DEFAULT_MODES,
+    idle_node: bool = True,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
     counts, modes = list(counts), list(modes)
-    params = {"reps": reps, "counts": counts, "settle": settle, "modes": modes, "idle_node": idle_node,
-              "out": str(out)}
+    params = {"reps": reps, "counts": counts, "settle": settle, "modes": modes, "idle_node": idle_node, "out": str(out)}
     plan = configs(modes, counts, idle_node)
     session = Session(NAME, keep_logs=keep_logs)
     data = {f"{m}|{p}|{c}": [] for m, p, c in plan}
@@ -93,10 +106,23 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
     finally:
         problems = session.close()
 
-    table = Table(f"SIGTERM → exit (ms; {reps} fresh containers per row)", [
-        "mode", "nodes", "processes before", "n", "→ container exited: median", "exited: p90", "exited: max",
-        "→ process group empty: median", "exit codes", "timed out / forced", "children SIGKILLed after 500 ms",
-        "vs goal (≤ 1 s with 20 isolated nodes)"])
+    table = Table(
+        f"SIGTERM → exit (ms; {reps} fresh containers per row)",
+        [
+            "mode",
+            "nodes",
+            "processes before",
+            "n",
+            "→ container exited: median",
+            "exited: p90",
+            "exited: max",
+            "→ process group empty: median",
+            "exit codes",
+            "timed out / forced",
+            "children SIGKILLed after 500 ms",
+            "vs goal (≤ 1 s with 20 isolated nodes)",
+        ],
+    )
     goals, summary = [], []
     top = max(counts)
     for mode, plugin, count in sorted(plan, key=lambda c: (modes.index(c[0]), c[1] != HEARTBEAT, c[2])):
@@ -109,27 +135,54 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
         verdict = ""
         if mode.startswith("isolated") and count == GOAL_NODES:
             # a container that never exited counts with the timeout (a lower bound)
-            value = stats([t["exit_ns"] / 1e6 if t["exit_ns"] is not None else EXIT_TIMEOUT_S * 1e3
-                           for t in trials])["median"]
-            g = goal_at_most(f"≤ 1 s with {GOAL_NODES} isolated nodes",
-                             f"{label(mode)}, {what}: SIGTERM → exit (median)",
-                             value, GOAL_MS, "ms")
+            value = stats([t["exit_ns"] / 1e6 if t["exit_ns"] is not None else EXIT_TIMEOUT_S * 1e3 for t in trials])[
+                "median"
+            ]
+            g = goal_at_most(
+                f"≤ 1 s with {GOAL_NODES} isolated nodes",
+                f"{label(mode)}, {what}: SIGTERM → exit (median)",
+                value,
+                GOAL_MS,
+                "ms",
+            )
             goals.append(g)
             verdict = g.verdict
-        table.add(label(mode), what, max(t["processes"] for t in trials), ex["n"],
-                  fmt_ms(ex["median"]), fmt_ms(ex["p90"]), fmt_ms(ex["max"]), fmt_ms(ge["median"]),
-                  " ".join(sorted({str(t["code"]) for t in trials})), f"{timeouts} / {forced}",
-                  " ".join(str(t["children_sigkilled"]) for t in trials) if mode.startswith("isolated") else "",
-                  verdict)
+        table.add(
+            label(mode),
+            what,
+            max(t["processes"] for t in trials),
+            ex["n"],
+            fmt_ms(ex["median"]),
+            fmt_ms(ex["p90"]),
+            fmt_ms(ex["max"]),
+            fmt_ms(ge["median"]),
+            " ".join(sorted({str(t["code"]) for t in trials})),
+            f"{timeouts} / {forced}",
+            " ".join(str(t["children_sigkilled"]) for t in trials) if mode.startswith("isolated") else "",
+            verdict,
+        )
         if count == top:
-            summary.append(summary_row(
-                "shutdown", f"SIGTERM → exit, {what}", label(mode), ex,
-                goal=f"≤ 1 s at {GOAL_NODES}" if mode.startswith("isolated") else "(reference)",
-                verdict=verdict or ("" if not mode.startswith("isolated") else
-                                    f"not judged: the goal is at {GOAL_NODES} nodes")))
+            summary.append(
+                summary_row(
+                    "shutdown",
+                    f"SIGTERM → exit, {what}",
+                    label(mode),
+                    ex,
+                    goal=f"≤ 1 s at {GOAL_NODES}" if mode.startswith("isolated") else "(reference)",
+                    verdict=verdict
+                    or ("" if not mode.startswith("isolated") else f"not judged: the goal is at {GOAL_NODES} nodes"),
+                )
+            )
     if GOAL_NODES not in counts:
-        goals.append(Goal(f"≤ 1 s with {GOAL_NODES} isolated nodes", "SIGTERM → exit (median)", "–", None,
-                          f"not measured: {GOAL_NODES} is not among --counts"))
+        goals.append(
+            Goal(
+                f"≤ 1 s with {GOAL_NODES} isolated nodes",
+                "SIGTERM → exit (median)",
+                "–",
+                None,
+                f"not measured: {GOAL_NODES} is not among --counts",
+            )
+        )
     notes = [
         "SIGTERM goes to the container process only (os.kill, not its group); the exit is seen through "
         "a pidfd (select), the empty group by polling /proc after reaping the container. 'Processes "
@@ -146,9 +199,20 @@ def run(*, reps: int = 3, counts: list[int] = (1, 5, 20), settle: float = 0.5,
         "A container that does not exit within 20 s is counted as timed out; every container is "
         "stopped with ContainerProcess.stop() afterwards ('forced': it needed SIGKILL).",
     ]
-    result = Result(NAME, TITLE, command_line(NAME, {"reps": reps, "counts": counts, "settle": settle,
-                                                     "modes": modes, "no_idle_node": not idle_node}),
-                    params, [table], goals, notes, summary, {"trials": data}, problems)
+    result = Result(
+        NAME,
+        TITLE,
+        command_line(
+            NAME, {"reps": reps, "counts": counts, "settle": settle, "modes": modes, "no_idle_node": not idle_node}
+        ),
+        params,
+        [table],
+        goals,
+        notes,
+        summary,
+        {"trials": data},
+        problems,
+    )
     return finish(result, out, quiet=quiet)
 
 
@@ -158,11 +222,21 @@ def main(argv=None) -> int:
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20])
     parser.add_argument("--settle", type=float, default=0.5)
     parser.add_argument("--modes", nargs="+", choices=DEFAULT_MODES, default=DEFAULT_MODES)
-    parser.add_argument("--no-idle-node", action="store_true",
-                        help="skip the isolated per-node row with idle (timer-less) Listener nodes")
+    parser.add_argument(
+        "--no-idle-node",
+        action="store_true",
+        help="skip the isolated per-node row with idle (timer-less) Listener nodes",
+    )
     opts = parser.parse_args(argv)
-    result = run(reps=opts.reps, counts=opts.counts, settle=opts.settle, modes=opts.modes,
-                 idle_node=not opts.no_idle_node, out=opts.out, keep_logs=opts.keep_logs)
+    result = run(
+        reps=opts.reps,
+        counts=opts.counts,
+        settle=opts.settle,
+        modes=opts.modes,
+        idle_node=not opts.no_idle_node,
+        out=opts.out,
+        keep_logs=opts.keep_logs,
+    )
     return 1 if result.cleanup else 0
 
 
