@@ -6,13 +6,25 @@
 # install as cloneguard.container, under the project's own namespace
 # (`cloneguard`, shared with the test rig's cloneguard.harness/.faults/.bench,
 # rig/setup.py), never as a bare top-level `container`.
+import runpy
+from pathlib import Path
+
+import pybind11
 from setuptools import Extension, find_packages, setup
 from setuptools.command.build_ext import build_ext
+
+# The project's C warning flags: one list for every build (scripts/cflags.py).
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parent / "scripts" / "cflags.py"))["WARNINGS"]
 
 # Isolated mode's C (the clone core, the allocator guard) rests on glibc and
 # x86_64 layouts: where it does not build, the rest of the container (thread
 # mode) still installs, and --isolated refuses with the reason.
-ISOLATED_ONLY = {"cloneguard.container.isolated._clonecore", "cloneguard.container.isolated._allocguard"}
+ISOLATED_ONLY = {
+    "cloneguard.container.isolated._clonecore",
+    "cloneguard.container.isolated._allocguard",
+    "cloneguard.container.isolated._pylocks",
+    "cloneguard.container.isolated._pybind11_registry",
+}
 
 
 class BuildExt(build_ext):
@@ -42,10 +54,25 @@ setup(
         # here so that it lands beside the package like the cffi modules.
         Extension(
             "cloneguard.container.isolated._allocguard",
-            sources=["container/isolated/allocguard.c"],
-            depends=["container/isolated/allocguard.h"],
-            extra_compile_args=["-std=gnu11", "-O2", "-Wall", "-fvisibility=hidden", "-fno-builtin"],
+            sources=["container/isolated/allocguard.c", "container/isolated/pyalloc.c"],
+            depends=["container/isolated/allocguard.h", "container/isolated/guard_internal.h"],
+            extra_compile_args=["-std=gnu11", "-O2", *WARNINGS, "-fvisibility=hidden", "-fno-builtin"],
             libraries=["dl", "pthread"],
+        ),
+        # Python's lock types for an isolated container (pylocks.c).
+        Extension(
+            "cloneguard.container.isolated._pylocks",
+            sources=["container/isolated/pylocks.c"],
+            extra_compile_args=["-std=gnu11", *WARNINGS],
+        ),
+        # pybind11's instance registry kept ahead of the node processes
+        # (pybind11_registry.cpp): built against the pybind11 ABI rclpy uses.
+        Extension(
+            "cloneguard.container.isolated._pybind11_registry",
+            sources=["container/isolated/pybind11_registry.cpp"],
+            include_dirs=[pybind11.get_include()],
+            language="c++",
+            extra_compile_args=["-std=c++17", "-O2", *WARNINGS, "-fvisibility=hidden"],
         ),
     ],
 )

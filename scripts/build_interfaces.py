@@ -31,6 +31,7 @@ System packages (Debian 12), beyond the Python the venv was made from:
 cmake >= 3.22 is required (Debian 12 ships 3.25); when none is on PATH the
 script installs the ``cmake`` package from PyPI into the venv instead.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -105,10 +106,13 @@ class Package:
 
 
 PACKAGES = [
-    Package("composition_interfaces", "cloneguard-composition-interfaces",
-            "composition_interfaces.srv", ["LoadNode", "UnloadNode", "ListNodes"]),
-    Package("cloneguard_interfaces", "cloneguard-interfaces",
-            "cloneguard_interfaces.msg", ["ComponentEvent"]),
+    Package(
+        "composition_interfaces",
+        "cloneguard-composition-interfaces",
+        "composition_interfaces.srv",
+        ["LoadNode", "UnloadNode", "ListNodes"],
+    ),
+    Package("cloneguard_interfaces", "cloneguard-interfaces", "cloneguard_interfaces.msg", ["ComponentEvent"]),
 ]
 
 
@@ -133,7 +137,8 @@ def ensure_venv_python() -> None:
         os.execv(str(candidate), [str(candidate), *sys.argv])
     raise BuildError(
         "not running inside a virtualenv and no .venv found in the repo; "
-        "run this script with the venv's python (e.g. .venv/bin/python scripts/build_interfaces.py)")
+        "run this script with the venv's python (e.g. .venv/bin/python scripts/build_interfaces.py)"
+    )
 
 
 def dist_version(name: str) -> str | None:
@@ -192,7 +197,7 @@ def ensure_build_tools() -> None:
     cmake = shutil.which("cmake")
     if cmake is None or (cmake_version(cmake) or (0,)) < MIN_CMAKE:
         if dist_version("cmake") is None:
-            missing.append("cmake>=%d.%d" % MIN_CMAKE)
+            missing.append(f"cmake>={MIN_CMAKE[0]}.{MIN_CMAKE[1]}")
     if missing:
         say(f"==> installing build requirements: {' '.join(missing)}")
         t0 = time.monotonic()
@@ -211,8 +216,7 @@ def ensure_build_tools() -> None:
             raise BuildError(f"C/C++ compiler '{compiler}' not found (apt-get install g++)")
     include = Path(sysconfig.get_paths()["include"]) / "Python.h"
     if not include.exists():
-        raise BuildError(f"{include} is missing: install the Python headers "
-                         "(Debian: apt-get install python3-dev)")
+        raise BuildError(f"{include} is missing: install the Python headers (Debian: apt-get install python3-dev)")
 
 
 def toolchain_versions() -> dict[str, str]:
@@ -260,12 +264,18 @@ def read_stamp(pkg: Package) -> str | None:
 def write_stamp(pkg: Package, digest: str) -> None:
     path = stamp_path(pkg)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({
-        "digest": digest,
-        "package": pkg.name,
-        "distribution": pkg.dist,
-        "built_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    }, indent=1) + "\n")
+    path.write_text(
+        json.dumps(
+            {
+                "digest": digest,
+                "package": pkg.name,
+                "distribution": pkg.dist,
+                "built_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            },
+            indent=1,
+        )
+        + "\n"
+    )
 
 
 _CHECK_CODE = r"""
@@ -301,8 +311,13 @@ def check_installed(pkgs: list[Package]) -> dict[str, str | None]:
         # LD_LIBRARY_PATH to <venv>/lib and re-executes).
         spec = json.dumps([[p.name, p.module, p.types] for p in to_import])
         env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
-        proc = subprocess.run([sys.executable, "-c", _CHECK_CODE, spec], capture_output=True,
-                              text=True, cwd=tempfile.gettempdir(), env=env)
+        proc = subprocess.run(
+            [sys.executable, "-c", _CHECK_CODE, spec],
+            capture_output=True,
+            text=True,
+            cwd=tempfile.gettempdir(),
+            env=env,
+        )
         try:
             problems.update(json.loads(proc.stdout.strip().splitlines()[-1]))
         except (ValueError, IndexError):
@@ -317,8 +332,18 @@ def build(pkg: Package, log: Path, verbose: bool) -> None:
     # them to build), so pip must not try to resolve or change anything else.
     # --force-reinstall: same version, new contents.  -v: CMake's output.
     try:
-        pip("install", "--disable-pip-version-check", "--no-build-isolation", "--no-deps",
-            "--no-index", "--force-reinstall", "-v", str(pkg.source), log=log, verbose=verbose)
+        pip(
+            "install",
+            "--disable-pip-version-check",
+            "--no-build-isolation",
+            "--no-deps",
+            "--no-index",
+            "--force-reinstall",
+            "-v",
+            str(pkg.source),
+            log=log,
+            verbose=verbose,
+        )
     except BuildError as exc:
         raise BuildError(f"building {pkg.name} failed: {exc.args[0]}", *exc.args[1:]) from None
 
@@ -332,14 +357,18 @@ def excerpt(path: Path, lines: int = 40) -> str:
     text = [line for line in text if "is ignored: it is neither a file nor a directory" not in line]
     for i, line in enumerate(text):
         if "CMake Error" in line or line.lstrip().startswith("FAILED:") or ": error:" in line:
-            return "\n".join(text[i:i + lines])
+            return "\n".join(text[i : i + lines])
     return "\n".join(text[-lines:])
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("packages", nargs="*", metavar="PACKAGE",
-                        help="packages to build (default: all of " + ", ".join(p.name for p in PACKAGES) + ")")
+    parser.add_argument(
+        "packages",
+        nargs="*",
+        metavar="PACKAGE",
+        help="packages to build (default: all of " + ", ".join(p.name for p in PACKAGES) + ")",
+    )
     parser.add_argument("--force", action="store_true", help="rebuild even when the stamp matches")
     parser.add_argument("-v", "--verbose", action="store_true", help="show pip/CMake output live")
     args = parser.parse_args(argv)
@@ -408,8 +437,10 @@ def _run(selected: list[Package], args: argparse.Namespace, t_start: float) -> i
         for i, pkg in enumerate(todo, 1):
             log = log_dir / f"{pkg.name}.log"
             say(f"==> [{i}/{len(todo)}] {pkg.name}: building ({reasons[pkg.name]})")
-            say(f"    pip install --no-build-isolation {pkg.source.relative_to(REPO)}"
-                + ("" if args.verbose else f"  (log: {log})"))
+            say(
+                f"    pip install --no-build-isolation {pkg.source.relative_to(REPO)}"
+                + ("" if args.verbose else f"  (log: {log})")
+            )
             t0 = time.monotonic()
             stamp_path(pkg).unlink(missing_ok=True)
             build(pkg, log, args.verbose)
@@ -419,8 +450,10 @@ def _run(selected: list[Package], args: argparse.Namespace, t_start: float) -> i
             write_stamp(pkg, stamp_digest(pkg, toolchain))
             say(f"    {pkg.name}: built and installed in {time.monotonic() - t0:.1f}s")
 
-    say(f"build_interfaces: done in {time.monotonic() - t_start:.1f}s "
-        f"({len(todo)} built, {len(selected) - len(todo)} skipped)")
+    say(
+        f"build_interfaces: done in {time.monotonic() - t_start:.1f}s "
+        f"({len(todo)} built, {len(selected) - len(todo)} skipped)"
+    )
     return 0
 
 

@@ -7,6 +7,7 @@ installs (what scripts/setup.sh makes) leave data files out, so the set-up
 links them here instead: links, like the rest of an editable install, so an
 edit of ament/ shows at once. Run with the venv's python.
 """
+
 from __future__ import annotations
 
 import os

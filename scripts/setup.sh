@@ -57,4 +57,6 @@ ACTIVATE
 fi
 echo "== cloneguard-testrig: harness, faults, benchmarks (editable, beside the product)"
 "${PIP[@]}" install --no-build-isolation --no-deps -e rig
+echo "== demo-robot: a package of nodes of its own, the example of testing yours (docs/testing-your-nodes.md)"
+"${PIP[@]}" install --no-build-isolation --no-deps -e examples/demo_robot
 .venv/bin/python -c "import cloneguard.container, cloneguard.harness, cloneguard.faults; print('cloneguard and its test rig are set up in .venv')"

@@ -1,0 +1,2 @@
+"""Three small nodes: odometry at a steady rate, a planner that follows it,
+a map server that answers."""

@@ -1,0 +1,49 @@
+"""The demo robot's claims: when the planner dies, odometry keeps flowing
+and the map server still answers; with a restart policy the planner is
+back. Run with ``python -m pytest examples/demo_robot/scenarios`` once the
+package is installed (docs/testing-your-nodes.md)."""
+
+import signal
+
+import pytest
+from std_msgs.msg import Float64, UInt64
+from std_srvs.srv import Trigger
+
+from cloneguard.harness.system import NodeSpec, call_latency, longest_gap, rate
+
+ROBOT = [
+    NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 20.0}),
+    NodeSpec("demo_robot", "demo_robot::Planner"),
+    NodeSpec("demo_robot", "demo_robot::MapServer"),
+]
+WINDOW = 40  # odometry messages after the fault the claims are judged on (2 s)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGSEGV, signal.SIGKILL], ids=["SIGSEGV", "SIGKILL"])
+def test_odometry_and_the_map_outlive_the_planner(system_factory, sig):
+    robot = system_factory(ROBOT)
+    odom = robot.topic(Float64, "/odom")
+    odom.wait_count(5, timeout=10)
+
+    died_at = robot.kill("/planner", sig)
+    crashed = robot.wait_crashed("/planner")
+    odom.wait_count(len(odom) + WINDOW, timeout=10)
+
+    assert crashed.exit_signal == sig
+    assert rate(odom, died_at) >= 9.0
+    assert longest_gap(odom, died_at) < 0.5
+    assert call_latency(robot, robot.service(Trigger, "/map_server/get_map"), Trigger.Request()) < 0.5
+    assert robot.alive()
+
+
+def test_the_planner_is_back_under_a_restart_policy(system_factory):
+    robot = system_factory(ROBOT, ["--isolated", "--restart-policy", "on-crash"])
+    plans = robot.topic(UInt64, "/plan")
+    plans.wait_count(5, timeout=10)
+
+    before = robot.node("/planner")
+    robot.kill("/planner", signal.SIGSEGV)
+    back = robot.wait_back("/planner", timeout=10)
+    plans.wait_count(len(plans) + 5, timeout=10)  # it plans again
+
+    assert back.pid != before.pid and back.unique_id != before.unique_id
