@@ -98,7 +98,7 @@ def sample(pid: int, client, mode: str) -> Sample:
     rest.wait_at_rest(client.node, pid, spare=PROCESSES_AT_REST.get(mode, 0) > 0)
     return Sample(
         rss_kib=int(procfs.status_field(pid, "VmRSS").split()[0]),
-        fds=len(os.listdir(f"/proc/{pid}/fd")),
+        fds=len(procfs.lasting_fds(pid)),
         threads=len(os.listdir(f"/proc/{pid}/task")),
         child_processes=len(procfs.children_of(pid)),
     )

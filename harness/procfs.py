@@ -107,6 +107,26 @@ def status_field(pid: int, key: str) -> str | None:
     return None
 
 
+def lasting_fds(pid: int, readings: int = 3, apart: float = 0.05) -> dict[int, str]:
+    """The open fds of ``pid`` (fd: what it names) present in each of
+    ``readings`` readings ``apart`` seconds apart: what it keeps open. An
+    isolated container opens /proc files for a moment on its own (the lock
+    doctor reads its children's tasks on its own schedule), so one listing
+    can hold an fd that is gone a moment later; a leaked fd stays."""
+    kept: dict[int, str] | None = None
+    for i in range(readings):
+        if i:
+            time.sleep(apart)
+        now = {}
+        for name in os.listdir(f"/proc/{pid}/fd"):
+            try:
+                now[int(name)] = os.readlink(f"/proc/{pid}/fd/{name}")
+            except FileNotFoundError:
+                continue  # closed between the listing and the read
+        kept = now if kept is None else {fd: t for fd, t in kept.items() if now.get(fd) == t}
+    return kept or {}
+
+
 _SYS_KCMP = 312  # x86_64
 _KCMP_VM = 1
 

@@ -18,7 +18,7 @@ from slow_load import SlowLoad
 from cloneguard.container.cli import MITIGATION_SWITCHES
 from cloneguard.container.isolated.cgroups import cgroup2_mount
 from cloneguard.container.isolated.host import FAILED_EXIT_TIMEOUT_S
-from cloneguard.harness import rest
+from cloneguard.harness import procfs, rest
 from cloneguard.harness.process import default_container_exe
 
 PKG = "cloneguard"
@@ -43,7 +43,7 @@ def _still_serves(client, before):
 
 
 def _fds(pid: int) -> int:
-    return len(os.listdir(f"/proc/{pid}/fd"))
+    return len(procfs.lasting_fds(pid))
 
 
 @needs_cgroups

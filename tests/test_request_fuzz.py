@@ -93,7 +93,7 @@ class World:
     def resources(self) -> tuple[int, int, int]:
         pid = self.container.pid
         return (
-            len(os.listdir(f"/proc/{pid}/fd")),
+            len(procfs.lasting_fds(pid)),
             len(os.listdir(f"/proc/{pid}/task")),
             int(procfs.status_field(pid, "VmRSS").split()[0]),
         )
