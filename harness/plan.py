@@ -14,7 +14,8 @@ scenario none of whose trials falls to this shard is skipped.
 Fixtures (registered by harness.pytest_plugin)
     trial_plan(quick, deep) -> [(index, seed), ...] for this run (skips the test if empty)
     record_trial(index, seed, Outcome)     one trial into the report
-    run_trials(trial, settle, quick, deep) the loop most scenarios share
+    run_trials(trial, settle, quick, deep) the loop most scenarios share; -> the
+                                           whole run's trial count (all shards)
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ import pytest
 from .errors import HarnessTimeout  # not .client: that imports rclpy
 
 ENV_DEEP = "CLONEGUARD_DEEP"
+#: planned trials from which a scenario holds its deep floor (a 99% floor
+#: judged on fewer cannot tell a 1% rate from chance)
+DEEP_FLOOR_TRIALS = 100
 #: per-test timeout of a deep run or one with --trials N (hundreds of trials
 #: do not fit the quick runs' per-test timeouts)
 LONG_RUN_TIMEOUT_S = 4 * 3600
@@ -73,11 +77,16 @@ def shard_of(config) -> tuple[int, int] | None:
     return parse_shard(text) if text else None
 
 
+def is_deep(config) -> bool:
+    """--deep, or CLONEGUARD_DEEP=1 in the environment."""
+    return bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1"
+
+
 def trial_plan_of(config) -> dict:
     """What decides which trials a run makes (runs merge only if equal)."""
     return {
         "seed": config.getoption("--seed", default=None),
-        "deep": bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1",
+        "deep": is_deep(config),
         "trials": config.getoption("--trials", default=None),
     }
 
@@ -86,13 +95,11 @@ def trial_count(config, quick: int, deep: int) -> int:
     forced = config.getoption("--trials")
     if forced is not None:
         return forced
-    return deep if config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1" else quick
+    return deep if is_deep(config) else quick
 
 
 def long_run(config) -> bool:
-    return bool(
-        config.getoption("--deep") or os.environ.get(ENV_DEEP) == "1" or config.getoption("--trials") is not None
-    )
+    return is_deep(config) or config.getoption("--trials") is not None
 
 
 def pytest_collection_modifyitems(config, items) -> None:
@@ -156,15 +163,18 @@ def record_trial(resilience):
 
 
 @pytest.fixture
-def run_trials(record_trial, trial_plan):
+def run_trials(request, record_trial, trial_plan):
     """run_trials(trial, settle, quick, deep, rig=None): the trial loop every
     rate scenario shares: ``trial(seed, index) -> Outcome`` for each planned
     trial, recorded, then ``settle(outcome)`` (which replaces a broken
     container). With the trials' ``rig``, a trial whose own request goes
     unanswered is a hang of that rig (diagnosed), not an error of the
-    scenario."""
+    scenario. Returns how many trials the whole run makes of the scenario,
+    every shard's together: what decides which floor a scenario holds (a
+    shard of a sharded deep run has a share of the trials, but the floor is
+    judged on them all, by ``harness merge``)."""
 
-    def run(trial, settle, quick: int, deep: int, *, rig=None) -> None:
+    def run(trial, settle, quick: int, deep: int, *, rig=None) -> int:
         for i, seed in trial_plan(quick, deep):
             try:
                 out = trial(seed, i)
@@ -176,5 +186,6 @@ def run_trials(record_trial, trial_plan):
                 out = rig.not_survived(f"the trial's request went unanswered: {exc}")
             record_trial(i, seed, out)
             settle(out)
+        return trial_count(request.config, quick, deep)
 
     return run

@@ -14,6 +14,7 @@ REPAIRED event names the lock and the holder.
 import pytest
 
 from cloneguard.faults.trials import FAULTS, LOCK_DEATH_SIGNALS, NATIVE_MUTEXES, PYTHON_LOCKS
+from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
 
 # family -> (mitigation that does it, what the lock is, what happens to it)
@@ -37,8 +38,7 @@ def test_death_holding_a_lock_a_sibling_waits_for(family, kind, how, rig_factory
         f"{repaired} and goes on, and a REPAIRED event names the lock and the dead holder",
     )
     fault = FAULTS[fault_name](rig_factory("per-node"))
-    run_trials(fault.trial, fault.settle, quick=3, deep=200, rig=fault.rig)
-    deep = len(resilience.scenario.trials) >= 100
+    deep = run_trials(fault.trial, fault.settle, quick=3, deep=200, rig=fault.rig) >= DEEP_FLOOR_TRIALS
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if deep else QUICK_FLOOR)
 

@@ -3,6 +3,7 @@
 import pytest
 
 from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
 
 
@@ -16,8 +17,8 @@ def test_random_sigkill_of_a_busy_node(profile, rig_factory, resilience, run_tri
         "500 Hz is reported CRASHED (SIGKILL) and the rest goes on",
     )
     fault = FAULTS["sigkill-outside"](rig_factory(profile))
-    run_trials(fault.trial, fault.settle, quick=5, deep=300, rig=fault.rig)
-    floor = FLOOR[profile] if len(resilience.scenario.trials) >= 100 else QUICK_FLOOR[profile]
+    planned = run_trials(fault.trial, fault.settle, quick=5, deep=300, rig=fault.rig)
+    floor = FLOOR[profile] if planned >= DEEP_FLOOR_TRIALS else QUICK_FLOOR[profile]
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=floor)
 

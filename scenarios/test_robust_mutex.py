@@ -3,6 +3,7 @@
 import pytest
 
 from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
 
 
@@ -17,8 +18,7 @@ def test_death_holding_a_container_lock_is_repaired(profile, rig_factory, resili
         "everyone goes on",
     )
     fault = FAULTS["die-holding-robust-mutex"](rig_factory(profile))
-    run_trials(fault.trial, fault.settle, quick=3, deep=200, rig=fault.rig)
-    deep = len(resilience.scenario.trials) >= 100
+    deep = run_trials(fault.trial, fault.settle, quick=3, deep=200, rig=fault.rig) >= DEEP_FLOOR_TRIALS
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if deep else QUICK_FLOOR)
 

@@ -26,7 +26,7 @@ def by_seed(seed, index):
 
 def test_cell(resilience, run_trials):
     resilience.describe(fault="stand-in", profile="p", claim="outcome decided by the seed")
-    run_trials(by_seed, lambda out: None, quick=11, deep=11)
+    resilience.note(f"planned {run_trials(by_seed, lambda out: None, quick=11, deep=11)}")
     resilience.expect_rate("survived", at_least=0.5)
 
 def test_unmet(resilience, run_trials):
@@ -64,6 +64,7 @@ def test_three_shards_merged_are_the_unsharded_run(cells, tmp_path):
         assert all(e.met is None for s in shard.scenarios for e in s.expectations)
         cell = next(s for s in shard.scenarios if s.name == "test_cell")
         assert [t.index % 3 for t in cell.trials] == [k - 1] * len(cell.trials)
+        assert cell.notes == ["planned 11"]  # the whole run's count, what picks a floor
     single = {s.name: s.outcome for s in shards[1].scenarios}["test_single"]
     assert single == "skipped"  # its one trial fell to shard 1
 

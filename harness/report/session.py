@@ -18,7 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from ..plan import ENV_DEEP, trial_plan_of
+from .. import plan
+from ..plan import trial_plan_of
 from . import env, paths
 from .junit import write_junit
 from .model import JUNIT_XML, REPORT_HTML, TRIAL_OUTCOMES, Report, RunInfo, Scenario
@@ -209,7 +210,6 @@ class ReportSession:
 
     def run_info(self, exitstatus: int | None, finished: float) -> RunInfo:
         config = self.config
-        deep_opt = config.getoption("--deep", default=None)
         container_exe = config.getoption("--container-exe", default=None)
         return RunInfo(
             id=self.run_id,
@@ -223,7 +223,7 @@ class ReportSession:
             host=env.host_info(),
             git=env.git_info(Path(config.rootpath)),
             container_exe=None if container_exe is None else str(container_exe),
-            deep=bool(deep_opt) or os.environ.get(ENV_DEEP, "") == "1",
+            deep=plan.is_deep(config),
             workers=len(self.workers),
             plan=trial_plan_of(config),
             shard=config.getoption("--shard", default=None),
