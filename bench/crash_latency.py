@@ -362,17 +362,7 @@ def run(
     result = Result(
         NAME,
         TITLE,
-        command_line(
-            NAME,
-            {
-                "n": n,
-                "n_monitor": n_monitor,
-                "settle": settle,
-                "recycle": recycle,
-                "profiles": list(profiles),
-                "signals": list(signals),
-            },
-        ),
+        command_line(NAME, {k: v for k, v in params.items() if k != "out"}),
         params,
         tables,
         goals,
