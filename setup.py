@@ -54,7 +54,11 @@ setup(
         # here so that it lands beside the package like the cffi modules.
         Extension(
             "cloneguard.container.isolated._allocguard",
-            sources=["container/isolated/allocguard.c", "container/isolated/pyalloc.c"],
+            sources=[
+                "container/isolated/allocguard.c",
+                "container/isolated/pyalloc.c",
+                "container/isolated/heapkeys.c",
+            ],
             depends=["container/isolated/allocguard.h", "container/isolated/guard_internal.h"],
             extra_compile_args=["-std=gnu11", "-O2", *WARNINGS, "-fvisibility=hidden", "-fno-builtin"],
             libraries=["dl", "pthread"],

@@ -12,6 +12,7 @@ jemalloc exports ``mallctl``, the guard ``cga_activate``.
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import sys
 import sysconfig
@@ -28,6 +29,9 @@ _REEXEC_MARK = "CLONEGUARD_PRELOAD_REEXEC"
 # Set to "0" in the environment the guard starts in: CPython keeps its own
 # object allocator (pyalloc.c reads it before CPython starts).
 PY_POOLS_OFF = "CLONEGUARD_PYALLOC"
+# Set to "1" in the environment the guard starts in: it allocates memory
+# protection keys for node heaps (isolated/heapkeys.c) before main.
+PKEYS_ON = "CLONEGUARD_PKEYS"
 
 
 # glibc mallopt() parameter numbers (malloc.h, glibc 2.36).
@@ -103,6 +107,15 @@ def python_pools_active() -> bool:
     return hasattr(lib, "cga_py_active") and bool(lib.cga_py_active())
 
 
+def heap_keys_asked() -> bool:
+    """Did the guard start with protection keys asked for (PKEYS_ON)?"""
+    lib = ctypes.CDLL(None)
+    if not hasattr(lib, "cga_pkeys"):
+        return False
+    keys = (ctypes.c_int * 16)()
+    return lib.cga_pkeys(keys, 16) != -errno.ENOENT
+
+
 def describe() -> str:
     guard = ""
     if guard_loaded():
@@ -116,15 +129,22 @@ def describe() -> str:
 
 
 def ensure_preloaded(
-    argv: list[str], *, guard: bool, jemalloc: bool, python_pools: bool = True, python_locks: bool = False
+    argv: list[str],
+    *,
+    guard: bool,
+    jemalloc: bool,
+    python_pools: bool = True,
+    python_locks: bool = False,
+    pkeys: bool = False,
 ) -> None:
     """Return once what is asked for is in use (the allocator guard, jemalloc;
     with ``python_locks``, Python's lock types that know their holder, which
     must be in place before anything imports threading: isolated/boot.py);
     else re-exec this process with it preloaded, through boot.py for the
     locks (``python_pools`` False: the guard leaves CPython's object
-    allocator alone). Then take both out of LD_PRELOAD, for the programs
-    this process starts."""
+    allocator alone; ``pkeys``: the guard allocates protection keys for
+    node heaps as it starts). Then take both out of LD_PRELOAD, for the
+    programs this process starts."""
     from . import locks
 
     missing = []
@@ -139,6 +159,8 @@ def ensure_preloaded(
         missing.append(path)
     if python_locks and not locks.installed():
         missing.append("Python's lock types (isolated/boot.py)")
+    if pkeys and guard_loaded() and not heap_keys_asked():
+        missing.append("protection keys for node heaps (CLONEGUARD_PKEYS=1 as the guard starts)")
     if not missing:
         _scrub_preload()
         return
@@ -153,6 +175,10 @@ def ensure_preloaded(
     env[_REEXEC_MARK] = "1"
     if not python_pools:
         env[PY_POOLS_OFF] = "0"
+    if pkeys:
+        env[PKEYS_ON] = "1"
+    else:
+        env.pop(PKEYS_ON, None)
     sys.stdout.flush()
     sys.stderr.flush()
     boot = ["-m", "cloneguard.container.isolated.boot"] if python_locks else []
@@ -168,3 +194,4 @@ def _scrub_preload() -> None:
         os.environ.pop("LD_PRELOAD", None)
     os.environ.pop(_REEXEC_MARK, None)
     os.environ.pop(PY_POOLS_OFF, None)
+    os.environ.pop(PKEYS_ON, None)

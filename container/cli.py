@@ -211,6 +211,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "arena of its own, 'auto' leaves the choice to jemalloc (the guard always gives "
         "each its own) (default: %(default)s)",
     )
+    isolated.add_argument(
+        "--pkeys",
+        action="store_true",
+        help="with --jemalloc: each node process's native heap under a memory protection key "
+        "of its own, writable by it and the container only, so that a stray write into "
+        "another node's heap kills the writer before it lands (refused where the CPU or "
+        "kernel has no keys)",
+    )
     for flag, what in MITIGATION_SWITCHES.items():
         isolated.add_argument(flag, action="store_true", help=what)
     opts = parser.parse_args(argv)
@@ -224,6 +232,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         parser.error(
             "--jemalloc-arenas needs --jemalloc and --no-alloc-guard (the allocator guard "
             "gives every node process an arena of its own)"
+        )
+    if opts.pkeys and not (opts.jemalloc and not opts.no_alloc_guard):
+        parser.error(
+            "--pkeys needs --jemalloc and the allocator guard (the keys tag the ranges the "
+            "guard's jemalloc arenas carve each node's heap from)"
         )
     if opts.no_python_pools and opts.no_alloc_guard:
         parser.error("--no-python-pools means nothing with --no-alloc-guard (the pools are the guard's)")
@@ -278,6 +291,13 @@ def _make_host(opts, argv, executor, context, logger):
     # A fatal signal in the container itself: its native stack first, then
     # faulthandler's Python stacks (enabled by main) as before.
     core.cg_container_crash_report()
+    if opts.pkeys:
+        from .isolated import pkeys
+
+        why = pkeys.heap_keys_unavailable()
+        if why is not None:
+            raise SystemExit(f"component_container: --pkeys is unavailable here: {why}")
+        logger.info(pkeys.heap_keys_describe())
     from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
     from .isolated.core import Mitigations
     from .isolated.host import IsolatedHost
@@ -362,6 +382,7 @@ def _prepare_process(argv: list[str]) -> tuple[argparse.Namespace, tuple[int, in
                 jemalloc=opts.jemalloc,
                 python_pools=not opts.no_python_pools,
                 python_locks=python_locks,
+                pkeys=opts.isolated and opts.pkeys,
             )
         except allocator.AllocatorUnavailable as exc:
             raise SystemExit(f"component_container: {exc}") from None

@@ -414,7 +414,8 @@ class WildWrite:
     """A HeapVictim keeps a pattern-filled buffer in its own process's heap
     and checks it every 10 ms; each trial loads a WildWriter that writes 64
     bytes into it 50-150 ms after it starts. Survived: the write faulted in
-    the writer alone (CRASHED, SIGSEGV) and the victim's buffer is intact.
+    the writer alone (CRASHED, SIGSEGV, its text naming a protection-key
+    violation in /heap_victim's heap) and the victim's buffer is intact.
     Corrupted: the victim found its buffer changed, and the container did
     not notice (the writer goes on)."""
 
@@ -456,6 +457,13 @@ class WildWrite:
         out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGSEGV, fault_ns=None)
         if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
             out.details["why"] = "the write neither landed nor killed the writer"
+        if out.outcome == TrialOutcome.SURVIVED:
+            # The CRASHED event says what it was, and whose heap.
+            reason = rig.crash_reason(resp.unique_id)
+            out.details["reason"] = reason
+            if "protection-key violation: wrote into /heap_victim" not in reason:
+                out.outcome = TrialOutcome.FAILED
+                out.details["why"] = "CRASHED does not name a protection-key violation in /heap_victim's heap"
         return out
 
     def settle(self, out: Outcome) -> None:

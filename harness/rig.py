@@ -177,6 +177,17 @@ class Rig:
             return f"container stopped answering: {exc}"
         return None
 
+    def crash_reason(self, unique_id: int) -> str:
+        """The text of load ``unique_id``'s CRASHED event ("" if none yet)."""
+        return next(
+            (
+                e.error_message
+                for e in self.client.events.messages()
+                if e.event_type == ComponentEvent.CRASHED and e.unique_id == unique_id
+            ),
+            "",
+        )
+
     def judge_death(
         self, unique_id: int, pid: int, *, signal_expected: int | None, fault_ns: int | None, timeout: float = 5.0
     ) -> Outcome:

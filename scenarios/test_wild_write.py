@@ -2,17 +2,24 @@
 
 Every node process of an isolated container shares one address space: a
 wild pointer in one node can reach any other node's memory. The allocator
-guard gives each node process heaps of its own, but nothing yet stops a
-write into them: this is the baseline the memory-protection-keys work is
-measured against (docs/evidence.md), the way thread mode is for crashes.
-The victim checks its buffer every 10 ms; a change it finds and the
-container does not notice is a ``corrupted`` trial.
+guard gives each node process heaps of its own; with ``--pkeys`` each heap
+is under a memory protection key of its own that no other node process may
+write, so the write faults in the writer. Without keys is the baseline,
+the way thread mode is for crashes. The victim checks its buffer every
+10 ms; a change it finds and the container does not notice is a
+``corrupted`` trial.
 """
 
 import pytest
 
 from cloneguard.faults.trials import FAULTS
+from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
+from cloneguard.harness.skips import heap_keys_missing
+
+# With keys: every wild write into another node's heap caught, the victim
+# intact (the issue's floor; quick runs: all 3).
+FLOOR = 0.99
 
 FAULT = "wild-write-into-another-nodes-heap"
 
@@ -30,3 +37,20 @@ def test_without_protection_keys_a_wild_write_corrupts_silently(profile, rig_fac
     run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
+
+
+@pytest.mark.skipif(heap_keys_missing() is not None, reason=f"--pkeys: {heap_keys_missing()}")
+@pytest.mark.parametrize("profile", ["per-node", "shared"])
+def test_with_protection_keys_a_wild_write_kills_the_writer_alone(profile, rig_factory, resilience, run_trials):
+    resilience.describe(
+        fault=FAULT,
+        profile=profile,
+        mitigations={"protection_keys": True},
+        claim="with --pkeys, 64 bytes written by one node into a buffer in another node's native "
+        "heap fault in the writer: it alone is reported CRASHED (SIGSEGV, a protection-key "
+        "violation in the victim's heap) and the victim's buffer is intact",
+    )
+    trials = FAULTS[FAULT](rig_factory(profile, extra_args=("--jemalloc", "--pkeys")))
+    planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
+    resilience.expect_no_container_death()
+    resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)

@@ -150,6 +150,9 @@ struct cg_child {
     int py_phase;
     int stop_signal;
     int arena;
+    int crash_si_code;
+    int crash_pkey;
+    void *crash_addr;
     int crash_nframes;
     void *crash_frames[...];
     int crash_py_nframes;
@@ -179,6 +182,8 @@ struct cg_pkeys_probe {
     int write_faults;
 };
 int cg_pkeys_probe(struct cg_pkeys_probe *out);
+int cg_pkeys_in_use(int *keys, int max);
+int cg_alloc_slot_of(const void *p);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_gil_probe(struct cg_gil_probe *out);

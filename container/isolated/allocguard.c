@@ -133,19 +133,26 @@ struct je_hooks {
 #define SLOT_SHIFT 34                   /* jemalloc: 16 GiB of address space a slot */
 #define NOWNERS 8192                    /* glibc: arenas (M_ARENA_MAX is 4096) */
 
-struct slot_hooks {                     /* jemalloc hands &h back to each hook */
+/* An arena's hooks and the address range they carve from (jemalloc hands
+   &h back to each hook). */
+struct slot_hooks {
     je_hooks h;
-    int slot;
+    uintptr_t base, limit;
+    _Atomic uintptr_t bump;             /* carved up to here */
 };
+
+/* With protection keys (heapkeys.c) a slot's range is two halves: its
+   native arena's, tagged with its key, and its shared arena's, untagged. */
+#define HALF_SHIFT (SLOT_SHIFT - 1)
 
 struct slot {
     _Atomic int state;                  /* CGA_* */
     _Atomic int pid;                    /* the process bound to it */
     _Atomic long inside;                /* its tasks inside the allocator now */
     unsigned arena;                     /* jemalloc: the arena made for it */
-    struct slot_hooks hooks;
-    uintptr_t base, limit;              /* jemalloc: its address range */
-    _Atomic uintptr_t bump;             /* ... carved up to here */
+    struct slot_hooks hooks;            /* ... and its range */
+    unsigned shared_arena;              /* with keys: for Python's blocks */
+    struct slot_hooks shared_hooks;
     _Atomic uint64_t main_allocs;       /* glibc: blocks it got from the main
                                            arena (should stay 0: see
                                            container/allocator.py) */
@@ -169,6 +176,7 @@ static _Atomic int g_active;
 static int g_container_pid;
 static uintptr_t g_region, g_region_len;/* jemalloc: slots 1.. carve from here */
 static int g_nslots = NSLOTS;
+static bool g_split;                    /* protection keys on (heapkeys.c) */
 static size_t g_page = 4096;
 static size_t (*glibc_usable_size)(void *);
 
@@ -240,6 +248,13 @@ static inline int owner_of(void *p)
     return arena ? glibc_arena_owner(arena) : 0;
 }
 
+/* With keys: is p in some slot's shared (untagged) half? */
+static inline bool in_shared(const void *p)
+{
+    uintptr_t off = (uintptr_t)p - g_region;
+    return g_split && off < g_region_len && ((off >> HALF_SHIFT) & 1);
+}
+
 static inline int owner_slot(int o)
 {
     return o <= 0 ? 0 : atomic_load_explicit(&owners[o].slot, memory_order_acquire);
@@ -253,6 +268,12 @@ static inline int owner_slot(int o)
 static inline int je_flags(int slot)
 {
     return slot && !t_bound ? JE_ARENA(slots[slot].arena) : 0;
+}
+
+/* A slot's shared arena (with keys), never through a thread cache. */
+static inline int shared_flags(int slot)
+{
+    return JE_ARENA(slots[slot].shared_arena) | JE_TCACHE_NONE;
 }
 
 static inline bool je_fast(int slot)
@@ -271,6 +292,8 @@ static inline void be_free(void *p)
 {
     if (!g_je)
         __libc_free(p);
+    else if (unlikely(in_shared(p)))
+        dallocx(p, JE_TCACHE_NONE);     /* never into a thread cache */
     else if (je_real.free)
         je_real.free(p);                /* into this thread's own cache */
     else
@@ -410,12 +433,64 @@ static void hand_over(int o, void *p)
         o = 0;                      /* any container thread frees it */
     struct owner *to = &owners[o];
     void *head = atomic_load_explicit(&to->stack, memory_order_relaxed);
+    uint32_t pkru = hk_open();          /* p may be under the owner's key */
     do
         *(void **)p = head;
     while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p,
                                                   memory_order_release,
                                                   memory_order_relaxed));
+    hk_close(pkru);
     atomic_fetch_add_explicit(&to->handed, 1, memory_order_relaxed);
+}
+
+/* ---------------------------------------------------------------------- */
+/* Shared blocks (heapkeys.c): memory every node may write, from the calling
+   slot's shared arena when protection keys are on; plain malloc otherwise
+   (and for the container).  For pyalloc.c.                                */
+
+static inline bool shared_slot(int *s)
+{
+    if (!g_split || !atomic_load_explicit(&g_active, memory_order_relaxed))
+        return false;
+    *s = my_slot();
+    return *s != 0;
+}
+
+HIDDEN void *cga_shared_alloc(size_t n, bool zero)
+{
+    int s;
+    if (!shared_slot(&s))
+        return zero ? calloc(1, n) : malloc(n);
+    enter(s);
+    drain_mine(s);
+    void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0));
+    leave(s);
+    return p;
+}
+
+HIDDEN void *cga_shared_realloc(void *p, size_t n)
+{
+    int s;
+    if (!p)
+        return cga_shared_alloc(n, false);
+    if (!shared_slot(&s))
+        return realloc(p, n);
+    if (in_shared(p) && owner_of(p) == s) {
+        enter(s);
+        drain_mine(s);
+        void *q = rallocx(p, n ? n : 1, shared_flags(s));
+        leave(s);
+        return q;
+    }
+    /* Another slot's block, or one from before (the container's): moved
+       into ours, so that it stays writable by all. */
+    size_t have = be_usable(p);
+    void *q = cga_shared_alloc(n, false);
+    if (q) {
+        memcpy(q, p, have < n ? have : n);
+        free(p);
+    }
+    return q;
 }
 
 /* ---------------------------------------------------------------------- */
@@ -491,6 +566,7 @@ EXPORT void *realloc(void *p, size_t n)
         enter(s);
         drain_mine(s);
         q = check_main(s, !g_je ? __libc_realloc(p, n)
+                          : in_shared(p) ? rallocx(p, n, shared_flags(s))
                           : je_fast(s) ? je_real.realloc(p, n) : rallocx(p, n, je_flags(s)));
         leave(s);
     } else {
@@ -640,13 +716,11 @@ DELETE_OPS(DEFINE_DELETE)
    and purges instead).  The bump is one CAS: a task killed in here leaves
    at worst a little address space unused.                                */
 
-#define SLOT_OF_HOOKS(hp) (((struct slot_hooks *)(hp))->slot)
-
 static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
                         bool *zero, bool *commit, unsigned arena_ind)
 {
     (void)arena_ind;
-    struct slot *sl = &slots[SLOT_OF_HOOKS(h)];
+    struct slot_hooks *sl = (struct slot_hooks *)h;
     if (align < g_page)
         align = g_page;
     uintptr_t cur = atomic_load(&sl->bump), start;
@@ -825,10 +899,29 @@ EXPORT int cga_activate(int container_pid)
     __asm__("mov %%fs:0, %0" : "=r"(tp));
     g_inside_off = (long)((uintptr_t)&t_inside - tp);
     g_container_pid = container_pid;
+    g_split = g_je && hk_enabled();
     atomic_store(&slots[0].state, CGA_BOUND);
     atomic_store(&slots[0].pid, container_pid);
     pthread_atfork(NULL, NULL, after_fork_child);
     atomic_store(&g_active, 1);
+    return 0;
+}
+
+/* An arena carving from [base, base + len), its address map made.  0, or
+   -errno. */
+static int arena_new(struct slot_hooks *sh, uintptr_t base, size_t len, unsigned *out)
+{
+    sh->base = base;
+    sh->limit = base + len;
+    atomic_store(&sh->bump, base);
+    sh->h = (je_hooks){hook_alloc, hook_dalloc, hook_destroy, hook_commit, hook_decommit,
+                       hook_purge_lazy, hook_purge_forced, hook_split, hook_merge};
+    je_hooks *hp = &sh->h;
+    size_t sz = sizeof *out;
+    int r = mallctl("arenas.create", out, &sz, &hp, sizeof hp);
+    if (r)
+        return -r;
+    make_address_map(*out);
     return 0;
 }
 
@@ -844,23 +937,17 @@ EXPORT int cga_slot_new(void)
             continue;
         struct slot *sl = &slots[s];
         if (g_je) {
-            sl->base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);
-            sl->limit = sl->base + ((uintptr_t)1 << SLOT_SHIFT);
-            atomic_store(&sl->bump, sl->base);
-            sl->hooks.slot = s;
-            sl->hooks.h = (je_hooks){hook_alloc, hook_dalloc, hook_destroy,
-                                     hook_commit, hook_decommit, hook_purge_lazy,
-                                     hook_purge_forced, hook_split, hook_merge};
-            je_hooks *hp = &sl->hooks.h;
-            unsigned ind;
-            size_t sz = sizeof ind;
-            int r = mallctl("arenas.create", &ind, &sz, &hp, sizeof hp);
-            if (r) {
+            uintptr_t base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);
+            uintptr_t half = (uintptr_t)1 << HALF_SHIFT;
+            int r = g_split ? hk_tag(base, half, s) : 0;
+            if (!r)
+                r = arena_new(&sl->hooks, base, g_split ? half : 2 * half, &sl->arena);
+            if (!r && g_split)
+                r = arena_new(&sl->shared_hooks, base + half, half, &sl->shared_arena);
+            if (r) {                    /* its range stays reserved, unused */
                 atomic_store(&sl->state, CGA_UNUSED);
-                return -r;
+                return r;
             }
-            sl->arena = ind;
-            make_address_map(ind);
             atomic_store(&owners[s].slot, s);
         }
         return s;
@@ -909,8 +996,18 @@ EXPORT void cga_slot_bind(int slot)
 EXPORT void cga_child_start(void)
 {
     int s = t_slot1 - 1;
-    if (s > 0)
+    if (s > 0) {
+        if (g_split)
+            hk_child_enter(s);
         atomic_store(&slots[s].pid, (int)syscall(SYS_getpid));
+    }
+}
+
+/* The slot whose range holds address p (jemalloc), else -1. */
+EXPORT int cga_slot_of(const void *p)
+{
+    uintptr_t off = (uintptr_t)p - g_region;
+    return g_je && off < g_region_len ? 1 + (int)(off >> SLOT_SHIFT) : -1;
 }
 
 /* The slot's process is gone (every task of it); tcb is its main task's

@@ -38,6 +38,7 @@ static struct {
     cga_py_active_fn py_active;
     cga_py_abandon_fn py_abandon;
     cga_py_abandoned_fn py_abandoned;
+    cga_slot_of_fn slot_of;
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
@@ -138,10 +139,11 @@ int guard_start(void)
     FIND(py_active, "cga_py_active");
     FIND(py_abandon, "cga_py_abandon");
     FIND(py_abandoned, "cga_py_abandoned");
+    FIND(slot_of, "cga_slot_of");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
         !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
-        !G.py_active || !G.py_abandon || !G.py_abandoned) {
+        !G.py_active || !G.py_abandon || !G.py_abandoned || !G.slot_of) {
         memset(&G, 0, sizeof G);
         return -ENOENT;                  /* not preloaded */
     }
@@ -236,6 +238,21 @@ int guard_py_abandoned(const void *p)
     return G.py_abandoned ? G.py_abandoned(p) : 0;
 }
 
+
+/* Protection keys over node heaps (heapkeys.c): how many are in use, or
+   -errno why not (-ENOENT: not asked for, or no guard).  Before
+   guard_start too: the guard allocates them in its constructor. */
+int cg_pkeys_in_use(int *keys, int max)
+{
+    cga_pkeys_fn f = (cga_pkeys_fn)dlsym(RTLD_DEFAULT, "cga_pkeys");
+    return f ? f(keys, max) : -ENOENT;
+}
+
+/* The slot whose native heap range holds p; -1 if none (or no guard). */
+int cg_alloc_slot_of(const void *p)
+{
+    return G.slot_of ? G.slot_of(p) : -1;
+}
 
 bool guard_active(void) { return G.activate != NULL; }
 

@@ -170,6 +170,9 @@ struct cg_child {            /* control block, lives in container memory */
     struct cg_child *next;
     struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
+    int crash_si_code;       /* the fault's si_code (SEGV_PKUERR: 4), */
+    int crash_pkey;          /* its key (SEGV_PKUERR), */
+    void *crash_addr;        /* and its address */
     int crash_nframes;       /* 0: none; -1: being written; else how many */
     void *crash_frames[CG_CRASH_FRAMES];   /* the crashing task's native stack */
     int crash_py_nframes;    /* its Python stack: how many frames, */
@@ -293,6 +296,8 @@ struct cg_pkeys_probe {
     int write_faults;        /* 1 yes, 0 no, -1 not probed */
 };
 int cg_pkeys_probe(struct cg_pkeys_probe *out);
+int cg_pkeys_in_use(int *keys, int max);    /* contexts.c: the guard's keys */
+int cg_alloc_slot_of(const void *p);        /* contexts.c */
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_allocator(char *buf, size_t len);

@@ -48,11 +48,14 @@ from cloneguard.container.isolated.core_events import (
     RECORD_SIZE,
     CoreEvent,
     Death,
+    PkeyFault,
     Repair,
     StopRequested,
     decode,
 )
 from cloneguard.container.isolated.crash_reports import CrashStacks
+
+SEGV_PKUERR = 4  # si_code of a SIGSEGV a protection key raised (Linux, x86)
 
 __all__ = [
     "CloneCore",
@@ -673,6 +676,8 @@ class CloneCore:
             ffi, lib = _lib()
             block = entry.child._block
             stacks = self._crash_stacks.take(block)
+            if block.crash_si_code == SEGV_PKUERR and block.crash_pkey:
+                event = replace(event, pkey_fault=self._pkey_fault(block))
             if block.gil_code != ffi.NULL:
                 buf = ffi.new("char[]", 512)
                 lib.cg_frame_text(block.gil_code, block.gil_lasti, buf, 512)
@@ -691,6 +696,13 @@ class CloneCore:
                 with self._lock:
                     entry.death_reported = True
                     self._changed.notify_all()
+
+    def _pkey_fault(self, block) -> PkeyFault:
+        ffi, lib = _lib()
+        addr = int(ffi.cast("uintptr_t", block.crash_addr))
+        slot = lib.cg_alloc_slot_of(block.crash_addr)
+        stats = self.slot_stats(slot) if slot > 0 else None
+        return PkeyFault(addr, block.crash_pkey, max(slot, 0), stats["pid"] if stats else 0)
 
     def _call_on_event(self, event: CoreEvent) -> None:
         try:

@@ -51,6 +51,18 @@ INTERPRETER_REPAIRS = Repair.PY_POOLS | Repair.GC_LINKS | Repair.FREELISTS | Rep
 
 
 @dataclass(frozen=True)
+class PkeyFault:
+    """A write the PKRU forbade (SIGSEGV, SEGV_PKUERR): where, under which
+    key, and whose native heap that is (the slot whose range holds the
+    address, and the pid bound to it then; 0 if none)."""
+
+    addr: int
+    key: int
+    victim_slot: int
+    victim_pid: int
+
+
+@dataclass(frozen=True)
 class Death:
     """A child was reaped.
 
@@ -75,6 +87,8 @@ class Death:
     # allocator: its pools are abandoned (pyalloc.c)
     gil_frame: str = ""  # it held the GIL: "function (file:line)"
     # of its innermost Python frame
+    pkey_fault: PkeyFault | None = None  # it died writing under a
+    # protection key not its own (heapkeys.c)
 
     @property
     def status_lost(self) -> bool:

@@ -36,6 +36,10 @@
 #include <ucontext.h>
 #include <unistd.h>
 
+#ifndef SEGV_PKUERR
+#define SEGV_PKUERR 4
+#endif
+
 /* The signal a crash report is about (for its watchdog, on the same thread).
    initial-exec: a plain %fs-relative access, no __tls_get_addr. */
 static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));
@@ -161,6 +165,13 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         out_u(&o, (unsigned long)si->si_pid, 10);
         out_s(&o, ")");
     }
+    if (sig == SIGSEGV && si->si_code == SEGV_PKUERR) {
+        /* A write the PKRU forbids: into a heap under another node's key
+           (allocguard.c, heapkeys.c). */
+        out_s(&o, " (protection-key violation, key ");
+        out_u(&o, (unsigned long)si->si_pkey, 10);
+        out_s(&o, ")");
+    }
     if (tid != pid) {
         out_s(&o, ", thread ");
         out_u(&o, (unsigned long)tid, 10);
@@ -170,9 +181,12 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
     int unclaimed = 0;
     if (c && __atomic_compare_exchange_n(&c->crash_nframes, &unclaimed, -1, false,
                                          __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
-        /* Both stacks, raw: the container writes them once it has reported
-           the death. */
+        /* The fault, and both stacks, raw: the container writes them once
+           it has reported the death. */
         out_flush(&o);
+        c->crash_si_code = si->si_code;
+        c->crash_addr = si->si_code > 0 ? si->si_addr : NULL;
+        c->crash_pkey = sig == SIGSEGV && si->si_code == SEGV_PKUERR ? (int)si->si_pkey : 0;
         c->crash_py_nframes = cg_record_py_stack(c->crash_py_code, c->crash_py_lasti,
                                                  CG_CRASH_PY_FRAMES, &c->crash_py_more);
         int n = backtrace(c->crash_frames, CG_CRASH_FRAMES);

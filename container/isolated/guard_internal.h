@@ -6,6 +6,10 @@
 #ifndef CLONEGUARD_GUARD_INTERNAL_H
 #define CLONEGUARD_GUARD_INTERNAL_H
 
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
 #define HIDDEN __attribute__((visibility("hidden")))
 
 /* allocguard.c: the calling task's slot (0: the container, or before the
@@ -19,5 +23,19 @@ HIDDEN int cga_caller_bound(void);
    pointer); 1 if it died inside CPython's object allocator (its pools are
    abandoned, a new generation starts), else 0. */
 HIDDEN int py_slot_retire(int s, char *tcb);
+
+/* allocguard.c: memory every node process may write (heapkeys.c): from
+   the calling slot's shared arena when protection keys are on, else plain
+   malloc.  Freed with free(). */
+HIDDEN void *cga_shared_alloc(size_t n, bool zero);
+HIDDEN void *cga_shared_realloc(void *p, size_t n);
+
+/* heapkeys.c: protection keys over node processes' native heaps. */
+HIDDEN int hk_enabled(void);                     /* keys were allocated */
+HIDDEN int hk_key_of_slot(int slot);
+HIDDEN int hk_tag(uintptr_t base, size_t len, int slot);   /* 0, or -errno */
+HIDDEN void hk_child_enter(int slot);            /* the node process's PKRU */
+HIDDEN uint32_t hk_open(void);                   /* every key writable ... */
+HIDDEN void hk_close(uint32_t was);              /* ... and back */
 
 #endif

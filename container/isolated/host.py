@@ -644,6 +644,13 @@ def _describe(death: Death | None) -> str:
         return "unknown"
     if death.exit_signal:
         what = f"killed by {signal.Signals(death.exit_signal).name}"
+        if death.pkey_fault is not None:
+            fault = death.pkey_fault
+            victim = processes.who(fault.victim_pid) if fault.victim_pid else f"allocator slot {fault.victim_slot}"
+            what += (
+                f": protection-key violation: wrote into {victim}'s heap at {fault.addr:#x} "
+                f"(key {fault.key}); the write did not land"
+            )
     elif death.status_lost:
         what = "exited, status unknown"
     else:

@@ -1,9 +1,9 @@
 /*
  * pkeys.c - memory protection keys: what this machine has, and the facts
  * about them that per-node heap protection rests on, checked on the calling
- * thread (cg_pkeys_probe, read by pkeys.probe(); nothing uses keys yet: the
- * heap protection that will is to run it at its start-up and refuse where a
- * fact does not hold).
+ * thread (cg_pkeys_probe, read by pkeys.probe(); the container runs it at
+ * start-up with --pkeys and refuses where a fact does not hold: heapkeys.c
+ * is the heap protection that rests on them).
  *
  * Intel/AMD protection keys (PKU): every page carries a 4-bit key in its
  * page-table entry (pkey_mprotect sets it); every thread has a 32-bit PKRU
@@ -155,18 +155,23 @@ int cg_pkeys_probe(struct cg_pkeys_probe *out)
         return 0;
     out->pkru = read_pkru();
 
-    int keys[16], n = 0;
-    while (n < 16) {
-        int k = pkey_alloc(0, 0);
-        if (k < 0) {
-            out->alloc_errno = errno;
-            break;
+    /* With heap protection on, the allocator guard holds every key: the
+       probe borrows its last one (no node process exists yet). */
+    int keys[16], n = cg_pkeys_in_use(keys, 16), borrowed = n > 0;
+    if (!borrowed) {
+        n = 0;
+        while (n < 16) {
+            int k = pkey_alloc(0, 0);
+            if (k < 0) {
+                out->alloc_errno = errno;
+                break;
+            }
+            keys[n++] = k;
         }
-        keys[n++] = k;
     }
     out->keys = n;
-    int key = n ? keys[0] : -1;
-    for (int i = 1; i < n; i++)
+    int key = n ? keys[borrowed ? n - 1 : 0] : -1;
+    for (int i = 1; i < n && !borrowed; i++)
         pkey_free(keys[i]);
     if (key < 0)
         return 0;
@@ -192,6 +197,7 @@ int cg_pkeys_probe(struct cg_pkeys_probe *out)
         }
         munmap(page, pg);
     }
-    pkey_free(key);
+    if (!borrowed)
+        pkey_free(key);
     return 0;
 }

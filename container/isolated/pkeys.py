@@ -1,12 +1,15 @@
 """Memory protection keys on this machine: whether they exist, how many,
 and whether the facts per-node heap protection rests on hold here
-(pkeys.c names them and how each is checked).
+(pkeys.c names them and how each is checked); and the keys the allocator
+guard put over node heaps (heapkeys.c, the container's --pkeys).
 
 ``probe()`` runs the check on the calling thread; ``Support.unavailable``
-says in one line why keys cannot protect anything here, or None."""
+says in one line why keys cannot protect anything here, or None.
+``heap_keys_unavailable()`` says why --pkeys cannot be had, or None."""
 
 from __future__ import annotations
 
+import errno
 import os
 from dataclasses import dataclass
 
@@ -71,4 +74,38 @@ def probe() -> Support:
         mprotect_keeps=fact(p.mprotect_keeps),
         thread_inherits=fact(p.thread_inherits),
         write_faults=fact(p.write_faults),
+    )
+
+
+def heap_keys() -> list[int] | str:
+    """The keys the allocator guard holds for node heaps, or why none."""
+    from cloneguard.container.isolated._clonecore import ffi, lib
+
+    keys = ffi.new("int[16]")
+    n = lib.cg_pkeys_in_use(keys, 16)
+    if n == -errno.ENOENT:
+        return "the allocator guard did not start with them (CLONEGUARD_PKEYS=1)"
+    if n == -errno.ENOSYS:
+        return "the CPU or kernel has no memory protection keys (no pku/ospke in /proc/cpuinfo)"
+    if n < 0:
+        return f"pkey_alloc gave no key: {os.strerror(-n)}"
+    return [keys[i] for i in range(n)]
+
+
+def heap_keys_unavailable() -> str | None:
+    """Why node heaps cannot be under protection keys here, or None."""
+    keys = heap_keys()
+    if isinstance(keys, str):
+        return keys
+    return probe().unavailable
+
+
+def heap_keys_describe() -> str:
+    keys = heap_keys()
+    if isinstance(keys, str):
+        return f"memory protection keys over node heaps: off ({keys})"
+    return (
+        f"memory protection keys over node heaps: {len(keys)} keys ({', '.join(map(str, keys))}), one per "
+        f"node process; node processes {len(keys) + 1} and up share a key with an earlier one, and are not "
+        "protected from it"
     )

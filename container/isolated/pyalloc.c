@@ -27,7 +27,9 @@
  * pools torn: at retirement its generation is bumped and its pools are
  * abandoned for good (blocks in them stay valid while referenced; frees of
  * them are dropped and counted), and the next process in that slot starts
- * with fresh pools.  Blocks over SMALL_MAX bytes go to malloc (the guard).
+ * with fresh pools.  Blocks over SMALL_MAX bytes go to malloc (the guard),
+ * or with protection keys on to the slot's shared arena (heapkeys.c), as
+ * does CPython's RAW domain then.
  *
  * Only the owner ever writes a pool; everyone reads pool headers.  Every
  * call of these domains is made holding the GIL (CPython's rule), so no
@@ -264,7 +266,7 @@ static void *py_malloc(void *ctx, size_t n)
     (void)ctx;
     if (n == 0)
         n = 1;
-    return n <= SMALL_MAX ? small_alloc(n) : malloc(n);
+    return n <= SMALL_MAX ? small_alloc(n) : cga_shared_alloc(n, false);
 }
 
 static void *py_calloc(void *ctx, size_t n, size_t size)
@@ -274,7 +276,7 @@ static void *py_calloc(void *ctx, size_t n, size_t size)
     if (__builtin_mul_overflow(n, size, &total))
         return NULL;
     if (total == 0 || total > SMALL_MAX)
-        return calloc(n ? n : 1, size ? size : 1);
+        return cga_shared_alloc(total ? total : 1, true);
     void *b = small_alloc(total);
     if (b)
         memset(b, 0, total);
@@ -299,7 +301,7 @@ static void *py_realloc(void *ctx, void *b, size_t n)
     if (n == 0)
         n = 1;
     if (!ours(b))
-        return realloc(b, n);           /* malloc'd: stays malloc'd */
+        return cga_shared_realloc(b, n);   /* malloc'd: stays malloc'd */
     size_t have = pool_of(b)->size;
     if (n <= have && 4 * n > 3 * have)
         return b;                       /* fits well enough where it is */
@@ -309,6 +311,34 @@ static void *py_realloc(void *ctx, void *b, size_t n)
         small_free(b);
     }
     return q;
+}
+
+/* CPython's RAW domain, with protection keys (heapkeys.c): any thread,
+   GIL or not; its blocks (thread states and their links, among others)
+   are written by every node process. */
+static void *raw_malloc(void *ctx, size_t n)
+{
+    (void)ctx;
+    return cga_shared_alloc(n, false);
+}
+
+static void *raw_calloc(void *ctx, size_t n, size_t size)
+{
+    (void)ctx;
+    size_t total;
+    return __builtin_mul_overflow(n, size, &total) ? NULL : cga_shared_alloc(total, true);
+}
+
+static void *raw_realloc(void *ctx, void *b, size_t n)
+{
+    (void)ctx;
+    return cga_shared_realloc(b, n);
+}
+
+static void raw_free(void *ctx, void *b)
+{
+    (void)ctx;
+    free(b);
 }
 
 typedef void (*set_allocator_fn)(PyMemAllocatorDomain, PyMemAllocatorEx *);
@@ -336,6 +366,10 @@ __attribute__((constructor)) static void install(void)
     g_mine = (PyMemAllocatorEx){NULL, py_malloc, py_calloc, py_realloc, py_free};
     set(PYMEM_DOMAIN_MEM, &g_mine);
     set(PYMEM_DOMAIN_OBJ, &g_mine);
+    if (hk_enabled()) {                 /* thread states, ...: shared too */
+        static PyMemAllocatorEx raw = {NULL, raw_malloc, raw_calloc, raw_realloc, raw_free};
+        set(PYMEM_DOMAIN_RAW, &raw);
+    }
     g_installed = true;
 }
 

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 
-def _cpuinfo(path: str = "/proc/cpuinfo") -> tuple[str | None, set[str]]:
+def cpuinfo(path: str = "/proc/cpuinfo") -> tuple[str | None, set[str]]:
     model: str | None = None
     flags: set[str] = set()
     try:
@@ -37,7 +37,7 @@ def host_info() -> dict:
         glibc = os.confstr("CS_GNU_LIBC_VERSION")
     except (ValueError, OSError, AttributeError):
         glibc = None
-    model, flags = _cpuinfo()
+    model, flags = cpuinfo()
     try:
         usable = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):

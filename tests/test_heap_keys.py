@@ -1,0 +1,67 @@
+"""Memory protection keys over node heaps (--pkeys: container/isolated/
+heapkeys.c): a stray write into another node's heap kills the writer
+alone; what nodes write of each other's legitimately never faults; and
+where the CPU or kernel has no keys, --pkeys is refused, saying why."""
+
+from __future__ import annotations
+
+import pytest
+from cloneguard_interfaces.msg import ComponentEvent
+from std_msgs.msg import UInt64
+
+from cloneguard.harness.skips import heap_keys_missing
+
+RIG = "cloneguard_testrig"
+KEYS = ["--isolated", "--jemalloc", "--pkeys"]
+MISSING = heap_keys_missing()
+needs_keys = pytest.mark.skipif(MISSING is not None, reason=f"--pkeys: {MISSING}")
+
+
+@pytest.mark.skipif(MISSING is None, reason="this machine has memory protection keys: nothing to refuse")
+def test_pkeys_is_refused_where_there_are_none(container_factory):
+    proc = container_factory.start(KEYS)
+    assert proc.wait(timeout=60) == 1
+    assert "--pkeys is unavailable here: the CPU or kernel has no memory protection keys" in proc.log_text()
+
+
+@pytest.mark.parametrize("profile", ["per-node", "shared"])
+@needs_keys
+def test_a_wild_write_kills_the_writer_and_leaves_the_victim_intact(profile, container_factory):
+    proc = container_factory.start([*KEYS, "--profile", profile])
+    client = container_factory.connect(proc)
+    assert "memory protection keys over node heaps: " in proc.log_text()
+    client.load_ok(RIG, "faults::HeapVictim")
+    checks = client.subscribe(UInt64, "/heap_victim/checks")
+    checks.wait_count(5, timeout=10)
+    writer = client.load_ok(RIG, "faults::WildWriter", parameters={"delay": 0.05})
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=10)
+    assert crashed.exit_signal == 11  # SIGSEGV
+    assert "protection-key violation: wrote into /heap_victim (pid " in crashed.error_message
+    assert "the write did not land" in crashed.error_message
+    seen = len(checks)
+    checks.wait_count(seen + 5, timeout=10)  # the victim goes on checking ...
+    assert checks.messages()[-1].data == 0  # ... and never found its buffer changed
+    assert [name for _, name in client.list()] == ["/heap_victim"]
+
+
+@needs_keys
+def test_nodes_freeing_and_holding_each_others_memory_never_fault(container_factory):
+    """Cross-node traffic that is legitimate: native blocks one node
+    allocates and another frees (handed over: the freer links the block
+    into the owner's stack, under the owner's key), and 256 KiB
+    intra-process messages (Python objects, their buffers in the
+    publisher's shared arena) whose reference counts another node changes
+    and whose last reference it drops."""
+    proc = container_factory.start([*KEYS, "--profile", "per-node"])
+    client = container_factory.connect(proc)
+    client.load_ok(RIG, "faults::MallocDrain")
+    client.load_ok(RIG, "faults::MallocHammer", parameters={"delay": 0.0})
+    intra = {"use_intra_process_comms": True}
+    client.load_ok(RIG, "faults::PayloadHolder", extra_arguments=intra)
+    client.load_ok(RIG, "faults::PayloadPublisher", parameters={"period": 0.002}, extra_arguments=intra)
+    freed = client.subscribe(UInt64, "/malloc_drain/freed")
+    released = client.subscribe(UInt64, "/payload_holder/released")
+    freed.wait_for(lambda m: m.data > 10_000, 20, "the drain freeing the hammer's blocks")
+    released.wait_for(lambda m: m.data > 200, 20, "the holder releasing the publisher's messages")
+    deaths = [e for e in client.events.messages() if e.event_type == ComponentEvent.CRASHED]
+    assert deaths == [], [e.error_message for e in deaths]
