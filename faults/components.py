@@ -530,6 +530,8 @@ class PayloadHolder(Node):
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.malloc.restype = ctypes.c_void_p
 _libc.malloc.argtypes = [ctypes.c_size_t]
+_libc.free.restype = None
+_libc.free.argtypes = [ctypes.c_void_p]
 
 
 class HeapVictim(Node):
@@ -539,7 +541,10 @@ class HeapVictim(Node):
     filled again) and publishes on ``~/checks`` how many checks so far
     found it changed: one topic, so that what a check found is in order
     with the checks before it. Where the buffer is:
-    shared_state.HEAP_BUFFERS, by node name."""
+    shared_state.HEAP_BUFFERS, by node name. With ``donate`` > 0 it also
+    mallocs that many 64-byte blocks for other nodes to free
+    (shared_state.DONATED_BLOCKS), and each tick mallocs and frees a few of
+    its own, so that it takes back what others freed of its blocks."""
 
     PATTERN = 0xC3
 
@@ -555,6 +560,7 @@ class HeapVictim(Node):
         self._buf = 0
         self._corrupted = 0
         self._pub = self.create_publisher(UInt64, "~/checks", 10)
+        self._donate = self.declare_parameter("donate", 0).value
         self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
 
     def _tick(self):
@@ -564,6 +570,10 @@ class HeapVictim(Node):
                 raise MemoryError("HeapVictim: malloc failed")
             ctypes.memset(self._buf, self.PATTERN, self._size)
             shared_state.HEAP_BUFFERS[self.get_name()] = (self._buf, self._size)
+            shared_state.DONATED_BLOCKS[self.get_name()] = [_libc.malloc(64) for _ in range(self._donate)]
+        if self._donate:
+            for _ in range(8):  # the owner's own malloc takes back what others freed
+                _libc.free(_libc.malloc(64))
         if ctypes.string_at(self._buf, self._size) != self._expected:
             self._corrupted += 1
             ctypes.memset(self._buf, self.PATTERN, self._size)
@@ -590,3 +600,23 @@ class WildWriter(_FaultNode):
     def fire(self):
         addr, size = shared_state.HEAP_BUFFERS[self.victim]
         ctypes.memset(addr + self.rng.randrange(size - self.count + 1), 0x5A, self.count)
+
+
+class DoubleFreer(_FaultNode):
+    """Frees a block the HeapVictim named ``victim`` (another node's
+    process) malloc'd and gave away, and at once frees it again: a double
+    free of another node's block. Whether the damage lands in the owner or
+    in this node is the container's doing."""
+
+    fault = "double-free"
+
+    def __init__(self, **kwargs):
+        super().__init__("double_freer", **kwargs)
+        self.victim = self.declare_parameter("victim", "heap_victim").value
+        if not shared_state.DONATED_BLOCKS.get(self.victim):
+            raise ValueError(f"no HeapVictim named {self.victim!r} has blocks to give away")
+
+    def fire(self):
+        block = shared_state.DONATED_BLOCKS[self.victim].pop()
+        _libc.free(block)
+        _libc.free(block)

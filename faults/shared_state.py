@@ -86,3 +86,6 @@ def use(kind: str) -> None:
 # node name -> (address, size) of the native buffer a HeapVictim keeps in
 # its own process's heap (faults/components.py: HeapVictim, WildWriter).
 HEAP_BUFFERS: dict[str, tuple[int, int]] = {}
+# node name -> addresses of 64-byte blocks a HeapVictim malloc'd in its own
+# heap for other nodes to free (faults/components.py: DoubleFreer).
+DONATED_BLOCKS: dict[str, list[int]] = {}

@@ -475,6 +475,56 @@ class WildWrite:
             self._start_victim()
 
 
+class DoubleFree:
+    """A HeapVictim (giving away 64-byte blocks of its own heap) checks its
+    buffer every 10 ms and takes back, at each check, what others freed of
+    its blocks; each trial loads a DoubleFreer that frees one of those
+    blocks twice, 50-150 ms after it starts. Survived: the freer alone is
+    reported CRASHED (SIGABRT: the guard found the block already handed
+    back) and the victim goes on checking, its buffer intact. Not survived:
+    the victim stopped (hung, or died: the damage landed in the owner), or
+    the container did."""
+
+    CHECKS_AFTER = 10  # the victim's checks (and take-backs), after the double free
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self._start_victim()
+
+    def _start_victim(self) -> None:
+        self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters={"donate": 1024})
+        self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
+        self.checks.wait_count(5, timeout=10)
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig = self.rig
+        resp = rig.client.load_ok(
+            RIG,
+            "faults::DoubleFreer",
+            node_name=f"double_freer{index}",
+            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
+        )
+        pid = rig.loaded_pid(resp.unique_id)
+        rig.wait_firing(pid)
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGABRT, fault_ns=None)
+        went_on = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
+        if went_on:  # nothing caught it: the owner takes the block back twice
+            rig.client.unload(resp.unique_id)
+            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "freer": "went on"})
+        if out.survived:
+            out = rig.keeps_flowing(self.checks, "the victim (the block's owner)", out, more=self.CHECKS_AFTER)
+        if out.survived and went_on:
+            out.outcome = TrialOutcome.CORRUPTED
+            out.details["why"] = "the freer went on; its owner took the block back twice (its heap is corrupted)"
+        elif out.survived and self.checks.messages()[-1].data:
+            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if self.rig.settle(out):
+            self._start_victim()
+
+
 # -- the registry ------------------------------------------------------------------
 
 
@@ -519,6 +569,7 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "sigkill-publisher-holding-messages/malloc": lambda rig: PayloadKill(rig, "malloc"),
     "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
     "wild-write-into-another-nodes-heap": WildWrite,
+    "double-free-of-another-nodes-block": DoubleFree,
     **{
         f"die-holding-{prefix}-{kind}/{how}": (
             lambda rig, family=family, kind=kind, how=how: LockDeath(rig, family, kind, how)

@@ -406,11 +406,39 @@ int cga_caller_bound(void)
     return t_bound;
 }
 
+/* A block on a hand-over stack carries, in its second word (blocks of 16 B
+   and more), its own address mixed with this mark.  A second free of it
+   before its owner took it back (a double free across nodes) finds the mark
+   and kills the freer: otherwise the owner, not the faulty node, would pay
+   (it would free the block twice, or follow a stack linked to itself in
+   drain_stack forever, holding whatever it held: the GIL).  A free after the
+   owner took it back is not caught. */
+#define HANDED_MARK ((uintptr_t)0x68616e6465642121ull)   /* "handed!!" */
+
+static inline uintptr_t *mark_word(void *p)
+{
+    return be_usable(p) >= 2 * sizeof(void *) ? &((uintptr_t *)p)[1] : NULL;
+}
+
+static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o)
+{
+    char msg[160];
+    int n = snprintf(msg, sizeof msg,
+                     "cloneguard: double free: block %p of allocator slot %d was freed again "
+                     "before its owner took it back; aborting the freer\n", p, owner_slot(o));
+    if (n > 0 && write(2, msg, (size_t)n) < 0)
+        n = 0;
+    abort();
+}
+
 static void drain_stack(struct owner *o)
 {
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
     while (p) {
         void *next = *(void **)p;
+        uintptr_t *mark = mark_word(p);
+        if (mark)
+            *mark = 0;
         be_free(p);
         p = next;
     }
@@ -433,7 +461,12 @@ static void hand_over(int o, void *p)
         o = 0;                      /* any container thread frees it */
     struct owner *to = &owners[o];
     void *head = atomic_load_explicit(&to->stack, memory_order_relaxed);
+    uintptr_t *mark = mark_word(p);
+    if (mark && *mark == (HANDED_MARK ^ (uintptr_t)p))
+        freed_twice(p, o);
     uint32_t pkru = hk_open();          /* p may be under the owner's key */
+    if (mark)
+        *mark = HANDED_MARK ^ (uintptr_t)p;
     do
         *(void **)p = head;
     while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p,
