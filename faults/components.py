@@ -620,3 +620,27 @@ class DoubleFreer(_FaultNode):
         block = shared_state.DONATED_BLOCKS[self.victim].pop()
         _libc.free(block)
         _libc.free(block)
+
+
+class HeapOverflow(_FaultNode):
+    """Overflows a 64-byte block of its own heap by ``bytes`` bytes (its
+    neighbours and the allocator's metadata between them), then mallocs and
+    frees blocks of random sizes, as a node goes on after such a bug.
+    Whether it dies, and whether anything beyond its own heap is touched,
+    is the container's doing."""
+
+    fault = "heap-overflow"
+
+    def __init__(self, **kwargs):
+        super().__init__("heap_overflow", **kwargs)
+        self.count = self.declare_parameter("bytes", 4096).value
+        if not 1 <= self.count <= 1 << 20:
+            raise ValueError("parameter 'bytes' must be 1 B to 1 MiB")
+
+    def fire(self):
+        blocks = [_libc.malloc(64) for _ in range(64)]
+        ctypes.memset(blocks[self.rng.randrange(32)] + 64, 0x5A, self.count)
+        for block in blocks:
+            _libc.free(block)
+        for _ in range(10_000):
+            _libc.free(_libc.malloc(self.rng.randrange(16, 4096)))

@@ -525,6 +525,51 @@ class DoubleFree:
             self._start_victim()
 
 
+class OwnHeapOverflow:
+    """A HeapVictim checks its buffer every 10 ms; each trial loads a
+    HeapOverflow that overflows a block of its own heap by 4 KiB and goes on
+    allocating, 50-150 ms after it starts. Survived: the damage stayed in
+    the overflowing node (it died of it, or went on and was unloaded) and
+    the victim and the container go on, the victim's buffer intact."""
+
+    CHECKS_AFTER = 10
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self._start_victim()
+
+    def _start_victim(self) -> None:
+        self.rig.client.load_ok(RIG, "faults::HeapVictim")
+        self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
+        self.checks.wait_count(5, timeout=10)
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig = self.rig
+        resp = rig.client.load_ok(
+            RIG,
+            "faults::HeapOverflow",
+            node_name=f"heap_overflow{index}",
+            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
+        )
+        pid = rig.loaded_pid(resp.unique_id)
+        rig.wait_firing(pid)
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=None, fault_ns=None, timeout=3.0)
+        if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
+            rig.client.unload(resp.unique_id)
+            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "overflower": "went on"})
+        elif out.survived:
+            out.details["overflower"] = f"died: {rig.crash_reason(resp.unique_id)}"
+        if out.survived:
+            out = rig.keeps_flowing(self.checks, "the victim", out, more=self.CHECKS_AFTER)
+        if out.survived and self.checks.messages()[-1].data:
+            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if self.rig.settle(out):
+            self._start_victim()
+
+
 # -- the registry ------------------------------------------------------------------
 
 
@@ -570,6 +615,7 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
     "wild-write-into-another-nodes-heap": WildWrite,
     "double-free-of-another-nodes-block": DoubleFree,
+    "heap-overflow-in-own-heap": OwnHeapOverflow,
     **{
         f"die-holding-{prefix}-{kind}/{how}": (
             lambda rig, family=family, kind=kind, how=how: LockDeath(rig, family, kind, how)
