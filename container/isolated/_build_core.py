@@ -184,6 +184,7 @@ struct cg_pkeys_probe {
 int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_pkeys_in_use(int *keys, int max);
 int cg_alloc_slot_of(const void *p);
+int cg_child_slot(const struct cg_child *c);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_gil_probe(struct cg_gil_probe *out);

@@ -489,16 +489,39 @@ static inline bool shared_slot(int *s)
     return *s != 0;
 }
 
+static void *shared_in(int s, size_t n, size_t align, bool zero)
+{
+    enter(s);
+    drain_mine(s);
+    void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
+                                 (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
+    leave(s);
+    return p;
+}
+
+/* The caller of the operator new being served (set by our new, read by the
+   malloc libstdc++'s new calls), so that a block is attributed to the code
+   that asked for it, not to libstdc++. */
+static __thread const void *t_new_caller __attribute__((tls_model("initial-exec")));
+
+/* With keys: does this call, from ra, want shared memory?  Yes when it
+   comes from the ROS stack or the interpreter (heapkeys.c says which, and
+   why): their structures are written by every node process. */
+static inline bool wants_shared(int s, const void *ra)
+{
+    if (likely(!g_split) || !s)
+        return false;
+    const void *pc = t_new_caller;
+    t_new_caller = NULL;
+    return hk_shared_caller(pc ? pc : ra);
+}
+
 HIDDEN void *cga_shared_alloc(size_t n, bool zero)
 {
     int s;
     if (!shared_slot(&s))
         return zero ? calloc(1, n) : malloc(n);
-    enter(s);
-    drain_mine(s);
-    void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0));
-    leave(s);
-    return p;
+    return shared_in(s, n, 0, zero);
 }
 
 HIDDEN void *cga_shared_realloc(void *p, size_t n)
@@ -529,11 +552,17 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n)
 /* ---------------------------------------------------------------------- */
 /* The interposed C API.                                                   */
 
-EXPORT void *malloc(size_t n)
+static void *malloc_from(size_t n, const void *ra)
 {
     if (unlikely(!atomic_load_explicit(&g_active, memory_order_relaxed)))
         return be_malloc(0, n);
     int s = my_slot();
+    if (unlikely(wants_shared(s, ra))) {
+        void *p = shared_in(s, n, 0, false);
+        if (!p)
+            errno = ENOMEM;
+        return p;
+    }
     enter(s);
     drain_mine(s);
     void *p = check_main(s, be_malloc(s, n));
@@ -541,6 +570,11 @@ EXPORT void *malloc(size_t n)
     if (!p)
         errno = ENOMEM;
     return p;
+}
+
+EXPORT void *malloc(size_t n)
+{
+    return malloc_from(n, __builtin_return_address(0));
 }
 
 EXPORT void free(void *p)
@@ -571,6 +605,12 @@ EXPORT void *calloc(size_t n, size_t size)
         return NULL;
     }
     int s = atomic_load_explicit(&g_active, memory_order_relaxed) ? my_slot() : 0;
+    if (unlikely(wants_shared(s, __builtin_return_address(0)))) {
+        void *p = shared_in(s, total, 0, true);
+        if (!p)
+            errno = ENOMEM;
+        return p;
+    }
     enter(s);
     if (s)
         drain_mine(s);
@@ -586,7 +626,7 @@ EXPORT void *calloc(size_t n, size_t size)
 EXPORT void *realloc(void *p, size_t n)
 {
     if (!p)
-        return malloc(n);
+        return malloc_from(n, __builtin_return_address(0));
     if (n == 0) {                   /* glibc's semantics: free, return NULL */
         free(p);
         return NULL;
@@ -603,9 +643,10 @@ EXPORT void *realloc(void *p, size_t n)
                           : je_fast(s) ? je_real.realloc(p, n) : rallocx(p, n, je_flags(s)));
         leave(s);
     } else {
-        /* Someone else's block: copy it into ours, hand theirs back. */
+        /* Someone else's block: copy it into ours (shared if it was), hand
+           theirs back. */
         size_t have = be_usable(p);
-        q = malloc(n);
+        q = in_shared(p) ? shared_in(s, n, 0, false) : malloc_from(n, __builtin_return_address(0));
         if (q) {
             memcpy(q, p, have < n ? have : n);
             hand_over(o, p);
@@ -626,11 +667,17 @@ EXPORT void *reallocarray(void *p, size_t n, size_t size)
     return realloc(p, total);
 }
 
-static void *aligned(size_t align, size_t n)
+static void *aligned(size_t align, size_t n, const void *ra)
 {
     if (align & (align - 1))        /* glibc rounds up to a power of two */
         align = (size_t)1 << (64 - __builtin_clzl(align));
     int s = atomic_load_explicit(&g_active, memory_order_relaxed) ? my_slot() : 0;
+    if (unlikely(wants_shared(s, ra))) {
+        void *p = shared_in(s, n, align, false);
+        if (!p)
+            errno = ENOMEM;
+        return p;
+    }
     enter(s);
     if (s)
         drain_mine(s);
@@ -641,14 +688,15 @@ static void *aligned(size_t align, size_t n)
     return p;
 }
 
-EXPORT void *memalign(size_t align, size_t n) { return aligned(align, n); }
-EXPORT void *aligned_alloc(size_t align, size_t n) { return aligned(align, n); }
-EXPORT void *valloc(size_t n) { return aligned(g_page, n); }
+#define RA __builtin_return_address(0)
+EXPORT void *memalign(size_t align, size_t n) { return aligned(align, n, RA); }
+EXPORT void *aligned_alloc(size_t align, size_t n) { return aligned(align, n, RA); }
+EXPORT void *valloc(size_t n) { return aligned(g_page, n, RA); }
 
 EXPORT void *pvalloc(size_t n)
 {
     size_t rounded = (n + g_page - 1) & ~(g_page - 1);
-    return aligned(g_page, rounded ? rounded : g_page);
+    return aligned(g_page, rounded ? rounded : g_page, RA);
 }
 
 EXPORT int posix_memalign(void **out, size_t align, size_t n)
@@ -656,7 +704,7 @@ EXPORT int posix_memalign(void **out, size_t align, size_t n)
     if (align < sizeof(void *) || (align & (align - 1)))
         return EINVAL;
     int saved = errno;
-    void *p = aligned(align, n);
+    void *p = aligned(align, n, RA);
     errno = saved;
     if (!p)
         return ENOMEM;
@@ -701,7 +749,7 @@ static void *libstdcxx(const char *name)
 /* Without libstdc++'s (a process that never loaded it): no new_handler. */
 static void *new_fallback(size_t n, size_t align, int nothrow)
 {
-    void *p = align ? aligned(align, n) : malloc(n ? n : 1);
+    void *p = align ? aligned(align, n, RA) : malloc_from(n ? n : 1, RA);
     if (!p && !nothrow)
         abort();
     return p;
@@ -714,7 +762,11 @@ static void *new_fallback(size_t n, size_t align, int nothrow)
         void *(*f) params = real_##name;                                    \
         if (unlikely(!f))                                                   \
             f = real_##name = (void *(*) params)libstdcxx(#name);           \
-        return f ? f args : new_fallback(n_, align_, nothrow_);             \
+        if (unlikely(g_split))                                              \
+            t_new_caller = RA;                                              \
+        void *p = f ? f args : new_fallback(n_, align_, nothrow_);          \
+        t_new_caller = NULL;                                                \
+        return p;                                                           \
     }
 NEW_OPS(DEFINE_NEW)
 
@@ -1021,6 +1073,8 @@ EXPORT int cga_warm(int slot)
 /* A context is about to run a new node process. */
 EXPORT void cga_slot_bind(int slot)
 {
+    if (g_split)
+        hk_refresh_shared();
     atomic_store(&slots[slot].inside, 0);
     atomic_store(&slots[slot].state, CGA_BOUND);
 }

@@ -248,6 +248,12 @@ int cg_pkeys_in_use(int *keys, int max)
     return f ? f(keys, max) : -ENOENT;
 }
 
+/* The allocator slot child c runs in (0: none). */
+int cg_child_slot(const struct cg_child *c)
+{
+    return c->ctx ? c->ctx->slot : 0;
+}
+
 /* The slot whose native heap range holds p; -1 if none (or no guard). */
 int cg_alloc_slot_of(const void *p)
 {

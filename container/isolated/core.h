@@ -298,6 +298,7 @@ struct cg_pkeys_probe {
 int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_pkeys_in_use(int *keys, int max);    /* contexts.c: the guard's keys */
 int cg_alloc_slot_of(const void *p);        /* contexts.c */
+int cg_child_slot(const struct cg_child *c);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_allocator(char *buf, size_t len);

@@ -701,8 +701,16 @@ class CloneCore:
         ffi, lib = _lib()
         addr = int(ffi.cast("uintptr_t", block.crash_addr))
         slot = lib.cg_alloc_slot_of(block.crash_addr)
-        stats = self.slot_stats(slot) if slot > 0 else None
-        return PkeyFault(addr, block.crash_pkey, max(slot, 0), stats["pid"] if stats else 0)
+        with self._lock:  # the live child in that slot: the victim
+            victims = [
+                e.child.pid
+                for e in self._entries.values()
+                if not e.dead
+                and e.child is not None  # still being spawned
+                and e.child._block is not None
+                and lib.cg_child_slot(e.child._block) == slot
+            ]
+        return PkeyFault(addr, block.crash_pkey, max(slot, 0), victims[0] if victims else 0)
 
     def _call_on_event(self, event: CoreEvent) -> None:
         try:

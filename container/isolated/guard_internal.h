@@ -37,5 +37,7 @@ HIDDEN int hk_tag(uintptr_t base, size_t len, int slot);   /* 0, or -errno */
 HIDDEN void hk_child_enter(int slot);            /* the node process's PKRU */
 HIDDEN uint32_t hk_open(void);                   /* every key writable ... */
 HIDDEN void hk_close(uint32_t was);              /* ... and back */
+HIDDEN void hk_refresh_shared(void);             /* which callers get shared blocks */
+HIDDEN int hk_shared_caller(const void *pc);
 
 #endif

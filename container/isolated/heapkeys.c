@@ -18,7 +18,18 @@
  * a node may read what another node's native code gives it.  The
  * container's own threads write everything (PKRU 0).
  *
- * What every node writes legitimately must not be keyed:
+ * What every node writes legitimately must not be keyed (measured under
+ * emulated PKU: each of these faulted a node that had done nothing wrong):
+ *   - what the ROS stack and the interpreter allocate: Fast DDS shares its
+ *     payload pools among every participant of the process (their vectors
+ *     and payloads are grown by one node, written by the next), rclpy's
+ *     pybind11 keeps one registry of every wrapped object (its hash nodes
+ *     are linked by whichever node makes or drops an object), rcl keeps one
+ *     map of rosout publishers.  A block is allocated shared when the code
+ *     that asked for it (malloc's return address, or operator new's caller)
+ *     lies in one of the libraries SHARED_LIBS names; everything else a
+ *     node process allocates (its own native code, ctypes' calls from
+ *     Python) is keyed.
  *   - Python objects: one interpreter, so reference counts, the garbage
  *     collector and thread-state links write objects any node made.  Small
  *     blocks live in pyalloc.c's region (key 0); larger ones and CPython's
@@ -48,6 +59,8 @@
  */
 #define _GNU_SOURCE
 #include <cpuid.h>
+#include <link.h>
+#include <stdatomic.h>
 #include <errno.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -172,4 +185,106 @@ EXPORT int cga_pkeys(int *keys, int max)
 EXPORT int cga_slot_key(int slot)
 {
     return hk_key_of_slot(slot);
+}
+
+/* ---------------------------------------------------------------------- */
+/* Which callers get shared memory: the text of these libraries (a prefix
+   of the file's name, or "rosidl" anywhere in it: generated message
+   support).  The main program (the interpreter) is one of them. */
+
+static const char *const SHARED_LIBS[] = {
+    "libc.so", "ld-linux", "libstdc++", "libgcc_s", "libm.so", "libpython", "libjemalloc",
+    "libfastrtps", "libfastcdr", "libfoonathan", "libtinyxml2", "libssl", "libcrypto",
+    "librcl", "librmw", "librcutils", "librcpputils", "librosidl", "libtracetools",
+    "libspdlog", "libyaml", "libament_index", "libclass_loader", "libconsole_bridge",
+    "_rclpy", "_clonecore", "_rclglue", "_allocguard", "_robust", "_pylocks", "_pybind11_registry",
+};
+
+struct range { uintptr_t lo, hi; };
+struct table { int n; struct range r[]; };
+#define MAX_RANGES 4096
+
+static _Atomic(struct table *) g_shared;    /* published whole, never freed */
+
+static int shared_name(const char *path)
+{
+    if (!*path)
+        return 1;                           /* the main program */
+    const char *base = strrchr(path, '/');
+    base = base ? base + 1 : path;
+    if (strstr(base, "rosidl"))
+        return 1;
+    for (size_t i = 0; i < sizeof SHARED_LIBS / sizeof SHARED_LIBS[0]; i++)
+        if (strncmp(base, SHARED_LIBS[i], strlen(SHARED_LIBS[i])) == 0)
+            return 1;
+    return 0;
+}
+
+static int add_object(struct dl_phdr_info *info, size_t size, void *arg)
+{
+    (void)size;
+    struct table *t = arg;
+    if (!shared_name(info->dlpi_name ? info->dlpi_name : ""))
+        return 0;
+    for (int i = 0; i < info->dlpi_phnum && t->n < MAX_RANGES; i++) {
+        const ElfW(Phdr) *ph = &info->dlpi_phdr[i];
+        if (ph->p_type == PT_LOAD && (ph->p_flags & PF_X))
+            t->r[t->n++] = (struct range){info->dlpi_addr + ph->p_vaddr,
+                                          info->dlpi_addr + ph->p_vaddr + ph->p_memsz};
+    }
+    return 0;
+}
+
+static int by_lo(const void *a, const void *b)
+{
+    uintptr_t x = ((const struct range *)a)->lo, y = ((const struct range *)b)->lo;
+    return x < y ? -1 : x > y;
+}
+
+/* On a container thread, before each node process starts: the libraries
+   loaded now (rebuilt only when one was loaded since).  One a node process loads itself is not in the table until
+   the next node process starts (its allocations are keyed meanwhile). */
+static int read_adds(struct dl_phdr_info *info, size_t size, void *arg)
+{
+    (void)size;
+    *(unsigned long long *)arg = info->dlpi_adds;
+    return 1;                               /* the first object tells */
+}
+
+HIDDEN void hk_refresh_shared(void)
+{
+    static unsigned long long seen;         /* container threads: one at a time */
+    unsigned long long adds = 0;
+    dl_iterate_phdr(read_adds, &adds);
+    if (adds == seen && atomic_load(&g_shared))
+        return;                             /* nothing loaded since */
+    seen = adds;
+    size_t len = sizeof(struct table) + MAX_RANGES * sizeof(struct range);
+    struct table *t = mmap(NULL, len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (t == MAP_FAILED)
+        return;
+    t->n = 0;
+    dl_iterate_phdr(add_object, t);
+    qsort(t->r, (size_t)t->n, sizeof t->r[0], by_lo);
+    struct table *old = atomic_exchange(&g_shared, t);
+    (void)old;                              /* a node process may still read it */
+}
+
+HIDDEN int hk_shared_caller(const void *pc)
+{
+    const struct table *t = atomic_load_explicit(&g_shared, memory_order_acquire);
+    if (!t)
+        return 0;
+    uintptr_t a = (uintptr_t)pc;
+    int lo = 0, hi = t->n - 1;
+    while (lo <= hi) {
+        int mid = (lo + hi) / 2;
+        if (a < t->r[mid].lo)
+            hi = mid - 1;
+        else if (a >= t->r[mid].hi)
+            lo = mid + 1;
+        else
+            return 1;
+    }
+    return 0;
 }
