@@ -410,40 +410,62 @@ class LockDeath:
             self._start_waiter()
 
 
-class WildWrite:
-    """A HeapVictim keeps a pattern-filled buffer in its own process's heap
-    and checks it every 10 ms; each trial loads a WildWriter that writes 64
-    bytes into it 50-150 ms after it starts. Survived: the write faulted in
-    the writer alone (CRASHED, SIGSEGV, its text naming a protection-key
-    violation in /heap_victim's heap) and the victim's buffer is intact.
-    Corrupted: the victim found its buffer changed, and the container did
-    not notice (the writer goes on)."""
+class _VictimTrials:
+    """What the heap-memory faults share: a HeapVictim (``VICTIM``: its
+    parameters) in another node's process, checking its buffer every 10 ms
+    on /heap_victim/checks; each trial loads one fault node next to it."""
 
-    CHECKS_AFTER = 3  # the victim's checks, after the write, that decide
+    VICTIM: dict = {}
+    CHECKS_AFTER = 10  # the victim's checks, after the fault, that decide
 
     def __init__(self, rig: Rig):
         self.rig = rig
         self._start_victim()
 
     def _start_victim(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::HeapVictim")
+        self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters=self.VICTIM)
         self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
         self.checks.wait_count(5, timeout=10)
 
     def _corruptions(self) -> int:
         return self.checks.messages()[-1].data
 
+    def _load_firing(self, plugin: str, name: str, seed: int):
+        """Load fault node ``plugin`` as ``name``, firing 50-150 ms after it
+        starts; (its LoadNode response, its pid) once it fired."""
+        resp = self.rig.client.load_ok(
+            RIG, plugin, node_name=name, parameters={"delay": 0.05, "jitter": 0.1, "seed": seed}
+        )
+        pid = self.rig.loaded_pid(resp.unique_id)
+        self.rig.wait_firing(pid)
+        return resp, pid
+
+    def _victim_goes_on(self, out: Outcome) -> Outcome:
+        """``out`` if the victim goes on checking and never found its buffer
+        changed; else what became of it."""
+        out = self.rig.keeps_flowing(self.checks, "the victim", out, more=self.CHECKS_AFTER)
+        if out.survived and self._corruptions():
+            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
+        return out
+
+    def settle(self, out: Outcome) -> None:
+        if self.rig.settle(out):
+            self._start_victim()
+
+
+class WildWrite(_VictimTrials):
+    """Each trial loads a WildWriter that writes 64 bytes into the victim's
+    buffer. Survived: the write faulted in the writer alone (CRASHED,
+    SIGSEGV, its text naming a protection-key violation in /heap_victim's
+    heap) and the victim's buffer is intact. Corrupted: the victim found its
+    buffer changed, and the container did not notice (the writer goes on)."""
+
+    CHECKS_AFTER = 3
+
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
         before = self._corruptions()
-        resp = rig.client.load_ok(
-            RIG,
-            "faults::WildWriter",
-            node_name=f"wild_writer{index}",
-            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
-        )
-        pid = rig.loaded_pid(resp.unique_id)
-        rig.wait_firing(pid)
+        resp, pid = self._load_firing("faults::WildWriter", f"wild_writer{index}", seed)
         try:
             self.checks.wait_count(len(self.checks) + self.CHECKS_AFTER, timeout=5)
         except HarnessTimeout as exc:
@@ -471,103 +493,53 @@ class WildWrite:
         # filled its buffer again, the writer is unloaded.
         if out.outcome == TrialOutcome.CORRUPTED and self.rig.node_deaths() < DEATHS_PER_CONTAINER:
             return
-        if self.rig.settle(out):
-            self._start_victim()
+        super().settle(out)
 
 
-class DoubleFree:
-    """A HeapVictim (giving away 64-byte blocks of its own heap) checks its
-    buffer every 10 ms and takes back, at each check, what others freed of
-    its blocks; each trial loads a DoubleFreer that frees one of those
-    blocks twice, 50-150 ms after it starts. Survived: the freer alone is
-    reported CRASHED (SIGABRT: the guard found the block already handed
-    back) and the victim goes on checking, its buffer intact. Not survived:
+class DoubleFree(_VictimTrials):
+    """The victim gives away 64-byte blocks of its own heap and takes back,
+    at each check, what others freed of them; each trial loads a
+    DoubleFreer that frees one of those blocks twice. Survived: the freer
+    alone is reported CRASHED (SIGABRT: the guard found the block already
+    handed back) and the victim goes on, its buffer intact. Corrupted: the
+    freer went on, and its owner took the block back twice. Not survived:
     the victim stopped (hung, or died: the damage landed in the owner), or
     the container did."""
 
-    CHECKS_AFTER = 10  # the victim's checks (and take-backs), after the double free
-
-    def __init__(self, rig: Rig):
-        self.rig = rig
-        self._start_victim()
-
-    def _start_victim(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters={"donate": 1024})
-        self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
-        self.checks.wait_count(5, timeout=10)
+    VICTIM = {"donate": 1024}
 
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
-        resp = rig.client.load_ok(
-            RIG,
-            "faults::DoubleFreer",
-            node_name=f"double_freer{index}",
-            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
-        )
-        pid = rig.loaded_pid(resp.unique_id)
-        rig.wait_firing(pid)
+        resp, pid = self._load_firing("faults::DoubleFreer", f"double_freer{index}", seed)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGABRT, fault_ns=None)
         went_on = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
         if went_on:  # nothing caught it: the owner takes the block back twice
             rig.client.unload(resp.unique_id)
             out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "freer": "went on"})
         if out.survived:
-            out = rig.keeps_flowing(self.checks, "the victim (the block's owner)", out, more=self.CHECKS_AFTER)
+            out = self._victim_goes_on(out)
         if out.survived and went_on:
             out.outcome = TrialOutcome.CORRUPTED
             out.details["why"] = "the freer went on; its owner took the block back twice (its heap is corrupted)"
-        elif out.survived and self.checks.messages()[-1].data:
-            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
         return out
 
-    def settle(self, out: Outcome) -> None:
-        if self.rig.settle(out):
-            self._start_victim()
 
-
-class OwnHeapOverflow:
-    """A HeapVictim checks its buffer every 10 ms; each trial loads a
-    HeapOverflow that overflows a block of its own heap by 4 KiB and goes on
-    allocating, 50-150 ms after it starts. Survived: the damage stayed in
+class OwnHeapOverflow(_VictimTrials):
+    """Each trial loads a HeapOverflow that overflows a block of its own
+    heap by 4 KiB and goes on allocating. Survived: the damage stayed in
     the overflowing node (it died of it, or went on and was unloaded) and
     the victim and the container go on, the victim's buffer intact."""
 
-    CHECKS_AFTER = 10
-
-    def __init__(self, rig: Rig):
-        self.rig = rig
-        self._start_victim()
-
-    def _start_victim(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::HeapVictim")
-        self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
-        self.checks.wait_count(5, timeout=10)
-
     def trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
-        resp = rig.client.load_ok(
-            RIG,
-            "faults::HeapOverflow",
-            node_name=f"heap_overflow{index}",
-            parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
-        )
-        pid = rig.loaded_pid(resp.unique_id)
-        rig.wait_firing(pid)
+        resp, pid = self._load_firing("faults::HeapOverflow", f"heap_overflow{index}", seed)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=None, fault_ns=None, timeout=3.0)
         if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
             rig.client.unload(resp.unique_id)
             out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "overflower": "went on"})
         elif out.survived:
             out.details["overflower"] = f"died: {rig.crash_reason(resp.unique_id)}"
-        if out.survived:
-            out = rig.keeps_flowing(self.checks, "the victim", out, more=self.CHECKS_AFTER)
-        if out.survived and self.checks.messages()[-1].data:
-            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
-        return out
-
-    def settle(self, out: Outcome) -> None:
-        if self.rig.settle(out):
-            self._start_victim()
+        return self._victim_goes_on(out) if out.survived else out
 
 
 # -- the registry ------------------------------------------------------------------
