@@ -129,6 +129,34 @@ CASES = {
             out.update(quarantined=death.alloc_quarantined, state=state,
                        slot=death.alloc_slot, again=again.alloc_slot)
     """,
+    # A child that faults (a bad write, an abort of its own) quarantines its
+    # slot: that is what a torn heap looks like, and the next child would
+    # inherit the tear. A fault signal sent from outside does not.
+    "faulted": """
+        with CloneCore(alloc_guard=True) as core:
+            seen = {}
+            for how in ("bad_write", "abort", "sent"):
+                asleep = []
+                def victim(how=how):
+                    libc.free(libc.malloc(64))
+                    if how == "bad_write":
+                        ctypes.memset(8, 0, 1)
+                    elif how == "abort":
+                        libc.abort()
+                    asleep.append(1)
+                    time.sleep(60)
+                child = core.spawn(victim)
+                if how == "sent":
+                    while not asleep:
+                        time.sleep(0.001)
+                    core.kill(child, signal.SIGSEGV)
+                death = core.wait(child, 10)
+                core.abandon(child)
+                seen[how] = dict(signal=death.exit_signal, slot=death.alloc_slot,
+                                 quarantined=death.alloc_quarantined, faulted=death.alloc_faulted,
+                                 state=core.slot_stats(death.alloc_slot)["state"])
+            out.update(seen)
+    """,
     # Many children one after another, each allocating: one context, one
     # slot, reused every time; no arena made per child.
     "reuse": """
@@ -255,6 +283,20 @@ def test_a_death_outside_the_allocator_leaves_the_slot_reusable(backend):
     assert out["quarantined"] is False
     assert out["state"] == "idle"
     assert out["again"] == out["slot"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_node_that_faults_quarantines_its_slot(backend):
+    out = run("faulted", backend)
+    for how, sig in (("bad_write", 11), ("abort", 6)):
+        assert out[how]["signal"] == sig
+        assert out[how]["quarantined"] and out[how]["faulted"], out[how]
+        assert out[how]["state"] == "quarantined"
+    assert out["abort"]["slot"] != out["bad_write"]["slot"]
+    # a SIGSEGV sent by the container to a sleeping child: its heap is whole
+    sent = out["sent"]
+    assert sent["signal"] == 11 and not sent["quarantined"] and sent["state"] == "idle", sent
+    assert sent["slot"] not in (out["bad_write"]["slot"], out["abort"]["slot"])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -1098,20 +1098,26 @@ EXPORT int cga_slot_of(const void *p)
 }
 
 /* The slot's process is gone (every task of it); tcb is its main task's
-   thread pointer (its context's TLS block).  CGA_RETIRE_QUARANTINED: it
-   died inside the allocator, the slot is quarantined for good; else its
-   arena is consistent and the slot idle, for the next process in that
-   context.  CGA_RETIRE_PY_ABANDONED: it died inside CPython's object
+   thread pointer (its context's TLS block).  The slot is quarantined for
+   good when it died inside the allocator (CGA_RETIRE_QUARANTINED: its
+   arena may be locked or half-updated) or, faulted, of a fault of its own
+   (| CGA_RETIRE_FAULTED: a bad access or an abort is what a torn heap
+   looks like, and the next process in the slot would inherit the tear);
+   else its arena is consistent and the slot idle, for the next process in
+   that context.  CGA_RETIRE_PY_ABANDONED: it died inside CPython's object
    allocator, whose pools of that slot start again (pyalloc.c). */
-EXPORT int cga_slot_retire(int slot, char *tcb)
+EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
 {
     struct slot *sl = &slots[slot];
     int inside = atomic_load(&sl->inside) != 0 ||
                  (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
     int py = py_slot_retire(slot, tcb);
+    int bits = (inside ? CGA_RETIRE_QUARANTINED : 0) |
+               (!inside && faulted ? CGA_RETIRE_QUARANTINED | CGA_RETIRE_FAULTED : 0) |
+               (py ? CGA_RETIRE_PY_ABANDONED : 0);
     atomic_store(&sl->pid, 0);
-    atomic_store(&sl->state, inside ? CGA_QUARANTINED : CGA_IDLE);
-    return (inside ? CGA_RETIRE_QUARANTINED : 0) | (py ? CGA_RETIRE_PY_ABANDONED : 0);
+    atomic_store(&sl->state, bits & CGA_RETIRE_QUARANTINED ? CGA_QUARANTINED : CGA_IDLE);
+    return bits;
 }
 
 static void count_stack(struct owner *o, struct cga_slot_stats *out)

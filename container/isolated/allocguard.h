@@ -18,8 +18,9 @@ enum {
     CGA_UNUSED = 0,         /* never handed out */
     CGA_IDLE = 1,           /* set up, no process in it (pooled) */
     CGA_BOUND = 2,          /* a node process allocates from it */
-    CGA_QUARANTINED = 3,    /* its process died inside the allocator: its
-                               arena(s) may be locked or torn, for good */
+    CGA_QUARANTINED = 3,    /* its process died inside the allocator (its
+                               arena(s) may be locked or torn) or of a
+                               fault of its own (may be torn): for good */
 };
 
 /* Slots a container has: slot 0 and up to CGA_NSLOTS - 1 node processes. */
@@ -29,6 +30,8 @@ enum {
 #define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */
 #define CGA_RETIRE_PY_ABANDONED 2   /* died inside CPython's object allocator
                                        (pyalloc.c): its pools abandoned */
+#define CGA_RETIRE_FAULTED 4        /* died of a fault of its own: slot
+                                       quarantined (with _QUARANTINED) */
 
 /* CPython's object allocator of one slot (pyalloc.c). */
 struct cga_py_stats {
@@ -58,7 +61,7 @@ typedef int (*cga_slot_new_fn)(void);
 typedef int (*cga_warm_fn)(int slot);
 typedef void (*cga_slot_bind_fn)(int slot);
 typedef void (*cga_child_start_fn)(void);
-typedef int (*cga_slot_retire_fn)(int slot, char *tcb);
+typedef int (*cga_slot_retire_fn)(int slot, char *tcb, int faulted);
 typedef int (*cga_slot_stats_fn)(int slot, struct cga_slot_stats *out);
 typedef int (*cga_py_stats_fn)(int slot, struct cga_py_stats *out);
 typedef int (*cga_py_owner_fn)(const void *p);

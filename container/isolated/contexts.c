@@ -109,7 +109,7 @@ void tls_give_back(struct cg_child *c)
         if (c->retired & CGA_RETIRE_QUARANTINED) {
             free(c->ctx);                /* the TLS block itself stays */
         } else {
-            G.slot_retire(c->ctx->slot, c->ctx->tcb); /* idle (again, if reaped) */
+            G.slot_retire(c->ctx->slot, c->ctx->tcb, 0); /* idle (again, if reaped) */
             ctx_put(c->ctx);
         }
         c->ctx = NULL;
@@ -269,5 +269,9 @@ void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
 void guard_child_start(void) { G.child_start(); }
 
 /* Every task of the child is gone: CGA_RETIRE_* bits (allocguard.h): its
-   slot quarantined (it died inside malloc), its Python pools abandoned. */
-int guard_retire(struct cg_ctx *x) { return G.slot_retire(x->slot, x->tcb); }
+   slot quarantined (it died inside malloc, or faulted), its Python pools
+   abandoned. */
+int guard_retire(struct cg_ctx *x, bool faulted)
+{
+    return G.slot_retire(x->slot, x->tcb, faulted);
+}

@@ -96,7 +96,7 @@ struct cg_event {            /* one record on the event pipe: 56 bytes */
     int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
     uint32_t repairs;        /* death: CG_REPAIR_* (repair.h) */
     uint32_t alloc;          /* death: its allocator slot (low 16 bits, 0:
-                                none) | CG_ALLOC_QUARANTINED */
+                                none) | CG_ALLOC_* */
     uint64_t addr;           /* mutex: its address (the lock word's) */
     int32_t tid;             /* mutex: the task blocked on it */
     int32_t owner;           /* mutex: its owner's tid, 0: none recorded */
@@ -112,6 +112,7 @@ enum {
 };
 #define CG_ALLOC_QUARANTINED (1u << 31)   /* died inside malloc */
 #define CG_ALLOC_PY_ABANDONED (1u << 30)  /* died inside CPython's object allocator */
+#define CG_ALLOC_FAULTED (1u << 29)       /* quarantined: it died of a fault of its own */
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
@@ -171,6 +172,7 @@ struct cg_child {            /* control block, lives in container memory */
     struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
     int crash_si_code;       /* the fault's si_code (SEGV_PKUERR: 4), */
+    int crash_sender;        /* who sent it (si_code <= 0), else 0, */
     int crash_pkey;          /* its key (SEGV_PKUERR), */
     void *crash_addr;        /* and its address */
     int crash_nframes;       /* 0: none; -1: being written; else how many */
@@ -346,7 +348,7 @@ bool guard_active(void);
 struct cg_ctx *ctx_take(void);
 void guard_bind(struct cg_ctx *x);
 void guard_child_start(void);             /* in the child */
-int guard_retire(struct cg_ctx *x);       /* CGA_RETIRE_* bits */
+int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
 int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
 /* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */
 

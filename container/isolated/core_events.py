@@ -81,8 +81,8 @@ class Death:
     detected_monotonic_ns: int
     repairs: Repair = Repair.NONE
     alloc_slot: int = 0  # its allocator-guard slot, 0: no guard
-    alloc_quarantined: bool = False  # it died inside malloc: its arena is
-    # quarantined (allocguard.c)
+    alloc_quarantined: bool = False  # its arena is quarantined (allocguard.c):
+    alloc_faulted: bool = False  # for a fault of its own; else it died inside malloc
     py_abandoned: bool = False  # it died inside CPython's object
     # allocator: its pools are abandoned (pyalloc.c)
     gil_frame: str = ""  # it held the GIL: "function (file:line)"
@@ -165,6 +165,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             repairs=Repair(r.repairs),
             alloc_slot=r.alloc & ALLOC_SLOT_MASK,
             alloc_quarantined=bool(r.alloc & lib.CG_ALLOC_QUARANTINED),
+            alloc_faulted=bool(r.alloc & lib.CG_ALLOC_FAULTED),
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),
         )
     if kind == KIND_STOP:

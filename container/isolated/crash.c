@@ -185,6 +185,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
            it has reported the death. */
         out_flush(&o);
         c->crash_si_code = si->si_code;
+        c->crash_sender = si->si_code <= 0 ? (int)si->si_pid : 0;
         c->crash_addr = si->si_code > 0 ? si->si_addr : NULL;
         c->crash_pkey = sig == SIGSEGV && si->si_code == SEGV_PKUERR ? (int)si->si_pkey : 0;
         c->crash_py_nframes = cg_record_py_stack(c->crash_py_code, c->crash_py_lasti,

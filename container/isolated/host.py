@@ -660,7 +660,9 @@ def _describe(death: Death | None) -> str:
     if death.repaired:
         # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED"
         what += "; repaired: " + ", ".join(death.repairs.names())
-    if death.alloc_quarantined:
+    if death.alloc_faulted:
+        what += "; it faulted, so its heap may be torn: its arena is quarantined"
+    elif death.alloc_quarantined:
         what += "; it died inside the allocator: its arena is quarantined"
     if death.py_abandoned:
         what += "; it died inside Python's object allocator: its pools are abandoned"

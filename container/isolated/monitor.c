@@ -87,7 +87,8 @@ static void emit(uint32_t kind, const struct cg_child *c, int status,
     if (c && c->ctx)
         alloc = (uint32_t)c->ctx->slot |
                 (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
-                (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0);
+                (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0) |
+                (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0);
     struct cg_event ev = {.kind = kind, .pid = c ? c->pid : 0, .status = status,
                           .code = code, .serial = c ? c->serial : 0, .t_ns = t,
                           .repairs = repairs, .alloc = alloc};
@@ -170,6 +171,26 @@ static void repair_after_death(struct cg_child *reaped)
     reaped->repairs |= misc;
 }
 
+/* It died of a fault of its own (a bad access, an abort, a trap), not of a
+   signal another process sent: then what it last wrote may have torn its
+   heap.  Its crash report (crash.c), once complete, names the sender;
+   without one (none installed, or cut short), a fault signal counts as its
+   own. */
+static bool faulted_itself(const struct cg_child *c, int status, int code)
+{
+    if (code != CLD_KILLED && code != CLD_DUMPED)
+        return false;
+    switch (status) {
+    case SIGSEGV: case SIGBUS: case SIGILL: case SIGFPE:
+    case SIGABRT: case SIGTRAP: case SIGSYS:
+        break;
+    default:
+        return false;
+    }
+    bool seen = __atomic_load_n(&c->crash_nframes, __ATOMIC_ACQUIRE) > 0;
+    return !(seen && c->crash_si_code <= 0 && c->crash_sender != c->pid);
+}
+
 static void reap(struct cg_child *c, int64_t t)
 {
     siginfo_t si;
@@ -190,7 +211,7 @@ static void reap(struct cg_child *c, int64_t t)
     /* Every task of the child is gone: whether it died inside the allocator
        is settled now (before anything hears of the death). */
     if (c->ctx)
-        c->retired = guard_retire(c->ctx);
+        c->retired = guard_retire(c->ctx, r == 0 && faulted_itself(c, status, code));
     if (r == 0) {
         siginfo_t gone;
         memset(&gone, 0, sizeof gone);
