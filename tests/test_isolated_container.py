@@ -232,8 +232,9 @@ def test_an_outside_sigterm_stops_a_node_cleanly(client, container):
 )
 def test_isolated_mode_gives_each_task_a_glibc_arena(client, container, per_task, guard):
     # The ready line names the allocator; mallopt's effect is glibc's own.
-    client.list()
-    line = next(ln for ln in container.log_text().splitlines() if " ready (" in ln)
+    # It is logged once the service threads run, so a request can be
+    # answered before it is written: wait for it.
+    line = container.wait_for_log(r".* ready \(.*", timeout=10).group(0)
     assert ("glibc malloc, an arena per task" in line) == per_task, line
     assert ("allocator guard" in line) == guard, line
 
