@@ -13,6 +13,8 @@ Fixtures
     client             a ContainerClient connected to ``container``
     system_factory     system_factory(nodes, container_args=("--isolated",)) -> System:
                        your own composition loaded into a container (harness/system.py)
+    system_trials      system_trials(system, trial, fault=, claim=, ...): seeded trials
+                       of a System, recorded in the report (harness/system_trials.py)
     domain_id          this test's own ROS_DOMAIN_ID
     ros_environment    for the test's duration, this process's participants (the
                        harness's clients) follow the containers' rules: Fast DDS,
@@ -38,6 +40,7 @@ import pytest
 from . import domains, plan, procfs, shm
 from .plan import pytest_collection_modifyitems, record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
 from .process import DISCOVERY_RANGE_VARIABLES, loopback_variables
+from .system_trials import system_trials  # noqa: F401  (plugin)
 
 
 def pytest_addoption(parser):

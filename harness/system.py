@@ -5,8 +5,9 @@ changes), and checks over what your topics and services did
 
 Public, and kept stable (a change that breaks a scenario written against
 it is named in CHANGELOG.md first): ``NodeSpec``, ``System`` and its
-methods below, ``rate``, ``longest_gap``, ``call_latency``, and the
-``system_factory`` fixture of the pytest plugin. The rest of
+methods below, ``rate``, ``longest_gap``, ``call_latency``, the
+``system_factory`` fixture of the pytest plugin, and seeded trials of a
+System (``system_trials``, ``SystemTrial``: system_trials.py). The rest of
 ``cloneguard.harness`` is the project's own test rig and may change.
 
 Times are ``time.monotonic_ns()`` of the test process: what a Recorder
@@ -58,12 +59,23 @@ class Running:
 
 @dataclass(frozen=True)
 class Fault:
-    """A fault ``System`` injected: into which node, what, from when to when."""
+    """A fault ``System`` injected: into which node (its full name and the
+    unique_id it had then), what, from when to when."""
 
     node: str
     what: str
     start_ns: int
     end_ns: int
+    unique_id: int = 0
+
+    @property
+    def ends_the_node(self) -> bool:
+        """A signal whose default action ends the process (not a freeze,
+        not a SIGCONT, SIGCHLD, SIGURG or SIGWINCH)."""
+        return self.what.startswith("SIG") and self.what not in _HARMLESS_SIGNALS
+
+
+_HARMLESS_SIGNALS = {"SIGCONT", "SIGCHLD", "SIGURG", "SIGWINCH", "SIGSTOP", "SIGTSTP", "SIGTTIN", "SIGTTOU"}
 
 
 class System:
@@ -80,6 +92,7 @@ class System:
         self.specs = tuple(nodes)
         self.container_args = list(container_args)
         self.faults: list[Fault] = []
+        self.watched: dict[str, Recorder] = {}  # every topic() asked for, by name
         self.proc: ContainerProcess
         self.client: ContainerClient
         self.nodes: dict[str, Running] = {}
@@ -112,8 +125,11 @@ class System:
     # -- what to watch ------------------------------------------------------------
 
     def topic(self, msg_type, name: str, qos=10) -> Recorder:
-        """Every message on ``name`` from now on, stamped on arrival."""
-        return self.client.subscribe(msg_type, name, qos)
+        """Every message on ``name`` from now on, stamped on arrival. The
+        topic is *watched*: seeded trials record what it did in each one."""
+        rec = self.client.subscribe(msg_type, name, qos)
+        self.watched[name] = rec
+        return rec
 
     def service(self, srv_type, name: str):
         """An rclpy client of ``name``, for ``call_latency``."""
@@ -145,7 +161,7 @@ class System:
         running = self._own_process(full_name)
         at = time.monotonic_ns()
         os.kill(running.pid, sig)
-        self.faults.append(Fault(full_name, signal.Signals(sig).name, at, at))
+        self.faults.append(Fault(full_name, signal.Signals(sig).name, at, at, running.unique_id))
         return at
 
     def freeze(self, full_name: str, seconds: float) -> tuple[int, int]:
@@ -161,7 +177,7 @@ class System:
         finally:
             os.kill(running.pid, signal.SIGCONT)
         end = time.monotonic_ns()
-        self.faults.append(Fault(full_name, f"freeze {seconds:g} s", start, end))
+        self.faults.append(Fault(full_name, f"freeze {seconds:g} s", start, end, running.unique_id))
         return start, end
 
     def wait_crashed(self, full_name: str, timeout: float = WAIT_S) -> ComponentEvent:
@@ -191,6 +207,37 @@ class System:
         a trial that did not survive, say)."""
         self.proc.stop()
         self._start()
+
+    @property
+    def restarts_crashed_nodes(self) -> bool:
+        """Started with ``--restart-policy on-crash``."""
+        args = self.container_args
+        pairs = zip(args, args[1:], strict=False)
+        return "--restart-policy=on-crash" in args or ("--restart-policy", "on-crash") in pairs
+
+    def recover(self, since_ns: int = 0, timeout: float = WAIT_S) -> list[Running]:
+        """The whole composition loaded again after the faults injected since
+        ``since_ns``: for every node a signal ended, its CRASHED event, then
+        its restart (``--restart-policy on-crash``) or a new load of its
+        spec. The nodes it brought back; HarnessTimeout if a death is not
+        reported or a node does not come back in time."""
+        back = []
+        for fault in [f for f in self.faults if f.start_ns >= since_ns and f.ends_the_node]:
+            running = self.nodes.get(fault.node)
+            if running is None or running.unique_id != fault.unique_id:
+                continue  # back already (wait_back), or a node of an earlier container
+            self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=fault.unique_id, timeout=timeout)
+            if self.restarts_crashed_nodes:
+                back.append(self.wait_back(fault.node, timeout))
+            else:
+                again = self._load(running.spec)
+                self.nodes[fault.node] = again
+                back.append(again)
+        return back
+
+    def node_deaths(self) -> int:
+        """CRASHED events this container has published."""
+        return sum(1 for e in self.client.events.messages() if e.event_type == ComponentEvent.CRASHED)
 
 
 # -- checks over what arrived -----------------------------------------------------------

@@ -21,14 +21,26 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "3 passed" in proc.stdout
+    assert "4 passed" in proc.stdout
     run = json.loads((report / "report.json").read_text())
     outcomes = {s["nodeid"].split("::", 1)[1]: s["outcome"] for s in run["scenarios"]}
     assert outcomes == {
         "test_odometry_and_the_map_outlive_the_planner[SIGSEGV]": "passed",
         "test_odometry_and_the_map_outlive_the_planner[SIGKILL]": "passed",
+        "test_the_rest_outlives_the_planner_killed_at_a_random_instant": "passed",
         "test_the_planner_is_back_under_a_restart_policy": "passed",
     }
+    # the seeded trials: each recorded with its seed, its fault and what
+    # every watched topic did; the rate held
+    seeded = next(s for s in run["scenarios"] if "random_instant" in s["nodeid"])
+    assert len(seeded["trials"]) == 3 and len({t["seed"] for t in seeded["trials"]}) == 3
+    for t in seeded["trials"]:
+        assert t["outcome"] == "survived", t
+        assert t["details"]["faults"][0].startswith("SIGKILL → /planner")
+        assert t["details"]["topics"]["/odom"]["rate_hz"] >= 9.0
+        assert t["latency_ms"]["get_map"] < 500
+    assert [e["met"] for e in seeded["expectations"]] == [True, True]
+    assert seeded["profile"] == "per-node" and seeded["fault"] == "planner SIGKILL at a random instant"
 
 
 def test_the_example_uses_only_the_public_test_api():

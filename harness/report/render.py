@@ -8,7 +8,7 @@ from datetime import datetime
 from html import escape
 from pathlib import Path
 
-from . import charts, stats
+from . import charts, stats, system_view
 from .model import CONTAINER_DEATH, REPORT_HTML, TRIAL_OUTCOMES, Report, Scenario, TrialOutcome, write_atomic
 from .stats import Proportion
 
@@ -444,7 +444,7 @@ def _trials_table(s: Scenario, anchor: str) -> str:
         for name in series:
             vals = t.latency_values(name)
             lat.append(f'<td class="num">{e(", ".join(charts.fmt_ms(v) for v in vals) or "–")}</td>')
-        details = e(json.dumps(t.details, sort_keys=True)) if t.details else ""
+        details = system_view.trial_facts(t)
         color = charts.OUTCOME_COLORS.get(t.outcome, "#999")
         outcome = e(t.outcome)
         if t.index in diagnosed:
@@ -499,6 +499,9 @@ def _scenario(s: Scenario, anchor: str) -> str:
     )
     if s.notes:
         parts.append("<h4>Notes</h4><ul>" + "".join(f"<li>{e(n)}</li>" for n in s.notes) + "</ul>")
+    if system_view.has_system_view(s):
+        parts.append(system_view.topics_table(s))
+        parts.append(system_view.timeline(s))
     parts.append(_latency(s))
     parts.append(_hangs(s, anchor))
     parts.append(_trials_table(s, anchor))

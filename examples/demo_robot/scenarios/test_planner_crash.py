@@ -1,7 +1,8 @@
 """The demo robot's claims: when the planner dies, odometry keeps flowing
-and the map server still answers; with a restart policy the planner is
-back. Run with ``python -m pytest examples/demo_robot/scenarios`` once the
-package is installed (docs/testing-your-nodes.md)."""
+and the map server still answers (once, and as seeded trials with a rate
+in the report); with a restart policy the planner is back. Run with
+``python -m pytest examples/demo_robot/scenarios`` once the package is
+installed (docs/testing-your-nodes.md)."""
 
 import signal
 
@@ -34,6 +35,32 @@ def test_odometry_and_the_map_outlive_the_planner(system_factory, sig):
     assert longest_gap(odom, died_at) < 0.5
     assert call_latency(robot, robot.service(Trigger, "/map_server/get_map"), Trigger.Request()) < 0.5
     assert robot.alive()
+
+
+def test_the_rest_outlives_the_planner_killed_at_a_random_instant(system_factory, system_trials):
+    robot = system_factory(ROBOT)
+    odom = robot.topic(Float64, "/odom")
+    robot.topic(UInt64, "/plan")  # watched too: the report shows it stop and come back
+    odom.wait_count(5, timeout=10)
+    get_map = robot.service(Trigger, "/map_server/get_map")
+
+    def trial(t):
+        t.pause(0.5)  # a random instant of the planner's work
+        died_at = robot.kill("/planner", signal.SIGKILL)
+        robot.wait_crashed("/planner")
+        odom.wait_count(len(odom) + WINDOW // 2, timeout=10)
+        assert rate(odom, died_at) >= 9.0
+        assert longest_gap(odom, died_at) < 0.5
+        return {"get_map": 1e3 * call_latency(robot, get_map, Trigger.Request())}
+
+    system_trials(
+        robot,
+        trial,
+        fault="planner SIGKILL at a random instant",
+        claim="odometry keeps >= 9 Hz with no gap of 0.5 s and the map server answers",
+        quick=3,
+        at_least=0.99,
+    )
 
 
 def test_the_planner_is_back_under_a_restart_policy(system_factory):

@@ -1,0 +1,161 @@
+"""The report's view of a scenario over a user's own System (seeded trials,
+harness/system_trials.py): per watched topic, what it did across the
+trials; a timeline of one trial (each topic's rate, the faults shaded);
+and each trial's facts as words, its cause first.
+
+Reads only what trials recorded in their details (``why``, ``faults``,
+``topics``, ``timeline``); a scenario without them shows none of this.
+"""
+
+from __future__ import annotations
+
+import json
+from html import escape
+
+from . import stats
+from .model import Scenario, Trial, TrialOutcome
+
+
+def e(value) -> str:
+    return escape("" if value is None else str(value))
+
+
+TOPIC_COLORS = ("#2f6fb3", "#2e9d4f", "#b35b2f", "#7a6fb0", "#8c2d7a", "#3a8c8c")
+
+
+def has_system_view(s: Scenario) -> bool:
+    return any("topics" in (t.details or {}) for t in s.trials)
+
+
+def _fmt(v: float | None, digits: int = 2) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
+def topics_table(s: Scenario) -> str:
+    """One row a watched topic: over every trial, its rate (lowest and
+    median) and its longest gap (median and worst), and how many trials
+    saw no message at all."""
+    per_topic: dict[str, list[dict]] = {}
+    for t in s.trials:
+        for name, facts in (t.details or {}).get("topics", {}).items():
+            per_topic.setdefault(name, []).append(facts)
+    if not per_topic:
+        return ""
+    rows = []
+    for name, facts in per_topic.items():
+        rates = sorted(f["rate_hz"] for f in facts)
+        gaps = sorted(f["longest_gap_s"] for f in facts)
+        silent = sum(1 for f in facts if f["messages"] == 0)
+        rows.append(
+            f'<tr><td class="mono">{e(name)}</td><td class="num">{len(facts)}</td>'
+            f'<td class="num">{_fmt(rates[0], 1)}</td><td class="num">{_fmt(stats.quantile(rates, 0.5), 1)}</td>'
+            f'<td class="num">{_fmt(stats.quantile(gaps, 0.5), 3)}</td><td class="num">{_fmt(gaps[-1], 3)}</td>'
+            f'<td class="num">{silent}</td></tr>'
+        )
+    return (
+        "<h4>Topics during the trials</h4>"
+        '<table class="grid"><thead><tr><th>topic</th><th class="num">trials</th>'
+        '<th class="num">lowest Hz</th><th class="num">median Hz</th>'
+        '<th class="num">median longest gap s</th><th class="num">worst gap s</th>'
+        '<th class="num">trials silent</th></tr></thead>'
+        f"<tbody>{''.join(rows)}</tbody></table>"
+    )
+
+
+def _timeline_trial(s: Scenario) -> Trial | None:
+    """The trial to draw: the first that did not survive, else the first."""
+    drawn = [t for t in s.trials if "timeline" in (t.details or {})]
+    for t in drawn:
+        if t.outcome != TrialOutcome.SURVIVED:
+            return t
+    return drawn[0] if drawn else None
+
+
+def timeline_svg(tl: dict, width: int = 640) -> str:
+    """A strip per topic (messages per second, bin by bin) on one time
+    axis; each fault a shaded band (an instant one a line), labelled."""
+    bin_ms = tl["bin_ms"]
+    topics = tl["topics"]
+    n_bins = max((len(c) for c in topics.values()), default=1)
+    span_ms = n_bins * bin_ms
+    left, right, strip_h, gap, top = 150.0, 12.0, 34.0, 8.0, 18.0
+    plot_w = width - left - right
+    height = int(top + len(topics) * (strip_h + gap) + 26)
+
+    def x(ms: float) -> float:
+        return left + max(0.0, min(1.0, ms / span_ms)) * plot_w
+
+    title = f"timeline: {', '.join(topics)} over {span_ms / 1000:.1f} s, {len(tl['faults'])} fault(s)"
+    out = [
+        f'<svg class="chart" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+        f'viewBox="0 0 {width} {height}" role="img" aria-label="{e(title)}"><title>{e(title)}</title>'
+    ]
+    bottom = height - 26
+    for start, end, node, what in tl["faults"]:
+        x0, x1 = x(start), x(end)
+        label = f"{what} → {node}"
+        out.append(
+            f'<rect x="{x0:.1f}" y="{top - 4}" width="{max(2.0, x1 - x0):.1f}" height="{bottom - top + 4:.1f}" '
+            f'fill="#d13b3b" fill-opacity="{0.18 if x1 - x0 > 2 else 0.7}">'
+            f"<title>{e(label)} at {start:.0f}–{end:.0f} ms</title></rect>"
+        )
+        out.append(f'<text x="{x0 + 3:.1f}" y="{top - 6}" class="tick">{e(label)}</text>')
+    for i, (name, counts) in enumerate(topics.items()):
+        y0 = top + i * (strip_h + gap)
+        hz = [c * 1000.0 / bin_ms for c in counts]
+        peak = max(hz) or 1.0
+        color = TOPIC_COLORS[i % len(TOPIC_COLORS)]
+        points = " ".join(
+            f"{x((j + 0.5) * bin_ms):.1f},{y0 + strip_h - (v / peak) * strip_h:.1f}" for j, v in enumerate(hz)
+        )
+        out.append(f'<rect x="{left}" y="{y0}" width="{plot_w:.1f}" height="{strip_h}" class="band"/>')
+        out.append(f'<polyline points="{points}" fill="none" stroke="{color}" stroke-width="1.6"/>')
+        out.append(
+            f'<text x="{left - 6}" y="{y0 + strip_h / 2 + 4:.1f}" text-anchor="end" class="tick">{e(name)}</text>'
+        )
+        out.append(f'<text x="{left - 6}" y="{y0 + 9:.1f}" text-anchor="end" class="tick">{peak:.0f} Hz</text>')
+    step_s = max(1, round(span_ms / 1000 / 8))
+    t_s = 0
+    while t_s * 1000 <= span_ms:
+        tx = x(t_s * 1000)
+        out.append(f'<line x1="{tx:.1f}" y1="{bottom}" x2="{tx:.1f}" y2="{bottom + 4}" class="axis"/>')
+        out.append(f'<text x="{tx:.1f}" y="{bottom + 15}" text-anchor="middle" class="tick">{t_s} s</text>')
+        t_s += step_s
+    out.append(f'<line x1="{left}" y1="{bottom}" x2="{left + plot_w:.1f}" y2="{bottom}" class="axis"/></svg>')
+    return "".join(out)
+
+
+def timeline(s: Scenario) -> str:
+    t = _timeline_trial(s)
+    if t is None:
+        return ""
+    return (
+        f"<h4>Timeline of trial {e(t.index)} ({e(t.outcome)})</h4>"
+        "<p class=\"muted small\">Each watched topic's messages per second, in 100 ms bins, from the trial's "
+        "start; the faults shaded.</p>" + timeline_svg(t.details["timeline"])
+    )
+
+
+def trial_facts(t: Trial) -> str:
+    """A trial's details as words (any trial's, the rig's too): its cause
+    first, then its faults, what each topic did, and anything else
+    recorded (the timeline is drawn, not listed)."""
+    d = dict(t.details or {})
+    parts = []
+    why = d.pop("why", None)
+    if why:
+        parts.append(f"<b>{e(why)}</b>")
+    faults = d.pop("faults", None)
+    if faults:
+        parts.append("faults: " + e("; ".join(faults)))
+    topics = d.pop("topics", None) or {}
+    for name, f in topics.items():
+        parts.append(f"{e(name)} {f['rate_hz']:.1f} Hz, longest gap {f['longest_gap_s']:.3f} s")
+    d.pop("timeline", None)
+    log = d.pop("container_log", None)
+    for k, v in sorted(d.items()):
+        parts.append(f"{e(k)}: {e(v if isinstance(v, str) else json.dumps(v, sort_keys=True))}")
+    text = "<br>".join(parts)
+    if log:
+        text += f"<details><summary>container log (last lines)</summary><pre>{e(log)}</pre></details>"
+    return text

@@ -1,0 +1,234 @@
+"""Seeded trials of your own System: the same fault and claims run again and
+again, each outcome recorded in the crash-resilience report with what every
+watched topic did and which faults were injected when, and a survival rate
+with its interval judged at the end (docs/testing-your-nodes.md).
+
+Public, and kept stable like ``system.py``: the ``system_trials`` fixture
+and ``SystemTrial``.
+
+One trial is a call of your function with a ``SystemTrial`` (its index,
+seed, a Random seeded from it, and when it started). Its outcome:
+
+``survived``  it returned: every claim it asserts held;
+``failed``    an assertion of yours did not hold (its message is the cause);
+``hung``      something waited for did not come in time (a topic's
+              messages, a CRASHED event, a node back): HarnessTimeout;
+``crashed``   the container process itself died (every node at once).
+
+After a trial the composition is brought back: the nodes a signal ended
+are reloaded (or waited for, under ``--restart-policy on-crash``); after a
+trial that did not survive, or every ``DEATHS_PER_CONTAINER`` node deaths,
+the container is replaced with the whole composition loaded again.
+
+Trial ``i`` gets the same seed in every run with the same ``--seed``
+(plan.py), so ``--trials``, ``--deep``, ``--seed`` and ``--shard`` work on
+your scenarios as on the project's, and sharded runs merge.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import pytest
+
+from .errors import HarnessTimeout
+from .report.model import TrialOutcome
+
+#: A container is replaced after this many node deaths (each dead node
+#: leaves its DDS participant behind: rig.DEATHS_PER_CONTAINER says why).
+DEATHS_PER_CONTAINER = 100
+#: Bins of a trial's timeline (the report's picture of each watched topic).
+TIMELINE_BIN_MS = 100
+#: How long a drawn trial's picture waits after the recovery for every
+#: watched topic to speak again.
+TIMELINE_TAIL_S = 2.0
+HEARD_AGAIN = 3
+#: Lines of a dead container's log kept with the trial.
+CONTAINER_LOG_LINES = 40
+
+
+@dataclass(frozen=True)
+class SystemTrial:
+    """What one trial is given: its place in the plan, its seed, a Random
+    seeded from it (draw every random choice from it, so that the trial
+    replays), and when it started (``time.monotonic_ns()``, the clock of
+    ``System.kill`` and of the recorders)."""
+
+    index: int
+    seed: int
+    rng: random.Random
+    start_ns: int
+
+    def pause(self, at_most_s: float) -> float:
+        """Sleep a random time of up to ``at_most_s`` seconds (a fault at a
+        random instant); how long."""
+        if not 0 <= at_most_s <= 600:
+            raise ValueError("pause for 0-600 s")
+        seconds = self.rng.uniform(0.0, at_most_s)
+        time.sleep(seconds)
+        return seconds
+
+
+def profile_of(container_args) -> str:
+    """The report's profile of a container started with these arguments:
+    ``threads`` without --isolated, else its participant profile."""
+    args = list(container_args)
+    if "--isolated" not in args:
+        return "threads"
+    for i, arg in enumerate(args):
+        if arg == "--profile" and i + 1 < len(args):
+            return args[i + 1]
+        if arg.startswith("--profile="):
+            return arg.split("=", 1)[1]
+    return "per-node"
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _outcome(system, exc: BaseException | None) -> tuple[str, str]:
+    """(outcome, cause) of a trial that returned (exc None) or raised."""
+    if not system.alive():
+        return TrialOutcome.CRASHED.value, f"the container died (exit status {system.proc.wait(0)})"
+    if exc is None:
+        return TrialOutcome.SURVIVED.value, ""
+    if isinstance(exc, HarnessTimeout):
+        return TrialOutcome.HUNG.value, _first_line(exc)
+    return TrialOutcome.FAILED.value, _first_line(exc)
+
+
+def _window(rec, start_ns: int, end_ns: int) -> list[int]:
+    return [r.at_ns for r in rec.items() if start_ns <= r.at_ns <= end_ns]
+
+
+def topic_facts(system, start_ns: int, end_ns: int) -> dict[str, dict]:
+    """What each watched topic did between the two times: messages, rate
+    (Hz) and longest gap (s, the window's edges counted)."""
+    span = max(end_ns - start_ns, 1)
+    out = {}
+    for name, rec in system.watched.items():
+        stamps = _window(rec, start_ns, end_ns)
+        edges = [start_ns, *stamps, end_ns]
+        gap = max(b - a for a, b in zip(edges, edges[1:], strict=False))
+        out[name] = {
+            "messages": len(stamps),
+            "rate_hz": round(len(stamps) / (span / 1e9), 3),
+            "longest_gap_s": round(gap / 1e9, 4),
+        }
+    return out
+
+
+def timeline(system, start_ns: int, end_ns: int, faults) -> dict:
+    """The trial and its recovery as the report draws them: messages per
+    TIMELINE_BIN_MS bin of each watched topic, and the faults as
+    [from_ms, to_ms, node, what]."""
+    bin_ns = TIMELINE_BIN_MS * 1_000_000
+    bins = max(1, (end_ns - start_ns) // bin_ns)  # whole bins: a cut one would read as a drop
+    topics = {}
+    for name, rec in system.watched.items():
+        counts = [0] * bins
+        for at in _window(rec, start_ns, start_ns + bins * bin_ns - 1):
+            counts[(at - start_ns) // bin_ns] += 1
+        topics[name] = counts
+    spans = [
+        [round((f.start_ns - start_ns) / 1e6, 1), round((f.end_ns - start_ns) / 1e6, 1), f.node, f.what] for f in faults
+    ]
+    return {"bin_ms": TIMELINE_BIN_MS, "topics": topics, "faults": spans}
+
+
+def _heard_again(system, within_s: float) -> None:
+    """Until each watched topic has had HEARD_AGAIN messages more, or
+    ``within_s``."""
+    deadline = time.monotonic() + within_s
+    for rec in system.watched.values():
+        try:
+            rec.wait_count(len(rec) + HEARD_AGAIN, timeout=max(0.0, deadline - time.monotonic()))
+        except HarnessTimeout:
+            return  # silent since: the picture shows it
+
+
+def _bin_end(start_ns: int) -> int:
+    """Now, once the timeline bin now falls in is whole (what arrived in
+    it so far would read as a drop)."""
+    bin_ns = TIMELINE_BIN_MS * 1_000_000
+    end = start_ns + -(-(time.monotonic_ns() - start_ns) // bin_ns) * bin_ns
+    time.sleep(max(0, end - time.monotonic_ns()) / 1e9)
+    return end
+
+
+def _settle(system, outcome: str, start_ns: int) -> None:
+    """The composition whole again for the next trial."""
+    if outcome == TrialOutcome.SURVIVED.value:
+        try:
+            system.recover(start_ns)
+            if system.node_deaths() < DEATHS_PER_CONTAINER:
+                return
+        except HarnessTimeout:
+            pass  # not back: a fresh container
+    system.restart()
+
+
+def run_trials(system, trial: Callable[[SystemTrial], Mapping | None], planned, resilience) -> None:
+    """Each planned (index, seed) trial of ``system``, recorded. A trial
+    may return a mapping of measurements in ms (a latency series each)."""
+    for index, seed in planned:
+        start = time.monotonic_ns()
+        first_fault = len(system.faults)
+        exc: BaseException | None = None
+        measured = None
+        try:
+            measured = trial(SystemTrial(index, seed, random.Random(seed), start))
+        except AssertionError as raised:  # HarnessTimeout is one
+            exc = raised
+        end = time.monotonic_ns()
+        outcome, cause = _outcome(system, exc)
+        faults = system.faults[first_fault:]
+        details: dict = {}
+        if cause:
+            details["why"] = cause
+        details["faults"] = [f"{f.what} → {f.node} at {(f.start_ns - start) / 1e6:.0f} ms" for f in faults]
+        details["topics"] = topic_facts(system, start, end)
+        if outcome == TrialOutcome.CRASHED.value:
+            details["container_log"] = "\n".join(system.proc.log_text().splitlines()[-CONTAINER_LOG_LINES:])
+        try:
+            _settle(system, outcome, start)
+        finally:
+            # The picture runs on through the recovery, until every watched
+            # topic has spoken again (or TIMELINE_TAIL_S): the nodes back.
+            if outcome != TrialOutcome.SURVIVED.value or index == planned[0][0]:
+                _heard_again(system, TIMELINE_TAIL_S)
+                details["timeline"] = timeline(system, start, _bin_end(start), faults)
+            resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
+
+
+@pytest.fixture
+def system_trials(request, resilience, trial_plan):
+    """system_trials(system, trial, *, fault, claim, quick=3, deep=200,
+    at_least=None): run ``trial(SystemTrial)`` as seeded trials of
+    ``system`` (``quick`` by default, ``deep`` with --deep, N with
+    --trials N), record each in the report under ``fault`` and ``claim``,
+    then, with ``at_least``, hold the survival rate to it (and, isolated,
+    allow no container death). Returns the survival rate so far
+    (``stats.Proportion``: successes, trials, rate, ci_low, ci_high)."""
+
+    def run(system, trial, *, fault: str, claim: str, quick: int = 3, deep: int = 200, at_least: float | None = None):
+        __tracebackhide__ = True
+        resilience.describe(
+            fault=fault,
+            profile=profile_of(system.container_args),
+            mitigations={"args": " ".join(system.container_args) or "(none)"},
+            claim=claim,
+        )
+        run_trials(system, trial, trial_plan(quick, deep), resilience)
+        if at_least is not None:
+            if profile_of(system.container_args) != "threads":
+                resilience.expect_no_container_death()
+            resilience.expect_rate(TrialOutcome.SURVIVED, at_least=at_least)
+        return resilience.rate()
+
+    return run

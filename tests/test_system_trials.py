@@ -1,0 +1,144 @@
+"""Seeded trials of a user's own System (harness/system_trials.py): how an
+outcome is judged and recorded, what a watched topic's facts and timeline
+say, and, as a user runs them, failed and hung trials in the report."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from types import SimpleNamespace
+
+import pytest
+
+from cloneguard.harness.client import Received, Recorder
+from cloneguard.harness.system import Fault
+from cloneguard.harness.system_trials import profile_of, timeline, topic_facts
+
+MS = 1_000_000
+
+
+@pytest.mark.parametrize(
+    "args, profile",
+    [
+        ([], "threads"),
+        (["--use_multi_threaded_executor"], "threads"),
+        (["--isolated"], "per-node"),
+        (["--isolated", "--profile", "shared"], "shared"),
+        (["--isolated", "--profile=shared", "--cgroups"], "shared"),
+    ],
+)
+def test_the_reports_profile_follows_the_container_arguments(args, profile):
+    assert profile_of(args) == profile
+
+
+@pytest.mark.parametrize(
+    "what, ends", [("SIGKILL", True), ("SIGSEGV", True), ("SIGTERM", True), ("SIGCONT", False), ("freeze 1 s", False)]
+)
+def test_a_fault_ends_the_node_when_its_signal_does(what, ends):
+    assert Fault("/n", what, 0, 0, 1).ends_the_node is ends
+
+
+def _system(stamps_ms: dict[str, list[float]], start_ns: int):
+    watched = {}
+    for name, stamps in stamps_ms.items():
+        rec = Recorder(name)
+        rec._items.extend(Received(None, start_ns + int(ms * MS)) for ms in stamps)
+        watched[name] = rec
+    return SimpleNamespace(watched=watched)
+
+
+def test_topic_facts_count_the_window_only_and_its_edges_as_gaps():
+    start = 10_000 * MS
+    # 10 Hz for 1 s, then nothing for 0.5 s; one message before the window
+    system = _system({"/odom": [-50, *range(0, 1000, 100)], "/silent": []}, start)
+    facts = topic_facts(system, start, start + 1500 * MS)
+    assert facts["/odom"] == {"messages": 10, "rate_hz": pytest.approx(10 / 1.5, abs=1e-3), "longest_gap_s": 0.6}
+    assert facts["/silent"] == {"messages": 0, "rate_hz": 0.0, "longest_gap_s": 1.5}
+
+
+def test_a_timeline_bins_whole_bins_and_places_the_faults():
+    start = 10_000 * MS
+    system = _system({"/odom": [5, 15, 25, 150, 330, 349]}, start)
+    fault = Fault("/planner", "SIGKILL", start + 120 * MS, start + 120 * MS, 3)
+    tl = timeline(system, start, start + 350 * MS, [fault])
+    # three whole 100 ms bins: the last 50 ms (a cut bin) are left out
+    assert tl == {"bin_ms": 100, "topics": {"/odom": [3, 1, 0]}, "faults": [[120.0, 120.0, "/planner", "SIGKILL"]]}
+
+
+USER_SCENARIOS = textwrap.dedent("""
+    import signal
+
+    from std_msgs.msg import Float64
+
+    from cloneguard.harness.system import NodeSpec, rate
+
+    ROBOT = [
+        NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 20.0}),
+        NodeSpec("demo_robot", "demo_robot::Planner"),
+    ]
+
+
+    def test_a_claim_that_cannot_hold(system_factory, system_trials):
+        robot = system_factory(ROBOT)
+        odom = robot.topic(Float64, "/odom")
+        odom.wait_count(3, timeout=10)
+
+        def trial(t):
+            died = robot.kill("/planner", signal.SIGKILL)
+            robot.wait_crashed("/planner")
+            odom.wait_count(len(odom) + 4, timeout=10)
+            assert rate(odom, died) >= 1000.0, "odometry is not at 1 kHz"
+
+        system_trials(robot, trial, fault="planner SIGKILL", claim="odometry at 1 kHz", at_least=0.99)
+
+
+    def test_a_topic_that_never_speaks(system_factory, system_trials):
+        robot = system_factory(ROBOT)
+
+        def trial(t):
+            robot.topic(Float64, "/nobody_publishes_this").wait_count(1, timeout=0.3)
+
+        system_trials(robot, trial, fault="none", claim="a silent topic speaks")
+""")
+
+
+def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
+    (tmp_path / "scenarios").mkdir()
+    (tmp_path / "scenarios" / "test_user.py").write_text(USER_SCENARIOS)
+    report = tmp_path / "report"
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "scenarios", "--trials", "2",
+           "--seed", "7", "--report-dir", str(report)]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    assert proc.returncode == 1, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "1 failed, 1 passed" in proc.stdout, proc.stdout[-3000:]
+    run = json.loads((report / "report.json").read_text())
+    by_name = {s["name"]: s for s in run["scenarios"]}
+
+    cannot = by_name["test_a_claim_that_cannot_hold"]
+    assert [t["outcome"] for t in cannot["trials"]] == ["failed", "failed"]
+    assert all(t["details"]["why"] == "odometry is not at 1 kHz" for t in cannot["trials"])
+    assert all(t["details"]["faults"][0].startswith("SIGKILL → /planner at ") for t in cannot["trials"])
+    assert all(t["details"]["topics"]["/odom"]["messages"] >= 4 for t in cannot["trials"])
+    assert [t["index"] for t in cannot["trials"]] == [0, 1]
+    assert all("timeline" in t["details"] for t in cannot["trials"])  # every non-survivor is drawn
+    survived = [e for e in cannot["expectations"] if e["outcome"] == "survived"]
+    assert survived and survived[0]["met"] is False
+    assert cannot["outcome"] == "failed"
+
+    silent = by_name["test_a_topic_that_never_speaks"]
+    assert [t["outcome"] for t in silent["trials"]] == ["hung", "hung"]
+    assert "0 of 1 messages" in silent["trials"][0]["details"]["why"]
+    assert silent["outcome"] == "passed"  # no rate was promised
+
+    html = (report / "report.html").read_text()
+    assert "odometry is not at 1 kHz" in html and "Topics during the trials" in html
+    assert "Timeline of trial 0 (failed)" in html
+    assert "{&quot;why&quot;" not in html  # facts in words, not a JSON blob
+
+    # the same --seed gives the same trials
+    again = report.parent / "again"
+    cmd[cmd.index("--report-dir") + 1] = str(again)
+    subprocess.run([*cmd, "-k", "never_speaks"], cwd=tmp_path, capture_output=True, timeout=300, env=dict(os.environ))
+    replay = json.loads((again / "report.json").read_text())["scenarios"][0]
+    assert [t["seed"] for t in replay["trials"]] == [t["seed"] for t in silent["trials"]]
