@@ -77,9 +77,11 @@ def run_render(args) -> int:
 def _add_merge(subparsers) -> None:
     p = subparsers.add_parser(
         "merge",
-        help="join the reports of shards (--shard K/N) into one report",
-        description="Join shards' reports: trials put together by scenario, every expectation "
-        "judged on all of them, hangs and diagnoses kept; writes report.json, "
+        help="join the reports of shards (--shard K/N) and of other seeds into one report",
+        description="Join the reports of one suite's runs (shards of a run, runs of other --seed "
+        "values): trials put together by scenario (runs of several seeds numbered anew, "
+        "seed by seed), every expectation judged on all of them, hangs and diagnoses kept; "
+        "a trial run twice is refused; writes report.json, "
         "report.html and junit.xml. Exit 1 if a scenario failed or an expectation "
         "is not met.",
     )

@@ -100,12 +100,42 @@ def test_merge_refuses_other_commits_overlaps_and_other_plans(cells, tmp_path):
     assert merge_reports([a, b], allow_mixed_commits=True).run.shards[1]["commit"] == "0" * 40
     with pytest.raises(MergeError, match="same shard"):
         merge_reports([a, a])
-    c = run(cells, tmp_path / "c", "--shard", "2/2", "--seed", "6")
-    with pytest.raises(MergeError, match="different trial plans"):
+    c = run(cells, tmp_path / "c", "--shard", "2/2", "--trials", "4")
+    with pytest.raises(MergeError, match="same --seed made different trial plans"):
         merge_reports([a, c])
     whole = run(cells, tmp_path / "whole")
     with pytest.raises(MergeError, match="run twice"):
         merge_reports([whole, a])
+
+
+def test_runs_of_other_seeds_merge_as_independent_trials(cells, tmp_path):
+    five = run(cells, tmp_path / "five")  # --seed 5
+    six = [run(cells, tmp_path / f"six{k}", "--seed", "6", "--shard", f"{k}/2") for k in (1, 2)]
+    seven = run(cells, tmp_path / "seven", "--seed", "7", "--trials", "3")
+    merged = merge_reports([five, *six, seven])
+    assert merged.run.plan == {"seed": [5, 6, 7], "deep": False, "trials": [None, None, 3]}
+    assert [sh["seed"] for sh in merged.run.shards] == [5, 6, 6, 7]
+    cell = next(s for s in merged.scenarios if s.name == "test_cell")
+    # every trial of every run, numbered anew seed by seed, each its own seed
+    expected = [
+        (seed, t.index, t.seed, t.outcome)
+        for seed, parts in ((5, [five]), (6, six), (7, [seven]))
+        for t in sorted(
+            (t for r in parts for s in r.scenarios if s.name == "test_cell" for t in s.trials), key=lambda t: t.index
+        )
+    ]
+    assert len(expected) == 11 + 11 + 3
+    assert [(t.index, t.seed, t.outcome) for t in cell.trials] == [
+        (i, seed, outcome) for i, (_, _, seed, outcome) in enumerate(expected)
+    ]
+    assert [t.details["run"] for t in cell.trials[10:12]] == ["--seed 5, trial 10", "--seed 6, trial 0"]
+    survived = sum(1 for *_, o in expected if o == "survived")
+    [expectation] = cell.expectations
+    assert (expectation.successes, expectation.trials) == (survived, 25)
+    with pytest.raises(MergeError, match="not merged again"):
+        merge_reports([merged, five])
+    with pytest.raises(MergeError, match="run twice"):
+        merge_reports([five, six[0], five])
 
 
 def test_bad_shard_is_a_usage_error(cells, tmp_path):
