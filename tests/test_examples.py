@@ -41,6 +41,11 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         assert t["latency_ms"]["get_map"] < 500
     assert [e["met"] for e in seeded["expectations"]] == [True, True]
     assert seeded["profile"] == "per-node" and seeded["fault"] == "planner SIGKILL at a random instant"
+    # the report names the user's project and the versions it ran on
+    assert run["run"]["project"] == "demo-robot"
+    packages = run["run"]["packages"]
+    assert {"demo-robot", "cloneguard", "ros-jazzy-rclpy", "ros-fastrtps"} <= set(packages), packages
+    assert packages["demo-robot"] == "0.1.0"
 
 
 def test_the_example_uses_only_the_public_test_api():

@@ -682,3 +682,17 @@ def test_no_failed_test_is_not_said_in_red():
     html = render_html(report)
     assert '<span class="badge b-passed">1 passed</span>' in html
     assert '<span class="badge ">0 failed</span>' in html and 'b-failed">0 failed' not in html
+
+
+def test_the_project_is_the_nearest_pyproject_up_to_the_root(tmp_path):
+    from cloneguard.harness.report.env import project_name
+
+    root = tmp_path / "checkout"
+    pkg = root / "examples" / "robot"
+    (pkg / "scenarios").mkdir(parents=True)
+    (root / "pyproject.toml").write_text('[project]\nname = "outer"\n')
+    (pkg / "pyproject.toml").write_text('[project]\nname = "my-robot"\n')
+    assert project_name(pkg / "scenarios", root) == "my-robot"
+    assert project_name(root / "examples", root) == "outer"
+    (root / "pyproject.toml").write_text("[tool.pytest.ini_options]\n")
+    assert project_name(root / "examples", root) == "checkout"  # no name: the root's directory

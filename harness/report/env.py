@@ -6,7 +6,16 @@ import os
 import platform
 import subprocess
 import sys
+import tomllib
+from importlib import metadata
 from pathlib import Path
+
+#: The stack under test whose versions every report names: the container,
+#: its test rig, rclpy and Fast DDS with its rmw.
+STACK = ("cloneguard", "cloneguard-testrig", "ros-jazzy-rclpy", "ros-rmw-fastrtps-cpp", "ros-fastrtps")
+#: The entry point group of loadable components: the distributions that
+#: declare some are the project's own nodes (or the rig's).
+COMPONENT_GROUP = "cloneguard.components"
 
 
 def cpuinfo(path: str = "/proc/cpuinfo") -> tuple[str | None, set[str]]:
@@ -85,3 +94,40 @@ def git_info(repo: Path) -> dict:
         "branch": branch,
         "dirty": bool(status) if status is not None else None,
     }
+
+
+def package_versions() -> dict[str, str]:
+    """Name -> version of the stack (STACK) and of every installed package
+    that declares components (the nodes a run can load)."""
+    names = list(STACK)
+    for dist in metadata.distributions():
+        if any(ep.group == COMPONENT_GROUP for ep in dist.entry_points):
+            name = dist.metadata["Name"]
+            if name and name not in names:
+                names.append(name)
+    out = {}
+    for name in names:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def project_name(invoked_in: Path, root: Path) -> str:
+    """The project a run tested: the [project] name of the nearest
+    pyproject.toml from where pytest was invoked up to its root directory
+    (a package nested in a larger checkout is its own project), else the
+    root directory's name."""
+    here, root = Path(invoked_in).resolve(), Path(root).resolve()
+    for d in (here, *here.parents):
+        try:
+            with open(d / "pyproject.toml", "rb") as fh:
+                name = tomllib.load(fh).get("project", {}).get("name")
+        except (OSError, tomllib.TOMLDecodeError):
+            name = None
+        if name:
+            return str(name)
+        if d == root:
+            break
+    return root.name

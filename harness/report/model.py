@@ -330,6 +330,10 @@ class RunInfo:
     python: str | None = None
     host: dict[str, Any] = field(default_factory=dict)
     git: dict[str, Any] = field(default_factory=dict)
+    #: the tested project (pyproject name, else its directory) and the
+    #: versions of the stack and of every package declaring components
+    project: str | None = None
+    packages: dict[str, str] = field(default_factory=dict)
     container_exe: str | None = None
     deep: bool = False
     #: path of the JUnit XML, relative to the report directory when inside it

@@ -234,8 +234,10 @@ def _header(report: Report) -> str:
             f"{e(host.get('glibc') or 'libc ?')}",
         ),
         ("cpu", cpu_line),
+        ("project", e(run.project or "–")),
         ("commit", commit_text),
         ("python", e(run.python or "–")),
+        ("packages", e(", ".join(f"{k} {v}" for k, v in run.packages.items()) or "–")),
         ("pytest", f"<code>{e(' '.join(run.pytest_args) or '(no arguments)')}</code>"),
         (
             "container",

@@ -222,6 +222,8 @@ class ReportSession:
             python=env.python_version(),
             host=env.host_info(),
             git=env.git_info(Path(config.rootpath)),
+            project=env.project_name(Path(config.invocation_params.dir), Path(config.rootpath)),
+            packages=env.package_versions(),
             container_exe=None if container_exe is None else str(container_exe),
             deep=plan.is_deep(config),
             workers=len(self.workers),
