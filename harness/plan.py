@@ -2,8 +2,9 @@
 
 Every scenario's trials are a plan: trial ``i`` gets the ``i``-th seed drawn
 from a Random seeded by ``--seed`` and the test's node id, so any trial can
-be replayed alone. A scenario asks for ``quick`` trials by default, ``deep``
-with ``--deep`` (or CLONEGUARD_DEEP=1), exactly N with ``--trials N``.
+be replayed alone (``--trial-seed S``: one trial per scenario, seed S). A
+scenario asks for ``quick`` trials by default, ``deep`` with ``--deep`` (or
+CLONEGUARD_DEEP=1), exactly N with ``--trials N``.
 
 ``--shard K/N`` (one of N runs, on other cores, jobs or machines) makes the
 trials ``i`` with ``i % N == K - 1``, with the seeds the unsharded run would
@@ -59,6 +60,13 @@ def add_options(parser) -> None:
         "--trials", type=trial_count_arg, default=None, metavar="N", help="run exactly N (>= 1) trials per scenario"
     )
     group.addoption("--seed", type=int, default=1, help="base seed of every random choice (default 1)")
+    group.addoption(
+        "--trial-seed",
+        type=int,
+        default=None,
+        metavar="S",
+        help="run one trial per scenario, with this seed (a trial's seed, as its report shows it)",
+    )
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -84,14 +92,20 @@ def is_deep(config) -> bool:
 
 def trial_plan_of(config) -> dict:
     """What decides which trials a run makes (runs merge only if equal)."""
-    return {
+    plan = {
         "seed": config.getoption("--seed", default=None),
         "deep": is_deep(config),
         "trials": config.getoption("--trials", default=None),
     }
+    trial_seed = config.getoption("--trial-seed", default=None)
+    if trial_seed is not None:  # a replay: merges only with the same replay
+        plan["trial_seed"] = trial_seed
+    return plan
 
 
 def trial_count(config, quick: int, deep: int) -> int:
+    if config.getoption("--trial-seed", default=None) is not None:
+        return 1
     forced = config.getoption("--trials")
     if forced is not None:
         return forced
@@ -132,7 +146,11 @@ def trial_plan(request):
         config = request.config
         shard = shard_of(config)
         count = trial_count(config, quick, deep)
-        planned = plan(count, scenario_rng(config, request.node.nodeid), shard)
+        trial_seed = config.getoption("--trial-seed", default=None)
+        if trial_seed is not None:  # one trial, replayed by its own seed
+            planned = [(0, trial_seed)] if shard is None or shard[0] == 1 else []
+        else:
+            planned = plan(count, scenario_rng(config, request.node.nodeid), shard)
         if not planned:
             where = f"shard {shard[0]}/{shard[1]}" if shard else "this run"
             pytest.skip(f"{where} has none of this scenario's {count} trial(s)")

@@ -22,7 +22,11 @@ Fixtures
 
 Options
     --container-exe PATH   the container executable under test (default: ours)
-    --deep, --trials N, --seed S   how many trials scenarios make, from which seeds (plan.py)
+    --container-arg ARG    one more argument for every System's container (repeatable)
+    --hold-failed SECONDS  a System's trials stop at the first that does not survive; its
+                           container is kept running that long (inf: until Ctrl-C)
+    --deep, --trials N, --seed S, --trial-seed S   how many trials scenarios make, from
+                           which seeds (plan.py)
 
 Trial fixtures (plan.py): trial_plan, record_trial, run_trials.
 
@@ -33,6 +37,7 @@ appeared.
 
 from __future__ import annotations
 
+import argparse
 import os
 
 import pytest
@@ -43,12 +48,37 @@ from .process import DISCOVERY_RANGE_VARIABLES, loopback_variables
 from .system_trials import system_trials  # noqa: F401  (plugin)
 
 
+def _hold_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--hold-failed takes seconds (or inf), not {text!r}") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"--hold-failed takes seconds >= 0 (or inf), not {text!r}")
+    return value
+
+
 def pytest_addoption(parser):
     group = parser.getgroup("cloneguard")
     group.addoption(
         "--container-exe",
         default=None,
         help="component container executable to test (default: this project's component_container)",
+    )
+    group.addoption(
+        "--container-arg",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="one more argument for every System's container (repeat it; --container-arg=--jemalloc)",
+    )
+    group.addoption(
+        "--hold-failed",
+        type=_hold_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="stop a System's seeded trials at the first that does not survive and keep its container "
+        "running that long for a debugger (inf: until Ctrl-C)",
     )
     plan.add_options(parser)
 
@@ -104,11 +134,13 @@ def client(container_factory, container):
 
 
 @pytest.fixture
-def system_factory(container_factory):
+def system_factory(request, container_factory):
     from .system import System
 
+    more = list(request.config.getoption("--container-arg"))
+
     def make(nodes, container_args=("--isolated",)):
-        return System(container_factory, nodes, container_args)
+        return System(container_factory, nodes, [*container_args, *more])
 
     return make
 

@@ -8,6 +8,14 @@ diagnosis, and say how to attach a debugger.
 Every fault the scenarios inject can be replayed: the faults come from the
 registry the test rig's faults package declares (entry point group
 ``cloneguard.trials``), the one the scenarios take their trials from.
+
+A scenario of your own (seeded trials of a System: system_trials.py) is
+replayed by its pytest node id, run by pytest with the same options, which
+stops at its first trial that does not survive and holds its container:
+
+    python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trial-seed 746315781
+    python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trials 200 \
+        --container-arg=--jemalloc
 """
 
 from __future__ import annotations
@@ -15,6 +23,8 @@ from __future__ import annotations
 import random
 import shutil
 import signal
+import subprocess
+import sys
 import tempfile
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -49,13 +59,25 @@ def add_parser(subparsers) -> None:
         help="replay a fault until it does not survive, then stop there",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("fault", choices=sorted(faults))
-    p.add_argument("--profile", choices=sorted(PROFILES), default="per-node")
+    p.add_argument(
+        "fault",
+        metavar="FAULT|NODE_ID",
+        help=f"a fault of the rig ({', '.join(sorted(faults))}), or the pytest node id of a scenario of yours "
+        "(path.py::test_name)",
+    )
+    p.add_argument("--profile", choices=sorted(PROFILES), default=None, help="a rig fault's profile (per-node)")
     p.add_argument(
         "--allocator",
         choices=sorted(allocators),
-        default="glibc",
-        help="the container's allocator set-up (default: glibc, guarded)",
+        default=None,
+        help="a rig fault's allocator set-up (default: glibc, guarded)",
+    )
+    p.add_argument(
+        "--container-arg",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="a scenario of yours: one more container argument (repeat it; --container-arg=--jemalloc)",
     )
     p.add_argument("--seed", type=int, default=1, help="base seed; each trial's seed is drawn from it")
     p.add_argument("--trial-seed", type=int, default=None, help="run every trial with this one seed")
@@ -72,9 +94,22 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def is_node_id(target: str) -> bool:
+    """A pytest node id (a test file, or file::test), not a fault's name."""
+    return "::" in target or target.endswith(".py")
+
+
 def run(args) -> int:
-    use_loopback_ros()
+    if is_node_id(args.fault):
+        return run_scenario(args)
+    if args.container_arg:
+        raise SystemExit("--container-arg is for a scenario of yours; a rig fault takes --profile and --allocator")
     faults, allocators = registry()
+    if args.fault not in faults:
+        raise SystemExit(f"no fault {args.fault!r}: the rig's are {', '.join(sorted(faults))}")
+    args.profile = args.profile or "per-node"
+    args.allocator = args.allocator or "glibc"
+    use_loopback_ros()
     log_dir = Path(tempfile.mkdtemp(prefix="cloneguard-reproduce-"))
     print(f"logs: {log_dir} (kept if a trial does not survive)", flush=True)
     rng = random.Random(args.seed)
@@ -100,6 +135,27 @@ def run(args) -> int:
             factory.stop_all()
             if survived:  # nothing to look at: the logs go (a stuck run's are printed and kept)
                 shutil.rmtree(log_dir, ignore_errors=True)
+
+
+def scenario_command(args) -> list[str]:
+    """The pytest run that replays a scenario of yours: its trials stop at
+    the first that does not survive, whose container is held (until
+    Ctrl-C; with --no-wait, not at all)."""
+    if args.profile or args.allocator:
+        raise SystemExit("--profile and --allocator are for the rig's faults; give a scenario --container-arg")
+    cmd = [sys.executable, "-m", "pytest", args.fault, "-p", "no:cacheprovider", "--seed", str(args.seed)]
+    cmd += ["--trial-seed", str(args.trial_seed)] if args.trial_seed is not None else ["--trials", str(args.trials)]
+    cmd += ["--hold-failed", "0" if args.no_wait else "inf"]
+    cmd += [f"--container-arg={a}" for a in args.container_arg]
+    if args.container_exe:
+        cmd += ["--container-exe", args.container_exe]
+    return cmd
+
+
+def run_scenario(args) -> int:
+    cmd = scenario_command(args)
+    print("$ " + " ".join(cmd), flush=True)
+    return subprocess.run(cmd, check=False).returncode
 
 
 def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:

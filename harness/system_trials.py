@@ -22,12 +22,17 @@ the container is replaced with the whole composition loaded again.
 
 Trial ``i`` gets the same seed in every run with the same ``--seed``
 (plan.py), so ``--trials``, ``--deep``, ``--seed`` and ``--shard`` work on
-your scenarios as on the project's, and sharded runs merge.
+your scenarios as on the project's, and sharded runs merge. To reproduce:
+``--trial-seed S`` replays the one trial of seed S, ``--hold-failed``
+stops at the first trial that does not survive and keeps its container
+for a debugger, ``--container-arg`` adds container arguments.
 """
 
 from __future__ import annotations
 
+import math
 import random
+import signal
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -173,9 +178,14 @@ def _settle(system, outcome: str, start_ns: int) -> None:
     system.restart()
 
 
-def run_trials(system, trial: Callable[[SystemTrial], Mapping | None], planned, resilience) -> None:
+def run_trials(
+    system, trial: Callable[[SystemTrial], Mapping | None], planned, resilience, hold: Callable | None = None
+) -> None:
     """Each planned (index, seed) trial of ``system``, recorded. A trial
-    may return a mapping of measurements in ms (a latency series each)."""
+    may return a mapping of measurements in ms (a latency series each).
+    With ``hold``, the first trial that does not survive is the last:
+    ``hold(system, index, seed, cause)`` is called before anything is
+    settled, with the container as the trial left it."""
     for index, seed in planned:
         start = time.monotonic_ns()
         first_fault = len(system.faults)
@@ -195,6 +205,10 @@ def run_trials(system, trial: Callable[[SystemTrial], Mapping | None], planned, 
         details["topics"] = topic_facts(system, start, end)
         if outcome == TrialOutcome.CRASHED.value:
             details["container_log"] = "\n".join(system.proc.log_text().splitlines()[-CONTAINER_LOG_LINES:])
+        if hold is not None and outcome != TrialOutcome.SURVIVED.value:
+            resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
+            hold(system, index, seed, f"{outcome}: {cause}")
+            return
         try:
             _settle(system, outcome, start)
         finally:
@@ -204,6 +218,35 @@ def run_trials(system, trial: Callable[[SystemTrial], Mapping | None], planned, 
                 _heard_again(system, TIMELINE_TAIL_S)
                 details["timeline"] = timeline(system, start, _bin_end(start), faults)
             resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
+
+
+def holder(config, seconds: float) -> Callable:
+    """What ``--hold-failed SECONDS`` does with a trial that did not
+    survive: say where the container and its nodes are, on the terminal
+    (past pytest's capture), and keep them that long (inf: until Ctrl-C)."""
+
+    def hold(system, index: int, seed: int, cause: str) -> None:
+        capture = config.pluginmanager.getplugin("capturemanager")
+        with capture.global_and_fixture_disabled():
+            print(f"\ntrial {index} (--trial-seed {seed}) did not survive: {cause}")
+            print(f"container log: {system.proc.log_path}")
+            if not system.alive():
+                print("the container is gone: nothing to hold", flush=True)
+                return
+            nodes = ", ".join(f"{name} pid {r.pid}" for name, r in system.nodes.items())
+            print(f"container pid {system.proc.pid} ({nodes})")
+            print(f"attach a debugger:  gdb -p {system.proc.pid}    then: thread apply all bt")
+            until = "Ctrl-C" if math.isinf(seconds) else f"{seconds:g} s"
+            print(f"holding it until {until}", flush=True)
+            try:
+                if math.isinf(seconds):
+                    signal.pause()
+                else:
+                    time.sleep(seconds)
+            except KeyboardInterrupt:
+                pass
+
+    return hold
 
 
 @pytest.fixture
@@ -224,7 +267,9 @@ def system_trials(request, resilience, trial_plan):
             mitigations={"args": " ".join(system.container_args) or "(none)"},
             claim=claim,
         )
-        run_trials(system, trial, trial_plan(quick, deep), resilience)
+        seconds = request.config.getoption("--hold-failed", default=None)
+        hold = None if seconds is None else holder(request.config, seconds)
+        run_trials(system, trial, trial_plan(quick, deep), resilience, hold)
         if at_least is not None:
             if profile_of(system.container_args) != "threads":
                 resilience.expect_no_container_death()

@@ -142,3 +142,56 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     subprocess.run([*cmd, "-k", "never_speaks"], cwd=tmp_path, capture_output=True, timeout=300, env=dict(os.environ))
     replay = json.loads((again / "report.json").read_text())["scenarios"][0]
     assert [t["seed"] for t in replay["trials"]] == [t["seed"] for t in silent["trials"]]
+
+
+def test_a_replayed_trial_stops_there_and_holds_its_container(tmp_path):
+    """--trial-seed replays one trial; --hold-failed keeps the container of
+    the first that does not survive running; --container-arg reaches it."""
+    (tmp_path / "scenarios").mkdir()
+    (tmp_path / "scenarios" / "test_user.py").write_text(USER_SCENARIOS)
+    report = tmp_path / "report"
+    test = "scenarios/test_user.py::test_a_claim_that_cannot_hold"
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", test, "--trial-seed", "42",
+           "--hold-failed", "5", "--container-arg=--profile=shared", "--report-dir", str(report)]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen = []
+    try:
+        for line in proc.stdout:
+            seen.append(line)
+            if line.startswith("holding it until"):
+                break
+        text = "".join(seen)
+        assert "trial 0 (--trial-seed 42) did not survive: failed: odometry is not at 1 kHz" in text, text
+        pid = int(text.split("container pid ")[1].split()[0])
+        os.kill(pid, 0)  # held: still running
+        log = text.split("container log: ")[1].split()[0]
+    finally:
+        rest, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 1, text + rest
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)  # stopped once the test ended
+    with open(log) as fh:
+        assert "profile shared" in fh.read()
+    [scenario] = json.loads((report / "report.json").read_text())["scenarios"]
+    assert [(t["index"], t["seed"], t["outcome"]) for t in scenario["trials"]] == [(0, 42, "failed")]
+
+
+def test_reproduce_runs_a_scenario_of_yours_through_pytest():
+    from argparse import Namespace
+
+    from cloneguard.harness.reproduce import is_node_id, scenario_command
+
+    assert is_node_id("scenarios/test_robot.py::test_planner") and not is_node_id("segfault-gil-held")
+    args = Namespace(
+        fault="scenarios/test_robot.py::test_planner", seed=3, trial_seed=None, trials=50, no_wait=False,
+        container_arg=["--jemalloc"], container_exe=None, profile=None, allocator=None,
+    )  # fmt: skip
+    assert scenario_command(args)[1:] == [
+        "-m", "pytest", "scenarios/test_robot.py::test_planner", "-p", "no:cacheprovider", "--seed", "3",
+        "--trials", "50", "--hold-failed", "inf", "--container-arg=--jemalloc",
+    ]  # fmt: skip
+    args.trial_seed, args.no_wait = 99, True
+    assert scenario_command(args)[-5:] == ["--trial-seed", "99", "--hold-failed", "0", "--container-arg=--jemalloc"]
+    args.profile = "shared"
+    with pytest.raises(SystemExit, match="for the rig's faults"):
+        scenario_command(args)
