@@ -6,8 +6,9 @@ changes), and checks over what your topics and services did
 Public, and kept stable (a change that breaks a scenario written against
 it is named in CHANGELOG.md first): ``NodeSpec``, ``System`` and its
 methods below, ``rate``, ``longest_gap``, ``call_latency``, the
-``system_factory`` fixture of the pytest plugin, and seeded trials of a
-System (``system_trials``, ``SystemTrial``: system_trials.py). The rest of
+``system_factory`` fixture of the pytest plugin, seeded trials of a
+System (``system_trials``, ``SystemTrial``: system_trials.py) and fault
+schedules (schedule.py). The rest of
 ``cloneguard.harness`` is the project's own test rig and may change.
 
 Times are ``time.monotonic_ns()`` of the test process: what a Recorder
@@ -25,9 +26,11 @@ from dataclasses import dataclass, field
 from cloneguard_interfaces.msg import ComponentEvent
 
 from .client import ContainerClient, Recorder
+from .cpu_starve import CpuStarve
 from .errors import HarnessTimeout
 from .factory import ContainerFactory
 from .process import ContainerProcess
+from .schedule import run_schedule
 
 #: How long a load, a death's CRASHED event or a restart is waited for.
 WAIT_S = 15.0
@@ -154,6 +157,8 @@ class System:
                 f"{full_name} runs in the container's own process (thread mode): a signal to it is the "
                 "container's; start the System with --isolated to hit one node"
             )
+        if not os.path.exists(f"/proc/{running.pid}"):
+            raise ValueError(f"{full_name} (pid {running.pid}) is not running: an earlier fault ended it")
         return running
 
     def kill(self, full_name: str, sig: int = signal.SIGKILL) -> int:
@@ -179,6 +184,29 @@ class System:
         end = time.monotonic_ns()
         self.faults.append(Fault(full_name, f"freeze {seconds:g} s", start, end, running.unique_id))
         return start, end
+
+    def starve(self, full_name: str, cpus: float, seconds: float) -> tuple[int, int]:
+        """Hold the node's process to ``cpus`` CPUs (0.001 up) for
+        ``seconds``, in a cgroup of the harness's own (cpu_starve.py);
+        blocks meanwhile; when it began and ended. CpuStarveUnavailable
+        (a RuntimeError saying why) where this machine has no cpu
+        controller the harness can use."""
+        if not 0 < seconds <= 600:
+            raise ValueError("starve for 0-600 s")
+        running = self._own_process(full_name)
+        with CpuStarve(running.pid, cpus):
+            start = time.monotonic_ns()
+            time.sleep(seconds)
+        end = time.monotonic_ns()
+        self.faults.append(Fault(full_name, f"starve {cpus:g} CPU {seconds:g} s", start, end, running.unique_id))
+        return start, end
+
+    def inject(self, schedule) -> list[Fault]:
+        """Run a fault schedule (schedule.py: faults at times from now, in
+        order, overlapping where their times do); blocks until the last
+        ends; the faults it injected. An error of one fault is raised once
+        every other has ended."""
+        return run_schedule(self, schedule)
 
     def wait_crashed(self, full_name: str, timeout: float = WAIT_S) -> ComponentEvent:
         """The container's CRASHED event for the node's current process."""

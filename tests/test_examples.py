@@ -21,13 +21,14 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "4 passed" in proc.stdout
+    assert "5 passed" in proc.stdout
     run = json.loads((report / "report.json").read_text())
     outcomes = {s["nodeid"].split("::", 1)[1]: s["outcome"] for s in run["scenarios"]}
     assert outcomes == {
         "test_odometry_and_the_map_outlive_the_planner[SIGSEGV]": "passed",
         "test_odometry_and_the_map_outlive_the_planner[SIGKILL]": "passed",
         "test_the_rest_outlives_the_planner_killed_at_a_random_instant": "passed",
+        "test_the_map_server_answers_through_a_random_schedule_of_faults": "passed",
         "test_the_planner_is_back_under_a_restart_policy": "passed",
     }
     # the seeded trials: each recorded with its seed, its fault and what
@@ -46,10 +47,16 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
     packages = run["run"]["packages"]
     assert {"demo-robot", "cloneguard", "ros-jazzy-rclpy", "ros-fastrtps"} <= set(packages), packages
     assert packages["demo-robot"] == "0.1.0"
+    # a schedule's faults are each trial's history, in the order they began
+    scheduled = next(s for s in run["scenarios"] if "random_schedule" in s["nodeid"])
+    for t in scheduled["trials"]:
+        faults = t["details"]["faults"]
+        assert len(faults) == 3 and sum("→ /odometry" in f for f in faults) == 2, faults
+        assert any(f.startswith("SIGSEGV → /planner") for f in faults)
 
 
 def test_the_example_uses_only_the_public_test_api():
-    public = {"cloneguard.harness.system"}
+    public = {"cloneguard.harness.system", "cloneguard.harness.schedule"}
     for path in DEMO.rglob("*.py"):
         for line in path.read_text().splitlines():
             if line.startswith(("from cloneguard", "import cloneguard")):

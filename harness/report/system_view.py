@@ -72,34 +72,41 @@ def _timeline_trial(s: Scenario) -> Trial | None:
 
 
 def timeline_svg(tl: dict, width: int = 640) -> str:
-    """A strip per topic (messages per second, bin by bin) on one time
-    axis; each fault a shaded band (an instant one a line), labelled."""
+    """One row a fault on top (a bar from its start to its end, labelled),
+    then a strip per topic (messages per second, bin by bin) on the same
+    time axis, the faults shaded across the strips."""
     bin_ms = tl["bin_ms"]
     topics = tl["topics"]
+    faults = tl["faults"]
     n_bins = max((len(c) for c in topics.values()), default=1)
     span_ms = n_bins * bin_ms
-    left, right, strip_h, gap, top = 150.0, 12.0, 34.0, 8.0, 18.0
+    left, right, strip_h, gap, row_h = 150.0, 12.0, 34.0, 8.0, 15.0
     plot_w = width - left - right
-    height = int(top + len(topics) * (strip_h + gap) + 26)
+    top = 6.0 + len(faults) * row_h + 4.0
+    bottom = top + len(topics) * (strip_h + gap)
+    height = int(bottom + 22)
 
     def x(ms: float) -> float:
         return left + max(0.0, min(1.0, ms / span_ms)) * plot_w
 
-    title = f"timeline: {', '.join(topics)} over {span_ms / 1000:.1f} s, {len(tl['faults'])} fault(s)"
+    title = f"timeline: {', '.join(topics)} over {span_ms / 1000:.1f} s, {len(faults)} fault(s)"
     out = [
         f'<svg class="chart" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
         f'viewBox="0 0 {width} {height}" role="img" aria-label="{e(title)}"><title>{e(title)}</title>'
     ]
-    bottom = height - 26
-    for start, end, node, what in tl["faults"]:
+    shades = []  # drawn over the strips
+    for i, (start, end, node, what) in enumerate(faults):
         x0, x1 = x(start), x(end)
+        w = max(2.0, x1 - x0)
+        y = 6.0 + i * row_h
         label = f"{what} → {node}"
-        out.append(
-            f'<rect x="{x0:.1f}" y="{top - 4}" width="{max(2.0, x1 - x0):.1f}" height="{bottom - top + 4:.1f}" '
-            f'fill="#d13b3b" fill-opacity="{0.18 if x1 - x0 > 2 else 0.7}">'
-            f"<title>{e(label)} at {start:.0f}–{end:.0f} ms</title></rect>"
-        )
-        out.append(f'<text x="{x0 + 3:.1f}" y="{top - 6}" class="tick">{e(label)}</text>')
+        tip = f"<title>{e(label)} at {start:.0f}–{end:.0f} ms</title>"
+        shades.append(f'<rect x="{x0:.1f}" y="{top:.1f}" width="{w:.1f}" height="{bottom - top - gap:.1f}" '
+                      f'fill="#d13b3b" fill-opacity="{0.15 if w > 2 else 0.6}">{tip}</rect>')  # fmt: skip
+        out.append(f'<rect x="{x0:.1f}" y="{y:.1f}" width="{w:.1f}" height="{row_h - 4}" fill="#d13b3b">{tip}</rect>')
+        at_end = x0 > left + 0.6 * plot_w
+        tx, anchor = (x0 - 4, "end") if at_end else (x0 + w + 4, "start")
+        out.append(f'<text x="{tx:.1f}" y="{y + row_h - 5:.1f}" text-anchor="{anchor}" class="tick">{e(label)}</text>')
     for i, (name, counts) in enumerate(topics.items()):
         y0 = top + i * (strip_h + gap)
         hz = [c * 1000.0 / bin_ms for c in counts]
@@ -110,18 +117,19 @@ def timeline_svg(tl: dict, width: int = 640) -> str:
         )
         out.append(f'<rect x="{left}" y="{y0}" width="{plot_w:.1f}" height="{strip_h}" class="band"/>')
         out.append(f'<polyline points="{points}" fill="none" stroke="{color}" stroke-width="1.6"/>')
-        out.append(
-            f'<text x="{left - 6}" y="{y0 + strip_h / 2 + 4:.1f}" text-anchor="end" class="tick">{e(name)}</text>'
-        )
+        mid = y0 + strip_h / 2 + 4
+        out.append(f'<text x="{left - 6}" y="{mid:.1f}" text-anchor="end" class="tick">{e(name)}</text>')
         out.append(f'<text x="{left - 6}" y="{y0 + 9:.1f}" text-anchor="end" class="tick">{peak:.0f} Hz</text>')
+    out.extend(shades)
+    axis = bottom - gap + 4
     step_s = max(1, round(span_ms / 1000 / 8))
     t_s = 0
     while t_s * 1000 <= span_ms:
         tx = x(t_s * 1000)
-        out.append(f'<line x1="{tx:.1f}" y1="{bottom}" x2="{tx:.1f}" y2="{bottom + 4}" class="axis"/>')
-        out.append(f'<text x="{tx:.1f}" y="{bottom + 15}" text-anchor="middle" class="tick">{t_s} s</text>')
+        out.append(f'<line x1="{tx:.1f}" y1="{axis}" x2="{tx:.1f}" y2="{axis + 4}" class="axis"/>')
+        out.append(f'<text x="{tx:.1f}" y="{axis + 15}" text-anchor="middle" class="tick">{t_s} s</text>')
         t_s += step_s
-    out.append(f'<line x1="{left}" y1="{bottom}" x2="{left + plot_w:.1f}" y2="{bottom}" class="axis"/></svg>')
+    out.append(f'<line x1="{left}" y1="{axis}" x2="{left + plot_w:.1f}" y2="{axis}" class="axis"/></svg>')
     return "".join(out)
 
 

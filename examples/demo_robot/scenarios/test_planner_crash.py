@@ -5,11 +5,13 @@ in the report); with a restart policy the planner is back. Run with
 installed (docs/testing-your-nodes.md)."""
 
 import signal
+import time
 
 import pytest
 from std_msgs.msg import Float64, UInt64
 from std_srvs.srv import Trigger
 
+from cloneguard.harness.schedule import At, Freeze, Kill, Starve, random_over
 from cloneguard.harness.system import NodeSpec, call_latency, longest_gap, rate
 
 ROBOT = [
@@ -58,6 +60,38 @@ def test_the_rest_outlives_the_planner_killed_at_a_random_instant(system_factory
         trial,
         fault="planner SIGKILL at a random instant",
         claim="odometry keeps >= 9 Hz with no gap of 0.5 s and the map server answers",
+        quick=3,
+        at_least=0.99,
+    )
+
+
+def test_the_map_server_answers_through_a_random_schedule_of_faults(system_factory, system_trials):
+    robot = system_factory(ROBOT)
+    odom = robot.topic(Float64, "/odom")
+    odom.wait_count(5, timeout=10)
+    get_map = robot.service(Trigger, "/map_server/get_map")
+
+    def trial(t):
+        # odometry frozen or starved twice at random over a second, and the
+        # planner segfaulting at a random instant of it
+        odometry = [Freeze("/odometry", 0.3), Starve("/odometry", 0.01, 0.5)]
+        schedule = random_over(t.rng, 1.0, odometry, count=2) + [
+            At(t.rng.uniform(0, 1), Kill("/planner", signal.SIGSEGV))
+        ]
+        robot.inject(schedule)
+        robot.wait_crashed("/planner")
+        latency = call_latency(robot, get_map, Trigger.Request())
+        over = time.monotonic_ns()
+        odom.wait_count(len(odom) + WINDOW // 2, timeout=10)
+        assert latency < 0.5
+        assert rate(odom, over) >= 9.0  # odometry back to speed once the faults are over
+        return {"get_map": 1e3 * latency}
+
+    system_trials(
+        robot,
+        trial,
+        fault="odometry frozen and starved, planner SIGSEGV (random schedule)",
+        claim="the map server answers within 0.5 s and odometry is back at >= 9 Hz",
         quick=3,
         at_least=0.99,
     )

@@ -1,0 +1,121 @@
+"""Fault schedules: which faults a System gets, and when, as data (the way
+Jepsen describes its nemesis): one fault, a sequence, or faults drawn at
+random over a window from a trial's Random, so that a trial replays.
+
+    from cloneguard.harness.schedule import At, Freeze, Kill, Starve, random_over, sequence
+
+    robot.inject([At(0.2, Freeze("/planner", 1.0)), At(0.5, Kill("/odometry"))])
+    robot.inject(sequence(Starve("/planner", 0.01, 2.0), Kill("/planner"), every_s=0.5))
+    robot.inject(random_over(t.rng, 3.0, [Kill("/planner"), Freeze("/map_server", 0.5)], count=2))
+
+Faults run at their times from the schedule's start; a freeze or a
+starvation lasts its seconds on a thread of its own, so faults overlap
+where their times do. Each is recorded in ``System.faults`` (and so in
+the trial's history in the report) when it ends.
+
+Public and kept stable, like system.py.
+"""
+
+from __future__ import annotations
+
+import random
+import signal
+import threading
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Kill:
+    """A signal to the node's process (SIGKILL unless ``sig``)."""
+
+    node: str
+    sig: int = signal.SIGKILL
+    lasts = False
+
+    def apply(self, system) -> None:
+        system.kill(self.node, self.sig)
+
+
+@dataclass(frozen=True)
+class Freeze:
+    """The node's process stopped for ``seconds`` (SIGSTOP, then SIGCONT)."""
+
+    node: str
+    seconds: float
+    lasts = True
+
+    def apply(self, system) -> None:
+        system.freeze(self.node, self.seconds)
+
+
+@dataclass(frozen=True)
+class Starve:
+    """The node's process held to ``cpus`` CPUs for ``seconds``."""
+
+    node: str
+    cpus: float
+    seconds: float
+    lasts = True
+
+    def apply(self, system) -> None:
+        system.starve(self.node, self.cpus, self.seconds)
+
+
+ScheduledFault = Kill | Freeze | Starve
+
+
+@dataclass(frozen=True)
+class At:
+    """``fault`` at ``seconds`` after the schedule starts."""
+
+    seconds: float
+    fault: ScheduledFault
+
+    def __post_init__(self):
+        if not 0 <= self.seconds <= 3600:
+            raise ValueError(f"a fault's time is 0-3600 s from the schedule's start, not {self.seconds!r}")
+
+
+def sequence(*faults: ScheduledFault, every_s: float, first_s: float = 0.0) -> list[At]:
+    """The faults one after another, ``every_s`` apart, from ``first_s``."""
+    return [At(first_s + i * every_s, f) for i, f in enumerate(faults)]
+
+
+def random_over(rng: random.Random, window_s: float, faults: Sequence[ScheduledFault], count: int = 1) -> list[At]:
+    """``count`` faults, each drawn from ``faults``, at instants drawn over
+    the first ``window_s`` seconds: from ``rng`` (a trial's ``t.rng``)."""
+    if not faults:
+        raise ValueError("random_over needs faults to draw from")
+    return sorted((At(rng.uniform(0.0, window_s), rng.choice(list(faults))) for _ in range(count)),
+                  key=lambda a: a.seconds)  # fmt: skip
+
+
+def run_schedule(system, schedule: Iterable[At]) -> list:
+    """Run ``schedule`` on ``system``; the System faults it recorded."""
+    items = sorted(schedule, key=lambda a: a.seconds)
+    first = len(system.faults)
+    errors: list[BaseException] = []
+
+    def lasting(fault: ScheduledFault) -> None:
+        try:
+            fault.apply(system)
+        except BaseException as exc:  # raised once every fault has ended
+            errors.append(exc)
+
+    start = time.monotonic()
+    threads = []
+    for at in items:
+        time.sleep(max(0.0, start + at.seconds - time.monotonic()))
+        if at.fault.lasts:
+            thread = threading.Thread(target=lasting, args=(at.fault,), name=f"fault-{at.fault.node}")
+            thread.start()
+            threads.append(thread)
+        else:
+            lasting(at.fault)
+    for thread in threads:
+        thread.join()
+    if errors:
+        raise errors[0]
+    return system.faults[first:]
