@@ -11,8 +11,9 @@ Fixtures
     container_factory  start(args, ...) -> ContainerProcess; stops them after the test
     container          one started container (``container_args``), services up
     client             a ContainerClient connected to ``container``
-    system_factory     system_factory(nodes, container_args=("--isolated",)) -> System:
-                       your own composition loaded into a container (harness/system.py)
+    system_factory     system_factory(nodes, container_args=None) -> System: your own
+                       composition (NodeSpecs, or a Composition read from a launch file:
+                       composition.py) loaded into a container (default: --isolated)
     system_trials      system_trials(system, trial, fault=, claim=, ...): seeded trials
                        of a System, recorded in the report (harness/system_trials.py)
     domain_id          this test's own ROS_DOMAIN_ID
@@ -135,12 +136,17 @@ def client(container_factory, container):
 
 @pytest.fixture
 def system_factory(request, container_factory):
+    from .composition import Composition
     from .system import System
 
     more = list(request.config.getoption("--container-arg"))
 
-    def make(nodes, container_args=("--isolated",)):
-        return System(container_factory, nodes, [*container_args, *more])
+    def make(nodes, container_args=None):
+        if isinstance(nodes, Composition):  # read from a file: its arguments unless given
+            container_args = container_args if container_args is not None else nodes.container_args
+            nodes = nodes.nodes
+        args = ("--isolated",) if container_args is None else container_args
+        return System(container_factory, nodes, [*args, *more])
 
     return make
 

@@ -6,11 +6,13 @@ installed (docs/testing-your-nodes.md)."""
 
 import signal
 import time
+from pathlib import Path
 
 import pytest
 from std_msgs.msg import Float64, UInt64
 from std_srvs.srv import Trigger
 
+from cloneguard.harness.composition import read_composition
 from cloneguard.harness.schedule import At, Freeze, Kill, Starve, random_over
 from cloneguard.harness.system import NodeSpec, call_latency, longest_gap, rate
 
@@ -19,12 +21,14 @@ ROBOT = [
     NodeSpec("demo_robot", "demo_robot::Planner"),
     NodeSpec("demo_robot", "demo_robot::MapServer"),
 ]
+#: The same composition, as the robot's launch file starts it.
+LAUNCH = Path(__file__).resolve().parent.parent / "launch" / "robot.launch.xml"
 WINDOW = 40  # odometry messages after the fault the claims are judged on (2 s)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGSEGV, signal.SIGKILL], ids=["SIGSEGV", "SIGKILL"])
 def test_odometry_and_the_map_outlive_the_planner(system_factory, sig):
-    robot = system_factory(ROBOT)
+    robot = system_factory(read_composition(LAUNCH))  # its nodes, and its container's --isolated
     odom = robot.topic(Float64, "/odom")
     odom.wait_count(5, timeout=10)
 
