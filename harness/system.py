@@ -72,6 +72,11 @@ class Fault:
     unique_id: int = 0
 
     @property
+    def kind(self) -> str:
+        """What kind of fault: the signal's name, ``freeze`` or ``starve``."""
+        return self.what.split()[0]
+
+    @property
     def ends_the_node(self) -> bool:
         """A signal whose default action ends the process (not a freeze,
         not a SIGCONT, SIGCHLD, SIGURG or SIGWINCH)."""

@@ -129,10 +129,22 @@ def topic_facts(system, start_ns: int, end_ns: int) -> dict[str, dict]:
     return out
 
 
-def timeline(system, start_ns: int, end_ns: int, faults) -> dict:
-    """The trial and its recovery as the report draws them: messages per
-    TIMELINE_BIN_MS bin of each watched topic, and the faults as
-    [from_ms, to_ms, node, what]."""
+def fault_record(fault, start_ns: int) -> dict:
+    """A fault as a trial records it: which node, what kind, what exactly,
+    from when to when (ms from the trial's start)."""
+    return {
+        "node": fault.node,
+        "kind": fault.kind,
+        "what": fault.what,
+        "from_ms": round((fault.start_ns - start_ns) / 1e6, 1),
+        "to_ms": round((fault.end_ns - start_ns) / 1e6, 1),
+    }
+
+
+def timeline(system, start_ns: int, end_ns: int) -> dict:
+    """The trial and its recovery as the report draws them (with the
+    trial's faults): messages per TIMELINE_BIN_MS bin of each watched
+    topic."""
     bin_ns = TIMELINE_BIN_MS * 1_000_000
     bins = max(1, (end_ns - start_ns) // bin_ns)  # whole bins: a cut one would read as a drop
     topics = {}
@@ -141,10 +153,7 @@ def timeline(system, start_ns: int, end_ns: int, faults) -> dict:
         for at in _window(rec, start_ns, start_ns + bins * bin_ns - 1):
             counts[(at - start_ns) // bin_ns] += 1
         topics[name] = counts
-    spans = [
-        [round((f.start_ns - start_ns) / 1e6, 1), round((f.end_ns - start_ns) / 1e6, 1), f.node, f.what] for f in faults
-    ]
-    return {"bin_ms": TIMELINE_BIN_MS, "topics": topics, "faults": spans}
+    return {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
 
 
 def _heard_again(system, within_s: float) -> None:
@@ -204,7 +213,7 @@ def run_trials(
         details: dict = {}
         if cause:
             details["why"] = cause
-        details["faults"] = [f"{f.what} → {f.node} at {(f.start_ns - start) / 1e6:.0f} ms" for f in faults]
+        details["faults"] = [fault_record(f, start) for f in faults]
         details["topics"] = topic_facts(system, start, end)
         if outcome == TrialOutcome.CRASHED.value:
             details["container_log"] = "\n".join(system.proc.log_text().splitlines()[-CONTAINER_LOG_LINES:])
@@ -219,7 +228,7 @@ def run_trials(
             # topic has spoken again (or TIMELINE_TAIL_S): the nodes back.
             if outcome != TrialOutcome.SURVIVED.value or index == planned[0][0]:
                 _heard_again(system, TIMELINE_TAIL_S)
-                details["timeline"] = timeline(system, start, _bin_end(start), faults)
+                details["timeline"] = timeline(system, start, _bin_end(start))
             resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
 
 

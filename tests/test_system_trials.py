@@ -13,7 +13,7 @@ import pytest
 
 from cloneguard.harness.client import Received, Recorder
 from cloneguard.harness.system import Fault
-from cloneguard.harness.system_trials import profile_of, timeline, topic_facts
+from cloneguard.harness.system_trials import fault_record, profile_of, timeline, topic_facts
 
 MS = 1_000_000
 
@@ -61,9 +61,14 @@ def test_a_timeline_bins_whole_bins_and_places_the_faults():
     start = 10_000 * MS
     system = _system({"/odom": [5, 15, 25, 150, 330, 349]}, start)
     fault = Fault("/planner", "SIGKILL", start + 120 * MS, start + 120 * MS, 3)
-    tl = timeline(system, start, start + 350 * MS, [fault])
+    tl = timeline(system, start, start + 350 * MS)
     # three whole 100 ms bins: the last 50 ms (a cut bin) are left out
-    assert tl == {"bin_ms": 100, "topics": {"/odom": [3, 1, 0]}, "faults": [[120.0, 120.0, "/planner", "SIGKILL"]]}
+    assert tl == {"bin_ms": 100, "topics": {"/odom": [3, 1, 0]}}
+    assert fault_record(fault, start) == {
+        "node": "/planner", "kind": "SIGKILL", "what": "SIGKILL", "from_ms": 120.0, "to_ms": 120.0
+    }  # fmt: skip
+    frozen = Fault("/map", "freeze 0.5 s", start + 10 * MS, start + 510 * MS, 4)
+    assert fault_record(frozen, start)["kind"] == "freeze" and fault_record(frozen, start)["to_ms"] == 510.0
 
 
 USER_SCENARIOS = textwrap.dedent("""
@@ -118,7 +123,8 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     cannot = by_name["test_a_claim_that_cannot_hold"]
     assert [t["outcome"] for t in cannot["trials"]] == ["failed", "failed"]
     assert all(t["details"]["why"] == "odometry is not at 1 kHz" for t in cannot["trials"])
-    assert all(t["details"]["faults"][0].startswith("SIGKILL → /planner at ") for t in cannot["trials"])
+    assert all([(f["node"], f["kind"]) for f in t["details"]["faults"]] == [("/planner", "SIGKILL")]
+               for t in cannot["trials"])  # fmt: skip
     assert all(t["details"]["topics"]["/odom"]["messages"] >= 4 for t in cannot["trials"])
     assert [t["index"] for t in cannot["trials"]] == [0, 1]
     assert all("timeline" in t["details"] for t in cannot["trials"])  # every non-survivor is drawn
@@ -133,7 +139,8 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
 
     html = (report / "report.html").read_text()
     assert "odometry is not at 1 kHz" in html and "Topics during the trials" in html
-    assert "Timeline of trial 0 (failed)" in html
+    assert "Timeline of trial 0 (failed)" in html and "Faults by node" in html
+    assert "SIGKILL → /planner at " in html  # the trial's faults in words
     assert "{&quot;why&quot;" not in html  # facts in words, not a JSON blob
 
     # the same --seed gives the same trials

@@ -502,6 +502,7 @@ def _scenario(s: Scenario, anchor: str) -> str:
     if s.notes:
         parts.append("<h4>Notes</h4><ul>" + "".join(f"<li>{e(n)}</li>" for n in s.notes) + "</ul>")
     if system_view.has_system_view(s):
+        parts.append(system_view.nodes_table(s))
         parts.append(system_view.topics_table(s))
         parts.append(system_view.timeline(s))
     parts.append(_latency(s))

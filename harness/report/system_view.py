@@ -62,6 +62,31 @@ def topics_table(s: Scenario) -> str:
     )
 
 
+def nodes_table(s: Scenario) -> str:
+    """One row a node and kind of fault it was given: in how many trials,
+    and what became of those trials (the rest of the system's fate)."""
+    rows: dict[tuple[str, str], dict[str, int]] = {}
+    for t in s.trials:
+        for key in dict.fromkeys((f["node"], f["kind"]) for f in (t.details or {}).get("faults", [])):
+            counts = rows.setdefault(key, {})
+            counts[t.outcome] = counts.get(t.outcome, 0) + 1
+    if not rows:
+        return ""
+    outcomes = [o.value for o in TrialOutcome if any(o.value in c for c in rows.values())]
+    head = "".join(f'<th class="num">{e(o)}</th>' for o in outcomes)
+    body = "".join(
+        f'<tr><td class="mono">{e(node)}</td><td>{e(kind)}</td><td class="num">{sum(c.values())}</td>'
+        + "".join(f'<td class="num">{c.get(o, 0)}</td>' for o in outcomes)
+        + "</tr>"
+        for (node, kind), c in sorted(rows.items())
+    )
+    return (
+        "<h4>Faults by node</h4>"
+        '<table class="grid"><thead><tr><th>node</th><th>fault</th><th class="num">trials</th>'
+        f"{head}</tr></thead><tbody>{body}</tbody></table>"
+    )
+
+
 def _timeline_trial(s: Scenario) -> Trial | None:
     """The trial to draw: the first that did not survive, else the first."""
     drawn = [t for t in s.trials if "timeline" in (t.details or {})]
@@ -71,13 +96,12 @@ def _timeline_trial(s: Scenario) -> Trial | None:
     return drawn[0] if drawn else None
 
 
-def timeline_svg(tl: dict, width: int = 640) -> str:
+def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
     """One row a fault on top (a bar from its start to its end, labelled),
     then a strip per topic (messages per second, bin by bin) on the same
     time axis, the faults shaded across the strips."""
     bin_ms = tl["bin_ms"]
     topics = tl["topics"]
-    faults = tl["faults"]
     n_bins = max((len(c) for c in topics.values()), default=1)
     span_ms = n_bins * bin_ms
     left, right, strip_h, gap, row_h = 150.0, 12.0, 34.0, 8.0, 15.0
@@ -95,7 +119,8 @@ def timeline_svg(tl: dict, width: int = 640) -> str:
         f'viewBox="0 0 {width} {height}" role="img" aria-label="{e(title)}"><title>{e(title)}</title>'
     ]
     shades = []  # drawn over the strips
-    for i, (start, end, node, what) in enumerate(faults):
+    for i, f in enumerate(faults):
+        start, end, node, what = f["from_ms"], f["to_ms"], f["node"], f["what"]
         x0, x1 = x(start), x(end)
         w = max(2.0, x1 - x0)
         y = 6.0 + i * row_h
@@ -140,7 +165,7 @@ def timeline(s: Scenario) -> str:
     return (
         f"<h4>Timeline of trial {e(t.index)} ({e(t.outcome)})</h4>"
         "<p class=\"muted small\">Each watched topic's messages per second, in 100 ms bins, from the trial's "
-        "start; the faults shaded.</p>" + timeline_svg(t.details["timeline"])
+        "start; the faults shaded.</p>" + timeline_svg(t.details["timeline"], t.details.get("faults", []))
     )
 
 
@@ -155,7 +180,7 @@ def trial_facts(t: Trial) -> str:
         parts.append(f"<b>{e(why)}</b>")
     faults = d.pop("faults", None)
     if faults:
-        parts.append("faults: " + e("; ".join(faults)))
+        parts.append("faults: " + e("; ".join(f"{f['what']} → {f['node']} at {f['from_ms']:.0f} ms" for f in faults)))
     topics = d.pop("topics", None) or {}
     for name, f in topics.items():
         parts.append(f"{e(name)} {f['rate_hz']:.1f} Hz, longest gap {f['longest_gap_s']:.3f} s")
