@@ -17,7 +17,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from . import child_start, crash_latency, intra, load_latency, lock_doctor, memory, python_locks, shutdown
+from . import child_start, crash_latency, intra, load_latency, lock_doctor, memory, python_locks, scale, shutdown
 from .cli import DEFAULT_OUT, command_line
 from .results import SUMMARY_COLUMNS, Table, host, host_line
 
@@ -30,6 +30,7 @@ BENCHMARKS = {
     "intra": intra,
     "python_locks": python_locks,
     "lock_doctor": lock_doctor,
+    "scale": scale,
 }
 PRESETS = {
     "default": {
@@ -41,6 +42,7 @@ PRESETS = {
         "intra": {"sizes": ["1KiB", "64KiB", "1MiB", "16MiB"], "count": 100},
         "python_locks": {"rounds": 15, "ops": 200_000},
         "lock_doctor": {"nodes": [1, 10, 40], "threads": 4, "seconds": 5.0},
+        "scale": {"counts": [12, 24, 48, 96], "idle": 10.0},
     },
     "tiny": {
         "child_start": {"n": 2, "n_raw": 2},
@@ -51,6 +53,12 @@ PRESETS = {
         "intra": {"sizes": ["1KiB", "1MiB"], "count": 2, "warmup": 1, "burst": 5, "burst_seconds": 0.5, "settle": 0.2},
         "python_locks": {"rounds": 3, "ops": 2000},
         "lock_doctor": {"nodes": [1, 2], "threads": 1, "seconds": 0.5},
+        "scale": {
+            "counts": [1, 2],
+            "idle": 0.3,
+            "settle": 0.1,
+            "modes": ["thread", "isolated-per-node", "process-per-node"],
+        },
     },
 }
 

@@ -38,14 +38,21 @@ class LoadTrial:
     published_ns: int  # request sent (wall clock) -> LOADED's stamp (container's wall clock)
 
 
-def timed_load(running: Running, *, node_name: str = "", plugin: str = HEARTBEAT, timeout: float = 30.0) -> LoadTrial:
+def timed_load(
+    running: Running,
+    *,
+    node_name: str = "",
+    plugin: str = HEARTBEAT,
+    parameters: dict | None = None,
+    timeout: float = 30.0,
+) -> LoadTrial:
     """One LoadNode (a Heartbeat by default), timed from the moment the request is sent."""
     from cloneguard_interfaces.msg import ComponentEvent
 
     cli = running.client
     send_wall = time.time_ns()
     send = time.monotonic_ns()
-    resp = cli.load(PACKAGE, plugin, node_name=node_name, timeout=timeout)
+    resp = cli.load(PACKAGE, plugin, node_name=node_name, parameters=parameters or {}, timeout=timeout)
     answered = time.monotonic_ns()
     if not resp.success:
         raise AssertionError(f"LoadNode failed in {running.label}: {resp.error_message}")

@@ -1,6 +1,7 @@
 """Process-per-node baseline: one component in a fork+exec'd Python process.
 
-    python -m cloneguard.bench.process_per_node [--node-name NAME] [--ready-fd FD] [--parent PID] PACKAGE PLUGIN
+    python -m cloneguard.bench.process_per_node [--node-name NAME] [--param NAME:=VALUE ...] [--ready-fd FD]
+                                                [--parent PID] PACKAGE PLUGIN
     python -m cloneguard.bench.process_per_node cloneguard cloneguard::Heartbeat
 
 It finds the component class the way the container does (the
@@ -48,6 +49,7 @@ def main(argv=None) -> int:
     parser.add_argument("package")
     parser.add_argument("plugin")
     parser.add_argument("--node-name", default="")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE", help="a ROS parameter")
     parser.add_argument("--ready-fd", type=int, default=1)
     parser.add_argument("--parent", type=int, default=0)
     opts = parser.parse_args(argv)
@@ -72,6 +74,8 @@ def main(argv=None) -> int:
     rclpy.init(args=[], context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     context_ns = time.monotonic_ns()
     cli_args = ["--ros-args"] + (["-r", f"__node:={opts.node_name}"] if opts.node_name else [])
+    for param in opts.param:
+        cli_args += ["-p", param]
     node = cls(context=ctx, cli_args=cli_args, use_global_arguments=False)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)

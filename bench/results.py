@@ -78,6 +78,8 @@ class Result:
     raw: dict
     cleanup: list[str]  # problems found after clean-up; [] when clean
     host: dict = field(default_factory=host)
+    #: more files written beside <name>.md (a picture: name -> text)
+    attachments: dict[str, str] = field(default_factory=dict)
 
     def markdown(self) -> str:
         out = [
@@ -133,6 +135,8 @@ class Result:
         md, js = out_dir / f"{self.name}.md", out_dir / f"{self.name}.json"
         md.write_text(self.markdown())
         js.write_text(json.dumps(self.as_json(), indent=1) + "\n")
+        for name, text in self.attachments.items():
+            (out_dir / name).write_text(text)
         return md, js
 
 

@@ -65,7 +65,14 @@ class NodeProcess:
     """One ``bench.process_per_node`` runner: fork+exec'd, own session."""
 
     def __init__(
-        self, domain_id: int, log_path: Path, *, package: str = PACKAGE, plugin: str = HEARTBEAT, node_name: str = ""
+        self,
+        domain_id: int,
+        log_path: Path,
+        *,
+        package: str = PACKAGE,
+        plugin: str = HEARTBEAT,
+        node_name: str = "",
+        params: dict | None = None,
     ):
         env = process_environment(domain_id, fastdds_profile=NO_SHM_PROFILE)
         env["PYTHONUNBUFFERED"] = "1"
@@ -83,6 +90,8 @@ class NodeProcess:
         ]
         if node_name:
             argv[-2:-2] = ["--node-name", node_name]
+        for key, value in (params or {}).items():
+            argv[-2:-2] = ["--param", f"{key}:={value}"]
         self.log_path = Path(log_path)
         self._log = open(self.log_path, "ab", buffering=0)
         self._ready_r = r
@@ -205,8 +214,11 @@ class Session:
         self.stop(running)
         return self.start(running.mode)
 
-    def runner(self, domain_id: int, *, node_name: str = "", plugin: str = HEARTBEAT) -> NodeProcess:
-        r = NodeProcess(domain_id, self._log_path(f"runner-{node_name or 'node'}"), plugin=plugin, node_name=node_name)
+    def runner(
+        self, domain_id: int, *, node_name: str = "", plugin: str = HEARTBEAT, params: dict | None = None
+    ) -> NodeProcess:
+        log = self._log_path(f"runner-{node_name or 'node'}")
+        r = NodeProcess(domain_id, log, plugin=plugin, node_name=node_name, params=params)
         self._pgids.append(r.pgid)
         self._runners.append(r)
         return r

@@ -42,6 +42,20 @@ EXIT_TIMEOUT_S = 20.0
 GOAL_NODES = 20
 
 
+def sigterm_to_exit(pid: int, timeout: float = EXIT_TIMEOUT_S) -> int | None:
+    """SIGTERM to ``pid`` (the process, not its group: it must stop its
+    children itself) -> it exits (its pidfd readable), in ns; None if it
+    has not exited within ``timeout``."""
+    pidfd = os.pidfd_open(pid)
+    try:
+        t0 = time.monotonic_ns()
+        os.kill(pid, signal.SIGTERM)
+        exited = bool(select.select([pidfd], [], [], timeout)[0])
+        return time.monotonic_ns() - t0 if exited else None
+    finally:
+        os.close(pidfd)
+
+
 def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) -> dict:
     running = session.start(mode)
     try:
@@ -49,14 +63,9 @@ def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) 
             timed_load(running, node_name=f"n{i}", plugin=plugin)
         time.sleep(settle)
         members = len(running.proc.group_members())
-        pidfd = os.pidfd_open(running.proc.pid)
-        try:
-            t0 = time.monotonic_ns()
-            os.kill(running.proc.pid, signal.SIGTERM)
-            exited = bool(select.select([pidfd], [], [], EXIT_TIMEOUT_S)[0])
-            t_exit = time.monotonic_ns()
-        finally:
-            os.close(pidfd)
+        t0 = time.monotonic_ns()
+        exit_ns = sigterm_to_exit(running.proc.pid)
+        exited = exit_ns is not None
         group_empty = code = None
         if exited:
             code = running.proc.wait(5.0)  # reap it: a zombie leader still counts in its group
@@ -66,7 +75,7 @@ def _trial(session: Session, mode: str, plugin: str, count: int, settle: float) 
     finally:
         status = session.stop(running)
     return {
-        "exit_ns": (t_exit - t0) if exited else None,
+        "exit_ns": exit_ns,
         "group_empty_ns": group_empty,
         "code": code if code is not None else status.returncode,
         "forced": status.forced,

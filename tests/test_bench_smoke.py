@@ -119,6 +119,10 @@ EXPECTED_TABLES = {
     "lock_doctor": [
         ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"]
     ],
+    "scale": [
+        ["mode", "nodes", "load all (s)", "idle CPU (% of a core)", "PSS (MiB)", "SIGTERM → exit (s)", "processes"],
+        ["mode", "load all", "idle CPU", "PSS"],
+    ],
 }
 # Rows of the first table: one per mode (or profile × signal, or measure; intra:
 # 2 sizes × 3 transports and the floor).
@@ -131,6 +135,7 @@ EXPECTED_ROWS = {
     "intra": 7,
     "python_locks": 6,  # 3 uncontended, contended at 2, 4, 8 threads
     "lock_doctor": 2,  # one per node count
+    "scale": 6,  # 3 modes × 2 counts
 }
 
 
@@ -169,6 +174,21 @@ def test_report_files_hold_the_expected_tables(tiny_run, name):
         assert goal["verdict"] and goal["goal"]
     assert data["summary"] and all(list(r) == SUMMARY_COLUMNS for r in data["summary"])
     assert data["cleanup"] == []
+
+
+def test_the_scale_benchmark_draws_its_curves(tiny_run):
+    out, results, _, _ = tiny_run
+    svg = (out / "scale.svg").read_text()
+    assert svg.startswith("<svg") and svg.rstrip().endswith("</svg>")
+    for title in ("load all (s)", "idle CPU (% of a core)", "PSS (MiB)", "SIGTERM → exit (s)"):
+        assert title in svg
+    # one point a mode and count in each of the four panels, with its value
+    assert svg.count("<circle") == 4 * 3 * 2
+    rows = results["scale"].tables[0].rows
+    assert all(int(r["processes"]) >= 1 for r in rows)
+    per_node = [r for r in rows if r["mode"].startswith("isolated, per-node")]
+    # the container, one process a node, and the warm spare (the next node's, made ahead)
+    assert [int(r["processes"]) for r in per_node] == [3, 4]
 
 
 def test_summary_has_a_row_per_measure(tiny_run):
