@@ -86,6 +86,11 @@ def pytest_addoption(parser):
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
+    # The ROS wheels' rosidl parsers import lark, which imports two modules
+    # Python 3.11 deprecates: a warning in every run that is neither the
+    # user's nor ours to act on.
+    for module in ("sre_parse", "sre_constants"):
+        config.addinivalue_line("filterwarnings", f"ignore:module '{module}' is deprecated:DeprecationWarning:lark")
 
 
 @pytest.fixture

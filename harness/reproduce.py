@@ -80,7 +80,12 @@ def add_parser(subparsers) -> None:
         help="a scenario of yours: one more container argument (repeat it; --container-arg=--jemalloc)",
     )
     p.add_argument("--seed", type=int, default=1, help="base seed; each trial's seed is drawn from it")
-    p.add_argument("--trial-seed", type=int, default=None, help="run every trial with this one seed")
+    p.add_argument(
+        "--trial-seed",
+        type=int,
+        default=None,
+        help="a rig fault: run every trial with this one seed; a scenario of yours: its one trial of this seed",
+    )
     p.add_argument(
         "--trials", type=trial_count_arg, default=100, metavar="N", help="at most N (>= 1) trials (default 100)"
     )
@@ -90,7 +95,11 @@ def add_parser(subparsers) -> None:
         metavar="PATH",
         help="the component container executable to test (default: this project's component_container)",
     )
-    p.add_argument("--no-wait", action="store_true", help="do not wait for Ctrl-C before stopping the stuck container")
+    p.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="stop the stuck container at once instead of holding it until Ctrl-C",
+    )
     p.set_defaults(func=run)
 
 
@@ -153,9 +162,18 @@ def scenario_command(args) -> list[str]:
 
 
 def run_scenario(args) -> int:
+    """pytest's exit status. Ctrl-C is pytest's to handle (it stops a held
+    container and writes the report): this process ignores it meanwhile,
+    and the child starts with the default action, which Python turns into
+    its KeyboardInterrupt."""
     cmd = scenario_command(args)
     print("$ " + " ".join(cmd), flush=True)
-    return subprocess.run(cmd, check=False).returncode
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        child = subprocess.Popen(cmd, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        return child.wait()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:

@@ -8,7 +8,8 @@ random over a window from a trial's Random, so that a trial replays.
     robot.inject(sequence(Starve("/planner", 0.01, 2.0), Kill("/planner"), every_s=0.5))
     robot.inject(random_over(t.rng, 3.0, [Kill("/planner"), Freeze("/map_server", 0.5)], count=2))
 
-Faults run at their times from the schedule's start; a freeze or a
+``inject`` also takes a single fault or ``At``, and a bare fault in a list
+runs at once (at 0 s). Faults run at their times from the schedule's start; a freeze or a
 starvation lasts its seconds on a thread of its own, so faults overlap
 where their times do. Each is recorded in ``System.faults`` (and so in
 the trial's history in the report) when it ends.
@@ -92,9 +93,26 @@ def random_over(rng: random.Random, window_s: float, faults: Sequence[ScheduledF
                   key=lambda a: a.seconds)  # fmt: skip
 
 
-def run_schedule(system, schedule: Iterable[At]) -> list:
+def as_schedule(schedule) -> list[At]:
+    """A schedule from what ``System.inject`` takes: an ``At``, a fault (at
+    once), or a list of those; anything else is refused, saying what."""
+    items = [schedule] if isinstance(schedule, (At, Kill, Freeze, Starve)) else list(schedule)
+    out = []
+    for item in items:
+        if isinstance(item, At):
+            out.append(item)
+        elif isinstance(item, (Kill, Freeze, Starve)):
+            out.append(At(0.0, item))
+        else:
+            raise TypeError(
+                f"a schedule holds At(seconds, fault) or faults (Kill, Freeze, Starve), not {type(item).__name__}"
+            )
+    return sorted(out, key=lambda a: a.seconds)
+
+
+def run_schedule(system, schedule: At | ScheduledFault | Iterable[At | ScheduledFault]) -> list:
     """Run ``schedule`` on ``system``; the System faults it recorded."""
-    items = sorted(schedule, key=lambda a: a.seconds)
+    items = as_schedule(schedule)
     first = len(system.faults)
     errors: list[BaseException] = []
 

@@ -208,9 +208,9 @@ class System:
 
     def inject(self, schedule) -> list[Fault]:
         """Run a fault schedule (schedule.py: faults at times from now, in
-        order, overlapping where their times do); blocks until the last
-        ends; the faults it injected. An error of one fault is raised once
-        every other has ended."""
+        order, overlapping where their times do; a single fault runs at
+        once); blocks until the last ends; the faults it injected. An
+        error of one fault is raised once every other has ended."""
         return run_schedule(self, schedule)
 
     def wait_crashed(self, full_name: str, timeout: float = WAIT_S) -> ComponentEvent:

@@ -247,6 +247,9 @@ def holder(config, seconds: float) -> Callable:
                 return
             nodes = ", ".join(f"{name} pid {r.pid}" for name, r in system.nodes.items())
             print(f"container pid {system.proc.pid} ({nodes})")
+            if seconds == 0:
+                print("not held (--hold-failed 0): stopping it now", flush=True)
+                return
             print(f"attach a debugger:  gdb -p {system.proc.pid}    then: thread apply all bt")
             until = "Ctrl-C" if math.isinf(seconds) else f"{seconds:g} s"
             print(f"holding it until {until}", flush=True)
@@ -276,7 +279,7 @@ def system_trials(request, resilience, trial_plan):
         resilience.describe(
             fault=fault,
             profile=profile_of(system.container_args),
-            mitigations={"args": " ".join(system.container_args) or "(none)"},
+            mitigations={"container args": " ".join(system.container_args) or "(none)"},
             claim=claim,
         )
         seconds = request.config.getoption("--hold-failed", default=None)

@@ -93,6 +93,17 @@ def test_schedules_are_data_a_trials_random_replays():
         At(-1, faults[0])
 
 
+def test_a_schedule_takes_a_fault_an_at_or_a_list_of_both():
+    from cloneguard.harness.schedule import as_schedule
+
+    kill, freeze = Kill("/a"), Freeze("/b", 0.5)
+    assert as_schedule(kill) == [At(0.0, kill)]
+    assert as_schedule(At(1.0, freeze)) == [At(1.0, freeze)]
+    assert as_schedule([At(1.0, freeze), kill]) == [At(0.0, kill), At(1.0, freeze)]
+    with pytest.raises(TypeError, match="not str"):
+        as_schedule(["/a"])
+
+
 class _Recording:
     """A stand-in System that records what run_schedule asks of it."""
 

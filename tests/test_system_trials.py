@@ -4,6 +4,7 @@ say, and, as a user runs them, failed and hung trials in the report."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -202,3 +203,31 @@ def test_reproduce_runs_a_scenario_of_yours_through_pytest():
     args.profile = "shared"
     with pytest.raises(SystemExit, match="for the rig's faults"):
         scenario_command(args)
+
+
+def test_ctrl_c_on_a_held_reproduce_stops_it_cleanly(tmp_path):
+    """As at a terminal: Ctrl-C reaches reproduce and its pytest (one
+    process group); pytest stops the held container and writes its
+    report, and reproduce prints no traceback of its own."""
+    (tmp_path / "scenarios").mkdir()
+    (tmp_path / "scenarios" / "test_user.py").write_text(USER_SCENARIOS)
+    test = "scenarios/test_user.py::test_a_claim_that_cannot_hold"
+    cmd = [sys.executable, "-m", "cloneguard.harness", "reproduce", test, "--trial-seed", "42"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)  # fmt: skip
+    seen = []
+    try:
+        for line in proc.stdout:
+            seen.append(line)
+            if line.startswith("holding it until Ctrl-C"):
+                break
+        text = "".join(seen)
+        pid = int(text.split("container pid ")[1].split()[0])
+        os.killpg(proc.pid, signal.SIGINT)
+    finally:
+        rest, _ = proc.communicate(timeout=120)
+    assert "Traceback" not in text + rest, text + rest
+    assert proc.returncode != 0  # interrupted, not passed
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+    assert "resilience report" in rest  # pytest finished its session: the report is written

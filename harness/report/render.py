@@ -241,7 +241,7 @@ def _header(report: Report) -> str:
         ("pytest", f"<code>{e(' '.join(run.pytest_args) or '(no arguments)')}</code>"),
         (
             "container",
-            f"<code>{e(run.container_exe)}</code>" if run.container_exe else "this project's component_container",
+            f"<code>{e(run.container_exe)}</code>" if run.container_exe else "cloneguard's component_container",
         ),
         ("deep mode", "on" if run.deep else "off"),
     ]
