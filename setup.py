@@ -7,6 +7,7 @@
 # (`cloneguard`, shared with the test rig's cloneguard.harness/.faults/.bench,
 # rig/setup.py), never as a bare top-level `container`.
 import runpy
+import sys
 from pathlib import Path
 
 import pybind11
@@ -24,6 +25,7 @@ ISOLATED_ONLY = {
     "cloneguard.container.isolated._allocguard",
     "cloneguard.container.isolated._pylocks",
     "cloneguard.container.isolated._pybind11_registry",
+    "cloneguard.container.isolated._dds_defaults",
 }
 
 
@@ -68,6 +70,17 @@ setup(
             "cloneguard.container.isolated._pylocks",
             sources=["container/isolated/pylocks.c"],
             extra_compile_args=["-std=gnu11", *WARNINGS],
+        ),
+        # Not a Python module: the default QoS of the DDS participants made
+        # from then on (dds_defaults.cpp), against the venv's Fast DDS.
+        Extension(
+            "cloneguard.container.isolated._dds_defaults",
+            sources=["container/isolated/dds_defaults.cpp"],
+            include_dirs=[str(Path(sys.prefix) / "include")],
+            library_dirs=[str(Path(sys.prefix) / "lib")],
+            libraries=["fastrtps"],
+            language="c++",
+            extra_compile_args=["-std=c++17", "-O2", *WARNINGS, "-fvisibility=hidden"],
         ),
         # pybind11's instance registry kept ahead of the node processes
         # (pybind11_registry.cpp): built against the pybind11 ABI rclpy uses.

@@ -65,7 +65,7 @@ def scale_svg(data: dict, counts: list[int], labels: dict[str, str]) -> str:
     for i, (key, title, show) in enumerate(MEASURES):
         x0 = left + (i % 2) * (pw + gap_x)
         y0 = top + (i // 2) * (ph + gap_y)
-        lines = {
+        lines = {  # a configuration that failed (or did not exit) has no point
             labels[m]: [None if data[m][n].get(key) is None else show(data[m][n][key]) for n in counts] for m in data
         }
         out += _panel(x0, y0, pw, ph, title, counts, lines)

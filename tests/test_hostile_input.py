@@ -238,6 +238,7 @@ def test_a_bad_watchdog_value_is_one_line_and_exit_2(flag, value):
         ["--restart-limit", "3"],
         ["--profile=shared"],
         ["--node-watchdog", "5"],
+        ["--node-announcement", "1"],
     ],
     ids=lambda a: a[0],
 )
@@ -270,6 +271,9 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
             ["--isolated", "--restart-policy", "on-crash", "--restart-limit", "0"],
             "argument --restart-limit: must be 1 to 1000 restarts",
         ),
+        (["--isolated", "--profile", "shared", "--node-announcement", "1"], "--node-announcement needs the per-node"),
+        (["--isolated", "--node-announcement", "0.001"], "argument --node-announcement: must be 0"),
+        (["--isolated", "--node-announcement", "nan"], "argument --node-announcement: must be 0"),
     ],
     ids=[
         "shared-arenas-guarded",
@@ -279,6 +283,9 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
         "arenas-glibc",
         "restart-limit-alone",
         "restart-limit-0",
+        "announcement-shared",
+        "announcement-too-short",
+        "announcement-nan",
     ],
 )
 def test_an_option_that_means_nothing_here_is_refused_in_one_line(args, needs):
