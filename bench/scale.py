@@ -32,6 +32,8 @@ import subprocess
 import sys
 import time
 
+from cloneguard.harness import procfs
+
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ratio
 from .goals import Goal, goal_at_most, goal_ratio_at_most
@@ -58,15 +60,8 @@ EXIT_TIMEOUT_S = 60.0
 
 def cpu_seconds(pids: list[int]) -> float:
     """utime + stime of these processes (each a whole thread group), in s."""
-    ticks = 0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat", "rb") as f:
-                fields = f.read().decode(errors="replace").rpartition(")")[2].split()
-        except (FileNotFoundError, ProcessLookupError):
-            continue
-        ticks += int(fields[11]) + int(fields[12])  # utime, stime: fields 14, 15
-    return ticks / CLK_TCK
+    stats = (procfs.stat(pid) for pid in pids)
+    return sum(st.cpu_ticks for st in stats if st is not None) / CLK_TCK
 
 
 def idle_cpu_percent(pids_fn, seconds: float) -> float:

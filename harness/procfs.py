@@ -16,18 +16,30 @@ class ProcStat:
     pgrp: int
     session: int
     num_threads: int
+    cpu_ticks: int  # utime + stime, in clock ticks (a process's: all its threads')
 
 
-def stat(pid: int) -> ProcStat | None:
+def _stat_fields(path: str) -> tuple[str, list[str]] | None:
+    """(comm, the fields after it: [0] is field 3, state) of a stat file."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
+        with open(path, "rb") as f:
             raw = f.read().decode(errors="replace")
     except (FileNotFoundError, ProcessLookupError):
         return None
     # comm is in parentheses and may itself contain spaces or ')'.
     head, _, rest = raw.rpartition(")")
-    comm = head.partition("(")[2]
-    fields = rest.split()
+    return head.partition("(")[2], rest.split()
+
+
+def _cpu_ticks(fields: list[str]) -> int:
+    return int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15)
+
+
+def stat(pid: int) -> ProcStat | None:
+    read = _stat_fields(f"/proc/{pid}/stat")
+    if read is None:
+        return None
+    comm, fields = read
     return ProcStat(
         pid=pid,
         comm=comm,
@@ -36,6 +48,7 @@ def stat(pid: int) -> ProcStat | None:
         pgrp=int(fields[2]),
         session=int(fields[3]),
         num_threads=int(fields[17]),
+        cpu_ticks=_cpu_ticks(fields),
     )
 
 
@@ -47,12 +60,9 @@ def thread_cpu_ticks(pid: int) -> dict[int, int]:
     except (FileNotFoundError, ProcessLookupError):
         return out
     for tid in tids:
-        try:
-            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
-                rest = f.read().decode(errors="replace").rpartition(")")[2].split()
-        except (FileNotFoundError, ProcessLookupError):
-            continue
-        out[int(tid)] = int(rest[11]) + int(rest[12])  # utime, stime (fields 14, 15)
+        read = _stat_fields(f"/proc/{pid}/task/{tid}/stat")
+        if read is not None:
+            out[int(tid)] = _cpu_ticks(read[1])
     return out
 
 

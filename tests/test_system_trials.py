@@ -152,6 +152,18 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     assert [t["seed"] for t in replay["trials"]] == [t["seed"] for t in silent["trials"]]
 
 
+def _until_held(proc) -> tuple[str, int]:
+    """What a held run printed up to its "holding it until" line, and the
+    held container's pid."""
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith("holding it until"):
+            break
+    text = "".join(seen)
+    return text, int(text.split("container pid ")[1].split()[0])
+
+
 def test_a_replayed_trial_stops_there_and_holds_its_container(tmp_path):
     """--trial-seed replays one trial; --hold-failed keeps the container of
     the first that does not survive running; --container-arg reaches it."""
@@ -162,15 +174,9 @@ def test_a_replayed_trial_stops_there_and_holds_its_container(tmp_path):
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", test, "--trial-seed", "42",
            "--hold-failed", "5", "--container-arg=--profile=shared", "--report-dir", str(report)]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    seen = []
     try:
-        for line in proc.stdout:
-            seen.append(line)
-            if line.startswith("holding it until"):
-                break
-        text = "".join(seen)
+        text, pid = _until_held(proc)
         assert "trial 0 (--trial-seed 42) did not survive: failed: odometry is not at 1 kHz" in text, text
-        pid = int(text.split("container pid ")[1].split()[0])
         os.kill(pid, 0)  # held: still running
         log = text.split("container log: ")[1].split()[0]
     finally:
@@ -215,14 +221,9 @@ def test_ctrl_c_on_a_held_reproduce_stops_it_cleanly(tmp_path):
     cmd = [sys.executable, "-m", "cloneguard.harness", "reproduce", test, "--trial-seed", "42"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)  # fmt: skip
-    seen = []
     try:
-        for line in proc.stdout:
-            seen.append(line)
-            if line.startswith("holding it until Ctrl-C"):
-                break
-        text = "".join(seen)
-        pid = int(text.split("container pid ")[1].split()[0])
+        text, pid = _until_held(proc)
+        assert "holding it until Ctrl-C" in text
         os.killpg(proc.pid, signal.SIGINT)
     finally:
         rest, _ = proc.communicate(timeout=120)
