@@ -34,7 +34,8 @@ def _panel(x0: float, y0: float, w: float, h: float, title: str, counts: list[in
     ]
     for frac in (0.0, 0.5, 1.0):
         v = top * frac
-        out.append(f'<text x="{x0 - 4}" y="{py(v) + 4:.1f}" font-size="10" text-anchor="end">{v:.3g}</text>')
+        label = f"{v:.0f}" if v >= 100 else f"{v:.3g}"
+        out.append(f'<text x="{x0 - 4}" y="{py(v) + 4:.1f}" font-size="10" text-anchor="end">{label}</text>')
     for n in counts:
         out.append(f'<text x="{px(n):.1f}" y="{y0 + h + 14}" font-size="10" text-anchor="middle">{n}</text>')
     for i, (mode, vs) in enumerate(lines.items()):
@@ -54,7 +55,7 @@ def scale_svg(data: dict, counts: list[int], labels: dict[str, str]) -> str:
     """``data``: mode -> count -> measurement (bench.scale)."""
     pw, ph, gap_x, gap_y, left, top = 300.0, 170.0, 90.0, 70.0, 60.0, 40.0
     width = int(left + 2 * pw + gap_x + 20)
-    legend_y = top + 2 * ph + gap_y + 10
+    legend_y = top + 2 * ph + gap_y + 50  # below the lower panels' axis titles
     height = int(legend_y + 18 * len(labels) + 10)
     out = [
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" viewBox="0 0 {width} {height}" '
