@@ -27,6 +27,7 @@ from cloneguard_interfaces.msg import ComponentEvent
 
 from .client import ContainerClient, Recorder
 from .cpu_starve import CpuStarve
+from .crash_report import STACKS_WAIT_S, wait_for_report
 from .errors import HarnessTimeout
 from .factory import ContainerFactory
 from .process import ContainerProcess
@@ -189,6 +190,15 @@ class System:
         end = time.monotonic_ns()
         self.faults.append(Fault(full_name, f"freeze {seconds:g} s", start, end, running.unique_id))
         return start, end
+
+    def crash_report(self, pid: int, timeout: float = STACKS_WAIT_S) -> str | None:
+        """The crash report the container wrote for the node process
+        ``pid`` (a CRASHED event's ``pid``): the signal and address, its
+        Python stack and its native stack with function names where the
+        libraries' symbols allow; waited for up to ``timeout`` (the stacks
+        follow the CRASHED event). None for a death that writes none (a
+        SIGKILL, an exit)."""
+        return wait_for_report(self.proc.log_text, pid, timeout)
 
     def starve(self, full_name: str, cpus: float, seconds: float) -> tuple[int, int]:
         """Hold the node's process to ``cpus`` CPUs (0.001 up) for

@@ -156,6 +156,30 @@ def timeline(system, start_ns: int, end_ns: int) -> dict:
     return {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
 
 
+def crash_reports(system, start_ns: int, end_ns: int, faults, *, all_deaths: bool) -> dict[str, str]:
+    """The crash reports of the node processes that died in the trial (a
+    CRASHED event between the two times), by "node (pid N)": of those that
+    died on their own always, of those a fault of the trial ended only
+    with ``all_deaths`` (a trial that did not survive). None are waited for
+    from a dead container."""
+    from cloneguard_interfaces.msg import ComponentEvent  # not at the plugin's import: no ROS then
+
+    if not system.alive():
+        return {}
+    hit = {f.unique_id for f in faults if f.ends_the_node}
+    out = {}
+    for item in system.client.events.items():
+        ev = item.msg
+        if ev.event_type != ComponentEvent.CRASHED or not start_ns <= item.at_ns <= end_ns:
+            continue
+        if ev.unique_id in hit and not all_deaths:
+            continue
+        report = system.crash_report(ev.pid)
+        if report:
+            out[f"{ev.full_node_name} (pid {ev.pid})"] = report
+    return out
+
+
 def _heard_again(system, within_s: float) -> None:
     """Until each watched topic has had HEARD_AGAIN messages more, or
     ``within_s``."""
@@ -215,6 +239,9 @@ def run_trials(
             details["why"] = cause
         details["faults"] = [fault_record(f, start) for f in faults]
         details["topics"] = topic_facts(system, start, end)
+        reports = crash_reports(system, start, end, faults, all_deaths=outcome != TrialOutcome.SURVIVED.value)
+        if reports:
+            details["crash_reports"] = reports
         if outcome == TrialOutcome.CRASHED.value:
             details["container_log"] = "\n".join(system.proc.log_text().splitlines()[-CONTAINER_LOG_LINES:])
         if hold is not None and outcome != TrialOutcome.SURVIVED.value:

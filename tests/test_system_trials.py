@@ -91,7 +91,7 @@ USER_SCENARIOS = textwrap.dedent("""
         odom.wait_count(3, timeout=10)
 
         def trial(t):
-            died = robot.kill("/planner", signal.SIGKILL)
+            died = robot.kill("/planner", signal.SIGSEGV)
             robot.wait_crashed("/planner")
             odom.wait_count(len(odom) + 4, timeout=10)
             assert rate(odom, died) >= 1000.0, "odometry is not at 1 kHz"
@@ -124,7 +124,7 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     cannot = by_name["test_a_claim_that_cannot_hold"]
     assert [t["outcome"] for t in cannot["trials"]] == ["failed", "failed"]
     assert all(t["details"]["why"] == "odometry is not at 1 kHz" for t in cannot["trials"])
-    assert all([(f["node"], f["kind"]) for f in t["details"]["faults"]] == [("/planner", "SIGKILL")]
+    assert all([(f["node"], f["kind"]) for f in t["details"]["faults"]] == [("/planner", "SIGSEGV")]
                for t in cannot["trials"])  # fmt: skip
     assert all(t["details"]["topics"]["/odom"]["messages"] >= 4 for t in cannot["trials"])
     assert [t["index"] for t in cannot["trials"]] == [0, 1]
@@ -141,7 +141,12 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     html = (report / "report.html").read_text()
     assert "odometry is not at 1 kHz" in html and "Topics during the trials" in html
     assert "Timeline of trial 0 (failed)" in html and "Faults by node" in html
-    assert "SIGKILL → /planner at " in html  # the trial's faults in words
+    assert "SIGSEGV → /planner at " in html  # the trial's faults in words
+    # a trial that did not survive keeps the crash report of the node its fault ended
+    for t in cannot["trials"]:
+        [(who, written)] = t["details"]["crash_reports"].items()
+        assert who.startswith("/planner (pid ") and "caught SIGSEGV" in written and "native stack:" in written
+    assert "crash report of /planner (pid " in html
     assert "{&quot;why&quot;" not in html  # facts in words, not a JSON blob
 
     # the same --seed gives the same trials

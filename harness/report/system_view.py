@@ -185,10 +185,13 @@ def trial_facts(t: Trial) -> str:
     for name, f in topics.items():
         parts.append(f"{e(name)} {f['rate_hz']:.1f} Hz, longest gap {f['longest_gap_s']:.3f} s")
     d.pop("timeline", None)
+    reports = d.pop("crash_reports", None) or {}
     log = d.pop("container_log", None)
     for k, v in sorted(d.items()):
         parts.append(f"{e(k)}: {e(v if isinstance(v, str) else json.dumps(v, sort_keys=True))}")
     text = "<br>".join(parts)
+    for who, report in reports.items():
+        text += f"<details><summary>crash report of {e(who)}</summary><pre>{e(report)}</pre></details>"
     if log:
         text += f"<details><summary>container log (last lines)</summary><pre>{e(log)}</pre></details>"
     return text
