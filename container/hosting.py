@@ -32,7 +32,7 @@ from typing import Any
 from rclpy.node import Node
 
 from . import construction
-from .options import CPU_QUOTA, LoadError, NodeArguments
+from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
 
 
 @dataclass
@@ -61,6 +61,8 @@ class ThreadHost:
     def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
+        if args.profile is not None:
+            raise LoadError(f"a participant profile ({PROFILE}) needs an isolated container (--isolated)")
         start = time.time_ns()
         node = construction.construct(cls, args, self._context, unique_id)
         with self._lock:

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from rclpy.parameter import Parameter
 
 from . import seams
+from .isolated.profiles import PROFILES
 
 # rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
 # rclcpp_components, any other value is ignored.
@@ -30,12 +31,16 @@ CPU_QUOTA_RANGE = (0.001, 1024.0)
 # seams.DROP_LOADED_EVENT (the node loads, its LOADED event is not sent) is
 # fault injection: known only where the test rig is installed.
 CPU_QUOTA = "cloneguard.cpu_quota"
+# PROFILE ("per-node" or "shared") builds this one node of an isolated
+# container in that participant profile, whatever the container's --profile.
+PROFILE = "cloneguard.profile"
 KNOWN_EXTRA_ARGUMENTS = {
     "use_intra_process_comms": Parameter.Type.BOOL,
     # As rclcpp_components: false (its default) builds the node without the
     # container's global ROS arguments, true with them.
     "forward_global_arguments": Parameter.Type.BOOL,
     CPU_QUOTA: Parameter.Type.DOUBLE,
+    PROFILE: Parameter.Type.STRING,
 }
 # rclcpp_components' warning when forward_global_arguments is true, word for word.
 FORWARD_GLOBAL_WARNING = (
@@ -44,7 +49,7 @@ FORWARD_GLOBAL_WARNING = (
     "not only those targeted at this node."
 )
 FAULT_EXTRA_ARGUMENTS = {seams.DROP_LOADED_EVENT: Parameter.Type.BOOL}
-_TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double"}
+_TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double", Parameter.Type.STRING: "a string"}
 
 
 class LoadError(Exception):
@@ -61,6 +66,7 @@ class NodeArguments:
     forward_global_arguments: bool = False
     drop_loaded_event: bool = False
     cpu_quota: float | None = None
+    profile: str | None = None  # PROFILE: None, the container's
     log_level: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
@@ -105,6 +111,10 @@ def _extra_arguments(messages) -> dict[str, object]:
                 f"Extra component argument '{CPU_QUOTA}' must be between {low:g} and "
                 f"{high:g} (CPUs), got {param.value!r}"
             )
+        if param.name == PROFILE and param.value not in PROFILES:
+            raise LoadError(
+                f"Extra component argument '{PROFILE}' must be one of {', '.join(PROFILES)}, got {param.value!r}"
+            )
         extra[param.name] = param.value
     return extra
 
@@ -127,6 +137,7 @@ def from_request(request) -> NodeArguments:
         forward_global_arguments=bool(extra.get("forward_global_arguments", False)),
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=float(extra[CPU_QUOTA]) if CPU_QUOTA in extra else None,  # type: ignore[arg-type]
+        profile=str(extra[PROFILE]) if PROFILE in extra else None,
         log_level=request.log_level if request.log_level in LOG_LEVELS else 0,
         extra=extra,
     )

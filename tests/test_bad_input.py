@@ -96,6 +96,21 @@ BAD_REQUESTS = [
         id="extra-argument-type",
     ),
     pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"cloneguard.profile": "per-process"}),
+        "Extra component argument 'cloneguard.profile' must be one of per-node, shared, got 'per-process'",
+        id="profile-unknown",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"cloneguard.profile": 1.0}),
+        "Extra component argument 'cloneguard.profile' must be a string",
+        id="profile-type",
+    ),
+    pytest.param(
+        dict(package_name=PKG, plugin_name=TALKER, extra_arguments={"cloneguard.profile": "shared"}),
+        "a participant profile (cloneguard.profile) needs an isolated container (--isolated)",
+        id="profile-in-thread-mode",
+    ),
+    pytest.param(
         dict(package_name="misfit-components", plugin_name="misfits::Raises"),
         "sensor not found on /dev/imaginary",
         id="constructor-raises",

@@ -4,6 +4,8 @@ the container's own at the profile's (100 ms in the harness's profile). Measured
 the SPDP announcements that reach the domain's multicast group, counted
 per participant (the RTPS header's GUID prefix)."""
 
+import os
+import signal
 import socket
 import struct
 import time
@@ -75,3 +77,23 @@ def test_the_per_node_default_is_3_s(client, container):
 def test_nothing_changes_where_nodes_have_no_participant_of_their_own(client, container):
     client.list()
     assert "participants announce every" not in container.log_text()
+
+
+@pytest.mark.parametrize("container_args", [["--isolated"]])
+def test_a_load_can_ask_for_the_shared_profile_in_a_per_node_container(client, container, domain_id):
+    """cloneguard.profile per load: the shared node adds no participant
+    (counted on the wire), the per-node one does; both run, and the shared
+    one's death leaves the rest going."""
+    from cloneguard_interfaces.msg import ComponentEvent
+
+    shared = client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="hb_shared",
+                            extra_arguments={"cloneguard.profile": "shared"})  # fmt: skip
+    client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="hb_own")
+    time.sleep(1.0)  # past the new participants' initial announcements
+    # the container's, the harness client's, the warm spare's and hb_own's: not hb_shared
+    assert len(announcements(domain_id, WINDOW_S)) == 4
+    assert sorted(name for _, name in client.list()) == ["/hb_own", "/hb_shared"]
+    pid = next(ev.pid for ev in client.events.messages() if ev.unique_id == shared.unique_id)
+    os.kill(pid, signal.SIGKILL)
+    client.wait_for_event(ComponentEvent.CRASHED, unique_id=shared.unique_id)
+    assert [name for _, name in client.list()] == ["/hb_own"]

@@ -11,6 +11,11 @@ Two participant profiles say where a node is built:
     participant for all), and only its executor spins in the child. A child
     that dies inside DDS can leave the container's participant locked.
 
+The container's ``--profile`` is every load's unless the load asks for
+one (extra argument ``cloneguard.profile``): a container can give most of
+its nodes the shared profile's cost and the few that need it a participant
+of their own, or the reverse.
+
 Either way the child runs one SingleThreadedExecutor, once the manager has
 announced the load (``run``: until then the child waits at its gate, off
 the GIL). Per-node children are taken from the warm spare when one can serve
@@ -153,8 +158,9 @@ class IsolatedHost:
         # The container's command line: the global ROS arguments a node built
         # with forward_global_arguments gets on its own Context (per-node).
         self._container_argv = list(container_argv)
-        if profile == SHARED:
-            _robust_context_lock(context, logger)
+        # A node may be built in the container (the shared profile's, or a
+        # load asking for it: options.PROFILE), whatever the default.
+        _robust_context_lock(context, logger)
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
@@ -184,7 +190,7 @@ class IsolatedHost:
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
-        proc = _NodeProcess(unique_id, self.profile)
+        proc = _NodeProcess(unique_id, args.profile or self.profile)
         try:
             self._start(proc, cls, args)
         except BaseException as exc:
@@ -218,7 +224,7 @@ class IsolatedHost:
             intra.get_bus().open_waker(unique_id)
         proc.slot = self.board.register(unique_id)
         proc.start_ns = time.time_ns()
-        if self.profile == SHARED:
+        if proc.profile == SHARED:
             proc.node = construction.construct(cls, args, self._context, unique_id)
             proc.full_name = proc.node.get_fully_qualified_name()
             proc.executor = SingleThreadedExecutor(context=self._context)
@@ -232,7 +238,7 @@ class IsolatedHost:
         with self._lock:
             # The spare is taken, or a child spawned, under the lock that
             # routes deaths: one that dies right away is this load's.
-            spare = self._take_spare(args) if self.profile != SHARED else None
+            spare = self._take_spare(args) if proc.profile != SHARED else None
             if spare is not None:
                 spare.order = (proc, cls, args)
                 proc.child = spare.child
@@ -244,7 +250,7 @@ class IsolatedHost:
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built
         if proc.cgroup is not None:
             self.cgroups.attach(proc.cgroup, proc.child.pid)
-        if self.profile != SHARED:
+        if proc.profile != SHARED:
             self._await_construction(proc)
 
     def _undo(self, proc: _NodeProcess) -> None:
