@@ -68,3 +68,30 @@ def test_nodes_freeing_and_holding_each_others_memory_never_fault(keys, profile,
     released.wait_for(lambda m: m.data > 20, 60, "the holder releasing the publisher's messages")
     deaths = [e for e in client.events.messages() if e.event_type == ComponentEvent.CRASHED]
     assert deaths == [], [e.error_message for e in deaths]
+
+
+@needs_keys
+def test_writers_that_die_one_after_another_never_get_the_victims_key(container_factory):
+    """Every faulting writer quarantines its slot, so each new one takes a
+    slot never used before; slot s's key is fixed (key index (s-1) % 15).
+    A new slot is one of the key fewest live slots hold, so the victim's
+    key is never handed out again while fewer than 16 node processes live:
+    here 20 writers in a row, each one caught (once the 14th took the
+    victim's key and its write landed)."""
+    proc = container_factory.start([*KEYS, "--profile", "shared"])
+    client = container_factory.connect(proc)
+    victim = client.load_ok(RIG, "faults::HeapVictim")
+    checks = client.subscribe(UInt64, "/heap_victim/checks")
+    checks.wait_count(5, timeout=10)
+    victim_key = None
+    for i in range(20):
+        writer = client.load_ok(RIG, "faults::WildWriter", node_name=f"writer{i}", parameters={"delay": 0.05})
+        crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
+        assert "protection-key violation: wrote into /heap_victim" in crashed.error_message, (i, crashed.error_message)
+        key = crashed.error_message.split("(key ")[1].split(")")[0]
+        assert victim_key in (None, key)  # the key named is the victim's heap's
+        victim_key = key
+    seen = len(checks)
+    checks.wait_count(seen + 5, timeout=30)
+    assert checks.messages()[-1].data == 0
+    assert [uid for uid, _ in client.list()] == [victim.unique_id]

@@ -696,3 +696,11 @@ def test_the_project_is_the_nearest_pyproject_up_to_the_root(tmp_path):
     assert project_name(root / "examples", root) == "outer"
     (root / "pyproject.toml").write_text("[tool.pytest.ini_options]\n")
     assert project_name(root / "examples", root) == "checkout"  # no name: the root's directory
+
+
+@pytest.mark.parametrize("pku", [True, False])
+def test_the_host_line_says_whether_keys_protect_and_past_how_many_nodes_they_share(pku):
+    report = Report(RunInfo(id="r", host={"cpu_model": "QEMU TCG CPU", "cpu_count": 2, "pku": pku}), [])
+    html = render_html(report)
+    assert ("PKU yes" in html and "up to 15" in html and "past 15, nodes share keys" in html) == pku
+    assert ("PKU no" in html) == (not pku)

@@ -1010,13 +1010,40 @@ static int arena_new(struct slot_hooks *sh, uintptr_t base, size_t len, unsigned
     return 0;
 }
 
+/* With protection keys, which of them a new slot should have: slot s's key
+   is fixed (hk_key_of_slot: key index (s-1) % nkeys), so a new context takes
+   an unused slot of the key fewest live slots hold (pooled or running a node
+   process; quarantined ones never run again).  That way up to nkeys node
+   processes each write under a key no other live one has, whatever slots
+   were used and quarantined before; the lowest index among equals.  -1:
+   any slot (no keys). */
+static int least_held_key(void)
+{
+    int n = hk_key_count(), held[16] = {0}, best = -1;
+    if (n <= 0 || n > 16)
+        return -1;
+    for (int s = 1; s < g_nslots; s++) {
+        int st = atomic_load_explicit(&slots[s].state, memory_order_relaxed);
+        if (st == CGA_IDLE || st == CGA_BOUND)
+            held[(s - 1) % n]++;
+    }
+    for (int k = 0; k < n; k++)
+        if (best < 0 || held[k] < held[best])
+            best = k;
+    return best;
+}
+
 /* A slot for a new node process context: its arena made (jemalloc) by the
    calling container thread.  The slot number, or -errno. */
 EXPORT int cga_slot_new(void)
 {
     if (!atomic_load(&g_active))
         return -ESRCH;
+    int key = least_held_key(), n = hk_key_count();
+    for (int pass = key < 0; pass < 2; pass++)    /* that key's slots, then any */
     for (int s = 1; s < g_nslots; s++) {
+        if (pass == 0 && (s - 1) % n != key)
+            continue;
         int unused = CGA_UNUSED;
         if (!atomic_compare_exchange_strong(&slots[s].state, &unused, CGA_IDLE))
             continue;

@@ -53,8 +53,10 @@
  * is all key 0 or shared.
  *
  * More slots than keys (x86_64 has 15): slot s uses key 1 + (s-1) % nkeys,
- * so nodes that share a key are not protected from each other, only from
- * the rest.  Turned on by CLONEGUARD_PKEYS=1 in the environment (the
+ * and a new context takes an unused slot of the key the fewest live slots
+ * hold (allocguard.c, least_held_key), so up to 15 live node processes
+ * (pooled contexts count) have a key each; past that, nodes that share a key
+ * are not protected from each other, only from the rest.  Turned on by CLONEGUARD_PKEYS=1 in the environment (the
  * container's --pkeys sets it when it re-executes itself with the guard).
  */
 #define _GNU_SOURCE
@@ -117,6 +119,11 @@ __attribute__((constructor(101))) static void hk_init(void)
 HIDDEN int hk_enabled(void)
 {
     return g_nkeys > 0;
+}
+
+HIDDEN int hk_key_count(void)
+{
+    return g_nkeys;
 }
 
 HIDDEN int hk_key_of_slot(int slot)

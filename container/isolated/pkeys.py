@@ -106,6 +106,6 @@ def heap_keys_describe() -> str:
         return f"memory protection keys over node heaps: off ({keys})"
     return (
         f"memory protection keys over node heaps: {len(keys)} keys ({', '.join(map(str, keys))}), one per "
-        f"node process; node processes {len(keys) + 1} and up share a key with an earlier one, and are not "
+        f"live node process; past {len(keys)} live at once, a node shares a key with a live one, and is not "
         "protected from it"
     )

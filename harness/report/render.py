@@ -221,7 +221,12 @@ def _header(report: Report) -> str:
     cpu_line = f"{e(cpu)} × {e(host.get('cpu_count', '?'))}"
     if host.get("cpu_usable") and host.get("cpu_usable") != host.get("cpu_count"):
         cpu_line += f" ({e(host['cpu_usable'])} usable)"
-    cpu_line += f"; PKU {'yes' if host.get('pku') else 'no'}"
+    cpu_line += (
+        "; PKU yes (with --pkeys each live node process writes its heap under a key of its own, up to 15; "
+        "past 15, nodes share keys and are not protected from those they share with)"
+        if host.get("pku")
+        else "; PKU no"
+    )
     rows = [
         (
             "started",
