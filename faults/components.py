@@ -535,16 +535,18 @@ _libc.free.argtypes = [ctypes.c_void_p]
 
 
 class HeapVictim(Node):
-    """Keeps a ``size``-byte buffer in its own process's native heap (malloc,
-    at its first tick, so in its process in either profile), filled with a
-    pattern. Every ``period`` s it checks the buffer (a changed one is
-    filled again) and publishes on ``~/checks`` how many checks so far
-    found it changed: one topic, so that what a check found is in order
-    with the checks before it. Where the buffer is:
-    shared_state.HEAP_BUFFERS, by node name. With ``donate`` > 0 it also
-    mallocs that many 64-byte blocks for other nodes to free
-    (shared_state.DONATED_BLOCKS), and each tick mallocs and frees a few of
-    its own, so that it takes back what others freed of its blocks."""
+    """Keeps a ``size``-byte buffer, filled with a pattern, made at its first
+    tick (so in its own process in either profile): with ``memory``
+    "native" in its process's native heap (malloc), with "python" a
+    bytearray (a Python object: memory every node writes legitimately).
+    Every ``period`` s it checks the buffer (a changed one is filled again)
+    and publishes on ``~/checks`` how many checks so far found it changed:
+    one topic, so that what a check found is in order with the checks
+    before it. Where the buffer is: shared_state.HEAP_BUFFERS, by node
+    name. With ``donate`` > 0 it also mallocs that many 64-byte blocks for
+    other nodes to free (shared_state.DONATED_BLOCKS), and each tick mallocs
+    and frees a few of its own, so that it takes back what others freed of
+    its blocks."""
 
     PATTERN = 0xC3
 
@@ -561,14 +563,24 @@ class HeapVictim(Node):
         self._corrupted = 0
         self._pub = self.create_publisher(UInt64, "~/checks", 10)
         self._donate = self.declare_parameter("donate", 0).value
+        self._memory = self.declare_parameter("memory", "native").value
+        if self._memory not in ("native", "python"):
+            raise ValueError(f"parameter 'memory' must be 'native' or 'python', got {self._memory!r}")
         self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
+
+    def _make_buffer(self) -> int:
+        if self._memory == "python":
+            self._pybuf = bytearray(self._expected)
+            return ctypes.addressof((ctypes.c_char * self._size).from_buffer(self._pybuf))
+        buf = _libc.malloc(self._size)
+        if not buf:
+            raise MemoryError("HeapVictim: malloc failed")
+        ctypes.memset(buf, self.PATTERN, self._size)
+        return buf
 
     def _tick(self):
         if not self._buf:
-            self._buf = _libc.malloc(self._size)
-            if not self._buf:
-                raise MemoryError("HeapVictim: malloc failed")
-            ctypes.memset(self._buf, self.PATTERN, self._size)
+            self._buf = self._make_buffer()
             shared_state.HEAP_BUFFERS[self.get_name()] = (self._buf, self._size)
             shared_state.DONATED_BLOCKS[self.get_name()] = [_libc.malloc(64) for _ in range(self._donate)]
         if self._donate:
@@ -620,6 +632,30 @@ class DoubleFreer(_FaultNode):
         block = shared_state.DONATED_BLOCKS[self.victim].pop()
         _libc.free(block)
         _libc.free(block)
+
+
+class UseAfterFree(_FaultNode):
+    """Frees a block the HeapVictim named ``victim`` (another node's
+    process) malloc'd and gave away, then writes ``bytes`` bytes into it: a
+    use after free of another node's block (the owner's allocator owns it
+    again; it may already be the owner's next malloc). Whether the write
+    lands or faults is the container's doing."""
+
+    fault = "use-after-free"
+
+    def __init__(self, **kwargs):
+        super().__init__("use_after_free", **kwargs)
+        self.victim = self.declare_parameter("victim", "heap_victim").value
+        self.count = self.declare_parameter("bytes", 64).value
+        if not shared_state.DONATED_BLOCKS.get(self.victim):
+            raise ValueError(f"no HeapVictim named {self.victim!r} has blocks to give away")
+        if not 1 <= self.count <= 64:
+            raise ValueError("parameter 'bytes' must be 1 to 64 (the donated blocks' size)")
+
+    def fire(self):
+        block = shared_state.DONATED_BLOCKS[self.victim].pop()
+        _libc.free(block)
+        ctypes.memset(block, 0x5A, self.count)
 
 
 class HeapOverflow(_FaultNode):

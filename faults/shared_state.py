@@ -83,9 +83,10 @@ def use(kind: str) -> None:
         raise ValueError(f"kind must be one of {KINDS}, not {kind!r}")
 
 
-# node name -> (address, size) of the native buffer a HeapVictim keeps in
-# its own process's heap (faults/components.py: HeapVictim, WildWriter).
+# node name -> (address, size) of the buffer a HeapVictim keeps in its own
+# process (faults/components.py: HeapVictim, WildWriter).
 HEAP_BUFFERS: dict[str, tuple[int, int]] = {}
 # node name -> addresses of 64-byte blocks a HeapVictim malloc'd in its own
-# heap for other nodes to free (faults/components.py: DoubleFreer).
+# heap for other nodes to free (faults/components.py: DoubleFreer,
+# UseAfterFree).
 DONATED_BLOCKS: dict[str, list[int]] = {}

@@ -423,7 +423,7 @@ class _VictimTrials:
         self._start_victim()
 
     def _start_victim(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters=self.VICTIM)
+        self.victim = self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters=self.VICTIM)
         self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
         self.checks.wait_count(5, timeout=10)
 
@@ -444,8 +444,24 @@ class _VictimTrials:
         """``out`` if the victim goes on checking and never found its buffer
         changed; else what became of it."""
         out = self.rig.keeps_flowing(self.checks, "the victim", out, more=self.CHECKS_AFTER)
+        died = not out.survived and self.rig.crash_reason(self.victim.unique_id)
+        if died and out.outcome == TrialOutcome.HUNG:  # the damage killed it, and that was said
+            out.outcome, out.details["why"] = TrialOutcome.FAILED, f"the victim died: {died}"
         if out.survived and self._corruptions():
             out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
+        return out
+
+    def _judge_key_violation(self, resp, pid: int) -> Outcome:
+        """Survived if the fault node alone was reported CRASHED by SIGSEGV,
+        its text naming a protection-key violation in /heap_victim's heap."""
+        out = self.rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGSEGV, fault_ns=None)
+        if out.outcome == TrialOutcome.SURVIVED:
+            # The CRASHED event says what it was, and whose heap.
+            reason = self.rig.crash_reason(resp.unique_id)
+            out.details["reason"] = reason
+            if "protection-key violation: wrote into /heap_victim" not in reason:
+                out.outcome = TrialOutcome.FAILED
+                out.details["why"] = "CRASHED does not name a protection-key violation in /heap_victim's heap"
         return out
 
     def settle(self, out: Outcome) -> None:
@@ -476,16 +492,9 @@ class WildWrite(_VictimTrials):
                 out.details["writer"] = "went on"
                 rig.client.unload(resp.unique_id)
             return out
-        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGSEGV, fault_ns=None)
+        out = self._judge_key_violation(resp, pid)
         if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
             out.details["why"] = "the write neither landed nor killed the writer"
-        if out.outcome == TrialOutcome.SURVIVED:
-            # The CRASHED event says what it was, and whose heap.
-            reason = rig.crash_reason(resp.unique_id)
-            out.details["reason"] = reason
-            if "protection-key violation: wrote into /heap_victim" not in reason:
-                out.outcome = TrialOutcome.FAILED
-                out.details["why"] = "CRASHED does not name a protection-key violation in /heap_victim's heap"
         return out
 
     def settle(self, out: Outcome) -> None:
@@ -521,6 +530,42 @@ class DoubleFree(_VictimTrials):
         if out.survived and went_on:
             out.outcome = TrialOutcome.CORRUPTED
             out.details["why"] = "the freer went on; its owner took the block back twice (its heap is corrupted)"
+        return out
+
+
+class SharedWildWrite(WildWrite):
+    """WildWrite into a victim whose buffer is a Python object (a
+    bytearray): memory every node writes legitimately, which protection
+    keys leave open. Measured, not promised: corrupted with keys or
+    without."""
+
+    VICTIM = {"memory": "python"}
+
+
+class UseAfterFree(_VictimTrials):
+    """The victim gives away 64-byte blocks of its own heap and takes back,
+    at each check, what others freed of them; each trial loads a
+    UseAfterFree node that frees one of those blocks and then writes 64
+    bytes into it. Survived: the write faulted in the writer alone (CRASHED,
+    SIGSEGV, a protection-key violation in /heap_victim's heap) and the
+    victim goes on, its buffer intact. Corrupted: the write landed (the
+    writer went on) and the victim went on. Not survived: the victim
+    stopped (the damage reached its allocator), or the container did."""
+
+    VICTIM = {"donate": 1024}
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        resp, pid = self._load_firing("faults::UseAfterFree", f"use_after_free{index}", seed)
+        out = self._judge_key_violation(resp, pid)
+        landed = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
+        if landed:
+            self.rig.client.unload(resp.unique_id)
+            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "writer": "went on"})
+        if out.survived:
+            out = self._victim_goes_on(out)
+        if out.survived and landed:
+            out.outcome = TrialOutcome.CORRUPTED
+            out.details["why"] = "the write landed in a block of the victim's heap after it was freed"
         return out
 
 
@@ -586,7 +631,9 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "sigkill-publisher-holding-messages/malloc": lambda rig: PayloadKill(rig, "malloc"),
     "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
     "wild-write-into-another-nodes-heap": WildWrite,
+    "wild-write-into-shared-memory": SharedWildWrite,
     "double-free-of-another-nodes-block": DoubleFree,
+    "use-after-free-of-another-nodes-block": UseAfterFree,
     "heap-overflow-in-own-heap": OwnHeapOverflow,
     **{
         f"die-holding-{prefix}-{kind}/{how}": (

@@ -20,8 +20,10 @@ from cloneguard.harness.skips import heap_keys_missing
 # With keys: every wild write into another node's heap caught, the victim
 # intact (the floor; quick runs: all 3).
 FLOOR = 0.99
+needs_keys = pytest.mark.skipif(heap_keys_missing() is not None, reason=f"--pkeys: {heap_keys_missing()}")
 
 FAULT = "wild-write-into-another-nodes-heap"
+SHARED = "wild-write-into-shared-memory"
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
@@ -39,7 +41,7 @@ def test_without_protection_keys_a_wild_write_corrupts_silently(profile, rig_fac
     resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
 
 
-@pytest.mark.skipif(heap_keys_missing() is not None, reason=f"--pkeys: {heap_keys_missing()}")
+@needs_keys
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
 def test_with_protection_keys_a_wild_write_kills_the_writer_alone(profile, rig_factory, resilience, run_trials):
     resilience.describe(
@@ -54,3 +56,20 @@ def test_with_protection_keys_a_wild_write_kills_the_writer_alone(profile, rig_f
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)
+
+
+@pytest.mark.parametrize("keys", [pytest.param(True, marks=needs_keys), False], ids=["pkeys", "no-pkeys"])
+def test_a_wild_write_into_shared_memory_corrupts_with_keys_or_without(keys, rig_factory, resilience, run_trials):
+    resilience.describe(
+        fault=SHARED,
+        profile="per-node",
+        mitigations={"protection_keys": keys},
+        claim="measured, not promised: 64 bytes written by one node into another node's Python object "
+        "(a 4 KiB bytearray: memory every node writes legitimately, under no key) land there, with "
+        "--pkeys or without, and nothing but the victim notices",
+    )
+    extra = ("--jemalloc", "--pkeys") if keys else ()
+    trials = FAULTS[SHARED](rig_factory("per-node", extra_args=extra))
+    run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
+    resilience.expect_no_container_death()
+    resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)

@@ -54,6 +54,9 @@ mount -t tmpfs shm /mnt/dev/shm; mount -t devpts pts /mnt/dev/pts
 mount -t cgroup2 cgroup2 /mnt/sys/fs/cgroup 2>/dev/null
 ip link set lo up; ip link set lo multicast on; ip route add 224.0.0.0/4 dev lo
 hostname pku-vm
+# Everything runs tens of times slower: a container may take over a minute to
+# answer its first ListNodes (harness/factory.py).
+export CLONEGUARD_READY_TIMEOUT=120
 chroot /mnt /bin/bash -lc "\$(cat /command)"
 echo "pku-vm: exit status \$?"
 sync; poweroff -f
