@@ -73,9 +73,10 @@ def test_nodes_freeing_and_holding_each_others_memory_never_fault(keys, profile,
 @needs_keys
 def test_writers_that_die_one_after_another_never_get_the_victims_key(container_factory):
     """Every faulting writer quarantines its slot, so each new one takes a
-    slot never used before; slot s's key is fixed (key index (s-1) % 15).
-    A new slot is one of the key fewest live slots hold, so the victim's
-    key is never handed out again while fewer than 16 node processes live:
+    slot never used before; slot s's key is fixed (key index (s-1) % 14:
+    x86_64's 15 keys less the container's own). A new slot is one of the
+    key fewest live slots hold, so the victim's key is never handed out
+    again while fewer than 15 node processes live:
     here 20 writers in a row, each one caught (once the 14th took the
     victim's key and its write landed)."""
     proc = container_factory.start([*KEYS, "--profile", "shared"])
@@ -95,3 +96,19 @@ def test_writers_that_die_one_after_another_never_get_the_victims_key(container_
     checks.wait_count(seen + 5, timeout=30)
     assert checks.messages()[-1].data == 0
     assert [uid for uid, _ in client.list()] == [victim.unique_id]
+
+
+@needs_keys
+def test_a_write_into_the_allocator_guards_tables_kills_the_writer_alone(container_factory):
+    """The guard's tables (every slot's arena, hooks and hand-over stack)
+    are under the container's own key: no node process may write them but
+    through the guard's own bracketed stores."""
+    proc = container_factory.start(KEYS)
+    client = container_factory.connect(proc)
+    writer = client.load_ok(RIG, "faults::WildWriter", parameters={"delay": 0.05, "target": "allocator-tables"})
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
+    assert crashed.exit_signal == 11
+    assert "protection-key violation: wrote into the container's allocator tables at 0x" in crashed.error_message
+    client.load_ok(RIG, "faults::HeapVictim")  # the guard still makes slots and arenas
+    checks = client.subscribe(UInt64, "/heap_victim/checks")
+    checks.wait_count(5, timeout=30)

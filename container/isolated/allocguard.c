@@ -21,7 +21,7 @@
  * a node process makes into the allocator is bracketed by a counter the
  * monitor reads after the death: a plain word in the TLS of the process's
  * main task (t_inside: the main task does nearly all the allocating), an
- * atomic counter of its slot (slots[s].inside) for threads it created.
+ * atomic counter of its slot (live[s].inside) for threads it created.
  *
  * Which arena owns a block (owner_of):
  *   jemalloc  each slot's arena is created by the container with extent hooks
@@ -138,7 +138,7 @@ struct je_hooks {
 struct slot_hooks {
     je_hooks h;
     uintptr_t base, limit;
-    _Atomic uintptr_t bump;             /* carved up to here */
+    _Atomic uintptr_t *bump;            /* carved up to here (in live[]) */
 };
 
 /* With protection keys (heapkeys.c) a slot's range is two halves: its
@@ -147,8 +147,6 @@ struct slot_hooks {
 
 struct slot {
     _Atomic int state;                  /* CGA_* */
-    _Atomic int pid;                    /* the process bound to it */
-    _Atomic long inside;                /* its tasks inside the allocator now */
     unsigned arena;                     /* jemalloc: the arena made for it */
     struct slot_hooks hooks;            /* ... and its range */
     unsigned shared_arena;              /* with keys: for Python's blocks */
@@ -170,8 +168,28 @@ struct owner {
     _Atomic uint64_t handed;            /* blocks pushed so far */
 };
 
-static struct slot slots[NSLOTS];
-static struct owner owners[NOWNERS];
+/* What a slot's own tasks write as they allocate, apart from struct slot so
+   that the tables below can be under the container's key (heapkeys.c):
+   writing that key's pages costs a PKRU switch each way, too dear on every
+   malloc.  A wild write here can mislead the guard about one slot (its
+   count inside, its pid, how far its ranges are carved), not redirect it. */
+struct slot_live {
+    _Atomic int pid;                    /* the process bound to it */
+    _Atomic long inside;                /* its tasks inside the allocator now */
+    _Atomic uintptr_t bump, shared_bump;/* jemalloc: its ranges carved so far */
+};
+
+/* The guard's tables: written by container threads, and by node processes
+   only where hk_open brackets the store (handing a block over, draining).
+   Page-aligned and page-sized, so that with keys they alone are under the
+   container's key (hk_tag_tables). */
+static struct __attribute__((aligned(4096))) tables {
+    struct slot slots[NSLOTS];
+    struct owner owners[NOWNERS];
+} g_tables;
+#define slots g_tables.slots
+#define owners g_tables.owners
+static struct slot_live live[NSLOTS];
 static _Atomic int g_active;
 static int g_container_pid;
 static uintptr_t g_region, g_region_len;/* jemalloc: slots 1.. carve from here */
@@ -353,7 +371,7 @@ static inline void enter(int slot)
         t_inside++;
         atomic_signal_fence(memory_order_seq_cst);
     } else {
-        atomic_fetch_add_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+        atomic_fetch_add_explicit(&live[slot].inside, 1, memory_order_seq_cst);
     }
 }
 
@@ -365,7 +383,7 @@ static inline void leave(int slot)
         atomic_signal_fence(memory_order_seq_cst);
         t_inside--;
     } else {
-        atomic_fetch_sub_explicit(&slots[slot].inside, 1, memory_order_seq_cst);
+        atomic_fetch_sub_explicit(&live[slot].inside, 1, memory_order_seq_cst);
     }
 }
 
@@ -375,7 +393,7 @@ static __attribute__((noinline)) int resolve_slot(void)
     int s = 0;
     if (pid != g_container_pid)
         for (int i = 1; i < g_nslots; i++)
-            if (atomic_load_explicit(&slots[i].pid, memory_order_acquire) == pid) {
+            if (atomic_load_explicit(&live[i].pid, memory_order_acquire) == pid) {
                 s = i;
                 break;
             }
@@ -433,7 +451,9 @@ static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o
 
 static void drain_stack(struct owner *o)
 {
+    uint32_t pkru = hk_open();          /* the tables are the container's */
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
+    hk_close(pkru);
     while (p) {
         void *next = *(void **)p;
         uintptr_t *mark = mark_word(p);
@@ -464,7 +484,8 @@ static void hand_over(int o, void *p)
     uintptr_t *mark = mark_word(p);
     if (mark && *mark == (HANDED_MARK ^ (uintptr_t)p))
         freed_twice(p, o);
-    uint32_t pkru = hk_open();          /* p may be under the owner's key */
+    uint32_t pkru = hk_open();          /* p is under the owner's key, the
+                                           stack under the container's */
     if (mark)
         *mark = HANDED_MARK ^ (uintptr_t)p;
     do
@@ -472,8 +493,8 @@ static void hand_over(int o, void *p)
     while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p,
                                                   memory_order_release,
                                                   memory_order_relaxed));
-    hk_close(pkru);
     atomic_fetch_add_explicit(&to->handed, 1, memory_order_relaxed);
+    hk_close(pkru);
 }
 
 /* ---------------------------------------------------------------------- */
@@ -808,12 +829,12 @@ static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
     struct slot_hooks *sl = (struct slot_hooks *)h;
     if (align < g_page)
         align = g_page;
-    uintptr_t cur = atomic_load(&sl->bump), start;
+    uintptr_t cur = atomic_load(sl->bump), start;
     do {
         start = new_addr ? (uintptr_t)new_addr : (cur + align - 1) & ~(align - 1);
         if ((new_addr && start != cur) || start + size > sl->limit || start + size < start)
             return NULL;
-    } while (!atomic_compare_exchange_weak(&sl->bump, &cur, start + size));
+    } while (!atomic_compare_exchange_weak(sl->bump, &cur, start + size));
     if (mprotect((void *)start, size, PROT_READ | PROT_WRITE) != 0)
         return NULL;
     *zero = true;                   /* never handed out before: zero pages */
@@ -985,8 +1006,13 @@ EXPORT int cga_activate(int container_pid)
     g_inside_off = (long)((uintptr_t)&t_inside - tp);
     g_container_pid = container_pid;
     g_split = g_je && hk_enabled();
+    if (g_split) {
+        int r = hk_tag_tables(&g_tables, sizeof g_tables);
+        if (r)
+            return r;
+    }
     atomic_store(&slots[0].state, CGA_BOUND);
-    atomic_store(&slots[0].pid, container_pid);
+    atomic_store(&live[0].pid, container_pid);
     pthread_atfork(NULL, NULL, after_fork_child);
     atomic_store(&g_active, 1);
     return 0;
@@ -994,11 +1020,13 @@ EXPORT int cga_activate(int container_pid)
 
 /* An arena carving from [base, base + len), its address map made.  0, or
    -errno. */
-static int arena_new(struct slot_hooks *sh, uintptr_t base, size_t len, unsigned *out)
+static int arena_new(struct slot_hooks *sh, _Atomic uintptr_t *bump, uintptr_t base, size_t len,
+                     unsigned *out)
 {
     sh->base = base;
     sh->limit = base + len;
-    atomic_store(&sh->bump, base);
+    sh->bump = bump;
+    atomic_store(bump, base);
     sh->h = (je_hooks){hook_alloc, hook_dalloc, hook_destroy, hook_commit, hook_decommit,
                        hook_purge_lazy, hook_purge_forced, hook_split, hook_merge};
     je_hooks *hp = &sh->h;
@@ -1053,9 +1081,10 @@ EXPORT int cga_slot_new(void)
             uintptr_t half = (uintptr_t)1 << HALF_SHIFT;
             int r = g_split ? hk_tag(base, half, s) : 0;
             if (!r)
-                r = arena_new(&sl->hooks, base, g_split ? half : 2 * half, &sl->arena);
+                r = arena_new(&sl->hooks, &live[s].bump, base, g_split ? half : 2 * half, &sl->arena);
             if (!r && g_split)
-                r = arena_new(&sl->shared_hooks, base + half, half, &sl->shared_arena);
+                r = arena_new(&sl->shared_hooks, &live[s].shared_bump, base + half, half,
+                              &sl->shared_arena);
             if (r) {                    /* its range stays reserved, unused */
                 atomic_store(&sl->state, CGA_UNUSED);
                 return r;
@@ -1102,7 +1131,7 @@ EXPORT void cga_slot_bind(int slot)
 {
     if (g_split)
         hk_refresh_shared();
-    atomic_store(&slots[slot].inside, 0);
+    atomic_store(&live[slot].inside, 0);
     atomic_store(&slots[slot].state, CGA_BOUND);
 }
 
@@ -1113,13 +1142,23 @@ EXPORT void cga_child_start(void)
     if (s > 0) {
         if (g_split)
             hk_child_enter(s);
-        atomic_store(&slots[s].pid, (int)syscall(SYS_getpid));
+        atomic_store(&live[s].pid, (int)syscall(SYS_getpid));
     }
 }
 
-/* The slot whose range holds address p (jemalloc), else -1. */
+/* Where the guard's tables are (under the container's key with keys). */
+EXPORT const void *cga_tables(size_t *len)
+{
+    *len = sizeof g_tables;
+    return &g_tables;
+}
+
+/* Whose memory address p is: the slot whose range holds it (jemalloc), 0
+   for the guard's own tables, else -1. */
 EXPORT int cga_slot_of(const void *p)
 {
+    if ((uintptr_t)p - (uintptr_t)&g_tables < sizeof g_tables)
+        return 0;
     uintptr_t off = (uintptr_t)p - g_region;
     return g_je && off < g_region_len ? 1 + (int)(off >> SLOT_SHIFT) : -1;
 }
@@ -1136,13 +1175,13 @@ EXPORT int cga_slot_of(const void *p)
 EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
 {
     struct slot *sl = &slots[slot];
-    int inside = atomic_load(&sl->inside) != 0 ||
+    int inside = atomic_load(&live[slot].inside) != 0 ||
                  (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
     int py = py_slot_retire(slot, tcb);
     int bits = (inside ? CGA_RETIRE_QUARANTINED : 0) |
                (!inside && faulted ? CGA_RETIRE_QUARANTINED | CGA_RETIRE_FAULTED : 0) |
                (py ? CGA_RETIRE_PY_ABANDONED : 0);
-    atomic_store(&sl->pid, 0);
+    atomic_store(&live[slot].pid, 0);
     atomic_store(&sl->state, bits & CGA_RETIRE_QUARANTINED ? CGA_QUARANTINED : CGA_IDLE);
     return bits;
 }
@@ -1165,7 +1204,7 @@ EXPORT int cga_slot_stats(int slot, struct cga_slot_stats *out)
     memset(out, 0, sizeof *out);
     struct slot *sl = &slots[slot];
     out->state = atomic_load(&sl->state);
-    out->pid = atomic_load(&sl->pid);
+    out->pid = atomic_load(&live[slot].pid);
     out->arena = sl->arena;
     out->main_arena_allocs = atomic_load(&sl->main_allocs);
     bool walk = slot > 0 && out->state != CGA_BOUND;

@@ -710,7 +710,7 @@ class CloneCore:
                 and e.child._block is not None
                 and lib.cg_child_slot(e.child._block) == slot
             ]
-        return PkeyFault(addr, block.crash_pkey, max(slot, 0), victims[0] if victims else 0)
+        return PkeyFault(addr, block.crash_pkey, slot, victims[0] if victims and slot > 0 else 0)
 
     def _call_on_event(self, event: CoreEvent) -> None:
         try:

@@ -53,8 +53,9 @@ INTERPRETER_REPAIRS = Repair.PY_POOLS | Repair.GC_LINKS | Repair.FREELISTS | Rep
 @dataclass(frozen=True)
 class PkeyFault:
     """A write the PKRU forbade (SIGSEGV, SEGV_PKUERR): where, under which
-    key, and whose native heap that is (the slot whose range holds the
-    address, and the pid bound to it then; 0 if none)."""
+    key, and whose memory that is: the slot whose range holds the address
+    (a node's native heap) and the pid bound to it then (0 if none), slot
+    0 for the allocator guard's own tables, -1 for neither."""
 
     addr: int
     key: int

@@ -35,6 +35,7 @@ HIDDEN int hk_enabled(void);                     /* keys were allocated */
 HIDDEN int hk_key_count(void);                  /* keys allocated (0: off) */
 HIDDEN int hk_key_of_slot(int slot);
 HIDDEN int hk_tag(uintptr_t base, size_t len, int slot);   /* 0, or -errno */
+HIDDEN int hk_tag_tables(void *addr, size_t len);         /* 0, or -errno */
 HIDDEN void hk_child_enter(int slot);            /* the node process's PKRU */
 HIDDEN uint32_t hk_open(void);                   /* every key writable ... */
 HIDDEN void hk_close(uint32_t was);              /* ... and back */

@@ -52,9 +52,18 @@
  * process touches (its control block, TLS, stacks, Python frames and code)
  * is all key 0 or shared.
  *
- * More slots than keys (x86_64 has 15): slot s uses key 1 + (s-1) % nkeys,
- * and a new context takes an unused slot of the key the fewest live slots
- * hold (allocguard.c, least_held_key), so up to 15 live node processes
+ * The guard's own tables (allocguard.c struct tables: every slot's state,
+ * arena, hooks and the owners' hand-over stacks) are under one more key,
+ * the container's (hk_tag_tables), which node processes may not write: the
+ * only stores a node process makes into them (handing a block over,
+ * draining its stack) are bracketed by hk_open / hk_close.  What a node's
+ * tasks write on every malloc (the count inside, the carve pointers) is in
+ * allocguard.c's live[], outside the tables, under no key.
+ *
+ * More slots than keys (x86_64 has 15, one of them the tables'): slot s
+ * uses node key (s-1) % nkeys, and a new context takes an unused slot of
+ * the key the fewest live slots hold (allocguard.c, least_held_key), so up
+ * to 14 live node processes
  * (pooled contexts count) have a key each; past that, nodes that share a key
  * are not protected from each other, only from the rest.  Turned on by CLONEGUARD_PKEYS=1 in the environment (the
  * container's --pkeys sets it when it re-executes itself with the guard).
@@ -76,7 +85,8 @@
 #define MAX_KEYS 15
 
 static int g_keys[MAX_KEYS];
-static int g_nkeys;
+static int g_nkeys;                     /* node heaps' keys */
+static int g_tables_key;                /* the guard's tables' (0: none) */
 static int g_errno;                     /* why there are none, if asked for */
 static int g_wanted;
 
@@ -114,6 +124,8 @@ __attribute__((constructor(101))) static void hk_init(void)
     }
     if (g_nkeys)
         g_errno = 0;
+    if (g_nkeys >= 2)
+        g_tables_key = g_keys[--g_nkeys];
 }
 
 HIDDEN int hk_enabled(void)
@@ -139,6 +151,8 @@ static uint32_t slot_pkru(int slot)
     for (int i = 0; i < g_nkeys; i++)
         if (g_keys[i] != mine)
             v |= (uint32_t)PKEY_DISABLE_WRITE << (2 * g_keys[i]);
+    if (g_tables_key)
+        v |= (uint32_t)PKEY_DISABLE_WRITE << (2 * g_tables_key);
     return v;
 }
 
@@ -148,6 +162,15 @@ HIDDEN int hk_tag(uintptr_t base, size_t len, int slot)
     if (!g_nkeys)
         return 0;
     return pkey_mprotect((void *)base, len, PROT_NONE, hk_key_of_slot(slot)) == 0 ? 0 : -errno;
+}
+
+/* The guard's tables (allocguard.c struct tables, page-aligned): under the
+   container's key, which no node process may write. */
+HIDDEN int hk_tag_tables(void *addr, size_t len)
+{
+    if (!g_tables_key)
+        return 0;
+    return pkey_mprotect(addr, len, PROT_READ | PROT_WRITE, g_tables_key) == 0 ? 0 : -errno;
 }
 
 /* First thing in a node process's main task; its threads inherit it. */
@@ -186,6 +209,12 @@ EXPORT int cga_pkeys(int *keys, int max)
     for (int i = 0; i < g_nkeys && i < max; i++)
         keys[i] = g_keys[i];
     return g_nkeys;
+}
+
+/* The key the guard's tables are under (0: none). */
+EXPORT int cga_tables_key(void)
+{
+    return g_tables_key;
 }
 
 /* The key slot s's heap is tagged with (0: none). */

@@ -652,9 +652,16 @@ def _describe(death: Death | None) -> str:
         what = f"killed by {signal.Signals(death.exit_signal).name}"
         if death.pkey_fault is not None:
             fault = death.pkey_fault
-            victim = processes.who(fault.victim_pid) if fault.victim_pid else f"allocator slot {fault.victim_slot}"
+            if fault.victim_slot == 0:
+                victim = "the container's allocator tables"
+            elif fault.victim_pid:
+                victim = f"{processes.who(fault.victim_pid)}'s heap"
+            elif fault.victim_slot > 0:
+                victim = f"allocator slot {fault.victim_slot}'s heap"
+            else:
+                victim = "memory under a key not its own"
             what += (
-                f": protection-key violation: wrote into {victim}'s heap at {fault.addr:#x} "
+                f": protection-key violation: wrote into {victim} at {fault.addr:#x} "
                 f"(key {fault.key}); the write did not land"
             )
     elif death.status_lost:
