@@ -595,8 +595,9 @@ class HeapVictim(Node):
 class WildWriter(_FaultNode):
     """A stray write: ``bytes`` bytes (at an offset chosen from ``seed``)
     into the buffer of the HeapVictim named ``victim``, a node of another
-    process. Nothing in this node's own code notices; whether the write
-    lands or faults is the container's doing."""
+    process, or with ``target`` "allocator-tables" into the container's
+    allocator guard's tables. Nothing in this node's own code notices;
+    whether the write lands or faults is the container's doing."""
 
     fault = "wild-write"
 
@@ -604,13 +605,26 @@ class WildWriter(_FaultNode):
         super().__init__("wild_writer", **kwargs)
         self.victim = self.declare_parameter("victim", "heap_victim").value
         self.count = self.declare_parameter("bytes", 64).value
-        if self.victim not in shared_state.HEAP_BUFFERS:
-            raise ValueError(f"no HeapVictim named {self.victim!r} has its buffer yet")
-        if not 1 <= self.count <= shared_state.HEAP_BUFFERS[self.victim][1]:
-            raise ValueError("parameter 'bytes' must be 1 to the victim's buffer size")
+        self.target = self.declare_parameter("target", "victim").value
+        if self.target == "allocator-tables":
+            size = ctypes.c_size_t()
+            try:
+                cga_tables = _libc.cga_tables  # the guard, preloaded in isolated mode
+            except AttributeError:
+                raise ValueError("target 'allocator-tables' needs the allocator guard (isolated mode)") from None
+            cga_tables.restype = ctypes.c_void_p
+            self.span = (cga_tables(ctypes.byref(size)), size.value)
+        elif self.target == "victim":
+            if self.victim not in shared_state.HEAP_BUFFERS:
+                raise ValueError(f"no HeapVictim named {self.victim!r} has its buffer yet")
+            self.span = shared_state.HEAP_BUFFERS[self.victim]
+        else:
+            raise ValueError(f"parameter 'target' must be 'victim' or 'allocator-tables', got {self.target!r}")
+        if not 1 <= self.count <= self.span[1]:
+            raise ValueError("parameter 'bytes' must be 1 to the target's size")
 
     def fire(self):
-        addr, size = shared_state.HEAP_BUFFERS[self.victim]
+        addr, size = self.span
         ctypes.memset(addr + self.rng.randrange(size - self.count + 1), 0x5A, self.count)
 
 

@@ -430,11 +430,12 @@ class _VictimTrials:
     def _corruptions(self) -> int:
         return self.checks.messages()[-1].data
 
-    def _load_firing(self, plugin: str, name: str, seed: int):
-        """Load fault node ``plugin`` as ``name``, firing 50-150 ms after it
-        starts; (its LoadNode response, its pid) once it fired."""
+    def _load_firing(self, plugin: str, name: str, seed: int, **parameters):
+        """Load fault node ``plugin`` as ``name`` (with ``parameters``),
+        firing 50-150 ms after it starts; (its LoadNode response, its pid)
+        once it fired."""
         resp = self.rig.client.load_ok(
-            RIG, plugin, node_name=name, parameters={"delay": 0.05, "jitter": 0.1, "seed": seed}
+            RIG, plugin, node_name=name, parameters={"delay": 0.05, "jitter": 0.1, "seed": seed, **parameters}
         )
         pid = self.rig.loaded_pid(resp.unique_id)
         self.rig.wait_firing(pid)
@@ -451,17 +452,21 @@ class _VictimTrials:
             out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
         return out
 
+    # what CRASHED must say of a write the keys caught: whose memory it was
+    VIOLATION = "protection-key violation: wrote into /heap_victim"
+
     def _judge_key_violation(self, resp, pid: int) -> Outcome:
         """Survived if the fault node alone was reported CRASHED by SIGSEGV,
-        its text naming a protection-key violation in /heap_victim's heap."""
+        its text naming a protection-key violation in the target's memory
+        (``VIOLATION``)."""
         out = self.rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGSEGV, fault_ns=None)
         if out.outcome == TrialOutcome.SURVIVED:
-            # The CRASHED event says what it was, and whose heap.
+            # The CRASHED event says what it was, and whose memory.
             reason = self.rig.crash_reason(resp.unique_id)
             out.details["reason"] = reason
-            if "protection-key violation: wrote into /heap_victim" not in reason:
+            if self.VIOLATION not in reason:
                 out.outcome = TrialOutcome.FAILED
-                out.details["why"] = "CRASHED does not name a protection-key violation in /heap_victim's heap"
+                out.details["why"] = f"CRASHED does not say {self.VIOLATION!r}"
         return out
 
     def settle(self, out: Outcome) -> None:
@@ -531,6 +536,34 @@ class DoubleFree(_VictimTrials):
             out.outcome = TrialOutcome.CORRUPTED
             out.details["why"] = "the freer went on; its owner took the block back twice (its heap is corrupted)"
         return out
+
+
+class TablesWildWrite(_VictimTrials):
+    """Each trial loads a WildWriter that writes 64 bytes into the
+    container's own state: the allocator guard's tables (every slot's
+    arena, hooks and hand-over stacks), at an offset from its seed.
+    Survived: the write faulted in the writer alone (CRASHED, SIGSEGV, a
+    protection-key violation in the container's allocator tables) and the
+    victim and the container go on. Corrupted: the write landed (the writer
+    went on); the container is replaced after it, its state no longer
+    known."""
+
+    VIOLATION = "protection-key violation: wrote into the container's allocator tables"
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        resp, pid = self._load_firing("faults::WildWriter", f"wild_writer{index}", seed, target="allocator-tables")
+        out = self._judge_key_violation(resp, pid)
+        if out.outcome == TrialOutcome.FAILED and procfs.alive(pid):
+            why = "the write landed in the container's allocator tables"
+            return Outcome(TrialOutcome.CORRUPTED, details={"pid": pid, "writer": "went on", "why": why})
+        return self._victim_goes_on(out) if out.survived else out
+
+    def settle(self, out: Outcome) -> None:
+        if out.outcome == TrialOutcome.CORRUPTED:
+            self.rig.restart()
+            self._start_victim()
+        else:
+            super().settle(out)
 
 
 class SharedWildWrite(WildWrite):
@@ -632,6 +665,7 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "sigkill-publisher-holding-messages/loan": lambda rig: PayloadKill(rig, "loan"),
     "wild-write-into-another-nodes-heap": WildWrite,
     "wild-write-into-shared-memory": SharedWildWrite,
+    "wild-write-into-container-state": TablesWildWrite,
     "double-free-of-another-nodes-block": DoubleFree,
     "use-after-free-of-another-nodes-block": UseAfterFree,
     "heap-overflow-in-own-heap": OwnHeapOverflow,

@@ -73,3 +73,31 @@ def test_a_wild_write_into_shared_memory_corrupts_with_keys_or_without(keys, rig
     run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
+
+
+TABLES = "wild-write-into-container-state"
+
+
+@pytest.mark.parametrize("keys", [pytest.param(True, marks=needs_keys), False], ids=["pkeys", "no-pkeys"])
+def test_a_wild_write_into_the_containers_state(keys, rig_factory, resilience, run_trials):
+    resilience.describe(
+        fault=TABLES,
+        profile="per-node",
+        mitigations={"protection_keys": keys},
+        claim=(
+            "with --pkeys, 64 bytes written by a node into the container's allocator tables fault in the "
+            "writer: it alone is reported CRASHED (SIGSEGV, a protection-key violation in the container's "
+            "allocator tables) and the rest goes on"
+            if keys
+            else "baseline: without memory protection keys, 64 bytes written by a node into the container's "
+            "allocator tables land there, and nothing notices"
+        ),
+    )
+    extra = ("--jemalloc", "--pkeys") if keys else ("--jemalloc",)
+    trials = FAULTS[TABLES](rig_factory("per-node", extra_args=extra))
+    planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
+    if keys:
+        resilience.expect_no_container_death()
+        resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)
+    else:
+        resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
