@@ -11,7 +11,7 @@ C (faults/hammer.c), so the figures are the allocator's, not Python's:
 * free() of a node's block by the container (the guard hands it back: one
   CAS), and the owner's later freeing of those blocks, per block.
 
-    python -m cloneguard.bench.alloc_guard [--pairs 2000000] [--blocks 200000] [--repeat 5]
+    python -m cloneguard.bench.alloc_guard [--pairs 2000000] [--blocks 200000] [--repeat 5] [--pkeys]
 """
 
 from __future__ import annotations
@@ -36,6 +36,9 @@ CONFIGS = [
     ("jemalloc, guard preloaded, off", True, False, True),
     ("jemalloc, guard on", True, True, True),
 ]
+# The guard with node heaps under protection keys (--pkeys: heapkeys.c);
+# measured only where the CPU has them (--pkeys), beside "jemalloc, guard on".
+KEYED = ("jemalloc, guard on, keys", True, True, True)
 SIZES = (64, 4096)
 
 
@@ -78,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=int, default=2_000_000)
     parser.add_argument("--blocks", type=int, default=200_000)
     parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument(
+        "--pkeys",
+        action="store_true",
+        help="also measure the guard with node heaps under memory protection keys (needs a CPU with PKU)",
+    )
     parser.add_argument("--worker", nargs=4, help=argparse_hidden())
     args = parser.parse_args(argv)
     if args.worker:
@@ -86,12 +94,22 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from cloneguard.container import allocator
 
+    configs = list(CONFIGS)
+    if args.pkeys:
+        from cloneguard.container.isolated import pkeys
+
+        why = pkeys.probe().unavailable
+        if why:
+            raise SystemExit(f"--pkeys cannot be measured here: {why}")
+        configs.append(KEYED)
     raw = {}
-    for label, preload, activate, jemalloc in CONFIGS:
+    for label, preload, activate, jemalloc in configs:
         env = dict(os.environ)
         env["LD_PRELOAD"] = " ".join(
             ([allocator.GUARD_PATH] if preload else []) + ([allocator.jemalloc_path()] if jemalloc else [])
         )
+        if label == KEYED[0]:
+            env["CLONEGUARD_PKEYS"] = "1"  # what the container's --pkeys sets (heapkeys.c)
         proc = subprocess.run(
             [
                 sys.executable,
@@ -113,13 +131,15 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"worker ({label}) failed:\n{proc.stderr[-3000:]}")
         raw[label] = json.loads(proc.stdout.strip().splitlines()[-1])
     measures = list(next(iter(raw.values())))
-    table = Table("ns per operation (median of the repeats)", ["measure", *[c[0] for c in CONFIGS]])
+    table = Table("ns per operation (median of the repeats)", ["measure", *[c[0] for c in configs]])
     for m in measures:
-        table.add(m, *[f"{statistics.median(raw[c[0]][m]):.1f}" for c in CONFIGS])
+        table.add(m, *[f"{statistics.median(raw[c[0]][m]):.1f}" for c in configs])
     result = Result(
         name="alloc_guard",
         title="Allocator guard: cost per malloc/free",
-        command=command_line("alloc_guard", {"pairs": args.pairs, "blocks": args.blocks, "repeat": args.repeat}),
+        command=command_line(
+            "alloc_guard", {"pairs": args.pairs, "blocks": args.blocks, "repeat": args.repeat, "pkeys": args.pkeys}
+        ),
         params=vars(args) | {"out": str(args.out)},
         tables=[table],
         goals=[],
@@ -131,6 +151,15 @@ def main(argv: list[str] | None = None) -> int:
             "The last row is the first allocation of the next node process in the same context "
             "divided by the number of blocks it frees then; without the guard nothing was handed "
             "back, and the row is one malloc/free pair spread over that many blocks.",
+            *(
+                [
+                    "'keys': the guard with CLONEGUARD_PKEYS=1 (the container's --pkeys): a node process's "
+                    "malloc is routed by its caller (keyed arena or shared) and runs under its PKRU; "
+                    "the handed-back free opens every key for its one store."
+                ]
+                if args.pkeys
+                else []
+            ),
         ],
         summary=[],
         raw=raw,

@@ -24,7 +24,7 @@ from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, fmt_ratio, ms, stats
 from .goals import goal_at_most, goal_ratio_at_most
 from .loads import timed_load, timed_unload
-from .modes import HEARTBEAT, MODES, PACKAGE
+from .modes import EVERYDAY_MODES, HEARTBEAT, MODES, PACKAGE
 from .results import Result, Table, summary_row
 from .session import Session
 
@@ -32,7 +32,7 @@ NAME = "load_latency"
 TITLE = "LoadNode → LOADED latency"
 GOAL_MS = 20.0
 PER_NODE_VS_THREAD = 1.3  # per-node median ÷ thread mode's, at most
-DEFAULT_MODES = ["isolated-per-node", "isolated-shared", "thread", "thread-mt"]
+DEFAULT_MODES = EVERYDAY_MODES
 
 
 def measure(session: Session, modes: list[str], n: int) -> dict:

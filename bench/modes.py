@@ -14,7 +14,13 @@ MODES = {
     "isolated-shared": ("isolated, shared profile", ["--isolated", "--profile", "shared"]),
     "thread": ("thread mode (single-threaded executor)", []),
     "thread-mt": ("thread mode (multi-threaded executor)", ["--use_multi_threaded_executor"]),
+    # What memory protection keys cost, side by side with the same allocator
+    # without them (named with --modes only; --pkeys needs a CPU with PKU).
+    "isolated-jemalloc": ("isolated, per-node, jemalloc", ["--isolated", "--jemalloc"]),
+    "isolated-pkeys": ("isolated, per-node, jemalloc, --pkeys", ["--isolated", "--jemalloc", "--pkeys"]),
 }
+#: the modes every benchmark that takes --modes can run by default
+EVERYDAY_MODES = ["isolated-per-node", "isolated-shared", "thread", "thread-mt"]
 PROCESS_PER_NODE = "process-per-node"
 PROCESS_PER_NODE_LABEL = "process per node (fork+exec, bench.process_per_node)"
 
