@@ -14,7 +14,10 @@
 #   sudo apt-get install qemu-system-x86 linux-image-amd64 busybox-static cpio
 #   scripts/pku_vm.sh 'cd /work/main && .venv/bin/python -m pytest tests/test_heap_keys.py'
 #
-# Environment: PKU_VM_MEM (default 8G), PKU_VM_CPUS (default: this machine's).
+# Environment: PKU_VM_MEM (default 8G), PKU_VM_CPUS (default: this machine's),
+# PKU_VM_SNAPSHOT=DIR: the guest runs on a copy of checkout DIR taken as it
+# boots (all but DIR/.venv and DIR/reports, which stay this machine's), so
+# that a run of an hour is not changed by editing DIR meanwhile.
 set -euo pipefail
 
 [[ $# -eq 1 ]] || { echo "usage: $0 'COMMAND'" >&2; exit 2; }
@@ -41,7 +44,16 @@ for m in $order; do
     case $src in *.xz) xz -dc "$src" > "$root/modules/$(basename "$m").ko" ;;
                  *) cp "$src" "$root/modules/" ;; esac
 done
-printf '%s\n' "$1" > "$root/command"
+{
+    if [[ -n ${PKU_VM_SNAPSHOT:-} ]]; then
+        snap=$(realpath "$PKU_VM_SNAPSHOT")
+        printf 'mkdir -p /tmp/snapshot/.venv /tmp/snapshot/reports\n'
+        printf 'tar -C %q --exclude=./.venv --exclude=./reports -cf - . | tar -C /tmp/snapshot -xf - || exit 1\n' "$snap"
+        printf 'mount --bind %q /tmp/snapshot/.venv && mount --bind %q /tmp/snapshot/reports\n' "$snap/.venv" "$snap/reports"
+        printf 'mount --bind /tmp/snapshot %q || exit 1\n' "$snap"
+    fi
+    printf '%s\n' "$1"
+} > "$root/command"
 cat > "$root/init" <<EOF
 #!/bin/busybox sh
 /bin/busybox --install -s /bin
