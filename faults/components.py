@@ -534,6 +534,58 @@ _libc.free.restype = None
 _libc.free.argtypes = [ctypes.c_void_p]
 
 
+class _NativeCycle:
+    """A reference cycle holding a 64-byte block of native heap, malloc'd by
+    the process that made it (under its key with --pkeys) and freed by the
+    finalizer: on whichever thread the garbage collector runs."""
+
+    freed = 0  # by every instance, in every process (one interpreter)
+
+    def __init__(self, peer=None):
+        self.block = _libc.malloc(64)
+        ctypes.memset(self.block, 0xC5, 64)
+        self.me = self
+        self.peer = peer  # a cycle another node made: collected together
+
+    def __del__(self):
+        _libc.free(self.block)
+        _NativeCycle.freed += 1
+
+
+class CycleMaker(Node):
+    """Makes ``count`` garbage cycles every ``period`` s, each holding a block
+    of its own native heap, linked to cycles other CycleMakers left in
+    shared_state.CYCLES (so a collection frees several nodes' blocks
+    together); every ``collect_every`` ticks it calls ``gc.collect()``
+    itself. Publishes the running count of cycles finalized, by anyone, on
+    ``~/freed``."""
+
+    def __init__(self, **kwargs):
+        super().__init__("cycle_maker", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self._count = self.declare_parameter("count", 50).value
+        self._collect_every = self.declare_parameter("collect_every", 20).value
+        self._ticks = 0
+        self._msg = UInt64
+        self._pub = self.create_publisher(UInt64, "~/freed", 10)
+        self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
+
+    def _tick(self):
+        import gc
+
+        for _ in range(self._count):
+            peer = shared_state.CYCLES.pop() if shared_state.CYCLES else None
+            if peer is not None:
+                peer.peer = None  # pairs, not chains back to the first
+            shared_state.CYCLES.append(_NativeCycle(peer))
+        del shared_state.CYCLES[: -self._count]  # the rest is garbage now
+        self._ticks += 1
+        if self._ticks % self._collect_every == 0:
+            gc.collect()
+        self._pub.publish(self._msg(data=_NativeCycle.freed))
+
+
 class HeapVictim(Node):
     """Keeps a ``size``-byte buffer, filled with a pattern, made at its first
     tick (so in its own process in either profile): with ``memory``

@@ -90,3 +90,6 @@ HEAP_BUFFERS: dict[str, tuple[int, int]] = {}
 # heap for other nodes to free (faults/components.py: DoubleFreer,
 # UseAfterFree).
 DONATED_BLOCKS: dict[str, list[int]] = {}
+# Garbage cycles CycleMakers leave for each other: each new one links to one
+# another node made (faults/components.py: CycleMaker).
+CYCLES: list = []

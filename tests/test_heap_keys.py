@@ -112,3 +112,21 @@ def test_a_write_into_the_allocator_guards_tables_kills_the_writer_alone(contain
     client.load_ok(RIG, "faults::HeapVictim")  # the guard still makes slots and arenas
     checks = client.subscribe(UInt64, "/heap_victim/checks")
     checks.wait_count(5, timeout=30)
+
+
+@pytest.mark.parametrize("keys", [pytest.param(True, marks=needs_keys), False], ids=["pkeys", "no-pkeys"])
+def test_the_garbage_collector_freeing_every_nodes_cycles_never_faults(keys, container_factory):
+    """Three nodes make reference cycles that hold blocks of their own
+    (keyed) native heaps, linked to each other's, and call gc.collect()
+    themselves: the collector runs on a container thread
+    (isolated/collector.py), whose finalizers free every node's blocks
+    (handed back to their owners); nothing faults."""
+    proc = container_factory.start(KEYS if keys else KEYS[:-1])
+    client = container_factory.connect(proc)
+    for i in range(3):
+        client.load_ok(RIG, "faults::CycleMaker", node_name=f"cycles{i}")
+    freed = client.subscribe(UInt64, "/cycles0/freed")
+    freed.wait_for(lambda m: m.data > 20_000, 120, "the collector finalizing the nodes' cycles")
+    deaths = [e for e in client.events.messages() if e.event_type == ComponentEvent.CRASHED]
+    assert deaths == [], [e.error_message for e in deaths]
+    assert len(client.list()) == 3
