@@ -50,7 +50,7 @@ done
         printf 'mkdir -p /tmp/snapshot/.venv /tmp/snapshot/reports\n'
         printf 'tar -C %q --exclude=./.venv --exclude=./reports -cf - . | tar -C /tmp/snapshot -xf - || exit 1\n' "$snap"
         printf 'mount --bind %q /tmp/snapshot/.venv && mount --bind %q /tmp/snapshot/reports\n' "$snap/.venv" "$snap/reports"
-        printf 'mount --bind /tmp/snapshot %q || exit 1\n' "$snap"
+        printf 'mount --rbind /tmp/snapshot %q || exit 1\n' "$snap"
     fi
     printf '%s\n' "$1"
 } > "$root/command"
