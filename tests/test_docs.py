@@ -1,0 +1,175 @@
+"""The documentation stays true to the code and to itself: docs/options.md
+lists exactly the options ``component_container --help`` lists, and every
+relative link of the README and of docs/ reaches a file (and the heading it
+names, if it names one)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from cloneguard.container import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+OPTIONS_PAGE = ROOT / "docs" / "options.md"
+# Mentioned on the options page, and not the container's own options.
+NOT_CONTAINER_OPTIONS = {"--ros-args"}
+# Pages whose relative links must resolve: the README, docs/, and the
+# pages outside docs/ that docs/index.md lists.
+LINKED_PAGES = sorted(
+    [
+        ROOT / "README.md",
+        *(ROOT / "docs").glob("*.md"),
+        ROOT / "CONTRIBUTING.md",
+        ROOT / "CHANGELOG.md",
+        ROOT / "bench" / "README.md",
+        ROOT / "reports" / "README.md",
+        ROOT / "container" / "isolated" / "README.md",
+        ROOT / "container" / "intra" / "README.md",
+    ]
+)
+README_MAX_LINES = 150
+
+_OPTION = re.compile(r"(?<![\w-])--?[A-Za-z][\w-]*")
+_FENCE = re.compile(r"^(```|~~~)")
+_HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
+_LINK = re.compile(r"\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+_CODE_SPAN = re.compile(r"(`+)(?:(?!\1).)+?\1")
+
+
+def _help_text(capsys, monkeypatch) -> str:
+    """``component_container --help``, from the container's own parser
+    (cli.parse_args), in this process: no ROS context is made."""
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as exit_:
+        cli.parse_args(["--help"])
+    assert exit_.value.code in (0, None)
+    return capsys.readouterr().out
+
+
+def _help_options(text: str) -> set[str]:
+    """The option strings of --help's option lines (``  -h, --help  ...``,
+    ``  --profile {per-node,shared}``), not those its help texts mention."""
+    found = set()
+    for line in text.splitlines():
+        m = re.match(r"^  (-\S.*?)(?:\s{2,}|$)", line)
+        if m:
+            found.update(_OPTION.findall(m.group(1)))
+    return found
+
+
+def _prose_lines(path: Path) -> list[str]:
+    """A markdown file's lines outside fenced code blocks."""
+    lines, fenced = [], False
+    for line in path.read_text().splitlines():
+        if _FENCE.match(line.strip()):
+            fenced = not fenced
+            continue
+        if not fenced:
+            lines.append(line)
+    return lines
+
+
+def _documented_options() -> set[str]:
+    """The options the page documents: the first cell of its tables' rows."""
+    found = set()
+    for line in _prose_lines(OPTIONS_PAGE):
+        if line.startswith("|"):
+            first_cell = re.split(r"(?<!\\)\|", line)[1]
+            found.update(_OPTION.findall(first_cell))
+    return found
+
+
+def test_help_lists_options_at_all(capsys, monkeypatch):
+    options = _help_options(_help_text(capsys, monkeypatch))
+    assert {"--help", "--isolated", "--profile", "--pkeys"} <= options
+
+
+def test_every_option_of_help_is_on_the_options_page(capsys, monkeypatch):
+    missing = _help_options(_help_text(capsys, monkeypatch)) - _documented_options()
+    assert not missing, f"in --help but not documented in docs/options.md: {sorted(missing)}"
+
+
+def test_every_option_on_the_options_page_is_in_help(capsys, monkeypatch):
+    gone = _documented_options() - _help_options(_help_text(capsys, monkeypatch))
+    assert not gone, f"documented in docs/options.md but not in --help: {sorted(gone)}"
+
+
+def test_the_options_page_mentions_no_other_option(capsys, monkeypatch):
+    known = _help_options(_help_text(capsys, monkeypatch)) | NOT_CONTAINER_OPTIONS
+    text = "\n".join(_prose_lines(OPTIONS_PAGE))
+    unknown = {opt for opt in _OPTION.findall(text) if opt.startswith("--")} - known
+    assert not unknown, f"docs/options.md mentions options --help does not have: {sorted(unknown)}"
+
+
+def _slug(heading: str) -> str:
+    """The anchor GitHub gives a heading: lower case, punctuation dropped
+    (hyphens and underscores kept), spaces made hyphens."""
+    text = _CODE_SPAN.sub(lambda m: m.group(0).strip("`"), heading)
+    text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", text)  # a link's text only
+    return re.sub(r"[^\w\- ]", "", text.strip().lower()).replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    anchors: set[str] = set()
+    seen: dict[str, int] = {}
+    for line in _prose_lines(path):
+        m = _HEADING.match(line)
+        if not m:
+            continue
+        slug = _slug(m.group(2))
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        anchors.add(slug if n == 0 else f"{slug}-{n}")
+    return anchors
+
+
+def _links(path: Path) -> list[str]:
+    links = []
+    for line in _prose_lines(path):
+        links += _LINK.findall(_CODE_SPAN.sub("", line))
+    return links
+
+
+def _broken_links(path: Path) -> list[str]:
+    broken = []
+    for target in _links(path):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto: ...
+            continue
+        file_part, _, anchor = target.partition("#")
+        dest = (path.parent / file_part).resolve() if file_part else path
+        if not dest.exists():
+            broken.append(f"{target}: no such file")
+        elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+            broken.append(f"{target}: no heading #{anchor} in {dest.relative_to(ROOT)}")
+    return broken
+
+
+@pytest.mark.parametrize("page", LINKED_PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_resolves(page):
+    broken = _broken_links(page)
+    assert not broken, f"{page.relative_to(ROOT)}: " + "; ".join(broken)
+
+
+def test_the_link_check_sees_links():
+    """The checks above are not vacuous: the README links into docs/, and a
+    link to a missing file or heading is found broken."""
+    assert any(t.startswith("docs/") for t in _links(ROOT / "README.md"))
+    assert "docs/index.md" in _links(ROOT / "README.md")
+    assert "architecture.md#what-a-node-process-is" in _links(ROOT / "docs" / "options.md")
+
+
+def test_the_slugs_are_githubs():
+    assert _slug("The allocator guard (`allocguard.c`)") == "the-allocator-guard-allocguardc"
+    assert _slug("Protection keys over node heaps (`heapkeys.c`, `--pkeys`)") == (
+        "protection-keys-over-node-heaps-heapkeysc---pkeys"
+    )
+    assert _slug("1. Make your nodes loadable") == "1-make-your-nodes-loadable"
+    assert _slug("From LoadNode to CRASHED") == "from-loadnode-to-crashed"
+
+
+def test_the_readme_stays_short():
+    lines = len((ROOT / "README.md").read_text().splitlines())
+    assert lines <= README_MAX_LINES, f"README.md has {lines} lines; the reference belongs in docs/ (docs/index.md)"
