@@ -119,7 +119,9 @@ class _Handoff:
 class _NodeProcess:
     unique_id: int
     profile: str
-    state: str = "starting"  # starting -> running -> stopping -> gone; running -> dead (it died on its own) -> gone
+    # starting -> running -> stopping -> gone; starting or running -> dead (it died on
+    # its own) -> gone; starting -> gone (its start failed)
+    state: str = "starting"
     # Set as the start goes on (Any: each is None only until then).
     child: Any = None  # core.Child
     node: Any = None  # rclpy Node
