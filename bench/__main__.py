@@ -6,7 +6,7 @@
 
 Each benchmark writes its own <name>.md / <name>.json beside summary.md; the
 summary's table (one row per measure and mode, with the goal and whether it
-was met) is meant to be pasted into the README.
+was met) is meant to be pasted into bench/README.md.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ Its behaviour follows rclcpp_components' ComponentManager: ids start at 1 and
 are never reused (a load that fails after an id was taken still uses it up),
 a failed load answers unique_id 0 and an empty full_node_name.
 
-Deaths come from the host (isolated mode), on its monitor's thread: the node
+Deaths come from the host (isolated mode), on the core's listener thread: the node
 leaves the table, a CRASHED event goes out, and with a restart policy the
 same request is loaded again after a backoff, up to a limit of restarts in
 a row (restart.py); the CRASHED event says which.
@@ -243,7 +243,7 @@ class ComponentManager:
         response.full_node_names = [e.hosted.full_node_name for _, e in entries]
         return response
 
-    # -- deaths (called by the host, from its monitor's thread) -----------------
+    # -- deaths (called by the host, from the core's listener thread) ----------
 
     def on_death(self, unique_id: int, death) -> None:
         """A node's process died without being unloaded."""

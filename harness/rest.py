@@ -1,7 +1,7 @@
 """A container at rest: nothing of an earlier request still in flight.
 
 An isolated container with the per-node profile keeps one child process made
-ahead for its next load (its warm spare; the container's README), which
+ahead for its next load (its warm spare: docs/architecture.md), which
 holds a hidden placeholder node ``_cloneguard_spare_<pid>`` until a load
 takes it, and makes the next one after each load, off the request path. Its
 children share the container's fd table, so counting the container's fds or
