@@ -74,18 +74,20 @@ def test_nodes_freeing_and_holding_each_others_memory_never_fault(keys, profile,
 def test_writers_that_die_one_after_another_never_get_the_victims_key(container_factory):
     """Every faulting writer quarantines its slot, so each new one takes a
     slot never used before; slot s's key is fixed (key index (s-1) % 14:
-    x86_64's 15 keys less the container's own). A new slot is one of the
-    key fewest live slots hold, so the victim's key is never handed out
-    again while fewer than 15 node processes live:
-    here 20 writers in a row, each one caught (once the 14th took the
-    victim's key and its write landed)."""
+    x86_64's 15 keys less the container's own). A new slot is the unused
+    one whose key the fewest live slots hold, so the victim's key is never
+    handed out again while fewer than 15 node processes live and other
+    keys have unused slots: here 60 writers in a row (more than one key's
+    36 slots), each one caught. Before, the 14th took the victim's key;
+    then, once one key's slots were used up, the first unused slot of any
+    key did."""
     proc = container_factory.start([*KEYS, "--profile", "shared"])
     client = container_factory.connect(proc)
     victim = client.load_ok(RIG, "faults::HeapVictim")
     checks = client.subscribe(UInt64, "/heap_victim/checks")
     checks.wait_count(5, timeout=10)
     victim_key = None
-    for i in range(20):
+    for i in range(60):
         writer = client.load_ok(RIG, "faults::WildWriter", node_name=f"writer{i}", parameters={"delay": 0.05})
         crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
         assert "protection-key violation: wrote into /heap_victim" in crashed.error_message, (i, crashed.error_message)

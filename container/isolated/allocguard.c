@@ -1038,26 +1038,34 @@ static int arena_new(struct slot_hooks *sh, _Atomic uintptr_t *bump, uintptr_t b
     return 0;
 }
 
-/* With protection keys, which of them a new slot should have: slot s's key
-   is fixed (hk_key_of_slot: key index (s-1) % nkeys), so a new context takes
-   an unused slot of the key fewest live slots hold (pooled or running a node
-   process; quarantined ones never run again).  That way up to nkeys node
-   processes each write under a key no other live one has, whatever slots
-   were used and quarantined before; the lowest index among equals.  -1:
-   any slot (no keys). */
-static int least_held_key(void)
+/* With protection keys, the unused slot a new context should take: slot s's
+   key is fixed (hk_key_of_slot: node key (s-1) % nkeys), so it is the
+   unused slot whose key the fewest live slots hold (pooled or running a
+   node process; quarantined ones never run again), the lowest among equals.
+   That way up to nkeys node processes each write under a key no other live
+   one has, whatever slots were used and quarantined before, until every
+   slot of every free key is used up.  Without keys, the first unused one.
+   0: none left. */
+static int pick_unused_slot(void)
 {
-    int n = hk_key_count(), held[16] = {0}, best = -1;
-    if (n <= 0 || n > 16)
-        return -1;
-    for (int s = 1; s < g_nslots; s++) {
+    int n = hk_key_count(), held[16] = {0}, best = 0;
+    if (n > 16)
+        n = 0;
+    for (int s = 1; n && s < g_nslots; s++) {
         int st = atomic_load_explicit(&slots[s].state, memory_order_relaxed);
         if (st == CGA_IDLE || st == CGA_BOUND)
             held[(s - 1) % n]++;
     }
-    for (int k = 0; k < n; k++)
-        if (best < 0 || held[k] < held[best])
-            best = k;
+    for (int s = 1; s < g_nslots; s++) {
+        if (atomic_load_explicit(&slots[s].state, memory_order_relaxed) != CGA_UNUSED)
+            continue;
+        if (!n)
+            return s;
+        if (!best || held[(s - 1) % n] < held[(best - 1) % n])
+            best = s;
+        if (held[(best - 1) % n] == 0)
+            break;                      /* nothing is less held */
+    }
     return best;
 }
 
@@ -1067,14 +1075,10 @@ EXPORT int cga_slot_new(void)
 {
     if (!atomic_load(&g_active))
         return -ESRCH;
-    int key = least_held_key(), n = hk_key_count();
-    for (int pass = key < 0; pass < 2; pass++)    /* that key's slots, then any */
-    for (int s = 1; s < g_nslots; s++) {
-        if (pass == 0 && (s - 1) % n != key)
-            continue;
+    for (int s; (s = pick_unused_slot()) > 0;) {
         int unused = CGA_UNUSED;
         if (!atomic_compare_exchange_strong(&slots[s].state, &unused, CGA_IDLE))
-            continue;
+            continue;                   /* another thread took it: pick again */
         struct slot *sl = &slots[s];
         if (g_je) {
             uintptr_t base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);

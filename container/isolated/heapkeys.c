@@ -62,7 +62,7 @@
  *
  * More slots than keys (x86_64 has 15, one of them the tables'): slot s
  * uses node key (s-1) % nkeys, and a new context takes an unused slot of
- * the key the fewest live slots hold (allocguard.c, least_held_key), so up
+ * the key the fewest live slots hold (allocguard.c, pick_unused_slot), so up
  * to 14 live node processes
  * (pooled contexts count) have a key each; past that, nodes that share a key
  * are not protected from each other, only from the rest.  Turned on by CLONEGUARD_PKEYS=1 in the environment (the
