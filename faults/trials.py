@@ -452,6 +452,22 @@ class _VictimTrials:
             out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, "the victim's buffer was changed"
         return out
 
+    def _unless_it_went_on(self, out: Outcome, resp, pid: int, who: str, why: str) -> Outcome:
+        """After the fault node's death was judged ``out``: if it lives on
+        instead (nothing caught the fault: the damage went through to the
+        victim), unload it. Either way the victim must go on, intact; a
+        victim that goes on after the damage went through is corrupted
+        (``why``)."""
+        went_on = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
+        if went_on:
+            self.rig.client.unload(resp.unique_id)
+            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, who: "went on"})
+        if out.survived:
+            out = self._victim_goes_on(out)
+        if out.survived and went_on:
+            out.outcome, out.details["why"] = TrialOutcome.CORRUPTED, why
+        return out
+
     # what CRASHED must say of a write the keys caught: whose memory it was
     VIOLATION = "protection-key violation: wrote into /heap_victim"
 
@@ -526,16 +542,9 @@ class DoubleFree(_VictimTrials):
         rig = self.rig
         resp, pid = self._load_firing("faults::DoubleFreer", f"double_freer{index}", seed)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGABRT, fault_ns=None)
-        went_on = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
-        if went_on:  # nothing caught it: the owner takes the block back twice
-            rig.client.unload(resp.unique_id)
-            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "freer": "went on"})
-        if out.survived:
-            out = self._victim_goes_on(out)
-        if out.survived and went_on:
-            out.outcome = TrialOutcome.CORRUPTED
-            out.details["why"] = "the freer went on; its owner took the block back twice (its heap is corrupted)"
-        return out
+        return self._unless_it_went_on(
+            out, resp, pid, "freer", "the freer went on; its owner took the block back twice (its heap is corrupted)"
+        )
 
 
 class TablesWildWrite(_VictimTrials):
@@ -590,16 +599,9 @@ class UseAfterFree(_VictimTrials):
     def trial(self, seed: int, index: int) -> Outcome:
         resp, pid = self._load_firing("faults::UseAfterFree", f"use_after_free{index}", seed)
         out = self._judge_key_violation(resp, pid)
-        landed = out.outcome == TrialOutcome.FAILED and procfs.alive(pid)
-        if landed:
-            self.rig.client.unload(resp.unique_id)
-            out = Outcome(TrialOutcome.SURVIVED, details={"pid": pid, "writer": "went on"})
-        if out.survived:
-            out = self._victim_goes_on(out)
-        if out.survived and landed:
-            out.outcome = TrialOutcome.CORRUPTED
-            out.details["why"] = "the write landed in a block of the victim's heap after it was freed"
-        return out
+        return self._unless_it_went_on(
+            out, resp, pid, "writer", "the write landed in a block of the victim's heap after it was freed"
+        )
 
 
 class OwnHeapOverflow(_VictimTrials):
