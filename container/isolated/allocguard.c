@@ -1044,26 +1044,22 @@ static int arena_new(struct slot_hooks *sh, _Atomic uintptr_t *bump, uintptr_t b
    node process; quarantined ones never run again), the lowest among equals.
    That way up to nkeys node processes each write under a key no other live
    one has, whatever slots were used and quarantined before, until every
-   slot of every free key is used up.  Without keys, the first unused one.
-   0: none left. */
+   slot of every free key is used up.  Without keys (every slot's key 0),
+   the first unused one.  0: none left. */
 static int pick_unused_slot(void)
 {
-    int n = hk_key_count(), held[16] = {0}, best = 0;
-    if (n > 16)
-        n = 0;
-    for (int s = 1; n && s < g_nslots; s++) {
+    int held[16] = {0}, best = 0;       /* live slots by key (0: none) */
+    for (int s = 1; s < g_nslots; s++) {
         int st = atomic_load_explicit(&slots[s].state, memory_order_relaxed);
         if (st == CGA_IDLE || st == CGA_BOUND)
-            held[(s - 1) % n]++;
+            held[hk_key_of_slot(s)]++;
     }
     for (int s = 1; s < g_nslots; s++) {
         if (atomic_load_explicit(&slots[s].state, memory_order_relaxed) != CGA_UNUSED)
             continue;
-        if (!n)
-            return s;
-        if (!best || held[(s - 1) % n] < held[(best - 1) % n])
+        if (!best || held[hk_key_of_slot(s)] < held[hk_key_of_slot(best)])
             best = s;
-        if (held[(best - 1) % n] == 0)
+        if (held[hk_key_of_slot(best)] == 0)
             break;                      /* nothing is less held */
     }
     return best;

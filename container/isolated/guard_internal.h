@@ -32,7 +32,6 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n);
 
 /* heapkeys.c: protection keys over node processes' native heaps. */
 HIDDEN int hk_enabled(void);                     /* keys were allocated */
-HIDDEN int hk_key_count(void);                  /* keys allocated (0: off) */
 HIDDEN int hk_key_of_slot(int slot);
 HIDDEN int hk_tag(uintptr_t base, size_t len, int slot);   /* 0, or -errno */
 HIDDEN int hk_tag_tables(void *addr, size_t len);         /* 0, or -errno */

@@ -133,11 +133,6 @@ HIDDEN int hk_enabled(void)
     return g_nkeys > 0;
 }
 
-HIDDEN int hk_key_count(void)
-{
-    return g_nkeys;
-}
-
 HIDDEN int hk_key_of_slot(int slot)
 {
     return slot > 0 && g_nkeys ? g_keys[(slot - 1) % g_nkeys] : 0;
