@@ -48,7 +48,7 @@ setup(
     cffi_modules=[
         "container/_build_robust.py:ffibuilder",
         "container/isolated/_build_core.py:ffibuilder",
-        "container/intra/_build_rclglue.py:ffibuilder",
+        "container/_build_rclglue.py:ffibuilder",
     ],
     ext_modules=[
         # Not a Python module: the allocator guard, a plain shared library an

@@ -6,7 +6,7 @@ from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 
 from . import intra
-from .intra._rclglue import ffi, lib
+from ._rclglue import ffi, lib
 from .options import LoadError, NodeArguments
 
 

@@ -6,7 +6,7 @@ import threading
 import pytest
 from ros_support import ros_nodes
 
-from cloneguard.container.intra._rclglue import ffi
+from cloneguard.container._rclglue import ffi
 from cloneguard.container.intra.waker import Waker
 
 

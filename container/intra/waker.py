@@ -10,7 +10,7 @@ with the container, does the trigger.
 
 from __future__ import annotations
 
-from ._rclglue import ffi, lib
+from .._rclglue import ffi, lib
 
 CLOSE_TIMEOUT_MS = 1000
 

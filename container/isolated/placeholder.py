@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-from ..intra._rclglue import ffi, lib
+from .._rclglue import ffi, lib
 
 PLACEHOLDER_PREFIX = "_cloneguard_spare_"
 

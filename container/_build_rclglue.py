@@ -1,8 +1,9 @@
-"""cffi (API mode) builder for container.intra._rclglue.
+"""cffi (API mode) builder for container._rclglue: the container's calls into rcl
+(node and service set-up and teardown, serialized takes) and intra/'s wakers.
 
 The C is rclglue.c (the generated module #includes it, so compiler messages
-point at rclglue.c lines) and waker.c (a second source); rclglue.h and
-waker.h are their interfaces, which the cdef below mirrors: keep them in
+point at rclglue.c lines) and intra/waker.c (a second source); rclglue.h and
+intra/waker.h are their interfaces, which the cdef below mirrors: keep them in
 step (a mismatch is a compile error in the generated module).
 
 It is compiled against the real rcl/rmw/rcutils headers of the ROS 2 Jazzy
@@ -34,7 +35,7 @@ from pathlib import Path
 from cffi import FFI
 
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "cflags.py"))["WARNINGS"]
+WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 
@@ -68,7 +69,7 @@ def _include_dirs() -> list[str]:
     if missing:
         raise RuntimeError(
             f"ROS 2 headers not found in {PREFIX} ({', '.join(missing)}): build "
-            "cloneguard.container.intra._rclglue with the venv's python after "
+            "cloneguard.container._rclglue with the venv's python after "
             "`pip install -r scripts/requirements.txt`"
         )
     return dirs
@@ -121,12 +122,12 @@ int cgw_close(struct cgw_waker *w, int timeout_ms);
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
-    "cloneguard.container.intra._rclglue",
+    "cloneguard.container._rclglue",
     '#include "rclglue.c"\n#include "waker.h"\n',
     sources=["container/intra/waker.c"],
-    include_dirs=[str(HERE), *_include_dirs()],
+    include_dirs=[str(HERE), str(HERE / "intra"), *_include_dirs()],
     # setuptools wants paths relative to the repo root (where setup.py runs).
-    depends=[f"container/intra/{n}" for n in ("rclglue.c", "rclglue.h", "waker.c", "waker.h")],
+    depends=["container/rclglue.c", "container/rclglue.h", "container/intra/waker.c", "container/intra/waker.h"],
     libraries=["rcl", "rmw", "rcutils"],
     library_dirs=[str(LIB_DIR)],
     extra_compile_args=["-std=gnu11", *WARNINGS],
