@@ -45,7 +45,7 @@ import json
 import re
 import sys
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.factory import log_tail
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
@@ -215,7 +215,7 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
     loaded = []
     try:
         for _, plugin, name, params in loads:
-            resp = cli.load(RIG, plugin, node_name=name, parameters=params, extra_arguments=extra, timeout=30.0)
+            resp = cli.load(TESTRIG, plugin, node_name=name, parameters=params, extra_arguments=extra, timeout=30.0)
             if not resp.success:
                 raise RuntimeError(f"LoadNode {plugin} failed: {resp.error_message}")
             loaded.append(resp.unique_id)

@@ -60,7 +60,7 @@ CRASH_MODES = ("per-node", "shared")
 CRASH_WARMUP = 5
 PKG, NODE = "cloneguard", "cloneguard::Heartbeat"
 # The crash loop's node: a SIGSEGV in its first timer callback.
-RIG, CRASHER = PACKAGE, "faults::SegfaultInCallback"
+TESTRIG, CRASHER = PACKAGE, "faults::SegfaultInCallback"
 
 
 @dataclass
@@ -117,7 +117,7 @@ def cycle(client) -> None:
 def crash_cycle(client) -> None:
     """One crash of a node that dies as soon as it runs (what a restart
     policy reloads over and over): load it, wait for its CRASHED."""
-    uid = client.load_ok(RIG, CRASHER, node_name="crasher", parameters={"delay": 0.01}).unique_id
+    uid = client.load_ok(TESTRIG, CRASHER, node_name="crasher", parameters={"delay": 0.01}).unique_id
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=uid, timeout=20)
 
 

@@ -25,7 +25,7 @@ from cloneguard.harness import procfs
 from cloneguard.harness.client import HarnessTimeout
 from cloneguard.harness.rig import DEATHS_PER_CONTAINER, Outcome, Rig, TrialOutcome
 
-from . import PACKAGE as RIG
+from . import PACKAGE as TESTRIG
 from .outside import kill_at
 
 # fault id -> (plugin, parameters, the signal the node dies of)
@@ -40,7 +40,7 @@ def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
     """A node whose timer callback faults 0.1-0.3 s after it starts."""
     plugin, params, sig = CALLBACK_FAULTS[fault]
     resp = rig.client.load_ok(
-        RIG, plugin, node_name=f"victim{index}", parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed}
+        TESTRIG, plugin, node_name=f"victim{index}", parameters={**params, "delay": 0.1, "jitter": 0.2, "seed": seed}
     )
     pid = rig.loaded_pid(resp.unique_id)
     return rig.judge_death(resp.unique_id, pid, signal_expected=sig, fault_ns=None)
@@ -49,7 +49,7 @@ def callback_fault(rig: Rig, fault: str, seed: int, index: int) -> Outcome:
 def raise_in_callback(rig: Rig, seed: int, index: int) -> Outcome:
     """A node whose timer callback raises: its process ends (exit code 1)."""
     resp = rig.client.load_ok(
-        RIG, "faults::RaiseInCallback", node_name=f"raiser{index}", parameters={"delay": 0.1, "seed": seed}
+        TESTRIG, "faults::RaiseInCallback", node_name=f"raiser{index}", parameters={"delay": 0.1, "seed": seed}
     )
     pid = rig.loaded_pid(resp.unique_id)
     out = rig.judge_death(resp.unique_id, pid, signal_expected=0, fault_ns=None)
@@ -96,7 +96,7 @@ def die_holding_lock(rig: Rig, seed: int, index: int) -> Outcome:
     """A node that dies holding the container's progress-board lock, its
     slot half-written; survived means exactly one EOWNERDEAD repair of it."""
     resp = rig.client.load_ok(
-        RIG,
+        TESTRIG,
         "faults::DieHoldingContainerLock",
         node_name=f"holder{index}",
         parameters={"delay": 0.05, "jitter": 0.1, "seed": seed},
@@ -121,7 +121,7 @@ def _kill_when_firing(
     (from ``seed``) and judge the death."""
     try:
         resp = rig.client.load_ok(
-            RIG, plugin, node_name=node_name, parameters=parameters, extra_arguments=extra_arguments or {}
+            TESTRIG, plugin, node_name=node_name, parameters=parameters, extra_arguments=extra_arguments or {}
         )
     except HarnessTimeout as exc:
         # The container went on after the last trial's death and stopped later.
@@ -153,7 +153,7 @@ class MallocKill:
         self._start_drain()
 
     def _start_drain(self) -> None:
-        self.rig.client.load_ok(RIG, "faults::MallocDrain")
+        self.rig.client.load_ok(TESTRIG, "faults::MallocDrain")
         self.freed = self.rig.client.subscribe(UInt64, "/malloc_drain/freed")
         self.freed.wait_count(3, timeout=10)
 
@@ -212,7 +212,7 @@ class IntraQueueDeath:
         rig = self.rig
         started = time.time_ns()
         resp = rig.client.load_ok(
-            RIG,
+            TESTRIG,
             "faults::IntraDieMidQueueOp",
             node_name=f"queue_victim{index}",
             parameters={"op": self.op, "topic": self.TOPIC, "delay": 0.05, "jitter": 0.1, "seed": seed},
@@ -255,7 +255,7 @@ class PayloadKill:
 
     def _start_holder(self) -> None:
         self.rig.client.load_ok(
-            RIG, "faults::PayloadHolder", parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA
+            TESTRIG, "faults::PayloadHolder", parameters={"loaned": self.payload == "loan"}, extra_arguments=INTRA
         )
         self.released = self.rig.client.subscribe(UInt64, "/payload_holder/released")
         self.taken = self.rig.client.subscribe(UInt64, "/payload_holder/taken")
@@ -363,7 +363,7 @@ class LockDeath:
         self._start_waiter()
 
     def _start_waiter(self) -> None:
-        self.rig.client.load_ok(RIG, self.family.waiter, parameters={"kind": self.kind})
+        self.rig.client.load_ok(TESTRIG, self.family.waiter, parameters={"kind": self.kind})
         self.progress = self.rig.client.subscribe(UInt64, f"{self.family.topic}/progress")
         self.repaired = self.rig.client.subscribe(UInt64, f"{self.family.topic}/repaired")
         self.progress.wait_count(5, timeout=10)
@@ -373,7 +373,7 @@ class LockDeath:
         started = time.time_ns()
         callbacks = len(self.repaired)
         resp = rig.client.load_ok(
-            RIG,
+            TESTRIG,
             family.holder,
             node_name=f"lock_holder{index}",
             parameters={"kind": self.kind, "how": self.how, "delay": 0.05, "jitter": 0.1, "seed": seed},
@@ -423,7 +423,7 @@ class _VictimTrials:
         self._start_victim()
 
     def _start_victim(self) -> None:
-        self.victim = self.rig.client.load_ok(RIG, "faults::HeapVictim", parameters=self.VICTIM)
+        self.victim = self.rig.client.load_ok(TESTRIG, "faults::HeapVictim", parameters=self.VICTIM)
         self.checks = self.rig.client.subscribe(UInt64, "/heap_victim/checks")
         self.checks.wait_count(5, timeout=10)
 
@@ -435,7 +435,7 @@ class _VictimTrials:
         firing 50-150 ms after it starts; (its LoadNode response, its pid)
         once it fired."""
         resp = self.rig.client.load_ok(
-            RIG, plugin, node_name=name, parameters={"delay": 0.05, "jitter": 0.1, "seed": seed, **parameters}
+            TESTRIG, plugin, node_name=name, parameters={"delay": 0.05, "jitter": 0.1, "seed": seed, **parameters}
         )
         pid = self.rig.loaded_pid(resp.unique_id)
         self.rig.wait_firing(pid)

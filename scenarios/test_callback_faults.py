@@ -8,7 +8,7 @@ its signal, and everything else goes on.
 
 import pytest
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.faults.trials import CALLBACK_FAULTS, FAULTS, callback_fault
 from cloneguard.harness.rig import Outcome, TrialOutcome
 
@@ -44,7 +44,7 @@ def test_thread_mode_loses_the_whole_container(fault, rig_factory, resilience, r
     for n, (i, seed) in enumerate(trial_plan(2, 20)):
         if n:
             rig.restart()  # the previous trial's container is gone
-        rig.client.load_ok(RIG, plugin, parameters={**params, "delay": 0.1, "seed": seed})
+        rig.client.load_ok(TESTRIG, plugin, parameters={**params, "delay": 0.1, "seed": seed})
         code = rig.proc.wait(timeout=10)
         out = Outcome(TrialOutcome.CRASHED if code == -sig else TrialOutcome.FAILED, details={"exit_code": code})
         record_trial(i, seed, out)

@@ -7,7 +7,7 @@ import signal
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import procfs
 from cloneguard.harness.rig import Outcome, TrialOutcome
 from cloneguard.harness.tracker import NodeTracker, State
@@ -41,7 +41,7 @@ def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, rec
         "fallback) ends Loaded through its LOADED event, not through the fallback",
     )
     rig, tracker = tracked(profile)
-    node = tracker.load(RIG, "faults::SlowConstructor", parameters={"seconds": 12.0}, timeout=40)
+    node = tracker.load(TESTRIG, "faults::SlowConstructor", parameters={"seconds": 12.0}, timeout=40)
     state = tracker.wait_state(node, [State.LOADED, State.FAILED], timeout=10)
     ok = state == State.LOADED and not node.warnings
     record_trial(
@@ -65,7 +65,7 @@ def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, recor
         "Failed (LoadNode fails), never Loaded; the container goes on",
     )
     rig, tracker = tracked("per-node")
-    node = tracker.load(RIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
+    node = tracker.load(TESTRIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
     ok = node.state == State.FAILED and "died during construction" in node.error
     out = Outcome(
         TrialOutcome.SURVIVED if ok else TrialOutcome.FAILED, details={"state": node.state.value, "error": node.error}

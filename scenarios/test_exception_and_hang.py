@@ -2,7 +2,7 @@
 
 import pytest
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.faults.trials import FAULTS
 from cloneguard.harness.rig import Outcome, TrialOutcome
 
@@ -32,7 +32,7 @@ def test_uncaught_exception_ends_a_thread_mode_container(rig_factory, resilience
     )
     [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory("threads")
-    rig.client.load_ok(RIG, "faults::RaiseInCallback", parameters={"delay": 0.1})
+    rig.client.load_ok(TESTRIG, "faults::RaiseInCallback", parameters={"delay": 0.1})
     code = rig.proc.wait(timeout=10)
     record_trial(
         index, seed, Outcome(TrialOutcome.CRASHED if code == 1 else TrialOutcome.FAILED, details={"exit_code": code})
@@ -52,7 +52,7 @@ def test_a_hanging_callback_stalls_only_its_node(profile, mode, rig_factory, res
     )
     [(index, seed)] = trial_plan(1, 1)
     rig = rig_factory(profile)
-    resp = rig.client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.1, "mode": mode})
+    resp = rig.client.load_ok(TESTRIG, "faults::HangInCallback", parameters={"delay": 0.1, "mode": mode})
     pid = rig.loaded_pid(resp.unique_id)
     rig.wait_firing(pid)
     stopped = rig.goes_on()

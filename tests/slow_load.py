@@ -3,7 +3,7 @@
 import threading
 import time
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 
 
 class SlowLoad:
@@ -14,7 +14,7 @@ class SlowLoad:
         self._answers = []
         self._thread = threading.Thread(
             target=lambda: self._answers.append(
-                client.load(RIG, "faults::SlowConstructor", parameters={"seconds": seconds}, timeout=timeout)
+                client.load(TESTRIG, "faults::SlowConstructor", parameters={"seconds": seconds}, timeout=timeout)
             )
         )
         self._thread.start()

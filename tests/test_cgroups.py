@@ -10,7 +10,7 @@ import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
 from cloneguard.container.isolated.cgroups import cgroup2_mount, v1_cpu_mount
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import procfs
 
 PKG = "cloneguard"
@@ -43,7 +43,7 @@ def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, containe
 @pytest.mark.parametrize("container_args", [CG_ARGS])
 def test_a_cpu_quota_throttles_a_busy_node(client, container):
     resp = client.load_ok(
-        RIG,
+        TESTRIG,
         "faults::HangInCallback",
         parameters={"mode": "spin", "delay": 0.0},
         extra_arguments={"cloneguard.cpu_quota": 0.2},

@@ -9,9 +9,9 @@ import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.skips import heap_keys_missing
 
-RIG = "cloneguard_testrig"
 KEYS = ["--isolated", "--jemalloc", "--pkeys"]
 MISSING = heap_keys_missing()
 needs_keys = pytest.mark.skipif(MISSING is not None, reason=f"--pkeys: {MISSING}")
@@ -30,10 +30,10 @@ def test_a_wild_write_kills_the_writer_and_leaves_the_victim_intact(profile, con
     proc = container_factory.start([*KEYS, "--profile", profile])
     client = container_factory.connect(proc)
     assert "memory protection keys over node heaps: " in proc.log_text()
-    client.load_ok(RIG, "faults::HeapVictim")
+    client.load_ok(TESTRIG, "faults::HeapVictim")
     checks = client.subscribe(UInt64, "/heap_victim/checks")
     checks.wait_count(5, timeout=10)
-    writer = client.load_ok(RIG, "faults::WildWriter", parameters={"delay": 0.05})
+    writer = client.load_ok(TESTRIG, "faults::WildWriter", parameters={"delay": 0.05})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=10)
     assert crashed.exit_signal == 11  # SIGSEGV
     assert "protection-key violation: wrote into /heap_victim (pid " in crashed.error_message
@@ -55,11 +55,11 @@ def test_nodes_freeing_and_holding_each_others_memory_never_fault(keys, profile,
     and whose last reference it drops."""
     proc = container_factory.start([*(KEYS if keys else KEYS[:-1]), "--profile", profile])
     client = container_factory.connect(proc)
-    client.load_ok(RIG, "faults::MallocDrain")
-    client.load_ok(RIG, "faults::MallocHammer", parameters={"delay": 0.0})
+    client.load_ok(TESTRIG, "faults::MallocDrain")
+    client.load_ok(TESTRIG, "faults::MallocHammer", parameters={"delay": 0.0})
     intra = {"use_intra_process_comms": True}
-    client.load_ok(RIG, "faults::PayloadHolder", extra_arguments=intra)
-    client.load_ok(RIG, "faults::PayloadPublisher", parameters={"period": 0.002}, extra_arguments=intra)
+    client.load_ok(TESTRIG, "faults::PayloadHolder", extra_arguments=intra)
+    client.load_ok(TESTRIG, "faults::PayloadPublisher", parameters={"period": 0.002}, extra_arguments=intra)
     freed = client.subscribe(UInt64, "/malloc_drain/freed")
     released = client.subscribe(UInt64, "/payload_holder/released")
     # Bounds for an emulated CPU too (the keys are tested under QEMU where
@@ -83,12 +83,12 @@ def test_writers_that_die_one_after_another_never_get_the_victims_key(container_
     key did."""
     proc = container_factory.start([*KEYS, "--profile", "shared"])
     client = container_factory.connect(proc)
-    victim = client.load_ok(RIG, "faults::HeapVictim")
+    victim = client.load_ok(TESTRIG, "faults::HeapVictim")
     checks = client.subscribe(UInt64, "/heap_victim/checks")
     checks.wait_count(5, timeout=10)
     victim_key = None
     for i in range(60):
-        writer = client.load_ok(RIG, "faults::WildWriter", node_name=f"writer{i}", parameters={"delay": 0.05})
+        writer = client.load_ok(TESTRIG, "faults::WildWriter", node_name=f"writer{i}", parameters={"delay": 0.05})
         crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
         assert "protection-key violation: wrote into /heap_victim" in crashed.error_message, (i, crashed.error_message)
         key = crashed.error_message.split("(key ")[1].split(")")[0]
@@ -107,11 +107,11 @@ def test_a_write_into_the_allocator_guards_tables_kills_the_writer_alone(contain
     through the guard's own bracketed stores."""
     proc = container_factory.start(KEYS)
     client = container_factory.connect(proc)
-    writer = client.load_ok(RIG, "faults::WildWriter", parameters={"delay": 0.05, "target": "allocator-tables"})
+    writer = client.load_ok(TESTRIG, "faults::WildWriter", parameters={"delay": 0.05, "target": "allocator-tables"})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
     assert crashed.exit_signal == 11
     assert "protection-key violation: wrote into the container's allocator tables at 0x" in crashed.error_message
-    client.load_ok(RIG, "faults::HeapVictim")  # the guard still makes slots and arenas
+    client.load_ok(TESTRIG, "faults::HeapVictim")  # the guard still makes slots and arenas
     checks = client.subscribe(UInt64, "/heap_victim/checks")
     checks.wait_count(5, timeout=30)
 
@@ -126,7 +126,7 @@ def test_the_garbage_collector_freeing_every_nodes_cycles_never_faults(keys, con
     proc = container_factory.start(KEYS if keys else KEYS[:-1])
     client = container_factory.connect(proc)
     for i in range(3):
-        client.load_ok(RIG, "faults::CycleMaker", node_name=f"cycles{i}")
+        client.load_ok(TESTRIG, "faults::CycleMaker", node_name=f"cycles{i}")
     freed = client.subscribe(UInt64, "/cycles0/freed")
     freed.wait_for(lambda m: m.data > 20_000, 120, "the collector finalizing the nodes' cycles")
     deaths = [e for e in client.events.messages() if e.event_type == ComponentEvent.CRASHED]

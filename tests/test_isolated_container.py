@@ -10,7 +10,7 @@ from cloneguard_interfaces.msg import ComponentEvent
 from cloneguard_interfaces.srv import Echo
 from std_msgs.msg import String, UInt64
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import procfs
 
 PKG = "cloneguard"
@@ -119,7 +119,7 @@ def test_a_child_dying_with_a_container_lock_leaves_it_recoverable(client, conta
     survivor = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="survivor")
     beats = client.subscribe(UInt64, "/survivor/heartbeat")
     beats.wait_count(3, timeout=10)
-    holder = client.load_ok(RIG, "faults::DieHoldingContainerLock", parameters={"delay": 0.3})
+    holder = client.load_ok(TESTRIG, "faults::DieHoldingContainerLock", parameters={"delay": 0.3})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
     assert crashed.exit_signal == signal.SIGKILL
     # The next locker got EOWNERDEAD and repaired the half-written slot,
@@ -166,7 +166,7 @@ def test_restart_policy_reloads_a_crashed_node_with_backoff(client):
 
 @pytest.mark.parametrize("container_args", [["--isolated", "--restart-policy", "on-crash", "--restart-limit", "2"]])
 def test_a_node_that_dies_at_every_start_is_restarted_up_to_the_limit(client, container):
-    client.load_ok(RIG, "faults::SegfaultInCallback", node_name="loop", parameters={"delay": 0.01})
+    client.load_ok(TESTRIG, "faults::SegfaultInCallback", node_name="loop", parameters={"delay": 0.01})
     seen = []
     client.events.wait_for(
         lambda e: e.event_type == ComponentEvent.CRASHED and seen.append(e) is None and len(seen) == 3,
@@ -295,7 +295,7 @@ def test_each_crash_report_shows_its_own_process_python_stack(client, container)
     reused by the next one; a crashed one's thread state is never deleted.
     The next node in that block was once bound to the dead one's thread
     state, and its report showed the aborted node's callback."""
-    aborted = client.load_ok(RIG, "faults::AbortInCallback", parameters={"delay": 0.1})
+    aborted = client.load_ok(TESTRIG, "faults::AbortInCallback", parameters={"delay": 0.1})
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=aborted.unique_id)
     for i in range(3):  # later nodes, some in the aborted one's context
         victim = client.load_ok(PKG, "cloneguard::Heartbeat", node_name=f"victim{i}")

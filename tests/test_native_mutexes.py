@@ -16,7 +16,7 @@ from std_msgs.msg import UInt64
 from cloneguard.container.isolated import mappings
 from cloneguard.container.isolated.core_events import MutexReport, MutexVerdict
 from cloneguard.container.isolated.mutex_reports import kind_name, text
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.faults._nativelock import lib as nativelock
 from cloneguard.faults.components import NATIVE_LOCKS
 
@@ -25,7 +25,7 @@ SIZEOF_MUTEX = 40  # pthread_mutex_t, x86_64
 
 
 def _waiting(client, kind: str):
-    client.load_ok(RIG, "faults::WaitsForNativeMutex", parameters={"kind": kind})
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     progress.wait_count(5, timeout=10)
     return progress
@@ -33,7 +33,7 @@ def _waiting(client, kind: str):
 
 def _die(client, kind: str, how: str = "sigkill", **extra):
     holder = client.load_ok(
-        RIG, "faults::DieHoldingNativeMutex", parameters={"kind": kind, "how": how, "delay": 0.05, **extra}
+        TESTRIG, "faults::DieHoldingNativeMutex", parameters={"kind": kind, "how": how, "delay": 0.05, **extra}
     )
     return holder, client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
 
@@ -98,9 +98,9 @@ def test_without_the_doctor_the_waiter_waits_for_ever(client, container):
 def test_a_live_owners_mutex_is_left_alone_after_another_death(client, container):
     """Another node dies while a live node holds the mutex: the waiter waits
     until the owner gives it back, and nothing is said of it."""
-    client.load_ok(RIG, "faults::HoldsNativeMutex", parameters={"kind": "normal", "hold": 4.0})
+    client.load_ok(TESTRIG, "faults::HoldsNativeMutex", parameters={"kind": "normal", "hold": 4.0})
     started = time.monotonic()
-    client.load_ok(RIG, "faults::WaitsForNativeMutex", parameters={"kind": "normal"})
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": "normal"})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     _die(client, "errorcheck")  # a death: the doctor scans every waiter
     assert len(progress) == 0
@@ -116,7 +116,7 @@ def test_an_owner_not_proven_a_dead_nodes_is_reported_not_released(client, conta
     """A thread of a live node ends holding the mutex: its owner is gone, but
     was never a dead node process's task. After a death the stalled waiter
     is reported within 2 s, and the mutex is left as it is."""
-    client.load_ok(RIG, "faults::HoldsNativeMutex", parameters={"kind": "normal", "orphan": True})
+    client.load_ok(TESTRIG, "faults::HoldsNativeMutex", parameters={"kind": "normal", "orphan": True})
     progress = _waiting_blocked(client, "normal")
     _, crashed = _die(client, "adaptive")
     container.wait_for_log(
@@ -129,7 +129,7 @@ def test_an_owner_not_proven_a_dead_nodes_is_reported_not_released(client, conta
 
 
 def _waiting_blocked(client, kind: str):
-    client.load_ok(RIG, "faults::WaitsForNativeMutex", parameters={"kind": kind})
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind})
     return client.subscribe(UInt64, "/native_mutex_waiter/progress")
 
 
@@ -151,7 +151,7 @@ def test_a_robust_mutex_is_left_to_the_kernel(client, container):
     """The kernel marks a dead owner's robust mutex (each node process has
     its robust list): its next locker gets EOWNERDEAD; the doctor never
     touches it."""
-    client.load_ok(RIG, "faults::WaitsForNativeMutex", parameters={"kind": "robust"})
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": "robust"})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     repaired = client.subscribe(UInt64, "/native_mutex_waiter/repaired")
     progress.wait_count(5, timeout=10)

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import domains
 from cloneguard.harness.factory import ContainerFactory
 
@@ -134,7 +134,7 @@ def test_a_product_install_serves_loads_and_refuses_every_fault_component(produc
                 "bench::PayloadSource",
             ):
                 # As upstream answers: no such package, or no such class in it.
-                resp = client.load(RIG, plugin)
+                resp = client.load(TESTRIG, plugin)
                 assert (resp.success, resp.error_message) == (False, "Could not find requested resource in ament index")
                 resp = client.load("cloneguard", plugin)
                 assert (resp.success, resp.error_message) == (

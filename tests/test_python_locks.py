@@ -23,7 +23,7 @@ import pytest
 from std_msgs.msg import UInt64
 
 from cloneguard.container.isolated import _pylocks
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 
 LOCKS = {"cpython": _thread.allocate_lock, "ours": _pylocks.allocate_lock}
 RLOCKS = {"cpython": _thread.RLock, "ours": _pylocks.RLock}
@@ -250,10 +250,10 @@ def test_boot_refuses_when_threading_came_first(tmp_path):
 @pytest.mark.parametrize("container_args", [["--isolated", "--no-python-locks"]])
 def test_without_them_a_sibling_waits_for_a_dead_holder_forever(client, container):
     """The control: CPython's lock has no holder; nothing can take it over."""
-    client.load_ok(RIG, "faults::WaitsForPythonLock", parameters={"kind": "lock"})
+    client.load_ok(TESTRIG, "faults::WaitsForPythonLock", parameters={"kind": "lock"})
     progress = client.subscribe(UInt64, "/python_lock_waiter/progress")
     progress.wait_count(5, timeout=10)
-    holder = client.load_ok(RIG, "faults::DieHoldingPythonLock", parameters={"kind": "lock", "delay": 0.05})
+    holder = client.load_ok(TESTRIG, "faults::DieHoldingPythonLock", parameters={"kind": "lock", "delay": 0.05})
     from cloneguard_interfaces.msg import ComponentEvent
 
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
@@ -267,10 +267,10 @@ def test_without_them_a_sibling_waits_for_a_dead_holder_forever(client, containe
 def test_with_them_the_sibling_takes_the_lock_over_at_once(client, container):
     from cloneguard_interfaces.msg import ComponentEvent
 
-    client.load_ok(RIG, "faults::WaitsForPythonLock", parameters={"kind": "rlock"})
+    client.load_ok(TESTRIG, "faults::WaitsForPythonLock", parameters={"kind": "rlock"})
     progress = client.subscribe(UInt64, "/python_lock_waiter/progress")
     progress.wait_count(5, timeout=10)
-    holder = client.load_ok(RIG, "faults::DieHoldingPythonLock", parameters={"kind": "rlock", "delay": 0.05})
+    holder = client.load_ok(TESTRIG, "faults::DieHoldingPythonLock", parameters={"kind": "rlock", "delay": 0.05})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
     repaired = client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder.unique_id, timeout=5)
     assert repaired.repaired_state == "python-lock"
@@ -291,11 +291,11 @@ def test_a_lock_whose_holder_died_taking_it_is_reported_not_taken_over(client, c
     the log after STUCK_MS (1 s) of waiting."""
     from cloneguard_interfaces.msg import ComponentEvent
 
-    client.load_ok(RIG, "faults::WaitsForPythonLock", parameters={"kind": "lock"})
+    client.load_ok(TESTRIG, "faults::WaitsForPythonLock", parameters={"kind": "lock"})
     progress = client.subscribe(UInt64, "/python_lock_waiter/progress")
     progress.wait_count(5, timeout=10)
     holder = client.load_ok(
-        RIG, "faults::DieHoldingPythonLock", parameters={"kind": "lock", "delay": 0.05, "taking": True}
+        TESTRIG, "faults::DieHoldingPythonLock", parameters={"kind": "lock", "delay": 0.05, "taking": True}
     )
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
     container.wait_for_log(

@@ -5,13 +5,13 @@ import time
 
 import pytest
 
-from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults import PACKAGE as TESTRIG
 
 
 def _hang_until_the_watchdog_ends_it(client, container, mode: str) -> str:
     """Load a callback that never returns; the container must exit with 1
     and its log (returned) must show the stack of the callback that hangs."""
-    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
+    client.load_ok(TESTRIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
     code = container.wait(timeout=20)
     assert code == 1, f"exit code {code}"
     log = container.log_text()
@@ -42,7 +42,7 @@ def test_a_callback_that_keeps_the_gil_is_still_reported_and_ends_the_container(
 def test_a_shutdown_that_does_not_end_is_reported_with_stacks_and_exit_1(client, container):
     # Thread mode stops its nodes' executor after their callbacks: one that
     # never returns would keep the stopping container alive, silent.
-    client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.0, "mode": "sleep"})
+    client.load_ok(TESTRIG, "faults::HangInCallback", parameters={"delay": 0.0, "mode": "sleep"})
     deadline = time.monotonic() + 10
     while " hang-sleep firing at " not in container.log_text():
         assert time.monotonic() < deadline, container.log_text()
@@ -80,7 +80,7 @@ def test_a_node_whose_callback_hangs_is_aborted_alone_with_its_stacks(client, co
     from cloneguard_interfaces.msg import ComponentEvent
 
     beating = client.load_ok("cloneguard", "cloneguard::Heartbeat")
-    hung = client.load_ok(RIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
+    hung = client.load_ok(TESTRIG, "faults::HangInCallback", parameters={"delay": 0.2, "mode": mode})
     crash = client.wait_for_event(ComponentEvent.CRASHED, unique_id=hung.unique_id, timeout=15)
     assert crash.exit_signal == 6, crash  # SIGABRT, sent by the container
     assert "longer than --node-watchdog 1.5 s (" in crash.error_message, crash.error_message
@@ -111,7 +111,7 @@ def test_idle_and_busy_nodes_are_not_aborted(client, container):
 @pytest.mark.parametrize("container_args", [[]])
 def test_a_container_that_crashes_itself_says_where(client, container):
     # Thread mode: the fault kills the container; its log shows the stack.
-    client.load_ok(RIG, "faults::SegfaultInCallback", parameters={"delay": 0.2})
+    client.load_ok(TESTRIG, "faults::SegfaultInCallback", parameters={"delay": 0.2})
     assert container.wait(timeout=20) == -11
     log = container.log_text()
     assert "Fatal Python error: Segmentation fault" in log
