@@ -74,7 +74,8 @@ def fatal_excerpt(dump: str, limit: int) -> str:
     return head + rest[:room] + cut
 
 
-# Container arguments per profile; scenarios are parametrized over these.
+# Container arguments per scenario profile (thread mode, or isolated with a
+# participant profile: docs/index.md#words); scenarios are parametrized over these.
 # Isolated containers get a long watchdog: a hang is the harness's to judge
 # and diagnose (which takes seconds of gdb) before the container's own
 # watchdog (10 s by default) ends it; it still ends an abandoned one.
