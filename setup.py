@@ -60,6 +60,7 @@ setup(
                 "container/isolated/allocguard.c",
                 "container/isolated/pyalloc.c",
                 "container/isolated/heapkeys.c",
+                "container/isolated/stops.c",
             ],
             depends=["container/isolated/allocguard.h", "container/isolated/guard_internal.h"],
             extra_compile_args=["-std=gnu11", "-O2", *WARNINGS, "-fvisibility=hidden", "-fno-builtin"],
@@ -69,6 +70,7 @@ setup(
         Extension(
             "cloneguard.container.isolated._pylocks",
             sources=["container/isolated/pylocks.c"],
+            depends=["container/isolated/allocguard.h"],
             extra_compile_args=["-std=gnu11", *WARNINGS],
         ),
         # Not a Python module: the default QoS of the DDS participants made

@@ -33,7 +33,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from . import allocator
+from . import allocator, seams
 from .hosting import ThreadHost
 from .isolated import profiles
 from .isolated.node_watchdog import NodeWatchdog
@@ -413,6 +413,11 @@ def _prepare_process(argv: list[str]) -> tuple[argparse.Namespace, tuple[int, in
     except Exception as exc:
         raise SystemExit(f"component_container: invalid ROS arguments: {exc}") from None
     opts = parse_args(plain)
+    if opts.isolated:
+        try:
+            seams.stop_signal()  # checked before anything starts; the host reads it again
+        except ValueError as exc:
+            raise SystemExit(f"component_container: {exc}") from None
     guard = opts.isolated and not opts.no_alloc_guard
     python_locks = opts.isolated and not opts.no_python_locks
     if guard or opts.jemalloc or python_locks:

@@ -1,10 +1,14 @@
 """The one seam through which the test rig reaches into the container.
 
-Fault injection needs three things inside the product: a LoadNode extra
+Fault injection needs four things inside the product: a LoadNode extra
 argument that drops the node's LOADED event (a lost event), a call made
 while an intra-process queue operation holds its lock (to die right there),
-and a progress-board write left half-done. All three are here, and all are
-off unless the test rig is installed: the cloneguard-testrig distribution
+a progress-board write left half-done, and stop points: a node process that
+stops itself, when asked, inside the allocator, inside CPython's object
+allocator or holding a Python lock, so that a kill from outside lands there
+(isolated/stops.c; the harness asks with a sigqueue of the signal named by
+``CLONEGUARD_STOP_SIGNAL`` in the container's environment). All are here,
+and all are off unless the test rig is installed: the cloneguard-testrig distribution
 declares itself in the entry-point group ``cloneguard.test_rig``. A
 production install has no test rig, so nothing can switch them on; the
 extra argument is then an unknown one, ignored as upstream ignores those.
@@ -13,10 +17,14 @@ extra argument is then an unknown one, ignored as upstream ignores those.
 from __future__ import annotations
 
 import functools
+import os
+import signal
 from collections.abc import Callable
 from importlib.metadata import entry_points
 
 RIG_GROUP = "cloneguard.test_rig"
+#: Environment: the real-time signal node processes take stop requests on.
+STOP_SIGNAL_ENV = "CLONEGUARD_STOP_SIGNAL"
 #: LoadNode extra argument (bool): the node loads, its LOADED event is not sent.
 DROP_LOADED_EVENT = "cloneguard.fault.drop_loaded_event"
 
@@ -45,3 +53,21 @@ def arm(name: str, hook: Callable[[object], None] | None) -> None:
     if hook is not None:
         require(name)
     globals()[name] = hook
+
+
+def stop_signal() -> int:
+    """The signal node processes take stop requests on (``STOP_SIGNAL_ENV``),
+    0 for none: not set, or no test rig installed (then it is ignored, like
+    the extra argument). A value that is not a real-time signal number is
+    refused (ValueError, saying what is allowed)."""
+    raw = os.environ.get(STOP_SIGNAL_ENV, "")
+    if not raw or not enabled():
+        return 0
+    low, high = int(signal.SIGRTMIN), int(signal.SIGRTMAX)
+    try:
+        sig = int(raw)
+    except ValueError:
+        sig = 0
+    if not low <= sig <= high:
+        raise ValueError(f"{STOP_SIGNAL_ENV}={raw!r}: the stop signal must be a real-time signal, {low} to {high}")
+    return sig

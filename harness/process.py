@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import procfs, shm
+from . import procfs, shm, stops
 from .errors import HarnessTimeout
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -55,12 +55,14 @@ def process_environment(
     domain_id: int, *, fastdds_profile: Path = NO_SHM_PROFILE, base: dict[str, str] | None = None
 ) -> dict[str, str]:
     """``base`` (default: this process's environment) with the ROS variables
-    of ros_environment(); a discovery-range setting would replace the
-    profile's transports, so it goes."""
+    of ros_environment(), and the signal a container's node processes take
+    stop requests on (stops.py); a discovery-range setting would replace
+    the profile's transports, so it goes."""
     env = dict(os.environ if base is None else base)
     for key in DISCOVERY_RANGE_VARIABLES:
         env.pop(key, None)
     env.update(ros_environment(domain_id, fastdds_profile=fastdds_profile))
+    env[stops.STOP_SIGNAL_ENV] = str(stops.STOP_SIGNAL)
     return env
 
 

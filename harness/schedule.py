@@ -2,11 +2,12 @@
 Jepsen describes its nemesis): one fault, a sequence, or faults drawn at
 random over a window from a trial's Random, so that a trial replays.
 
-    from cloneguard.harness.schedule import At, Freeze, Kill, Starve, random_over, sequence
+    from cloneguard.harness.schedule import At, Freeze, Kill, KillAt, Starve, random_over, sequence
 
     robot.inject([At(0.2, Freeze("/planner", 1.0)), At(0.5, Kill("/odometry"))])
     robot.inject(sequence(Starve("/planner", 0.01, 2.0), Kill("/planner"), every_s=0.5))
     robot.inject(random_over(t.rng, 3.0, [Kill("/planner"), Freeze("/map_server", 0.5)], count=2))
+    robot.inject(KillAt("/planner", "python-lock"))
 
 ``inject`` also takes a single fault or ``At``, and a bare fault in a list
 runs at once (at 0 s). Faults run at their times from the schedule's start; a freeze or a
@@ -40,6 +41,21 @@ class Kill:
 
 
 @dataclass(frozen=True)
+class KillAt:
+    """SIGKILL to the node's process at a place in its own code
+    (``allocation``, ``python-allocation``, ``python-lock``: stops.py), at
+    its ``after``-th pass from the fault's time."""
+
+    node: str
+    place: str
+    after: int = 1
+    lasts = False
+
+    def apply(self, system) -> None:
+        system.kill_at(self.node, self.place, after=self.after)
+
+
+@dataclass(frozen=True)
 class Freeze:
     """The node's process stopped for ``seconds`` (SIGSTOP, then SIGCONT)."""
 
@@ -64,7 +80,8 @@ class Starve:
         system.starve(self.node, self.cpus, self.seconds)
 
 
-ScheduledFault = Kill | Freeze | Starve
+ScheduledFault = Kill | KillAt | Freeze | Starve
+FAULTS = (Kill, KillAt, Freeze, Starve)
 
 
 @dataclass(frozen=True)
@@ -96,16 +113,17 @@ def random_over(rng: random.Random, window_s: float, faults: Sequence[ScheduledF
 def as_schedule(schedule) -> list[At]:
     """A schedule from what ``System.inject`` takes: an ``At``, a fault (at
     once), or a list of those; anything else is refused, saying what."""
-    items = [schedule] if isinstance(schedule, (At, Kill, Freeze, Starve)) else list(schedule)
+    items = [schedule] if isinstance(schedule, (At, *FAULTS)) else list(schedule)
     out = []
     for item in items:
         if isinstance(item, At):
             out.append(item)
-        elif isinstance(item, (Kill, Freeze, Starve)):
+        elif isinstance(item, FAULTS):
             out.append(At(0.0, item))
         else:
             raise TypeError(
-                f"a schedule holds At(seconds, fault) or faults (Kill, Freeze, Starve), not {type(item).__name__}"
+                f"a schedule holds At(seconds, fault) or faults ({', '.join(f.__name__ for f in FAULTS)}), "
+                f"not {type(item).__name__}"
             )
     return sorted(out, key=lambda a: a.seconds)
 

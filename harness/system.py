@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 from cloneguard_interfaces.msg import ComponentEvent
 
+from . import stops
 from .client import ContainerClient, Recorder
 from .cpu_starve import CpuStarve
 from .crash_report import STACKS_WAIT_S, wait_for_report
@@ -74,8 +75,9 @@ class Fault:
 
     @property
     def kind(self) -> str:
-        """What kind of fault: the signal's name, ``freeze`` or ``starve``."""
-        return self.what.split()[0]
+        """What kind of fault: the signal's name (with its place for a
+        kill_at: ``SIGKILL at python-lock``), ``freeze`` or ``starve``."""
+        return self.what if " at " in self.what else self.what.split()[0]
 
     @property
     def ends_the_node(self) -> bool:
@@ -173,6 +175,18 @@ class System:
         at = time.monotonic_ns()
         os.kill(running.pid, sig)
         self.faults.append(Fault(full_name, signal.Signals(sig).name, at, at, running.unique_id))
+        return at
+
+    def kill_at(self, full_name: str, place: str, *, after: int = 1, timeout: float = 5.0) -> int:
+        """SIGKILL the node's process at a place in its own code
+        (stops.py's ``PLACES``: ``allocation``, ``python-allocation``,
+        ``python-lock``), at its ``after``-th pass from now; when it was
+        seen stopped there, just before the kill. HarnessTimeout if it did
+        not get there within ``timeout`` (it is left running)."""
+        running = self._own_process(full_name)
+        at = stops.stop_at(running.pid, place, after=after, timeout=timeout)
+        os.kill(running.pid, signal.SIGKILL)
+        self.faults.append(Fault(full_name, f"SIGKILL at {place}", at, at, running.unique_id))
         return at
 
     def freeze(self, full_name: str, seconds: float) -> tuple[int, int]:

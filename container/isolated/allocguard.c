@@ -387,16 +387,18 @@ static inline void leave(int slot)
     }
 }
 
-static __attribute__((noinline)) int resolve_slot(void)
+int cga_slot_of_pid(int pid)
 {
-    int pid = (int)syscall(SYS_getpid);
-    int s = 0;
     if (pid != g_container_pid)
         for (int i = 1; i < g_nslots; i++)
-            if (atomic_load_explicit(&live[i].pid, memory_order_acquire) == pid) {
-                s = i;
-                break;
-            }
+            if (atomic_load_explicit(&live[i].pid, memory_order_acquire) == pid)
+                return i;
+    return 0;
+}
+
+static __attribute__((noinline)) int resolve_slot(void)
+{
+    int s = cga_slot_of_pid((int)syscall(SYS_getpid));
     t_slot1 = s + 1;
     if (g_je) {
         t_owner = s;
@@ -586,6 +588,7 @@ static void *malloc_from(size_t n, const void *ra)
     }
     enter(s);
     drain_mine(s);
+    cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = check_main(s, be_malloc(s, n));
     leave(s);
     if (!p)
@@ -635,6 +638,7 @@ EXPORT void *calloc(size_t n, size_t size)
     enter(s);
     if (s)
         drain_mine(s);
+    cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = check_main(s, !g_je ? __libc_calloc(n, size)
                             : je_fast(s) ? je_real.calloc(n, size)
                             : mallocx(total ? total : 1, JE_ZERO | je_flags(s)));
@@ -702,6 +706,7 @@ static void *aligned(size_t align, size_t n, const void *ra)
     enter(s);
     if (s)
         drain_mine(s);
+    cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = check_main(s, be_aligned(s, align, n));
     leave(s);
     if (!p)
@@ -1142,6 +1147,7 @@ EXPORT void cga_child_start(void)
     if (s > 0) {
         if (g_split)
             hk_child_enter(s);
+        stops_clear(s);                 /* no request of an earlier process */
         atomic_store(&live[s].pid, (int)syscall(SYS_getpid));
     }
 }

@@ -10,6 +10,7 @@
 #ifndef CLONEGUARD_ALLOCGUARD_H
 #define CLONEGUARD_ALLOCGUARD_H
 
+#include <signal.h>
 #include <stdint.h>
 
 /* A slot is one node process's allocator identity: its arena(s) and the
@@ -25,6 +26,16 @@ enum {
 
 /* Slots a container has: slot 0 and up to CGA_NSLOTS - 1 node processes. */
 #define CGA_NSLOTS 512
+
+/* Stop points (stops.c; the test rig's seam): the places a node process
+   can be asked to stop itself at, and the request's sigqueue value. */
+#define CGA_STOP_ALLOCATION 1       /* the guard's malloc, inside its bracket */
+#define CGA_STOP_PY_ALLOCATION 2    /* CPython's object allocator, GIL held */
+#define CGA_STOP_PY_LOCK 3          /* a Python lock just acquired, GIL held */
+#define CGA_STOP_PLACE_LIMIT 16     /* the request's low 4 bits: the place */
+#define CGA_STOP_REQUEST(place, n) ((place) | ((n) << 4))
+#define CGA_STOP_PLACE(v) ((v) & (CGA_STOP_PLACE_LIMIT - 1))
+#define CGA_STOP_COUNT(v) ((v) >> 4)
 
 /* What cga_slot_retire returns: the bits of what a dead process left. */
 #define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */
@@ -70,5 +81,7 @@ typedef int (*cga_py_abandon_fn)(int slot);
 typedef int (*cga_py_abandoned_fn)(const void *p);
 typedef int (*cga_pkeys_fn)(int *keys, int max);
 typedef int (*cga_slot_of_fn)(const void *p);
+/* stops.c: the stop signal's handler, in a node process. */
+typedef void (*cga_stop_request_fn)(int sig, siginfo_t *si, void *uc);
 
 #endif

@@ -187,6 +187,8 @@ static int child_main(void *arg)
     sigaction(SIGINT, &sa, NULL);
     if (g_cfg.crash_report)
         crash_handlers_install(c);
+    if (g_cfg.stop_signal)
+        stop_requests_take(g_cfg.stop_signal);
     if (!c->ctx)
         jemalloc_setup(c);
     sigset_t none;

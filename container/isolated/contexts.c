@@ -39,6 +39,7 @@ static struct {
     cga_py_abandon_fn py_abandon;
     cga_py_abandoned_fn py_abandoned;
     cga_slot_of_fn slot_of;
+    cga_stop_request_fn stop_request;   /* optional: the rig's stop points */
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
@@ -140,6 +141,7 @@ int guard_start(void)
     FIND(py_abandon, "cga_py_abandon");
     FIND(py_abandoned, "cga_py_abandoned");
     FIND(slot_of, "cga_slot_of");
+    FIND(stop_request, "cga_stop_request");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
         !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
@@ -267,6 +269,23 @@ void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
 
 /* In the child: threads it creates find its slot by its pid. */
 void guard_child_start(void) { G.child_start(); }
+
+/* In the child: stop requests on signal sig (the test rig's stop points,
+   stops.c); without the guard there is nowhere to stop, and the signal is
+   ignored rather than left to end the process. */
+void stop_requests_take(int sig)
+{
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    if (G.stop_request) {
+        sa.sa_sigaction = G.stop_request;
+        sa.sa_flags = SA_SIGINFO | SA_RESTART;
+    } else {
+        sa.sa_handler = SIG_IGN;
+    }
+    sigemptyset(&sa.sa_mask);
+    sigaction(sig, &sa, NULL);
+}
 
 /* Every task of the child is gone: CGA_RETIRE_* bits (allocguard.h): its
    slot quarantined (it died inside malloc, or faulted), its Python pools

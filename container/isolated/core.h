@@ -77,6 +77,8 @@ struct cg_config {           /* per CloneCore; see core.Mitigations */
     int jemalloc_tcache;
     int alloc_guard;         /* allocguard.c is preloaded: use it (see there) */
     int mutex_repair;        /* mutexes.c: release dead children's mutexes */
+    int stop_signal;         /* the test rig's stop points (stops.c): children
+                                take requests on it; 0: off */
 };
 
 enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
@@ -348,6 +350,7 @@ bool guard_active(void);
 struct cg_ctx *ctx_take(void);
 void guard_bind(struct cg_ctx *x);
 void guard_child_start(void);             /* in the child */
+void stop_requests_take(int sig);         /* in the child: the rig's stop points */
 int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
 int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
 /* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */

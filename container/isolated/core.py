@@ -334,6 +334,7 @@ class CloneCore:
         self,
         on_event: Callable[[CoreEvent], None] | None = None,
         mitigations: Mitigations | None = None,
+        stop_signal: int = 0,
         **overrides: Any,
     ) -> None:
         names = {f.name for f in fields(Mitigations)}
@@ -353,7 +354,8 @@ class CloneCore:
                 raise RuntimeError("only one CloneCore may be open per process")
             fd = ffi.new("int *")
             layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
-            config = ffi.new("struct cg_config *", self.mitigations.as_config())
+            # stop_signal: the test rig's stop points (seams.stop_signal).
+            config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), "stop_signal": stop_signal})
             rc = lib.cg_start(layout, config, fd)
             if rc < 0:
                 raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")

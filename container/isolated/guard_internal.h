@@ -6,6 +6,7 @@
 #ifndef CLONEGUARD_GUARD_INTERNAL_H
 #define CLONEGUARD_GUARD_INTERNAL_H
 
+#include <stdatomic.h>
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
@@ -30,6 +31,19 @@ HIDDEN int py_slot_retire(int s, char *tcb);
 HIDDEN void *cga_shared_alloc(size_t n, bool zero);
 HIDDEN void *cga_shared_realloc(void *p, size_t n);
 
+/* allocguard.c: the slot bound to process pid, 0 if none (a scan:
+   async-signal-safe). */
+HIDDEN int cga_slot_of_pid(int pid);
+/* stops.c: the test rig's stop points (CGA_STOP_*, allocguard.h).  Every
+   place calls cga_stop_point; it costs one load while nothing is armed. */
+extern HIDDEN _Atomic int cga_stops_armed;
+HIDDEN void cga_stop_passed(int s, int place);
+HIDDEN void stops_clear(int s);
+static inline void cga_stop_point(int s, int place)
+{
+    if (__builtin_expect(atomic_load_explicit(&cga_stops_armed, memory_order_relaxed), 0))
+        cga_stop_passed(s, place);
+}
 /* heapkeys.c: protection keys over node processes' native heaps. */
 HIDDEN int hk_enabled(void);                     /* keys were allocated */
 HIDDEN int hk_key_of_slot(int slot);

@@ -52,7 +52,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-from .. import construction, intra, processes, repairs
+from .. import construction, intra, processes, repairs, seams
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
@@ -169,7 +169,9 @@ class IsolatedHost:
         self.board = ProgressBoard(on_repair=self._board_repaired)
         self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
-        self._core = CloneCore(on_event=self._on_core_event, mitigations=self.mitigations)
+        self._core = CloneCore(
+            on_event=self._on_core_event, mitigations=self.mitigations, stop_signal=seams.stop_signal()
+        )
         listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
         # with cgroups, where each node's process is born in its own.

@@ -231,6 +231,7 @@ static void *small_alloc(size_t n)
         b = p->bump;
         p->bump += p->size;
     }
+    cga_stop_point(s, CGA_STOP_PY_ALLOCATION);   /* the pool half-updated */
     p->used++;
     if (p->free == NULL && p->bump + p->size > p->end)
         unlink_pool(&o->usable[cls], p);   /* full */

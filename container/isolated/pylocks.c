@@ -47,6 +47,8 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "allocguard.h"
+
 #define SLICE_MS 100                  /* a blocked acquire looks at its holder this often */
 #define STUCK_MS 1000                 /* ... and says so once if none is known after this */
 #define NDEAD 4096                    /* dead node processes remembered */
@@ -263,7 +265,7 @@ static void report_takeover(PyObject *lock, uint64_t dead)
 /* 1 acquired, 0 not, -1 an exception (from a signal handler).  Takes the
    GIL back before returning.  *dead: the holder whose process was dead, if
    it was taken over (then the caller reports it), else 0. */
-static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t *dead)
+static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t *dead)
 {
     *dead = 0;
     if (try_take(c))
@@ -294,6 +296,18 @@ static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint6
         if (Py_MakePendingCalls() < 0)   /* INTERRUPTED: run the handlers */
             return -1;
     }
+}
+
+/* The allocator guard's stop point for "a Python lock just acquired"
+   (stops.c, the test rig's seam): NULL without the guard. */
+static void (*g_stop_here)(int place);
+
+static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t *dead)
+{
+    int r = take_core(lock, c, timeout, dead);
+    if (r == 1 && g_stop_here)
+        g_stop_here(CGA_STOP_PY_LOCK);
+    return r;
 }
 
 /* ---------------------------------------------------------------------- */
@@ -697,6 +711,7 @@ static PyMethodDef module_methods[] = {
 
 static int module_exec(PyObject *m)
 {
+    g_stop_here = (void (*)(int))dlsym(RTLD_DEFAULT, "cga_stop_here");
     if (g_tid_offset < 0 && pthread_key_create(&g_me_key, forget_me) == 0)
         g_tid_offset = find_tid_offset();
     g_lock_type = (PyTypeObject *)PyType_FromModuleAndSpec(m, &lock_spec, NULL);
