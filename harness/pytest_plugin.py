@@ -81,6 +81,13 @@ def pytest_addoption(parser):
         help="stop a System's seeded trials at the first that does not survive and keep its container "
         "running that long for a debugger (inf: until Ctrl-C)",
     )
+    group.addoption(
+        "--named-fault",
+        default=None,
+        metavar="NAME",
+        help="the fault of yours a package declares as NAME (cloneguard.harness.faults), for the scenario "
+        "`reproduce NAME` runs",
+    )
     plan.add_options(parser)
 
 

@@ -16,6 +16,11 @@ stops at its first trial that does not survive and holds its container:
     python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trial-seed 746315781
     python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trials 200 \
         --container-arg=--jemalloc
+
+and a fault a package of yours declares by name (named_faults.py, entry
+point group ``cloneguard.harness.faults``) the same way, by its name:
+
+    python -m cloneguard.harness reproduce planner-holding-a-lock --trials 200
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import tempfile
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from cloneguard.harness import domains
+from cloneguard.harness import domains, named_faults
 from cloneguard.harness.factory import ContainerFactory
 from cloneguard.harness.plan import trial_count_arg
 from cloneguard.harness.process import use_loopback_ros
@@ -62,8 +67,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "fault",
         metavar="FAULT|NODE_ID",
-        help=f"a fault of the rig ({', '.join(sorted(faults))}), or the pytest node id of a scenario of yours "
-        "(path.py::test_name)",
+        help=f"a fault of the rig ({', '.join(sorted(faults))}), a fault of yours by name "
+        f"({', '.join(named_faults.names()) or f'none declared in {named_faults.GROUP}'}), or the pytest "
+        "node id of a scenario of yours (path.py::test_name)",
     )
     p.add_argument("--profile", choices=sorted(PROFILES), default=None, help="a rig fault's profile (per-node)")
     p.add_argument(
@@ -111,11 +117,16 @@ def is_node_id(target: str) -> bool:
 def run(args) -> int:
     if is_node_id(args.fault):
         return run_scenario(args)
+    if args.fault in named_faults.names():
+        if args.fault in registry()[0]:
+            raise SystemExit(f"{args.fault!r} is both a fault of the rig's and one declared in {named_faults.GROUP}")
+        return run_scenario(args)
     if args.container_arg:
         raise SystemExit("--container-arg is for a scenario of yours; a rig fault takes --profile and --allocator")
     faults, allocators = registry()
     if args.fault not in faults:
-        raise SystemExit(f"no fault {args.fault!r}: the rig's are {', '.join(sorted(faults))}")
+        yours = ", ".join(named_faults.names()) or f"none is declared in {named_faults.GROUP}"
+        raise SystemExit(f"no fault {args.fault!r}: the rig's are {', '.join(sorted(faults))}; yours: {yours}")
     args.profile = args.profile or "per-node"
     args.allocator = args.allocator or "glibc"
     use_loopback_ros()
@@ -152,7 +163,12 @@ def scenario_command(args) -> list[str]:
     Ctrl-C; with --no-wait, not at all)."""
     if args.profile or args.allocator:
         raise SystemExit("--profile and --allocator are for the rig's faults; give a scenario --container-arg")
-    cmd = [sys.executable, "-m", "pytest", args.fault, "-p", "no:cacheprovider", "--seed", str(args.seed)]
+    if is_node_id(args.fault):
+        cmd = [sys.executable, "-m", "pytest", args.fault]
+    else:  # a fault of yours by name: the harness's one scenario of it, reported under this directory
+        cmd = [sys.executable, "-m", "pytest", str(named_faults.SCENARIO), f"--named-fault={args.fault}"]
+        cmd += ["--import-mode=importlib", f"--rootdir={Path.cwd()}"]
+    cmd += ["-p", "no:cacheprovider", "--seed", str(args.seed)]
     cmd += ["--trial-seed", str(args.trial_seed)] if args.trial_seed is not None else ["--trials", str(args.trials)]
     cmd += ["--hold-failed", "0" if args.no_wait else "inf"]
     cmd += [f"--container-arg={a}" for a in args.container_arg]

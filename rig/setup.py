@@ -13,6 +13,9 @@ setup(
         f"cloneguard.{top}{'.' + sub if sub else ''}" for top in FOLDERS for sub in ["", *find_packages(f"../{top}")]
     ],
     package_dir={f"cloneguard.{top}": f"../{top}" for top in FOLDERS},
+    # The scenario `reproduce NAME` runs (harness/named_faults.py): a test
+    # file pytest imports by path, not a module of the package.
+    package_data={"cloneguard.harness": ["scenarios/test_named_fault.py"]},
     cffi_modules=[
         "../faults/_build_hammer.py:ffibuilder",
         "../faults/_build_gilfault.py:ffibuilder",

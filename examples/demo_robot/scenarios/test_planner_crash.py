@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from demo_robot.faults import PLANNER_HOLDING_A_LOCK
 from std_msgs.msg import Float64, UInt64
 from std_srvs.srv import Trigger
 
@@ -112,3 +113,7 @@ def test_the_planner_is_back_under_a_restart_policy(system_factory):
     plans.wait_count(len(plans) + 5, timeout=10)  # it plans again
 
     assert back.pid != before.pid and back.unique_id != before.unique_id
+
+
+def test_the_rest_outlives_the_planner_killed_holding_a_lock(system_factory, system_trials):
+    PLANNER_HOLDING_A_LOCK.run(system_factory, system_trials)  # demo_robot/faults.py
