@@ -19,6 +19,7 @@ import sys
 import threading
 import traceback
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 # OpenBLAS (under numpy, under rclpy's messages) starts a process-wide thread
@@ -245,6 +246,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "another node's heap kills the writer before it lands (refused where the CPU or "
         "kernel has no keys)",
     )
+    isolated.add_argument(
+        "--core-dumps",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write the core dump of a node process that catches a fatal signal into DIR as "
+        "core.<node>.<pid> (with gdb, while it waits in its crash handler); each holds the whole "
+        "shared address space, every node's memory and the container's (default: none)",
+    )
     for flag, what in MITIGATION_SWITCHES.items():
         isolated.add_argument(flag, action="store_true", help=what)
     opts = parser.parse_args(argv)
@@ -268,6 +278,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
             "--pkeys needs --jemalloc and the allocator guard (the keys tag the ranges the "
             "guard's jemalloc arenas carve each node's heap from)"
         )
+    if opts.core_dumps is not None and opts.no_crash_report:
+        parser.error("--core-dumps needs the crash report (the node waits for its dump in its crash handler)")
     if opts.no_python_pools and opts.no_alloc_guard:
         parser.error("--no-python-pools means nothing with --no-alloc-guard (the pools are the guard's)")
     if opts.shared_arenas and (opts.jemalloc or not opts.no_alloc_guard):
@@ -333,6 +345,16 @@ def _make_host(opts, argv, executor, context, logger):
     # A fatal signal in the container itself: its native stack first, then
     # faulthandler's Python stacks (enabled by main) as before.
     core.cg_container_crash_report()
+    if opts.core_dumps is not None:
+        from .isolated import core_dumps
+
+        why = core_dumps.unavailable(opts.core_dumps)
+        if why is not None:
+            raise SystemExit(f"component_container: --core-dumps {opts.core_dumps}: {why}")
+        logger.warning(
+            f"core dumps of node processes that crash go to {opts.core_dumps.resolve()}: each holds "
+            "the whole shared address space (every node's memory and the container's)"
+        )
     if opts.pkeys:
         from .isolated import pkeys
 
@@ -369,6 +391,7 @@ def _make_host(opts, argv, executor, context, logger):
             mitigations=mitigations,
             warm_spare=not opts.no_warm_spare,
             container_argv=argv,
+            core_dumps=opts.core_dumps.resolve() if opts.core_dumps is not None else None,
         )
     except IsolationUnavailable as exc:
         if cgroups is not None:

@@ -62,6 +62,7 @@ struct cg_config {
     int alloc_guard;
     int mutex_repair;
     int stop_signal;
+    int core_dumps;
 };
 
 struct cg_event {
@@ -204,6 +205,7 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
+int cg_core_dumped(struct cg_child *c);
 int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_self_wait_go(void);
@@ -225,6 +227,7 @@ long cg_listener_waits_bounded(void);
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...
 #define CG_EV_MUTEX ...
+#define CG_EV_CORE ...
 #define CG_MUTEX_CALLERS ...
 #define CG_MUTEX_RELEASED ...
 #define CG_MUTEX_UNPROVEN ...

@@ -79,9 +79,11 @@ struct cg_config {           /* per CloneCore; see core.Mitigations */
     int mutex_repair;        /* mutexes.c: release dead children's mutexes */
     int stop_signal;         /* the test rig's stop points (stops.c): children
                                 take requests on it; 0: off */
+    int core_dumps;          /* a crashing child's main task asks for a dump
+                                (CG_EV_CORE) and waits for it (crash.c) */
 };
 
-enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
+enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4, CG_EV_CORE = 5 };
 struct cg_event {            /* one record on the event pipe: 56 bytes */
     uint32_t kind;
     int32_t pid;             /* death, stop: the child; mutex: the dead child
@@ -122,6 +124,11 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
 #define CG_CRASH_PY_FRAMES 100 /* Python frames (faulthandler's depth too) */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
+/* cg_child.core_dump: asked (a CG_EV_CORE went out), written (or given up) */
+#define CG_CORE_NONE 0
+#define CG_CORE_ASKED 1
+#define CG_CORE_DONE 2
+#define CG_CORE_WAIT_S 600     /* how long a crashing child waits for its dump */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
 
 /* The tasks the monitor saw in a child (mutexes.c): each tid with where the
@@ -187,6 +194,9 @@ struct cg_child {            /* control block, lives in container memory */
        innermost Python frame, read by Python once reaped */
     void *gil_code;
     int gil_lasti;
+    /* --core-dumps: CG_CORE_*; the crashing main task waits in its crash
+       handler while the container writes its dump (crash.c) */
+    int core_dump;
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -257,6 +267,7 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
+int cg_core_dumped(struct cg_child *c);   /* crash.c: --core-dumps */
 int cg_abandon(struct cg_child *c);
 /* child.c */
 int cg_self_stop_requested(void);
@@ -323,7 +334,8 @@ int monitor_start(int *event_fd);
 int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
 int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
 void monitor_wake(void);                  /* async-signal-safe */
-void monitor_emit(const struct cg_event *ev);   /* on the monitor thread */
+void monitor_emit(const struct cg_event *ev);   /* on the monitor thread, and
+                                                   a crashing child's CG_EV_CORE */
 
 /* mutexes.c: all on the monitor thread */
 int mutexes_start(void);                  /* -ENOENT: no pid cursor to read */

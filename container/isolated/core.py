@@ -335,6 +335,7 @@ class CloneCore:
         on_event: Callable[[CoreEvent], None] | None = None,
         mitigations: Mitigations | None = None,
         stop_signal: int = 0,
+        core_dumps: bool = False,
         **overrides: Any,
     ) -> None:
         names = {f.name for f in fields(Mitigations)}
@@ -354,8 +355,10 @@ class CloneCore:
                 raise RuntimeError("only one CloneCore may be open per process")
             fd = ffi.new("int *")
             layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
-            # stop_signal: the test rig's stop points (seams.stop_signal).
-            config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), "stop_signal": stop_signal})
+            # stop_signal: the test rig's stop points (seams.stop_signal);
+            # core_dumps: a crashing child waits for dumped() (DumpAsked).
+            settings = {"stop_signal": stop_signal, "core_dumps": int(core_dumps)}
+            config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), **settings})
             rc = lib.cg_start(layout, config, fd)
             if rc < 0:
                 raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
@@ -493,6 +496,14 @@ class CloneCore:
             rc = lib.cg_release(child._block)
         if rc < 0:  # cannot happen once the death record was seen
             raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
+
+    def dumped(self, child: Child) -> None:
+        """With core dumps on: the dump a DumpAsked asked for is written (or
+        given up on); the child's crash handler goes on, and it dies."""
+        _, lib = _lib()
+        with self._lock:
+            if not self._entry(child).dead:
+                lib.cg_core_dumped(child._block)
 
     def abandon(self, child: Child) -> None:
         """Forget a reaped child whose Python objects are to be kept (a

@@ -39,6 +39,7 @@ import traceback
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -56,10 +57,10 @@ from .. import construction, intra, processes, repairs, seams
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
-from . import listener_wait, mutex_reports
+from . import core_dumps, listener_wait, mutex_reports
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
-from .core_events import MutexReport
+from .core_events import DumpAsked, MutexReport
 from .placeholder import held_context, release_context
 from .profiles import DEFAULT, PROFILES, SHARED
 from .spare import Spare, serves, spare_target
@@ -135,6 +136,7 @@ class _NodeProcess:
     cgroup: Any = None  # NodeCgroup, with --cgroups
     error: str = ""  # why construction failed in the child
     aborted: str = ""  # why the container aborted it (node watchdog)
+    core_file: str = ""  # its core dump (--core-dumps), once written
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
@@ -150,6 +152,7 @@ class IsolatedHost:
         mitigations: Mitigations | None = None,
         warm_spare: bool = True,
         container_argv: Sequence[str] = (),
+        core_dumps: Path | None = None,
     ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
@@ -169,8 +172,12 @@ class IsolatedHost:
         self.board = ProgressBoard(on_repair=self._board_repaired)
         self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
+        self._core_dumps = core_dumps  # the directory, or None: no dumps
         self._core = CloneCore(
-            on_event=self._on_core_event, mitigations=self.mitigations, stop_signal=seams.stop_signal()
+            on_event=self._on_core_event,
+            mitigations=self.mitigations,
+            stop_signal=seams.stop_signal(),
+            core_dumps=core_dumps is not None,
         )
         listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
@@ -533,6 +540,9 @@ class IsolatedHost:
         if isinstance(event, MutexReport):  # its dead holder may be forgotten already
             mutex_reports.handle(event, self._log)
             return
+        if isinstance(event, DumpAsked):  # its crashing task waits until dumped()
+            threading.Thread(target=self._dump, args=(event,), name="cloneguard-core-dump", daemon=True).start()
+            return
         with self._lock:
             proc = self._by_pid.get(event.pid)
             spare = self._spare if proc is None and self._spare and self._spare.child.pid == event.pid else None
@@ -567,6 +577,29 @@ class IsolatedHost:
                 proc.state = "dead"
         if state == "running":
             self._crashed(proc, event)
+
+    def _dump(self, event: DumpAsked) -> None:
+        """--core-dumps: write the crashing process's dump, then let its crash
+        handler go on (core_dumps.py)."""
+        with self._lock:
+            proc = self._by_pid.get(event.pid)
+            spare = self._spare if self._spare and self._spare.child.pid == event.pid else None
+        child = proc.child if proc is not None else spare.child if spare is not None else None
+        if child is None or self._core_dumps is None:
+            return  # already forgotten: nothing waits for it
+        who = f"{proc.full_name} (unique_id {proc.unique_id}, pid {event.pid})" if proc else f"pid {event.pid}"
+        path = core_dumps.path_for(self._core_dumps, proc.full_name if proc else "spare", event.pid)
+        self._log.warning(f"{who} caught a fatal signal: writing its core dump to {path}")
+        try:
+            why = core_dumps.write(path, event.pid)
+            if why is None:
+                if proc is not None:
+                    proc.core_file = str(path)
+                self._log.warning(f"{who}: core dump written: {path} ({path.stat().st_size >> 20} MiB)")
+            else:
+                self._log.error(f"{who}: no core dump: {why}")
+        finally:
+            self._core.dumped(child)
 
     def abort(self, unique_id: int, why: str) -> bool:
         """End a running node's process with SIGABRT: its crash report (the
@@ -603,6 +636,8 @@ class IsolatedHost:
             reason += f" after an outside {proc.stopped_by.name}"
         if proc.aborted:
             reason += f" by the container: {proc.aborted}"
+        if proc.core_file:
+            reason += f"; core dump: {proc.core_file}"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
         if self._on_death is not None:

@@ -1,0 +1,56 @@
+"""``--core-dumps DIR``: the dump of a node process that caught a fatal
+signal, written by gdb's ``gcore`` while its crashing task waits in its
+crash handler (crash.c), named after the node: ``DIR/core.<node>.<pid>``.
+
+Why gdb and not the kernel: node processes run with core dumps off
+(RLIMIT_CORE, child.c), and the kernel's dump would go where the machine's
+``core_pattern`` says, under a name that cannot say which node it was. A
+dump holds the whole shared address space: every node's memory and the
+container's, so it is as large as the container and as private.
+
+What stays as it was: a fault on a thread the node created writes its
+crash report but no dump (only the node's main task, which runs its
+executor, waits for one); a death by SIGKILL writes neither.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+#: How long gdb may take over one dump (the crashing task waits CG_CORE_WAIT_S).
+GCORE_TIMEOUT_S = 300
+
+
+def unavailable(directory: Path) -> str | None:
+    """Why dumps cannot be written into ``directory`` here, or None."""
+    if shutil.which("gdb") is None:
+        return "it needs gdb, which writes the dumps (apt install gdb)"
+    if directory.exists() and not directory.is_dir():
+        return f"{directory} is not a directory"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot make {directory}: {exc.strerror}"
+    return None
+
+
+def path_for(directory: Path, full_name: str, pid: int) -> Path:
+    """``core.<node>.<pid>``, the node's full name with its slashes as dots."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", full_name.strip("/").replace("/", ".")) or "node"
+    return directory / f"core.{name}.{pid}"
+
+
+def write(path: Path, pid: int) -> str | None:
+    """Dump process ``pid`` into ``path`` with gdb; None, or why not."""
+    cmd = ["gdb", "-nx", "-batch", "-p", str(pid), "-ex", f"gcore {path}"]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=GCORE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return f"gdb took over {GCORE_TIMEOUT_S} s"
+    if not path.exists():
+        tail = (out.stderr or out.stdout).strip().splitlines()[-1:] or [f"exit status {out.returncode}"]
+        return f"gdb wrote none: {tail[0]}"
+    return None

@@ -1,0 +1,80 @@
+"""--core-dumps DIR (container/isolated/core_dumps.py): a node process that
+catches a fatal signal is dumped by gdb while it waits in its crash
+handler, into a file named after the node; the rest goes on; a bad
+setting is refused before anything starts."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+from std_msgs.msg import Float64
+
+from cloneguard.harness.system import NodeSpec, longest_gap
+
+ROBOT = [
+    NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 50.0}),
+    NodeSpec("demo_robot", "demo_robot::Planner", namespace="/robot"),
+]
+CONTAINER = os.path.join(sys.prefix, "bin", "component_container")
+ET_CORE = 4
+
+
+def _is_core_file(path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(18)
+    return head[:4] == b"\x7fELF" and int.from_bytes(head[16:18], "little") == ET_CORE
+
+
+def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_factory, tmp_path):
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    odom = robot.topic(Float64, "/odom")
+    odom.wait_count(10, timeout=10)
+    pid = robot.node("/robot/planner").pid
+    at = robot.kill("/robot/planner", signal.SIGSEGV)
+    crashed = robot.wait_crashed("/robot/planner", timeout=120)
+    dump = dumps / f"core.robot.planner.{pid}"
+    assert crashed.exit_signal == signal.SIGSEGV
+    assert f"core dump: {dump}" in crashed.error_message, crashed.error_message
+    assert _is_core_file(dump)
+    # gdb reads it back: the dumped process's own tasks, the crashing one in its handler
+    out = subprocess.run(
+        ["gdb", "-nx", "-batch", "-ex", "info threads", sys.executable, str(dump)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert f"LWP {pid}" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+    odom.wait_count(len(odom) + 50, timeout=10)
+    assert longest_gap(odom, at) < 0.5  # odometry never waited for the dump
+    assert robot.alive()
+
+
+def test_a_kill_leaves_no_dump(system_factory, tmp_path):
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    robot.kill("/robot/planner", signal.SIGKILL)
+    assert "core dump" not in robot.wait_crashed("/robot/planner").error_message
+    assert list(dumps.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "args, env, says",
+    [
+        (["--core-dumps", "{tmp}"], {}, "--core-dumps needs --isolated"),
+        (["--isolated", "--core-dumps", "{tmp}", "--no-crash-report"], {}, "--core-dumps needs the crash report"),
+        (["--isolated", "--core-dumps", "{tmp}"], {"PATH": "/nonexistent"}, "it needs gdb"),
+        (["--isolated", "--core-dumps", "{file}"], {}, "is not a directory"),
+    ],
+    ids=["thread-mode", "no-crash-report", "no-gdb", "a-file"],
+)
+def test_core_dumps_that_cannot_be_written_are_refused_at_start_up(tmp_path, args, env, says):
+    (tmp_path / "a-file").write_text("")
+    argv = [a.format(tmp=tmp_path / "dumps", file=tmp_path / "a-file") for a in args]
+    proc = subprocess.run([CONTAINER, *argv], env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and says in proc.stderr, proc.stderr[-2000:]
+    assert not (tmp_path / "dumps").exists() or says != "it needs gdb"
