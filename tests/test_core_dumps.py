@@ -41,6 +41,8 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     assert crashed.exit_signal == signal.SIGSEGV
     assert f"core dump: {dump}" in crashed.error_message, crashed.error_message
     assert _is_core_file(dump)
+    st = dump.stat()
+    assert st.st_blocks * 512 < st.st_size  # its runs of zeros are holes
     # gdb reads it back: the dumped process's own tasks, the crashing one in its handler
     out = subprocess.run(
         ["gdb", "-nx", "-batch", "-ex", "info threads", sys.executable, str(dump)],

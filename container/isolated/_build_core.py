@@ -206,6 +206,7 @@ int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
 int cg_core_dumped(struct cg_child *c);
+int cg_dump_exclude_reserved(int exclude);
 int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_self_wait_go(void);

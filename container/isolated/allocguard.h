@@ -79,6 +79,7 @@ typedef int (*cga_py_owner_fn)(const void *p);
 typedef int (*cga_py_active_fn)(void);
 typedef int (*cga_py_abandon_fn)(int slot);
 typedef int (*cga_py_abandoned_fn)(const void *p);
+typedef int (*cga_py_dump_tail_fn)(int exclude);
 typedef int (*cga_pkeys_fn)(int *keys, int max);
 typedef int (*cga_slot_of_fn)(const void *p);
 /* stops.c: the stop signal's handler, in a node process. */

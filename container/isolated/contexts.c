@@ -40,6 +40,7 @@ static struct {
     cga_py_abandoned_fn py_abandoned;
     cga_slot_of_fn slot_of;
     cga_stop_request_fn stop_request;   /* optional: the rig's stop points */
+    cga_py_dump_tail_fn py_dump_tail;   /* optional: --core-dumps */
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
@@ -142,6 +143,7 @@ int guard_start(void)
     FIND(py_abandoned, "cga_py_abandoned");
     FIND(slot_of, "cga_slot_of");
     FIND(stop_request, "cga_stop_request");
+    FIND(py_dump_tail, "cga_py_dump_tail");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
         !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
@@ -269,6 +271,13 @@ void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
 
 /* In the child: threads it creates find its slot by its pid. */
 void guard_child_start(void) { G.child_start(); }
+
+/* --core-dumps: leave the guard's untouched reserved memory out of the
+   dumps written meanwhile (exclude 1), or put it back (0); 0 or -errno. */
+int cg_dump_exclude_reserved(int exclude)
+{
+    return G.py_dump_tail ? G.py_dump_tail(exclude) : 0;
+}
 
 /* In the child: stop requests on signal sig (the test rig's stop points,
    stops.c); without the guard there is nowhere to stop, and the signal is

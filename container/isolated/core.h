@@ -268,6 +268,7 @@ int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
 int cg_core_dumped(struct cg_child *c);   /* crash.c: --core-dumps */
+int cg_dump_exclude_reserved(int exclude);/* contexts.c: --core-dumps */
 int cg_abandon(struct cg_child *c);
 /* child.c */
 int cg_self_stop_requested(void);

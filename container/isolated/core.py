@@ -505,6 +505,14 @@ class CloneCore:
             if not self._entry(child).dead:
                 lib.cg_core_dumped(child._block)
 
+    def dumps_leave_out_reserved(self, leave_out: bool) -> None:
+        """While a core dump is written: the allocator guard's reserved,
+        never-used address space left out of it (True), or put back."""
+        _, lib = _lib()
+        rc = lib.cg_dump_exclude_reserved(int(leave_out))
+        if rc < 0:
+            raise OSError(-rc, f"madvise of the reserved address space: {os.strerror(-rc)}")
+
     def abandon(self, child: Child) -> None:
         """Forget a reaped child whose Python objects are to be kept (a
         crashed node the host leaves in memory): its thread state and stacks

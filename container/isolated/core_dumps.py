@@ -8,6 +8,13 @@ Why gdb and not the kernel: node processes run with core dumps off
 dump holds the whole shared address space: every node's memory and the
 container's, so it is as large as the container and as private.
 
+Size: gdb writes every readable page, touched or not, so while one is
+written the allocator guard's reserved and never-used address space is
+left out (MADV_DONTDUMP), and afterwards its runs of zeros (thread stacks
+never grown into, ...) are made holes (``fallocate --dig-holes``): the file's
+apparent size is what was mapped (GiBs), what it takes on disk is about the
+memory in use (tens of MiB for a small composition).
+
 What stays as it was: a fault on a thread the node created writes its
 crash report but no dump (only the node's main task, which runs its
 executor, waits for one); a death by SIGKILL writes neither.
@@ -53,4 +60,6 @@ def write(path: Path, pid: int) -> str | None:
     if not path.exists():
         tail = (out.stderr or out.stdout).strip().splitlines()[-1:] or [f"exit status {out.returncode}"]
         return f"gdb wrote none: {tail[0]}"
+    if shutil.which("fallocate"):  # util-linux; without it the file stays whole
+        subprocess.run(["fallocate", "--dig-holes", str(path)], capture_output=True, timeout=GCORE_TIMEOUT_S)
     return None

@@ -173,6 +173,7 @@ class IsolatedHost:
         self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
         self._core_dumps = core_dumps  # the directory, or None: no dumps
+        self._dumping = threading.Lock()
         self._core = CloneCore(
             on_event=self._on_core_event,
             mitigations=self.mitigations,
@@ -591,11 +592,20 @@ class IsolatedHost:
         path = core_dumps.path_for(self._core_dumps, proc.full_name if proc else "spare", event.pid)
         self._log.warning(f"{who} caught a fatal signal: writing its core dump to {path}")
         try:
-            why = core_dumps.write(path, event.pid)
+            with self._dumping:  # one at a time: each leaves the reserved tail out, then puts it back
+                self._core.dumps_leave_out_reserved(True)
+                try:
+                    why = core_dumps.write(path, event.pid)
+                finally:
+                    self._core.dumps_leave_out_reserved(False)
             if why is None:
                 if proc is not None:
                     proc.core_file = str(path)
-                self._log.warning(f"{who}: core dump written: {path} ({path.stat().st_size >> 20} MiB)")
+                st = path.stat()
+                self._log.warning(
+                    f"{who}: core dump written: {path} ({st.st_blocks * 512 >> 20} MiB on disk, "
+                    f"{st.st_size >> 20} MiB of address space)"
+                )
             else:
                 self._log.error(f"{who}: no core dump: {why}")
         finally:

@@ -449,6 +449,21 @@ EXPORT int cga_py_active(void)
     return now.malloc == py_malloc;
 }
 
+/* --core-dumps (core_dumps.py): the region's never-used tail, past the
+   last pool handed out, left out of a dump while one is written
+   (MADV_DONTDUMP: gdb skips it) and given back after.  Without it a dump
+   writes 64 GiB of reserved, untouched address space out as zeros.  A pool
+   handed out meanwhile is left out of that one dump. */
+EXPORT int cga_py_dump_tail(int exclude)
+{
+    if (!g_base)
+        return 0;
+    uintptr_t used = exclude ? atomic_load(&g_bump) : 0;
+    if (used >= REGION)
+        return 0;
+    return madvise(g_base + used, REGION - used, exclude ? MADV_DONTDUMP : MADV_DODUMP) ? -errno : 0;
+}
+
 EXPORT int cga_py_stats(int s, struct cga_py_stats *out)
 {
     if (s < 0 || s >= CGA_NSLOTS)
