@@ -122,6 +122,13 @@ def _announcement_seconds(text: str) -> float:
     return value
 
 
+def _profile_rule(text: str) -> profiles.ProfileRule:
+    try:
+        return profiles.parse_rule(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 class _IsolatedOptions:
     """The options that mean something only with --isolated: the one way
     to add them, so that each is refused without it."""
@@ -183,6 +190,16 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         default=profiles.DEFAULT,
         help="where nodes are built; 'per-node' gives each child its own rclpy Context "
         "and DDS participant, 'shared' builds them on the container's (default: %(default)s)",
+    )
+    isolated.add_argument(
+        "--profile-for",
+        type=_profile_rule,
+        action="append",
+        default=[],
+        metavar="PATTERN=PROFILE",
+        help="build the nodes whose requested full name (/ns/name) or plugin (pkg::Class) matches "
+        "PATTERN (fnmatch) in PROFILE instead of --profile's; repeat it, the first match wins "
+        "(a load's own cloneguard.profile wins over all)",
     )
     isolated.add_argument(
         "--no-warm-spare",
@@ -386,6 +403,7 @@ def _make_host(opts, argv, executor, context, logger):
         return IsolatedHost(
             context,
             profile=opts.profile,
+            profile_rules=opts.profile_for,
             logger=logger,
             cgroups=cgroups,
             mitigations=mitigations,

@@ -67,6 +67,8 @@ class NodeArguments:
     drop_loaded_event: bool = False
     cpu_quota: float | None = None
     profile: str | None = None  # PROFILE: None, the container's
+    requested_name: str = ""  # /namespace/name when the request names the node, else ""
+    plugin: str = ""  # the request's plugin_name
     log_level: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
@@ -119,6 +121,15 @@ def _extra_arguments(messages) -> dict[str, object]:
     return extra
 
 
+def _requested_name(namespace: str, name: str) -> str:
+    """The full name a request gives its node (``/ns/name``), or "" if it
+    leaves the name to the component."""
+    if not name:
+        return ""
+    ns = namespace.strip("/")
+    return f"/{ns}/{name}" if ns else f"/{name}"
+
+
 def from_request(request) -> NodeArguments:
     """Validate a ``LoadNode.Request`` and build the node's arguments."""
     rules = list(request.remap_rules)
@@ -138,6 +149,8 @@ def from_request(request) -> NodeArguments:
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=float(extra[CPU_QUOTA]) if CPU_QUOTA in extra else None,  # type: ignore[arg-type]
         profile=str(extra[PROFILE]) if PROFILE in extra else None,
+        requested_name=_requested_name(request.node_namespace, request.node_name),
+        plugin=request.plugin_name,
         log_level=request.log_level if request.log_level in LOG_LEVELS else 0,
         extra=extra,
     )

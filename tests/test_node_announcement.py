@@ -97,3 +97,19 @@ def test_a_load_can_ask_for_the_shared_profile_in_a_per_node_container(client, c
     os.kill(pid, signal.SIGKILL)
     client.wait_for_event(ComponentEvent.CRASHED, unique_id=shared.unique_id)
     assert [name for _, name in client.list()] == ["/hb_own"]
+
+
+@pytest.mark.parametrize(
+    "container_args", [["--isolated", "--profile", "shared", "--profile-for", "/planning/*=per-node",
+                        "--profile-for", "cloneguard::Talker=per-node"]]
+)  # fmt: skip
+def test_profile_rules_give_a_participant_to_the_nodes_they_name_only(client, container, domain_id):
+    """--profile-for: the node under /planning and the Talker get a
+    participant of their own (counted on the wire), the rest are built on
+    the container's."""
+    client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="planner", node_namespace="/planning")
+    client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="odometry")
+    client.load_ok("cloneguard", "cloneguard::Talker")
+    time.sleep(1.0)
+    # the container's, the harness client's, /planning/planner's and the talker's
+    assert len(announcements(domain_id, WINDOW_S)) == 4

@@ -62,7 +62,8 @@ from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .core_events import DumpAsked, MutexReport
 from .placeholder import held_context, release_context
-from .profiles import DEFAULT, PROFILES, SHARED
+from .profiles import DEFAULT, PROFILES, SHARED, ProfileRule
+from .profiles import choose as choose_profile
 from .spare import Spare, serves, spare_target
 
 STOP_TIMEOUT_S = 0.5
@@ -153,11 +154,13 @@ class IsolatedHost:
         warm_spare: bool = True,
         container_argv: Sequence[str] = (),
         core_dumps: Path | None = None,
+        profile_rules: Sequence[ProfileRule] = (),
     ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
         self.profile = profile
+        self.profile_rules = list(profile_rules)  # --profile-for, before the default
         self._on_death = None  # report_deaths_to
         self._log = logger
         # The container's command line: the global ROS arguments a node built
@@ -202,7 +205,8 @@ class IsolatedHost:
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
-        proc = _NodeProcess(unique_id, args.profile or self.profile)
+        profile = args.profile or choose_profile(self.profile_rules, args.requested_name, args.plugin) or self.profile
+        proc = _NodeProcess(unique_id, profile)
         try:
             self._start(proc, cls, args)
         except BaseException as exc:
