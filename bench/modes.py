@@ -12,6 +12,13 @@ LISTENER = "cloneguard::Listener"  # no timer: idle unless a message arrives
 MODES = {
     "isolated-per-node": ("isolated, per-node profile", ["--isolated", "--profile", "per-node"]),
     "isolated-shared": ("isolated, shared profile", ["--isolated", "--profile", "shared"]),
+    # A per-node isolation policy (--profile-for): most nodes shared, one in
+    # ten (the benchmarks name nodes hb0, hb1, ...: hb0, hb10, hb20 ...)
+    # in a process of its own.
+    "isolated-mixed": (
+        "isolated, shared, 1 node in 10 per-node",
+        ["--isolated", "--profile", "shared", "--profile-for", "/hb*0=per-node"],
+    ),
     "thread": ("thread mode (single-threaded executor)", []),
     "thread-mt": ("thread mode (multi-threaded executor)", ["--use_multi_threaded_executor"]),
     # What memory protection keys cost, side by side with the same allocator

@@ -4,6 +4,7 @@
     python -m cloneguard.bench.scale --counts 12 24 48 96 --idle 10
 
 For each node count and mode (thread mode, isolated shared, isolated
+shared with one node in ten per-node (``--profile-for``), isolated
 per-node, and process-per-node: one fork+exec'd runner a node), one after
 the other on a fresh container (or fresh runners): ``count``
 cloneguard::Heartbeat nodes at 1 Hz (``period`` 1.0) are loaded one after
@@ -47,7 +48,7 @@ from .shutdown import sigterm_to_exit
 
 NAME = "scale"
 TITLE = "Scale: N nodes at 1 Hz, per mode"
-DEFAULT_MODES = ["thread", "isolated-shared", "isolated-per-node", PROCESS_PER_NODE]
+DEFAULT_MODES = ["thread", "isolated-shared", "isolated-mixed", "isolated-per-node", PROCESS_PER_NODE]
 HEARTBEAT_PARAMS = {"period": 1.0}
 GOAL_NODES = 48
 #: From the last load to the idle window: discovery among the participants
