@@ -25,6 +25,7 @@ point group ``cloneguard.harness.faults``) the same way, by its name:
 
 from __future__ import annotations
 
+import os
 import random
 import shutil
 import signal
@@ -165,9 +166,9 @@ def scenario_command(args) -> list[str]:
         raise SystemExit("--profile and --allocator are for the rig's faults; give a scenario --container-arg")
     if is_node_id(args.fault):
         cmd = [sys.executable, "-m", "pytest", args.fault]
-    else:  # a fault of yours by name: the harness's one scenario of it, reported under this directory
+    else:  # a fault of yours by name: the harness's one scenario of it, run as if from this directory
         cmd = [sys.executable, "-m", "pytest", str(named_faults.SCENARIO), f"--named-fault={args.fault}"]
-        cmd += ["--import-mode=importlib", f"--rootdir={Path.cwd()}"]
+        cmd += ["--import-mode=importlib", f"--rootdir={Path.cwd()}", "-c", str(_config_in(Path.cwd()))]
     cmd += ["-p", "no:cacheprovider", "--seed", str(args.seed)]
     cmd += ["--trial-seed", str(args.trial_seed)] if args.trial_seed is not None else ["--trials", str(args.trials)]
     cmd += ["--hold-failed", "0" if args.no_wait else "inf"]
@@ -175,6 +176,18 @@ def scenario_command(args) -> list[str]:
     if args.container_exe:
         cmd += ["--container-exe", args.container_exe]
     return cmd
+
+
+#: pytest's configuration files, in the order it looks for them in a directory
+PYTEST_CONFIGS = ("pytest.ini", ".pytest.ini", "pyproject.toml", "tox.ini", "setup.cfg")
+
+
+def _config_in(directory: Path) -> Path:
+    """The pytest configuration of ``directory`` (your project's), else
+    none (/dev/null): never the one of the harness's own scenario file,
+    which lies in cloneguard's checkout."""
+    found = (directory / name for name in PYTEST_CONFIGS)
+    return next((p for p in found if p.is_file()), Path(os.devnull))
 
 
 def run_scenario(args) -> int:

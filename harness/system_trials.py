@@ -299,7 +299,7 @@ def system_trials(request, resilience, trial_plan):
     --trials N), record each in the report under ``fault`` and ``claim``,
     then, with ``at_least``, hold the survival rate to it (and, isolated,
     allow no container death). Returns the survival rate so far
-    (``stats.Proportion``: successes, trials, rate, ci_low, ci_high)."""
+    (``stats.Proportion``: successes, trials, rate, and its 95% interval low, high)."""
 
     def run(system, trial, *, fault: str, claim: str, quick: int = 3, deep: int = 200, at_least: float | None = None):
         __tracebackhide__ = True

@@ -5,6 +5,7 @@ pytest like a scenario of yours, and a bad declaration is said plainly."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from argparse import Namespace
@@ -57,14 +58,19 @@ def test_reproduce_runs_a_named_fault_as_the_harness_scenario_of_it(tmp_path, mo
     )  # fmt: skip
     assert scenario_command(args)[1:] == [
         "-m", "pytest", str(named_faults.SCENARIO), f"--named-fault={DEMO_FAULT}", "--import-mode=importlib",
-        f"--rootdir={tmp_path}", "-p", "no:cacheprovider", "--seed", "3", "--trials", "50", "--hold-failed", "0",
+        f"--rootdir={tmp_path}", "-c", os.devnull, "-p", "no:cacheprovider", "--seed", "3", "--trials", "50",
+        "--hold-failed", "0",
     ]  # fmt: skip
+    (tmp_path / "pyproject.toml").write_text("[tool.pytest.ini_options]\n")  # your project's, not cloneguard's
+    assert scenario_command(args)[7:9] == ["-c", str(tmp_path / "pyproject.toml")]
 
 
 def test_a_named_fault_is_replayed_and_reported_where_it_is_run(tmp_path):
     cmd = [sys.executable, "-m", "cloneguard.harness", "reproduce", DEMO_FAULT, "--trials", "2", "--no-wait"]
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    [config] = [line for line in proc.stdout.splitlines() if line.startswith("configfile:")]
+    assert config.endswith("dev/null"), config  # not cloneguard's pyproject.toml: there is none here
     [scenario] = json.loads((tmp_path / "reports" / "latest" / "report.json").read_text())["scenarios"]
     assert scenario["fault"] == "planner SIGKILL holding a Python lock"
     assert [t["outcome"] for t in scenario["trials"]] == ["survived", "survived"]

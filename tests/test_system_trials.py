@@ -237,3 +237,15 @@ def test_ctrl_c_on_a_held_reproduce_stops_it_cleanly(tmp_path):
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
     assert "resilience report" in rest  # pytest finished its session: the report is written
+
+
+def test_the_rate_has_the_fields_the_docs_name():
+    from dataclasses import fields
+    from pathlib import Path
+
+    from cloneguard.harness.report.stats import Proportion
+
+    docs = (Path(__file__).resolve().parent.parent / "docs" / "testing-your-nodes.md").read_text()
+    said = docs.split("It returns")[1].split(")")[0]
+    assert {f.name for f in fields(Proportion)} == {"successes", "trials", "rate", "low", "high"}
+    assert all(f"`{f.name}`" in said for f in fields(Proportion)), said
