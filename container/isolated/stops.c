@@ -40,15 +40,11 @@ static struct {
 /* Slots with a request: every place's check is one load of this while 0. */
 HIDDEN _Atomic int cga_stops_armed;
 
-static void disarm(int s)
+/* Slot s's request, if any, forgotten. */
+HIDDEN void stops_clear(int s)
 {
     if (atomic_exchange(&g_stop[s].place, 0) != 0)
         atomic_fetch_sub(&cga_stops_armed, 1);
-}
-
-HIDDEN void stops_clear(int s)
-{
-    disarm(s);
 }
 
 /* The stop signal's handler in a node process (child.c installs it).
@@ -64,7 +60,7 @@ EXPORT void cga_stop_request(int sig, siginfo_t *si, void *uc)
         return;
     int v = si->si_value.sival_int;
     int place = CGA_STOP_PLACE(v), n = CGA_STOP_COUNT(v);
-    disarm(s);
+    stops_clear(s);
     if (n <= 0 || place < CGA_STOP_ALLOCATION || place > CGA_STOP_PY_LOCK)
         return;
     atomic_store(&g_stop[s].left, n);
