@@ -155,8 +155,8 @@ class ContainerClient:
     def _spin(self) -> None:
         try:
             self._executor.spin()
-        except Exception:  # context shut down under us at close()
-            if self._ctx.ok():
+        except Exception:  # closed under us (a spin close() did not see end in 5 s)
+            if self._ctx.ok() and not self._closed:
                 raise
 
     # -- generic --------------------------------------------------------------
@@ -252,10 +252,14 @@ class ContainerClient:
         if self._closed:
             return
         self._closed = True
+        # The spin thread ends before the node goes: rclpy 7.1's shutdown()
+        # does not wait for a spin in progress, and destroying the node under
+        # one (its guard conditions) raised in it (AttributeError: 'NoneType'
+        # object has no attribute 'handle', seen in slow runs).
         self._executor.shutdown(timeout_sec=1.0)
+        self._thread.join(timeout=5.0)
         self.node.destroy_node()
         self._ctx.try_shutdown()
-        self._thread.join(timeout=5.0)
 
     def __enter__(self):
         return self

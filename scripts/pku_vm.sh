@@ -82,7 +82,8 @@ qemu-system-x86_64 -accel tcg,thread=multi -cpu max -smp "${PKU_VM_CPUS:-$(nproc
     -kernel "$kernel" -initrd "$work/initramfs.gz" \
     -append "console=ttyS0 quiet panic=-1 rdinit=/init" \
     -virtfs local,path=/,mount_tag=hostroot,security_model=passthrough,multidevs=remap \
-    | tee "$work/console" | grep -v '^pku-vm: exit status'
-status=$(sed -n 's/^pku-vm: exit status \([0-9]*\).*/\1/p' "$work/console" | tail -1)
+    | tee "$work/console" | grep -v 'pku-vm: exit status'
+# Not anchored: the console's terminal escapes can precede it on its line.
+status=$(sed -n 's/.*pku-vm: exit status \([0-9]*\).*/\1/p' "$work/console" | tail -1)
 [[ -n $status ]] || { echo "$0: the guest did not finish (see the output above)" >&2; exit 1; }
 exit "$status"
