@@ -29,7 +29,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from cloneguard_interfaces.msg import ComponentEvent
 
@@ -69,6 +69,7 @@ class Sample:
     fds: int
     threads: int
     child_processes: int
+    fd_targets: dict[int, str] = field(default_factory=dict, repr=False)  # fd: what it names
 
 
 @dataclass
@@ -86,6 +87,11 @@ class Growth:
     def fds(self) -> int:
         return self.after.fds - self.before.fds
 
+    def new_fds(self) -> dict[int, str]:
+        """The fds open at the end that were not (or named something else) at the start."""
+        before = self.before.fd_targets
+        return {fd: t for fd, t in self.after.fd_targets.items() if before.get(fd) != t}
+
     @property
     def threads(self) -> int:
         return self.after.threads - self.before.threads
@@ -96,9 +102,11 @@ def sample(pid: int, client, mode: str) -> Sample:
     the per-node profile's spare made (it shares the container's fds)."""
     time.sleep(0.5)
     rest.wait_at_rest(client.node, pid, spare=PROCESSES_AT_REST.get(mode, 0) > 0)
+    fds = procfs.lasting_fds(pid)
     return Sample(
         rss_kib=int(procfs.status_field(pid, "VmRSS").split()[0]),
-        fds=len(procfs.lasting_fds(pid)),
+        fds=len(fds),
+        fd_targets=fds,
         threads=len(os.listdir(f"/proc/{pid}/task")),
         child_processes=len(procfs.children_of(pid)),
     )

@@ -24,7 +24,7 @@ from cloneguard.bench import leaks
 @pytest.mark.parametrize("mode", ["per-node", "cgroups", "threads", "shared"])
 def test_load_cycles_leave_fds_threads_and_processes_flat(mode, tmp_path):
     g = leaks.measure(mode, cycles=60, warmup=20, log_dir=tmp_path)
-    assert g.fds <= 0 and g.threads <= 0, (g.before, g.after)
+    assert g.fds <= 0 and g.threads <= 0, (g.before, g.after, g.new_fds())
     assert g.after.child_processes == leaks.PROCESSES_AT_REST.get(mode, 0)
 
 
