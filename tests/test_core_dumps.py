@@ -5,6 +5,7 @@ setting is refused before anything starts."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
@@ -13,13 +14,24 @@ import sys
 import pytest
 from std_msgs.msg import Float64
 
+from cloneguard.harness import stops
 from cloneguard.harness.system import NodeSpec, longest_gap
 
 ROBOT = [
     NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 50.0}),
     NodeSpec("demo_robot", "demo_robot::Planner", namespace="/robot"),
+    # idle until asked: a signal finds it waiting, the GIL released
+    NodeSpec("demo_robot", "demo_robot::MapServer", namespace="/robot"),
 ]
 CONTAINER = os.path.join(sys.prefix, "bin", "component_container")
+_SYS_TGKILL = 234  # x86_64
+
+
+def _tgkill(tgid: int, tid: int, sig: int) -> int:
+    libc = ctypes.CDLL(None, use_errno=True)
+    return libc.syscall(_SYS_TGKILL, tgid, tid, int(sig))
+
+
 ET_CORE = 4
 
 
@@ -34,10 +46,10 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
     odom = robot.topic(Float64, "/odom")
     odom.wait_count(10, timeout=10)
-    pid = robot.node("/robot/planner").pid
-    at = robot.kill("/robot/planner", signal.SIGSEGV)
-    crashed = robot.wait_crashed("/robot/planner", timeout=120)
-    dump = dumps / f"core.robot.planner.{pid}"
+    pid = robot.node("/robot/map_server").pid
+    at = robot.kill("/robot/map_server", signal.SIGSEGV)
+    crashed = robot.wait_crashed("/robot/map_server", timeout=120)
+    dump = dumps / f"core.robot.map_server.{pid}"
     assert crashed.exit_signal == signal.SIGSEGV
     assert f"core dump: {dump}" in crashed.error_message, crashed.error_message
     assert _is_core_file(dump)
@@ -54,6 +66,25 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     odom.wait_count(len(odom) + 50, timeout=10)
     assert longest_gap(odom, at) < 0.5  # odometry never waited for the dump
     assert robot.alive()
+
+
+def test_a_node_that_crashes_holding_the_gil_gets_no_dump_and_stalls_nobody(system_factory, tmp_path):
+    """The dump is the container's Python's to write: a crash holding the GIL
+    would wait for it forever, so it asks for none (and says so)."""
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    odom = robot.topic(Float64, "/odom")
+    odom.wait_count(10, timeout=10)
+    pid = robot.node("/robot/planner").pid
+    at = stops.stop_at(pid, "python-allocation")  # on its main task, the executor's, GIL held
+    assert _tgkill(pid, pid, signal.SIGSEGV) == 0
+    os.kill(pid, signal.SIGCONT)  # it takes the SIGSEGV right there
+    crashed = robot.wait_crashed("/robot/planner", timeout=30)
+    assert crashed.exit_signal == signal.SIGSEGV
+    assert "no core dump: it held the GIL" in crashed.error_message, crashed.error_message
+    assert list(dumps.iterdir()) == []
+    odom.wait_count(len(odom) + 50, timeout=10)
+    assert longest_gap(odom, at) < 0.5 and robot.alive()
 
 
 def test_a_kill_leaves_no_dump(system_factory, tmp_path):

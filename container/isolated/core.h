@@ -128,6 +128,7 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CORE_NONE 0
 #define CG_CORE_ASKED 1
 #define CG_CORE_DONE 2
+#define CG_CORE_SKIPPED 3      /* it held the GIL: no dump (crash.c) */
 #define CG_CORE_WAIT_S 600     /* how long a crashing child waits for its dump */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
 

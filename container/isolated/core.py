@@ -26,6 +26,7 @@ the harness can measure what each measure buys:
 from __future__ import annotations
 
 import atexit
+import contextlib
 import errno
 import itertools
 import os
@@ -33,7 +34,7 @@ import signal
 import sys
 import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
@@ -368,6 +369,7 @@ class CloneCore:
         # _lock guards _entries, _closed, _spawning, and every use of a
         # child's block or pidfd (so none can race with release()).
         self._lock = threading.Lock()
+        self._dump_lock = threading.Lock()  # dumping()
         # Notified whenever _spawning or an entry's flags change.
         self._changed = threading.Condition(self._lock)
         self._entries: dict[int, _Entry] = {}
@@ -505,13 +507,26 @@ class CloneCore:
             if not self._entry(child).dead:
                 lib.cg_core_dumped(child._block)
 
-    def dumps_leave_out_reserved(self, leave_out: bool) -> None:
-        """While a core dump is written: the allocator guard's reserved,
-        never-used address space left out of it (True), or put back."""
+    def dump_skipped(self, child: Child) -> bool:
+        """With core dumps on: the child caught a fatal signal holding the
+        GIL, and so asked for no dump (the container's Python would have
+        waited for it)."""
         _, lib = _lib()
-        rc = lib.cg_dump_exclude_reserved(int(leave_out))
-        if rc < 0:
-            raise OSError(-rc, f"madvise of the reserved address space: {os.strerror(-rc)}")
+        return child._block is not None and child._block.core_dump == lib.CG_CORE_SKIPPED
+
+    @contextlib.contextmanager
+    def dumping(self) -> Iterator[None]:
+        """While a core dump is written (one at a time): the allocator
+        guard's reserved, never-used address space left out of it."""
+        _, lib = _lib()
+        with self._dump_lock:
+            rc = lib.cg_dump_exclude_reserved(1)
+            if rc < 0:
+                raise OSError(-rc, f"madvise of the reserved address space: {os.strerror(-rc)}")
+            try:
+                yield
+            finally:
+                lib.cg_dump_exclude_reserved(0)
 
     def abandon(self, child: Child) -> None:
         """Forget a reaped child whose Python objects are to be kept (a

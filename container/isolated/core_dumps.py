@@ -17,7 +17,14 @@ memory in use (tens of MiB for a small composition).
 
 What stays as it was: a fault on a thread the node created writes its
 crash report but no dump (only the node's main task, which runs its
-executor, waits for one); a death by SIGKILL writes neither.
+executor, waits for one); a death by SIGKILL writes neither; and a fault
+on a task that holds the GIL gets no dump (CRASHED says "no core dump: it
+held the GIL"): the dump is this module's, in the container's Python, which
+would wait for that GIL while the task waited for its dump. The dump path
+takes no lock a node process may hold until the task is let go, but the
+core's event listener does take the core's own lock first; writing the dump
+from a C thread of the monitor, with no Python at all, is the way to close
+that too.
 """
 
 from __future__ import annotations

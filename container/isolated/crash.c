@@ -233,8 +233,17 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
     }
 
-    if (claimed && g_cfg.core_dumps)
-        wait_for_dump(c, timer_ok, timer);
+    if (claimed && g_cfg.core_dumps) {
+        if (!cg_gil_mine()) {
+            wait_for_dump(c, timer_ok, timer);
+        } else {
+            /* The dump is written by the container's Python, which would
+               wait for this task's GIL while this task waited for it. */
+            __atomic_store_n(&c->core_dump, CG_CORE_SKIPPED, __ATOMIC_RELEASE);
+            out_s(&o, "cloneguard: no core dump: it holds the GIL\n");
+            out_flush(&o);
+        }
+    }
     if (container) {
         /* Then whoever handled it before us: faulthandler dumps every
            thread and re-raises.  The signal is blocked until we return. */

@@ -53,7 +53,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-from .. import construction, intra, processes, repairs, seams
+from .. import construction, intra, processes, repairs
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
@@ -155,6 +155,7 @@ class IsolatedHost:
         container_argv: Sequence[str] = (),
         core_dumps: Path | None = None,
         profile_rules: Sequence[ProfileRule] = (),
+        stop_signal: int = 0,
     ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
@@ -176,11 +177,10 @@ class IsolatedHost:
         self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
         self._core_dumps = core_dumps  # the directory, or None: no dumps
-        self._dumping = threading.Lock()
         self._core = CloneCore(
             on_event=self._on_core_event,
             mitigations=self.mitigations,
-            stop_signal=seams.stop_signal(),
+            stop_signal=stop_signal,  # the test rig's stop points (seams.stop_signal), 0: none
             core_dumps=core_dumps is not None,
         )
         listener_wait.bound(logger)  # before any node's participant is deleted
@@ -226,7 +226,8 @@ class IsolatedHost:
             died = proc.death
             proc.state = "running" if died is None else "dead"
         processes.node_is(proc.child.pid, unique_id, proc.full_name)
-        hosted = Hosted(unique_id, proc.full_name, proc.child.pid, proc.start_ns, detail=proc)
+        hosted = Hosted(unique_id, proc.full_name, proc.child.pid, proc.start_ns, detail=proc,
+                        where=f"profile {proc.profile}")  # fmt: skip
         if died is not None:  # died between construction and now
             self._crashed(proc, died)
         return hosted
@@ -585,35 +586,32 @@ class IsolatedHost:
 
     def _dump(self, event: DumpAsked) -> None:
         """--core-dumps: write the crashing process's dump, then let its crash
-        handler go on (core_dumps.py)."""
-        with self._lock:
-            proc = self._by_pid.get(event.pid)
-            spare = self._spare if self._spare and self._spare.child.pid == event.pid else None
-        child = proc.child if proc is not None else spare.child if spare is not None else None
+        handler go on (core_dumps.py). Until then it takes no lock a node
+        process may hold (the crashing one is alive in its handler, holding
+        whatever it held): no host lock, no logging (rcl's)."""
+        proc = self._by_pid.get(event.pid)  # one dict read under the GIL
+        spare = self._spare
+        child = proc.child if proc is not None else spare.child if spare and spare.child.pid == event.pid else None
         if child is None or self._core_dumps is None:
             return  # already forgotten: nothing waits for it
-        who = f"{proc.full_name} (unique_id {proc.unique_id}, pid {event.pid})" if proc else f"pid {event.pid}"
         path = core_dumps.path_for(self._core_dumps, proc.full_name if proc else "spare", event.pid)
-        self._log.warning(f"{who} caught a fatal signal: writing its core dump to {path}")
+        why: str | None = "the dump did not start"
         try:
-            with self._dumping:  # one at a time: each leaves the reserved tail out, then puts it back
-                self._core.dumps_leave_out_reserved(True)
-                try:
-                    why = core_dumps.write(path, event.pid)
-                finally:
-                    self._core.dumps_leave_out_reserved(False)
-            if why is None:
-                if proc is not None:
-                    proc.core_file = str(path)
-                st = path.stat()
-                self._log.warning(
-                    f"{who}: core dump written: {path} ({st.st_blocks * 512 >> 20} MiB on disk, "
-                    f"{st.st_size >> 20} MiB of address space)"
-                )
-            else:
-                self._log.error(f"{who}: no core dump: {why}")
+            with self._core.dumping():
+                why = core_dumps.write(path, event.pid)
+            if why is None and proc is not None:
+                proc.core_file = str(path)
         finally:
             self._core.dumped(child)
+        who = f"{proc.full_name} (unique_id {proc.unique_id}, pid {event.pid})" if proc else f"pid {event.pid}"
+        if why is None:
+            st = path.stat()
+            self._log.warning(
+                f"{who}: core dump written: {path} ({st.st_blocks * 512 >> 20} MiB on disk, "
+                f"{st.st_size >> 20} MiB of address space)"
+            )
+        else:
+            self._log.error(f"{who}: no core dump: {why}")
 
     def abort(self, unique_id: int, why: str) -> bool:
         """End a running node's process with SIGABRT: its crash report (the
@@ -652,6 +650,8 @@ class IsolatedHost:
             reason += f" by the container: {proc.aborted}"
         if proc.core_file:
             reason += f"; core dump: {proc.core_file}"
+        elif self._core_dumps is not None and self._core.dump_skipped(proc.child):
+            reason += "; no core dump: it held the GIL"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
         if self._on_death is not None:
