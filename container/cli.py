@@ -368,8 +368,9 @@ def _make_host(opts, argv, executor, context, logger):
         why = core_dumps.unavailable(opts.core_dumps)
         if why is not None:
             raise SystemExit(f"component_container: --core-dumps {opts.core_dumps}: {why}")
+        opts.core_dumps = opts.core_dumps.resolve()
         logger.warning(
-            f"core dumps of node processes that crash go to {opts.core_dumps.resolve()}: each holds "
+            f"core dumps of node processes that crash go to {opts.core_dumps}: each holds "
             "the whole shared address space (every node's memory and the container's)"
         )
     if opts.pkeys:
@@ -409,7 +410,8 @@ def _make_host(opts, argv, executor, context, logger):
             mitigations=mitigations,
             warm_spare=not opts.no_warm_spare,
             container_argv=argv,
-            core_dumps=opts.core_dumps.resolve() if opts.core_dumps is not None else None,
+            core_dumps=opts.core_dumps,
+            stop_signal=opts.stop_signal,
         )
     except IsolationUnavailable as exc:
         if cgroups is not None:
@@ -454,11 +456,10 @@ def _prepare_process(argv: list[str]) -> tuple[argparse.Namespace, tuple[int, in
     except Exception as exc:
         raise SystemExit(f"component_container: invalid ROS arguments: {exc}") from None
     opts = parse_args(plain)
-    if opts.isolated:
-        try:
-            seams.stop_signal()  # checked before anything starts; the host reads it again
-        except ValueError as exc:
-            raise SystemExit(f"component_container: {exc}") from None
+    try:  # the test rig's stop points (seams.py), checked before anything starts
+        opts.stop_signal = seams.stop_signal() if opts.isolated else 0
+    except ValueError as exc:
+        raise SystemExit(f"component_container: {exc}") from None
     guard = opts.isolated and not opts.no_alloc_guard
     python_locks = opts.isolated and not opts.no_python_locks
     if guard or opts.jemalloc or python_locks:

@@ -45,6 +45,7 @@ class Hosted:
     start_time_ns: int
     node: Node | None = None  # the node object, where the container holds it
     detail: Any = field(default=None, repr=False)  # host-specific state
+    where: str = ""  # how the host runs it, for the load's log line ("profile shared")
 
 
 class ThreadHost:

@@ -201,8 +201,9 @@ class ComponentManager:
             )
         else:
             self._publish(events.LOADED, entry)
+        where = f", {hosted.where}" if hosted.where else ""
         self._log.info(
-            f"Loaded {spec.plugin_name} as {hosted.full_node_name} (unique_id {unique_id}, pid {hosted.pid})"
+            f"Loaded {spec.plugin_name} as {hosted.full_node_name} (unique_id {unique_id}, pid {hosted.pid}{where})"
         )
         if early_death is not None:
             self._report_crash(entry, early_death)

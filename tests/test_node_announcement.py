@@ -5,6 +5,7 @@ the SPDP announcements that reach the domain's multicast group, counted
 per participant (the RTPS header's GUID prefix)."""
 
 import os
+import re
 import signal
 import socket
 import struct
@@ -113,3 +114,6 @@ def test_profile_rules_give_a_participant_to_the_nodes_they_name_only(client, co
     time.sleep(1.0)
     # the container's, the harness client's, /planning/planner's and the talker's
     assert len(announcements(domain_id, WINDOW_S)) == 4
+    log = container.log_text()
+    for name, profile in (("/planning/planner", "per-node"), ("/odometry", "shared"), ("/talker", "per-node")):
+        assert re.search(rf"as {name} \(unique_id \d+, pid \d+, profile {profile}\)", log), (name, log)
