@@ -31,6 +31,7 @@ import os
 import signal
 import time
 
+from . import procfs
 from .errors import HarnessTimeout
 
 #: The signal the harness asks on, told to containers by STOP_SIGNAL_ENV.
@@ -54,12 +55,8 @@ def _request(pid: int, value: int) -> None:
 
 def is_stopped(pid: int) -> bool:
     """Whether process ``pid`` is in a stop (its state is T)."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            stat = f.read()
-    except FileNotFoundError:
-        return False
-    return stat[stat.rindex(b")") + 2 : stat.rindex(b")") + 3] == b"T"
+    st = procfs.stat(pid)
+    return st is not None and st.state == "T"
 
 
 def stop_at(pid: int, place: str, *, after: int = 1, timeout: float = 5.0) -> int:

@@ -32,10 +32,10 @@ enum {
 #define CGA_STOP_ALLOCATION 1       /* the guard's malloc, inside its bracket */
 #define CGA_STOP_PY_ALLOCATION 2    /* CPython's object allocator, GIL held */
 #define CGA_STOP_PY_LOCK 3          /* a Python lock just acquired, GIL held */
-#define CGA_STOP_PLACE_LIMIT 16     /* the request's low 4 bits: the place */
-#define CGA_STOP_REQUEST(place, n) ((place) | ((n) << 4))
-#define CGA_STOP_PLACE(v) ((v) & (CGA_STOP_PLACE_LIMIT - 1))
-#define CGA_STOP_COUNT(v) ((v) >> 4)
+#define CGA_STOP_PLACE_BITS 4       /* the request's low bits: the place */
+#define CGA_STOP_REQUEST(place, n) ((place) | ((n) << CGA_STOP_PLACE_BITS))
+#define CGA_STOP_PLACE(v) ((v) & ((1 << CGA_STOP_PLACE_BITS) - 1))
+#define CGA_STOP_COUNT(v) ((v) >> CGA_STOP_PLACE_BITS)
 
 /* What cga_slot_retire returns: the bits of what a dead process left. */
 #define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */

@@ -299,13 +299,15 @@ static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t
 }
 
 /* The allocator guard's stop point for "a Python lock just acquired"
-   (stops.c, the test rig's seam): NULL without the guard. */
+   (stops.c, the test rig's seam): its armed flag, one load an acquire, and
+   the call when armed.  NULL without the guard. */
+static _Atomic int *g_stops_armed;
 static void (*g_stop_here)(int place);
 
 static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t *dead)
 {
     int r = take_core(lock, c, timeout, dead);
-    if (r == 1 && g_stop_here)
+    if (r == 1 && g_stops_armed && atomic_load_explicit(g_stops_armed, memory_order_relaxed))
         g_stop_here(CGA_STOP_PY_LOCK);
     return r;
 }
@@ -711,7 +713,9 @@ static PyMethodDef module_methods[] = {
 
 static int module_exec(PyObject *m)
 {
+    _Atomic int *(*armed_flag)(void) = (_Atomic int *(*)(void))dlsym(RTLD_DEFAULT, "cga_stops_armed_flag");
     g_stop_here = (void (*)(int))dlsym(RTLD_DEFAULT, "cga_stop_here");
+    g_stops_armed = armed_flag && g_stop_here ? armed_flag() : NULL;
     if (g_tid_offset < 0 && pthread_key_create(&g_me_key, forget_me) == 0)
         g_tid_offset = find_tid_offset();
     g_lock_type = (PyTypeObject *)PyType_FromModuleAndSpec(m, &lock_spec, NULL);

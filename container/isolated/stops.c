@@ -85,9 +85,15 @@ HIDDEN void cga_stop_passed(int s, int place)
     syscall(SYS_tgkill, syscall(SYS_getpid), syscall(SYS_gettid), SIGSTOP);
 }
 
-/* For pylocks.c, a module of its own: the caller's slot is the guard's. */
+/* For pylocks.c, a module of its own: the flag its every acquire loads
+   (nothing more while no request is armed), and its place, for the
+   caller's slot. */
+EXPORT _Atomic int *cga_stops_armed_flag(void)
+{
+    return &cga_stops_armed;
+}
+
 EXPORT void cga_stop_here(int place)
 {
-    if (atomic_load_explicit(&cga_stops_armed, memory_order_relaxed))
-        cga_stop_passed(cga_caller_slot(), place);
+    cga_stop_passed(cga_caller_slot(), place);
 }
