@@ -1,7 +1,8 @@
-"""--core-dumps DIR (container/isolated/core_dumps.py): a node process that
-catches a fatal signal is dumped by gdb while it waits in its crash
-handler, into a file named after the node; the rest goes on; a bad
-setting is refused before anything starts."""
+"""--core-dumps DIR (container/isolated/core_dumps.py, dumps.c): a node
+process that catches a fatal signal is dumped by gdb, run by the core's
+monitor, while it waits in its crash handler, into a file named after the
+node, whatever lock it held; the rest goes on; a dump that cannot be written
+is said why; a bad setting is refused before anything starts."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 from std_msgs.msg import Float64
 
-from cloneguard.harness import stops
+from cloneguard.harness import procfs, stops
 from cloneguard.harness.system import NodeSpec, longest_gap
 
 ROBOT = [
@@ -55,7 +57,14 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     assert _is_core_file(dump)
     st = dump.stat()
     assert st.st_blocks * 512 < st.st_size  # its runs of zeros are holes
-    # gdb reads it back: the dumped process's own tasks, the crashing one in its handler
+    _gdb_reads(dump, pid)
+    odom.wait_count(len(odom) + 50, timeout=10)
+    assert longest_gap(odom, at) < 0.5  # odometry never waited for the dump
+    assert robot.alive()
+
+
+def _gdb_reads(dump, pid: int) -> None:
+    """gdb reads the dump back: the dumped process's own tasks."""
     out = subprocess.run(
         ["gdb", "-nx", "-batch", "-ex", "info threads", sys.executable, str(dump)],
         capture_output=True,
@@ -63,14 +72,12 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
         timeout=120,
     )
     assert f"LWP {pid}" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
-    odom.wait_count(len(odom) + 50, timeout=10)
-    assert longest_gap(odom, at) < 0.5  # odometry never waited for the dump
-    assert robot.alive()
 
 
-def test_a_node_that_crashes_holding_the_gil_gets_no_dump_and_stalls_nobody(system_factory, tmp_path):
-    """The dump is the container's Python's to write: a crash holding the GIL
-    would wait for it forever, so it asks for none (and says so)."""
+def test_a_node_that_crashes_holding_the_gil_is_dumped_and_the_rest_goes_on_after(system_factory, tmp_path):
+    """The monitor writes the dump with no Python: a task that holds the GIL
+    (inside Python's allocator) is dumped too. The node processes' Python
+    waits with it meanwhile (one GIL), and goes on after."""
     dumps = tmp_path / "dumps"
     robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
     odom = robot.topic(Float64, "/odom")
@@ -79,12 +86,58 @@ def test_a_node_that_crashes_holding_the_gil_gets_no_dump_and_stalls_nobody(syst
     at = stops.stop_at(pid, "python-allocation")  # on its main task, the executor's, GIL held
     assert _tgkill(pid, pid, signal.SIGSEGV) == 0
     os.kill(pid, signal.SIGCONT)  # it takes the SIGSEGV right there
-    crashed = robot.wait_crashed("/robot/planner", timeout=30)
+    crashed = robot.wait_crashed("/robot/planner", timeout=120)
+    dump = dumps / f"core.robot.planner.{pid}"
     assert crashed.exit_signal == signal.SIGSEGV
-    assert "no core dump: it held the GIL" in crashed.error_message, crashed.error_message
-    assert list(dumps.iterdir()) == []
+    assert "it held the GIL" in crashed.error_message, crashed.error_message
+    assert f"core dump: {dump}" in crashed.error_message, crashed.error_message
+    assert _is_core_file(dump)
+    _gdb_reads(dump, pid)
     odom.wait_count(len(odom) + 50, timeout=10)
-    assert longest_gap(odom, at) < 0.5 and robot.alive()
+    print(f"odometry's longest gap, the dump's time with the GIL held: {longest_gap(odom, at):.2f} s")
+    assert robot.alive()
+
+
+def _gdb_running_under(container_pid: int, timeout: float = 30.0) -> int:
+    """The pid of the gdb the container's monitor started, once it runs."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for st in procfs.all_stats():
+            if st.ppid == container_pid and st.comm == "gdb":
+                return st.pid
+        time.sleep(0.01)
+    raise AssertionError("no gdb was started")
+
+
+def test_a_node_killed_while_gdb_writes_its_dump_leaves_no_partial_file(system_factory, tmp_path):
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    pid = robot.node("/robot/map_server").pid
+    robot.kill("/robot/map_server", signal.SIGSEGV)
+    gdb = _gdb_running_under(robot.proc.pid)
+    os.kill(pid, signal.SIGKILL)
+    crashed = robot.wait_crashed("/robot/map_server", timeout=60)
+    assert "no core dump: it died while gdb was writing its dump" in crashed.error_message, crashed.error_message
+    assert procfs.wait_gone([f"/proc/{gdb}"], 60) == []
+    assert list(dumps.iterdir()) == []  # what gdb had begun is removed
+    robot.kill("/robot/planner", signal.SIGSEGV)  # the next crash is dumped as ever
+    planner = robot.node("/robot/planner").pid
+    assert f"core dump: {dumps}/core.robot.planner.{planner}" in robot.wait_crashed("/robot/planner").error_message
+
+
+def test_a_dump_that_cannot_be_written_is_said_why(system_factory, tmp_path):
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    odom = robot.topic(Float64, "/odom")
+    dumps.rmdir()  # gdb cannot create the file now
+    robot.kill("/robot/map_server", signal.SIGSEGV)
+    crashed = robot.wait_crashed("/robot/map_server", timeout=60)
+    assert crashed.exit_signal == signal.SIGSEGV
+    assert f"no core dump: gdb wrote none: Failed to open '{dumps}/core." in crashed.error_message, (
+        crashed.error_message
+    )
+    odom.wait_count(len(odom) + 20, timeout=10)
+    assert robot.alive()
 
 
 def test_a_kill_leaves_no_dump(system_factory, tmp_path):

@@ -28,6 +28,7 @@ SOURCES = (
     "monitor.c",
     "child.c",
     "crash.c",
+    "dumps.c",
     "contexts.c",
     "probes.c",
     "gilrepair.c",
@@ -63,6 +64,8 @@ struct cg_config {
     int mutex_repair;
     int stop_signal;
     int core_dumps;
+    char gdb[256];
+    char fallocate[256];
 };
 
 struct cg_event {
@@ -165,6 +168,8 @@ struct cg_child {
     void *gil_code;
     int gil_lasti;
     int core_dump;
+    char core_path[1024];
+    char core_why[160];
     ...;
 };
 
@@ -206,8 +211,6 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
-int cg_core_dumped(struct cg_child *c);
-int cg_dump_exclude_reserved(int exclude);
 int cg_abandon(struct cg_child *c);
 int cg_self_stop_requested(void);
 int cg_self_wait_go(void);
@@ -229,8 +232,11 @@ long cg_listener_waits_bounded(void);
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...
 #define CG_EV_MUTEX ...
-#define CG_EV_CORE ...
-#define CG_CORE_SKIPPED ...
+#define CG_CORE_NONE ...
+#define CG_CORE_DONE ...
+#define CG_CORE_FAILED ...
+#define CG_TOOL_PATH ...
+#define CG_CORE_PATH ...
 #define CG_MUTEX_CALLERS ...
 #define CG_MUTEX_RELEASED ...
 #define CG_MUTEX_UNPROVEN ...

@@ -274,7 +274,7 @@ void guard_child_start(void) { G.child_start(); }
 
 /* --core-dumps: leave the guard's untouched reserved memory out of the
    dumps written meanwhile (exclude 1), or put it back (0); 0 or -errno. */
-int cg_dump_exclude_reserved(int exclude)
+int guard_dump_exclude(int exclude)
 {
     return G.py_dump_tail ? G.py_dump_tail(exclude) : 0;
 }

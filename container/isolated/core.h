@@ -9,6 +9,7 @@
  *   child.c      how a child is born (the clone3 trampoline) and what it runs
  *                before and after the Python target (child_main)
  *   crash.c      the child's crash report, from its own signal stack
+ *   dumps.c      --core-dumps: the monitor has gdb dump a crashing child
  *   contexts.c   TLS blocks (struct pthread) for children, and the allocator
  *                guard's contexts that keep one bound to a slot across children
  *   mutexes.c    native mutexes a dead child held, found through their
@@ -68,6 +69,9 @@ struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long private_wait_pc;    /* pc of a task in __lll_lock_wait_private */
 };
 
+#define CG_TOOL_PATH 256     /* a helper program's path (cg_config) */
+#define CG_CORE_PATH 1024    /* a core dump's path (cg_child.core_path) */
+#define CG_CORE_WHY 160      /* why it has none (cg_child.core_why) */
 struct cg_config {           /* per CloneCore; see core.Mitigations */
     int gil_repair;
     int condvar_repair;
@@ -79,11 +83,14 @@ struct cg_config {           /* per CloneCore; see core.Mitigations */
     int mutex_repair;        /* mutexes.c: release dead children's mutexes */
     int stop_signal;         /* the test rig's stop points (stops.c): children
                                 take requests on it; 0: off */
-    int core_dumps;          /* a crashing child's main task asks for a dump
-                                (CG_EV_CORE) and waits for it (crash.c) */
+    int core_dumps;          /* a crashing child's main task asks the monitor
+                                for a dump and waits for it (dumps.c) */
+    char gdb[CG_TOOL_PATH];  /* core_dumps: gdb's absolute path, */
+    char fallocate[CG_TOOL_PATH];  /* and fallocate's ("": none, the dump
+                                      keeps its runs of zeros) */
 };
 
-enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4, CG_EV_CORE = 5 };
+enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
 struct cg_event {            /* one record on the event pipe: 56 bytes */
     uint32_t kind;
     int32_t pid;             /* death, stop: the child; mutex: the dead child
@@ -124,11 +131,11 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
 #define CG_CRASH_PY_FRAMES 100 /* Python frames (faulthandler's depth too) */
 #define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
-/* cg_child.core_dump: asked (a CG_EV_CORE went out), written (or given up) */
+/* cg_child.core_dump (dumps.c): asked, then written or not (core_why) */
 #define CG_CORE_NONE 0
 #define CG_CORE_ASKED 1
 #define CG_CORE_DONE 2
-#define CG_CORE_SKIPPED 3      /* it held the GIL: no dump (crash.c) */
+#define CG_CORE_FAILED 3
 #define CG_CORE_WAIT_S 600     /* how long a crashing child waits for its dump */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
 
@@ -195,9 +202,12 @@ struct cg_child {            /* control block, lives in container memory */
        innermost Python frame, read by Python once reaped */
     void *gil_code;
     int gil_lasti;
-    /* --core-dumps: CG_CORE_*; the crashing main task waits in its crash
-       handler while the container writes its dump (crash.c) */
+    /* --core-dumps (dumps.c): CG_CORE_*; the crashing main task waits in
+       its crash handler while the monitor has its dump written */
     int core_dump;
+    char core_path[CG_CORE_PATH];  /* where (Python names it; "": nowhere) */
+    char core_why[CG_CORE_WHY];    /* CG_CORE_FAILED: why */
+    struct cg_child *dump_next;    /* the monitor's queue of dumps */
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -268,8 +278,6 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
-int cg_core_dumped(struct cg_child *c);   /* crash.c: --core-dumps */
-int cg_dump_exclude_reserved(int exclude);/* contexts.c: --core-dumps */
 int cg_abandon(struct cg_child *c);
 /* child.c */
 int cg_self_stop_requested(void);
@@ -336,8 +344,15 @@ int monitor_start(int *event_fd);
 int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
 int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
 void monitor_wake(void);                  /* async-signal-safe */
-void monitor_emit(const struct cg_event *ev);   /* on the monitor thread, and
-                                                   a crashing child's CG_EV_CORE */
+void monitor_emit(const struct cg_event *ev);   /* on the monitor thread */
+
+/* dumps.c: on the monitor thread, but dumps_ask */
+int dumps_start(int epfd);                /* with cg_config.core_dumps only */
+bool dumps_ask(struct cg_child *c);       /* a crashing child; async-signal-safe */
+bool dumps_event(void *tag, int64_t now); /* true: an epoll tag of dumps.c's */
+int dumps_tick(int64_t now, int sleep_ms);/* sleep ms, -1 */
+void dumps_forget(struct cg_child *c);    /* c is dead, about to be reported */
+void dumps_stop(void);
 
 /* mutexes.c: all on the monitor thread */
 int mutexes_start(void);                  /* -ENOENT: no pid cursor to read */
@@ -367,6 +382,7 @@ void guard_child_start(void);             /* in the child */
 void stop_requests_take(int sig);         /* in the child: the rig's stop points */
 int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
 int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
+int guard_dump_exclude(int exclude);      /* dumps.c, while gdb writes */
 /* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */
 
 /* probes.c */

@@ -26,7 +26,6 @@ the harness can measure what each measure buys:
 from __future__ import annotations
 
 import atexit
-import contextlib
 import errno
 import itertools
 import os
@@ -34,7 +33,7 @@ import signal
 import sys
 import threading
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
@@ -42,6 +41,7 @@ from cloneguard.container import locks
 from cloneguard.container.isolated import assumptions, pybind11_registry
 from cloneguard.container.isolated.assumptions import IsolationUnavailable
 from cloneguard.container.isolated.collector import Collector
+from cloneguard.container.isolated.core_dumps import Tools as DumpTools
 from cloneguard.container.isolated.core_events import (
     KIND_CLOSED,
     KIND_DEATH,
@@ -336,7 +336,7 @@ class CloneCore:
         on_event: Callable[[CoreEvent], None] | None = None,
         mitigations: Mitigations | None = None,
         stop_signal: int = 0,
-        core_dumps: bool = False,
+        dump_tools: DumpTools | None = None,
         **overrides: Any,
     ) -> None:
         names = {f.name for f in fields(Mitigations)}
@@ -357,8 +357,11 @@ class CloneCore:
             fd = ffi.new("int *")
             layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
             # stop_signal: the test rig's stop points (seams.stop_signal);
-            # core_dumps: a crashing child waits for dumped() (DumpAsked).
-            settings = {"stop_signal": stop_signal, "core_dumps": int(core_dumps)}
+            # dump_tools: the monitor has a crashing child dumped (dumps.c)
+            # where name_dump() said.
+            settings: dict[str, Any] = {"stop_signal": stop_signal}
+            if dump_tools is not None:
+                settings.update(core_dumps=1, gdb=dump_tools.gdb.encode(), fallocate=dump_tools.fallocate.encode())
             config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), **settings})
             rc = lib.cg_start(layout, config, fd)
             if rc < 0:
@@ -369,7 +372,6 @@ class CloneCore:
         # _lock guards _entries, _closed, _spawning, and every use of a
         # child's block or pidfd (so none can race with release()).
         self._lock = threading.Lock()
-        self._dump_lock = threading.Lock()  # dumping()
         # Notified whenever _spawning or an entry's flags change.
         self._changed = threading.Condition(self._lock)
         self._entries: dict[int, _Entry] = {}
@@ -499,34 +501,17 @@ class CloneCore:
         if rc < 0:  # cannot happen once the death record was seen
             raise OSError(-rc, f"release failed: {os.strerror(-rc)}")
 
-    def dumped(self, child: Child) -> None:
-        """With core dumps on: the dump a DumpAsked asked for is written (or
-        given up on); the child's crash handler goes on, and it dies."""
-        _, lib = _lib()
+    def name_dump(self, child: Child, path: str) -> None:
+        """With core dumps on: where the child's dump goes if it crashes
+        (named again once its node's name is known). Too late once it died."""
+        data = path.encode()
+        ffi, lib = _lib()
+        if len(data) >= lib.CG_CORE_PATH:
+            raise ValueError(f"a core dump's path is too long: {path}")
         with self._lock:
-            if not self._entry(child).dead:
-                lib.cg_core_dumped(child._block)
-
-    def dump_skipped(self, child: Child) -> bool:
-        """With core dumps on: the child caught a fatal signal holding the
-        GIL, and so asked for no dump (the container's Python would have
-        waited for it)."""
-        _, lib = _lib()
-        return child._block is not None and child._block.core_dump == lib.CG_CORE_SKIPPED
-
-    @contextlib.contextmanager
-    def dumping(self) -> Iterator[None]:
-        """While a core dump is written (one at a time): the allocator
-        guard's reserved, never-used address space left out of it."""
-        _, lib = _lib()
-        with self._dump_lock:
-            rc = lib.cg_dump_exclude_reserved(1)
-            if rc < 0:
-                raise OSError(-rc, f"madvise of the reserved address space: {os.strerror(-rc)}")
-            try:
-                yield
-            finally:
-                lib.cg_dump_exclude_reserved(0)
+            entry = self._entries.get(child.serial)
+            if entry is not None and entry.child is child and not entry.dead:
+                ffi.memmove(child._block.core_path, data + b"\0", len(data) + 1)
 
     def abandon(self, child: Child) -> None:
         """Forget a reaped child whose Python objects are to be kept (a
@@ -718,6 +703,10 @@ class CloneCore:
                 buf = ffi.new("char[]", 512)
                 lib.cg_frame_text(block.gil_code, block.gil_lasti, buf, 512)
                 event = replace(event, gil_frame=ffi.string(buf).decode(errors="replace"))
+            if block.core_dump == lib.CG_CORE_DONE:
+                event = replace(event, core_file=ffi.string(block.core_path).decode(errors="replace"))
+            elif block.core_dump == lib.CG_CORE_FAILED:
+                event = replace(event, core_missing=ffi.string(block.core_why).decode(errors="replace"))
             with self._lock:
                 entry.death = event
                 entry.target = None  # reaped: nothing runs it any more

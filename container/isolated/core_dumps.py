@@ -1,6 +1,9 @@
 """``--core-dumps DIR``: the dump of a node process that caught a fatal
-signal, written by gdb's ``gcore`` while its crashing task waits in its
-crash handler (crash.c), named after the node: ``DIR/core.<node>.<pid>``.
+signal, named after the node: ``DIR/core.<node>.<pid>``. This module checks
+the setting and names the files; the clone core's monitor writes them
+(dumps.c): gdb's ``gcore`` while the crashing task waits in its crash
+handler, then ``fallocate --dig-holes``, with no Python involved, so a task
+that crashed holding the GIL or any lock is dumped all the same.
 
 Why gdb and not the kernel: node processes run with core dumps off
 (RLIMIT_CORE, child.c), and the kernel's dump would go where the machine's
@@ -11,31 +14,36 @@ container's, so it is as large as the container and as private.
 Size: gdb writes every readable page, touched or not, so while one is
 written the allocator guard's reserved and never-used address space is
 left out (MADV_DONTDUMP), and afterwards its runs of zeros (thread stacks
-never grown into, ...) are made holes (``fallocate --dig-holes``): the file's
-apparent size is what was mapped (GiBs), what it takes on disk is about the
-memory in use (tens of MiB for a small composition).
+never grown into, ...) are made holes: the file's apparent size is what was
+mapped (GiBs), what it takes on disk is about the memory in use (tens of
+MiB for a small composition).
 
-What stays as it was: a fault on a thread the node created writes its
-crash report but no dump (only the node's main task, which runs its
-executor, waits for one); a death by SIGKILL writes neither; and a fault
-on a task that holds the GIL gets no dump (CRASHED says "no core dump: it
-held the GIL"): the dump is this module's, in the container's Python, which
-would wait for that GIL while the task waited for its dump. The dump path
-takes no lock a node process may hold until the task is let go, but the
-core's event listener does take the core's own lock first; writing the dump
-from a C thread of the monitor, with no Python at all, is the way to close
-that too.
+What gets none: a fault on a thread the node created writes its crash
+report but no dump (only the node's main task, which runs its executor,
+waits for one), and a death by SIGKILL writes neither. While a task that
+holds the GIL waits for its dump, the container's Python waits with it
+(seconds); the other node processes' native threads, DDS's among them, go on.
 """
 
 from __future__ import annotations
 
 import re
 import shutil
-import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 
-#: How long gdb may take over one dump (the crashing task waits CG_CORE_WAIT_S).
-GCORE_TIMEOUT_S = 300
+from cloneguard.container.isolated._clonecore import lib
+
+#: A dump's path must fit the core's buffer with the longest name path_for makes.
+_NAME_MAX = 120
+
+
+@dataclass(frozen=True)
+class Tools:
+    """The programs the monitor runs, by absolute path."""
+
+    gdb: str
+    fallocate: str  # "": none (the dump keeps its runs of zeros)
 
 
 def unavailable(directory: Path) -> str | None:
@@ -44,6 +52,8 @@ def unavailable(directory: Path) -> str | None:
         return "it needs gdb, which writes the dumps (apt install gdb)"
     if directory.exists() and not directory.is_dir():
         return f"{directory} is not a directory"
+    if len(str(directory.resolve()).encode()) + _NAME_MAX + 20 >= lib.CG_CORE_PATH:
+        return f"its path is too long (a dump's path must stay under {lib.CG_CORE_PATH} bytes)"
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -51,22 +61,17 @@ def unavailable(directory: Path) -> str | None:
     return None
 
 
-def path_for(directory: Path, full_name: str, pid: int) -> Path:
-    """``core.<node>.<pid>``, the node's full name with its slashes as dots."""
-    name = re.sub(r"[^A-Za-z0-9_.-]", "_", full_name.strip("/").replace("/", ".")) or "node"
+def tools() -> Tools:
+    """Where gdb and fallocate are (unavailable() said gdb is there)."""
+    found = {name: shutil.which(name) or "" for name in ("gdb", "fallocate")}
+    for name, path in found.items():
+        if len(path.encode()) >= lib.CG_TOOL_PATH:
+            raise ValueError(f"{name}'s path is too long: {path}")
+    return Tools(str(Path(found["gdb"]).resolve()), found["fallocate"] and str(Path(found["fallocate"]).resolve()))
+
+
+def path_for(directory: Path, name: str, pid: int) -> Path:
+    """``core.<name>.<pid>``: a node's full name with its slashes as dots
+    (what is not a letter, digit, ``_``, ``.`` or ``-`` becomes ``_``)."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", name.strip("/").replace("/", "."))[:_NAME_MAX] or "node"
     return directory / f"core.{name}.{pid}"
-
-
-def write(path: Path, pid: int) -> str | None:
-    """Dump process ``pid`` into ``path`` with gdb; None, or why not."""
-    cmd = ["gdb", "-nx", "-batch", "-p", str(pid), "-ex", f"gcore {path}"]
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=GCORE_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        return f"gdb took over {GCORE_TIMEOUT_S} s"
-    if not path.exists():
-        tail = (out.stderr or out.stdout).strip().splitlines()[-1:] or [f"exit status {out.returncode}"]
-        return f"gdb wrote none: {tail[0]}"
-    if shutil.which("fallocate"):  # util-linux; without it the file stays whole
-        subprocess.run(["fallocate", "--dig-holes", str(path)], capture_output=True, timeout=GCORE_TIMEOUT_S)
-    return None

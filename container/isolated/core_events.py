@@ -1,8 +1,8 @@
 """What the monitor reports, as Python values.
 
 The C monitor writes fixed records (``struct cg_event``, core.h) to a pipe;
-this module turns one record into a Death, a StopRequested, a
-MutexReport or a DumpAsked. The record's
+this module turns one record into a Death, a StopRequested or a
+MutexReport. The record's
 layout and every constant come from the built core (its cffi module), so
 they are written once, in core.h and repair.h.
 """
@@ -18,7 +18,6 @@ from cloneguard.container.isolated._clonecore import ffi, lib
 
 RECORD_SIZE = ffi.sizeof("struct cg_event")
 KIND_DEATH, KIND_STOP, KIND_CLOSED, KIND_MUTEX = lib.CG_EV_DEATH, lib.CG_EV_STOP, lib.CG_EV_CLOSED, lib.CG_EV_MUTEX
-KIND_CORE = lib.CG_EV_CORE
 STOP_BY_PARENT, STOP_BY_SIGNAL = lib.CG_STOP_PARENT, lib.CG_STOP_SIGNAL
 ALLOC_SLOT_MASK = 0xFFFF
 
@@ -91,6 +90,8 @@ class Death:
     # of its innermost Python frame
     pkey_fault: PkeyFault | None = None  # it died writing under a
     # protection key not its own (heapkeys.c)
+    core_file: str = ""  # --core-dumps: the dump written of it (dumps.c),
+    core_missing: str = ""  # or why it asked for one and got none
 
     @property
     def status_lost(self) -> bool:
@@ -146,17 +147,7 @@ class MutexReport:
     detected_monotonic_ns: int
 
 
-@dataclass(frozen=True)
-class DumpAsked:
-    """With core dumps on: a child's main task caught a fatal signal, wrote
-    its report and waits in its handler for its dump (CloneCore.dumped)."""
-
-    pid: int
-    serial: int
-    detected_monotonic_ns: int
-
-
-CoreEvent = Death | StopRequested | MutexReport | DumpAsked
+CoreEvent = Death | StopRequested | MutexReport
 
 
 def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
@@ -188,6 +179,4 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
         return kind, MutexReport(
             r.pid, r.serial, MutexVerdict(r.status), r.addr, r.tid, r.owner, r.code, detected_monotonic_ns=r.t_ns
         )
-    if kind == KIND_CORE:
-        return kind, DumpAsked(r.pid, r.serial, r.t_ns)
     return kind, None

@@ -108,11 +108,10 @@ static void on_crash_timeout(int unused)
     sigprocmask(SIG_UNBLOCK, &s, NULL);
 }
 
-/* --core-dumps: ask the container for a dump of this process (CG_EV_CORE:
-   one record written to the event pipe, atomic as any write of under
-   PIPE_BUF) and wait here, the fault's state intact, until it is written
-   or CG_CORE_WAIT_S have passed.  The report's watchdog is off meanwhile:
-   gdb takes seconds over a large address space. */
+/* --core-dumps: ask the monitor for a dump of this process (dumps.c) and
+   wait here, the fault's state intact, until it is written or
+   CG_CORE_WAIT_S have passed.  The report's watchdog is off meanwhile: gdb
+   takes seconds over a large address space. */
 static void wait_for_dump(struct cg_child *c, bool timer_ok, int timer)
 {
     if (timer_ok) {
@@ -120,20 +119,14 @@ static void wait_for_dump(struct cg_child *c, bool timer_ok, int timer)
         syscall(SYS_timer_settime, timer, 0, &off, NULL);
     }
     __atomic_store_n(&c->core_dump, CG_CORE_ASKED, __ATOMIC_RELEASE);
-    struct cg_event ev = {.kind = CG_EV_CORE, .pid = c->pid, .serial = c->serial, .t_ns = cg_mono_ns()};
-    monitor_emit(&ev);
+    if (!dumps_ask(c)) {
+        __atomic_store_n(&c->core_dump, CG_CORE_FAILED, __ATOMIC_RELEASE);
+        return;
+    }
     struct timespec slice = {1, 0};
     for (int waited = 0; waited < CG_CORE_WAIT_S &&
                          __atomic_load_n(&c->core_dump, __ATOMIC_ACQUIRE) == CG_CORE_ASKED; waited++)
         syscall(SYS_futex, &c->core_dump, FUTEX_WAIT_PRIVATE, CG_CORE_ASKED, &slice, NULL, 0);
-}
-
-/* The container wrote child c's dump (or gave up): its handler goes on. */
-int cg_core_dumped(struct cg_child *c)
-{
-    __atomic_store_n(&c->core_dump, CG_CORE_DONE, __ATOMIC_RELEASE);
-    syscall(SYS_futex, &c->core_dump, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
-    return 0;
 }
 
 /* One report on fd 2, then the same death as without us: the handler was
@@ -233,17 +226,8 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
     }
 
-    if (claimed && g_cfg.core_dumps) {
-        if (!cg_gil_mine()) {
-            wait_for_dump(c, timer_ok, timer);
-        } else {
-            /* The dump is written by the container's Python, which would
-               wait for this task's GIL while this task waited for it. */
-            __atomic_store_n(&c->core_dump, CG_CORE_SKIPPED, __ATOMIC_RELEASE);
-            out_s(&o, "cloneguard: no core dump: it holds the GIL\n");
-            out_flush(&o);
-        }
-    }
+    if (claimed && g_cfg.core_dumps)
+        wait_for_dump(c, timer_ok, timer);
     if (container) {
         /* Then whoever handled it before us: faulthandler dumps every
            thread and re-raises.  The signal is blocked until we return. */

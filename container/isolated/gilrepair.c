@@ -526,18 +526,6 @@ int cg_gil_probe(struct cg_gil_probe *out)
     return 0;
 }
 
-bool cg_gil_mine(void)
-{
-    struct _gil_runtime_state *gil = GIL;
-    PyThreadState *t = PyGILState_GetThisThreadState();
-    int tid = (int)syscall(SYS_gettid);
-    if (t && _Py_atomic_load_relaxed(&gil->locked) &&
-        (PyThreadState *)_Py_atomic_load_relaxed(&gil->last_holder) == t)
-        return true;
-    return __atomic_load_n(&gil->mutex.__data.__owner, __ATOMIC_RELAXED) == tid ||
-           __atomic_load_n(&gil->switch_mutex.__data.__owner, __ATOMIC_RELAXED) == tid;
-}
-
 void cg_dump_py_stack(int fd)
 {
     PyThreadState *t = PyGILState_GetThisThreadState();

@@ -57,10 +57,12 @@ from .. import construction, intra, processes, repairs
 from ..hosting import Hosted
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
-from . import core_dumps, listener_wait, mutex_reports
+from . import listener_wait, mutex_reports
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
-from .core_events import DumpAsked, MutexReport
+from .core_dumps import path_for as core_dump_path
+from .core_dumps import tools as core_dump_tools
+from .core_events import MutexReport
 from .placeholder import held_context, release_context
 from .profiles import DEFAULT, PROFILES, SHARED, ProfileRule
 from .profiles import choose as choose_profile
@@ -137,7 +139,6 @@ class _NodeProcess:
     cgroup: Any = None  # NodeCgroup, with --cgroups
     error: str = ""  # why construction failed in the child
     aborted: str = ""  # why the container aborted it (node watchdog)
-    core_file: str = ""  # its core dump (--core-dumps), once written
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
@@ -181,7 +182,7 @@ class IsolatedHost:
             on_event=self._on_core_event,
             mitigations=self.mitigations,
             stop_signal=stop_signal,  # the test rig's stop points (seams.stop_signal), 0: none
-            core_dumps=core_dumps is not None,
+            dump_tools=core_dump_tools() if core_dumps is not None else None,
         )
         listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
@@ -226,6 +227,7 @@ class IsolatedHost:
             died = proc.death
             proc.state = "running" if died is None else "dead"
         processes.node_is(proc.child.pid, unique_id, proc.full_name)
+        self._name_dump(proc.child, proc.full_name)
         hosted = Hosted(unique_id, proc.full_name, proc.child.pid, proc.start_ns, detail=proc,
                         where=f"profile {proc.profile}")  # fmt: skip
         if died is not None:  # died between construction and now
@@ -262,6 +264,7 @@ class IsolatedHost:
             else:
                 proc.child = self._core.spawn(target, cgroup_fd=proc.cgroup.fd if proc.cgroup else None)
             self._by_pid[proc.child.pid] = proc
+            self._name_dump(proc.child, proc.full_name or args.requested_name or args.plugin)
             if spare is not None:
                 self._core.go(proc.child)
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built
@@ -439,6 +442,7 @@ class IsolatedHost:
             except Exception as exc:
                 self._log.warning(f"could not make a spare process for the next load: {exc}")
                 return
+            self._name_dump(spare.child, "spare")
             self._spare = spare
 
     def _take_spare(self, args) -> Spare | None:
@@ -546,9 +550,6 @@ class IsolatedHost:
         if isinstance(event, MutexReport):  # its dead holder may be forgotten already
             mutex_reports.handle(event, self._log)
             return
-        if isinstance(event, DumpAsked):  # its crashing task waits until dumped()
-            threading.Thread(target=self._dump, args=(event,), name="cloneguard-core-dump", daemon=True).start()
-            return
         with self._lock:
             proc = self._by_pid.get(event.pid)
             spare = self._spare if proc is None and self._spare and self._spare.child.pid == event.pid else None
@@ -584,34 +585,11 @@ class IsolatedHost:
         if state == "running":
             self._crashed(proc, event)
 
-    def _dump(self, event: DumpAsked) -> None:
-        """--core-dumps: write the crashing process's dump, then let its crash
-        handler go on (core_dumps.py). Until then it takes no lock a node
-        process may hold (the crashing one is alive in its handler, holding
-        whatever it held): no host lock, no logging (rcl's)."""
-        proc = self._by_pid.get(event.pid)  # one dict read under the GIL
-        spare = self._spare
-        child = proc.child if proc is not None else spare.child if spare and spare.child.pid == event.pid else None
-        if child is None or self._core_dumps is None:
-            return  # already forgotten: nothing waits for it
-        path = core_dumps.path_for(self._core_dumps, proc.full_name if proc else "spare", event.pid)
-        why: str | None = "the dump did not start"
-        try:
-            with self._core.dumping():
-                why = core_dumps.write(path, event.pid)
-            if why is None and proc is not None:
-                proc.core_file = str(path)
-        finally:
-            self._core.dumped(child)
-        who = f"{proc.full_name} (unique_id {proc.unique_id}, pid {event.pid})" if proc else f"pid {event.pid}"
-        if why is None:
-            st = path.stat()
-            self._log.warning(
-                f"{who}: core dump written: {path} ({st.st_blocks * 512 >> 20} MiB on disk, "
-                f"{st.st_size >> 20} MiB of address space)"
-            )
-        else:
-            self._log.error(f"{who}: no core dump: {why}")
+    def _name_dump(self, child, name: str) -> None:
+        """--core-dumps: the file the child's dump goes to, named after what
+        it runs (core_dumps.path_for)."""
+        if self._core_dumps is not None:
+            self._core.name_dump(child, str(core_dump_path(self._core_dumps, name, child.pid)))
 
     def abort(self, unique_id: int, why: str) -> bool:
         """End a running node's process with SIGABRT: its crash report (the
@@ -648,10 +626,6 @@ class IsolatedHost:
             reason += f" after an outside {proc.stopped_by.name}"
         if proc.aborted:
             reason += f" by the container: {proc.aborted}"
-        if proc.core_file:
-            reason += f"; core dump: {proc.core_file}"
-        elif self._core_dumps is not None and self._core.dump_skipped(proc.child):
-            reason += "; no core dump: it held the GIL"
         # Tell the manager first (it publishes CRASHED); the bookkeeping and
         # its log lines can wait the few hundred microseconds.
         if self._on_death is not None:
@@ -664,6 +638,12 @@ class IsolatedHost:
                     reason=reason,
                     allocator_quarantined=death.alloc_quarantined,
                 ),
+            )
+        if death.core_file:
+            st = os.stat(death.core_file)
+            self._log.warning(
+                f"{proc.full_name} (unique_id {proc.unique_id}, pid {death.pid}): core dump written: "
+                f"{death.core_file} ({st.st_blocks * 512 >> 20} MiB on disk, {st.st_size >> 20} MiB of address space)"
             )
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
@@ -732,4 +712,8 @@ def _describe(death: Death | None) -> str:
         what += "; it died inside the allocator: its arena is quarantined"
     if death.py_abandoned:
         what += "; it died inside Python's object allocator: its pools are abandoned"
+    if death.core_file:
+        what += f"; core dump: {death.core_file}"
+    elif death.core_missing:
+        what += f"; no core dump: {death.core_missing}"
     return what

@@ -6,7 +6,8 @@
  * reaping, calls gilrepair.c to undo what the dead task left in CPython's
  * GIL; then it reports to Python through a pipe of fixed-size records
  * (struct cg_event).  Between events, and after each, it runs the lock
- * doctor (mutexes.c), which says how long it may sleep.  It never takes the GIL.  It alone touches the child
+ * doctor (mutexes.c), which says how long it may sleep.  With --core-dumps
+ * it also has crashing children dumped (dumps.c).  It never takes the GIL.  It alone touches the child
  * list (g_children) and cg_child.stop_reported.
  *
  * Other threads talk to it through commands (spawn, stop) written as
@@ -219,6 +220,8 @@ static void reap(struct cg_child *c, int64_t t)
     }
     report_stop(c, t);           /* never after the death record */
     mutexes_bury(c);             /* its tasks may prove a mutex's owner dead */
+    if (g_cfg.core_dumps)
+        dumps_forget(c);         /* Python may release it once told */
     epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
     for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
         if (*p == c) {
@@ -239,13 +242,15 @@ static void *monitor_main(void *unused)
         int64_t t = cg_mono_ns();
         if (n <= 0) {                    /* EINTR (all signals are blocked),
                                             or time for the lock doctor */
-            sleep_ms = mutexes_tick(g_children, t);
+            sleep_ms = dumps_tick(t, mutexes_tick(g_children, t));
             continue;
         }
-        /* Commands and stop notices first, deaths second: a stop notice of
-           a child must reach Python before its death record. */
+        /* Commands, stop notices and dumps first, deaths second: a stop
+           notice of a child must reach Python before its death record. */
         for (int i = 0; i < n; i++) {
-            if (evs[i].data.ptr == &TAG_WAKE) {
+            if (g_cfg.core_dumps && dumps_event(evs[i].data.ptr, t)) {
+                evs[i].data.ptr = NULL;   /* handled: not a child */
+            } else if (evs[i].data.ptr == &TAG_WAKE) {
                 uint64_t v;
                 if (read(g_wakefd, &v, sizeof v) < 0) { /* EAGAIN */ }
                 for (struct cg_child *c = g_children; c; c = c->next)
@@ -268,9 +273,10 @@ static void *monitor_main(void *unused)
             }
         }
         for (int i = 0; i < n; i++)
-            if (evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
+            if (evs[i].data.ptr && evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
                 reap(evs[i].data.ptr, t);
-        sleep_ms = mutexes_tick(g_children, cg_mono_ns());
+        t = cg_mono_ns();
+        sleep_ms = dumps_tick(t, mutexes_tick(g_children, t));
     }
 }
 
@@ -301,6 +307,13 @@ int monitor_start(int *event_fd)
     struct epoll_event e2 = {.events = EPOLLIN, .data.ptr = &TAG_WAKE};
     epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_cmd[0], &e1);
     epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_wakefd, &e2);
+    if ((r = dumps_start(g_epfd)) < 0) {
+        dumps_stop();
+        close(g_ev[0]);
+        g_ev[0] = -1;
+        close_fds();
+        return r;
+    }
 
     /* The monitor runs with every signal blocked (process-directed signals
        go to other threads); children inherit that mask and clear it.  All
@@ -318,6 +331,7 @@ int monitor_start(int *event_fd)
     if (!err)
         pthread_setname_np(g_monitor, "cg-monitor");   /* for ps, gdb, benchmarks */
     if (err) {
+        dumps_stop();
         close(g_ev[0]);
         g_ev[0] = -1;
         close_fds();
@@ -336,6 +350,7 @@ int monitor_stop(void)
     if (r != 0)
         return r;
     pthread_join(g_monitor, NULL);
+    dumps_stop();
     close_fds();
     return 0;
 }

@@ -114,11 +114,6 @@ int cg_interp_probe(struct cg_interp_probe *out);
 /* Async-signal-safe-ish: the Python stack of the calling thread, as
    faulthandler writes it. */
 void cg_dump_py_stack(int fd);
-/* Does the calling task hold the GIL, or is it inside taking or dropping it
-   (it holds the GIL's mutex or switch mutex)?  Lock-free reads; from a
-   signal handler (crash.c: such a task must not wait on the container's
-   Python). */
-bool cg_gil_mine(void);
 /* Async-signal-safe: the calling thread's Python frames, raw (code object,
    instruction offset), innermost first; how many, and *more if the stack
    went on past max. */
