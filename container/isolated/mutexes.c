@@ -64,6 +64,11 @@
 #define AFTER_DEATH_NS (1000 * 1000000LL)   /* for this long after a death, */
 #define AFTER_DEATH_EVERY_NS (50 * 1000000LL)   /* look this often: its
                                         siblings block on what it held soon */
+#define FIRST_LOOK_NS (2 * 1000000LL)   /* the first look, this long after the
+                                        death: not on the CPU the death's
+                                        report needs (a look reads /proc for
+                                        every task; on 2 cores it held the
+                                        core's listener off ~0.3 ms) */
 #define STUCK_NS (1000 * 1000000LL)
 #define RESERVED_PIDS 300   /* where the pid cursor wraps to (kernel/pid.c) */
 #define NDEAD 32            /* dead sets kept; the oldest is dropped first */
@@ -305,7 +310,7 @@ void mutexes_bury(const struct cg_child *c)
     d->seen = c->seen;
     g_last_dead_pid = c->pid;
     g_last_dead_serial = c->serial;
-    g_next_look = 0;                 /* look for its waiters at once */
+    g_next_look = cg_mono_ns() + FIRST_LOOK_NS;   /* look for its waiters soon */
     g_died_at = -1;                  /* and often for a while (mutexes_tick) */
 }
 
