@@ -2,8 +2,10 @@
 
     python -m cloneguard.bench.crash_latency                # n=100 per profile and signal
     python -m cloneguard.bench.crash_latency --n 300 --signals SIGKILL
+    python -m cloneguard.bench.crash_latency --others 47       # among 47 idle nodes
 
-One isolated container per profile (per-node, shared). Each trial loads a
+One isolated container per profile (per-node, shared), with ``--others``
+idle Heartbeat nodes (1 Hz) loaded first into each. Each trial loads a
 cloneguard::Heartbeat, lets it run ``--settle`` s, then the benchmark takes
 time.time_ns() (and CLOCK_MONOTONIC) and os.kill()s the node's process (its
 pid from the LOADED event, checked to be in the container's process group)
@@ -118,8 +120,18 @@ def _stuck(running, what: str, error: Exception, victims: dict[int, str]) -> dic
     return out
 
 
-def measure(session: Session, profiles: list[str], signals: list[str], n: int, settle: float, recycle: int) -> dict:
-    running = {p: session.start(p) for p in profiles}
+def _start(session: Session, mode: str, others: int, replacing=None):
+    """A container of ``mode`` (a fresh one for ``replacing``) with ``others`` idle nodes."""
+    running = session.restart(replacing) if replacing is not None else session.start(mode)
+    for k in range(others):
+        timed_load(running, node_name=f"other{k}", parameters={"period": 1.0}, timeout=LOAD_TIMEOUT_S)
+    return running
+
+
+def measure(
+    session: Session, profiles: list[str], signals: list[str], n: int, settle: float, recycle: int, others: int = 0
+) -> dict:
+    running = {p: _start(session, p, others) for p in profiles}
     crashes = {p: 0 for p in profiles}
     last = {p: None for p in profiles}  # the signal of the container's last crash
     victims = {p: {} for p in profiles}  # pid -> node name, this container's dead nodes
@@ -142,7 +154,7 @@ def measure(session: Session, profiles: list[str], signals: list[str], n: int, s
     done = []  # (container process, its trial, the data it goes to)
 
     def fresh(p):
-        running[p] = session.restart(running[p])
+        running[p] = _start(session, p, others, replacing=running[p])
         crashes[p], last[p], victims[p] = 0, None, {}
 
     for i in range(n):
@@ -198,6 +210,7 @@ def run(
     n_monitor: int = 50,
     settle: float = 0.05,
     recycle: int = 25,
+    others: int = 0,
     profiles: list[str] = PROFILES,
     signals: list[str] = SIGNALS,
     out=DEFAULT_OUT,
@@ -209,20 +222,22 @@ def run(
         "n_monitor": n_monitor,
         "settle": settle,
         "recycle": recycle,
+        "others": others,
         "profiles": list(profiles),
         "signals": list(signals),
         "out": str(out),
     }
     session = Session(NAME, keep_logs=keep_logs)
     try:
-        measured = measure(session, list(profiles), list(signals), n, settle, recycle)
+        measured = measure(session, list(profiles), list(signals), n, settle, recycle, others)
         data, stuck = measured["trials"], measured["stuck"]
         monitor = session.core_worker("kill", n_monitor) if n_monitor > 0 else {}
     finally:
         problems = session.close()
 
     table = Table(
-        f"Container: os.kill() of a node's process → CRASHED (ms; n={n} per row, interleaved)",
+        f"Container: os.kill() of a node's process → CRASHED (ms; n={n} per row, interleaved"
+        + (f"; {others} other idle nodes in each container)" if others else ")"),
         [
             "profile",
             "signal",
@@ -385,6 +400,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--settle", type=float, default=0.05, help="seconds between LOADED and the kill")
     parser.add_argument("--recycle", type=int, default=25, help="crashes per container before a fresh one")
+    parser.add_argument("--others", type=int, default=0, help="idle Heartbeat nodes loaded into each container first")
     parser.add_argument("--profiles", nargs="+", choices=PROFILES, default=PROFILES)
     parser.add_argument("--signals", nargs="+", choices=SIGNALS, default=SIGNALS)
     opts = parser.parse_args(argv)
@@ -393,6 +409,7 @@ def main(argv=None) -> int:
         n_monitor=opts.n_monitor,
         settle=opts.settle,
         recycle=opts.recycle,
+        others=opts.others,
         profiles=opts.profiles,
         signals=opts.signals,
         out=opts.out,
