@@ -31,6 +31,7 @@
 #include <errno.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 struct cg_layout g_layout;
@@ -227,11 +228,23 @@ static void forget_thread_state(PyThreadState *t)
     PyGILState_Release(g);
 }
 
-/* Free what a reaped child had: -EBUSY if it is not reaped yet. */
+/* The monitor reports a death before the dead child is reaped (monitor.c,
+   reap): it is reaped here, once Python is done with it. */
+static void reap_zombie(struct cg_child *c)
+{
+    siginfo_t gone;
+    memset(&gone, 0, sizeof gone);
+    /* ECHILD: something else in the container reaped it first. */
+    waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &gone, WEXITED | __WALL | WNOHANG);
+}
+
+/* Reap and free what a dead child had: -EBUSY if it is not reported dead
+   yet. */
 int cg_release(struct cg_child *c)
 {
     if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
         return -EBUSY;
+    reap_zombie(c);
     close(c->pidfd);
     tls_give_back(c);
     block_free(c);
@@ -249,8 +262,10 @@ int cg_abandon(struct cg_child *c)
         return -EBUSY;
     if (c->ctx)
         tls_give_back(c);
-    if (c->pidfd >= 0)
+    if (c->pidfd >= 0) {
+        reap_zombie(c);
         close(c->pidfd);
+    }
     c->pidfd = -1;
     return 0;
 }

@@ -159,7 +159,9 @@ struct cg_child {            /* control block, lives in container memory */
     int pidfd;
     uint64_t serial;         /* Python's name for the child */
     int64_t start_ns;
-    int state;               /* CG_RUNNING / CG_REAPED (atomic) */
+    int state;               /* CG_RUNNING / CG_REAPED (atomic): reported dead,
+                                forgotten by the monitor; a zombie until
+                                cg_release or cg_abandon reaps it */
     int stop_requested;      /* CG_STOP_* (atomic; child, parent, monitor) */
     int py_phase;            /* CG_PY_* (atomic; written by the child) */
     int stop_signal;         /* the signal that asked (atomic), 0: parent */

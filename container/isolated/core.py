@@ -469,7 +469,8 @@ class CloneCore:
     def kill(self, child: Child, sig: int = signal.SIGKILL) -> bool:
         """pidfd_send_signal; False if the child has already died."""
         with self._lock:
-            self._entry(child)
+            if self._entry(child).dead:  # reported dead: a zombie until released
+                return False
             try:
                 signal.pidfd_send_signal(child.pidfd, sig)
                 return True
@@ -484,7 +485,8 @@ class CloneCore:
             return entry.death
 
     def release(self, child: Child) -> None:
-        """Free a reaped child's thread state, stacks, TLS and pidfd (once).
+        """Reap a dead child (the monitor reports a death and leaves the
+        zombie to this) and free its thread state, stacks, TLS and pidfd (once).
 
         The thread state (made by spawn, so that the child never takes the
         interpreter's HEAD_LOCK) is unlinked before the stack is unmapped: a
@@ -518,7 +520,7 @@ class CloneCore:
         crashed node the host leaves in memory): its thread state and stacks
         stay allocated, since its frames point into them; its TLS context
         goes back to the pool for the next child (unless its allocator slot
-        is quarantined) and its pidfd is closed."""
+        is quarantined), and it is reaped and its pidfd closed."""
         _, lib = _lib()
         with self._lock:
             entry = self._entry(child)

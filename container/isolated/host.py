@@ -531,9 +531,6 @@ class IsolatedHost:
             proc.state = "gone"
         self.board.unregister(proc.unique_id)
         proc.slot = -1
-        if proc.cgroup is not None:  # the process is reaped: the group is empty
-            cgroup, proc.cgroup = proc.cgroup, None
-            self.cgroups.remove(cgroup)
         if leak:
             self._core.abandon(proc.child)
             self.leaked.append(proc)
@@ -545,6 +542,9 @@ class IsolatedHost:
             )
         else:
             self._core.release(proc.child)
+        if proc.cgroup is not None:  # the process is reaped (above): the group is empty
+            cgroup, proc.cgroup = proc.cgroup, None
+            self.cgroups.remove(cgroup)
 
     def _on_core_event(self, event) -> None:
         if isinstance(event, MutexReport):  # its dead holder may be forgotten already
