@@ -2,13 +2,14 @@
  * monitor.c - the monitor thread: one per core (cg_start), the only thread
  * that performs clone3 (PR_SET_PDEATHSIG fires when the *spawning thread*
  * dies, so children die with the monitor, i.e. with the container).  It
- * waits on the children's pidfds with epoll, and after a death, before
- * reaping, calls gilrepair.c to undo what the dead task left in CPython's
- * GIL; then it reports to Python through a pipe of fixed-size records
- * (struct cg_event).  Between events, and after each, it runs the lock
- * doctor (mutexes.c), which says how long it may sleep.  With --core-dumps
- * it also has crashing children dumped (dumps.c).  It never takes the GIL.  It alone touches the child
- * list (g_children) and cg_child.stop_reported.
+ * waits on the children's pidfds with epoll, and after a death calls
+ * gilrepair.c to undo what the dead task left in CPython's GIL; then it
+ * reports to Python through a pipe of fixed-size records (struct cg_event)
+ * and leaves the zombie for cg_release to reap.  Between events, and after
+ * each, it runs the lock doctor (mutexes.c), which says how long it may
+ * sleep.  With --core-dumps it also has crashing children dumped
+ * (dumps.c).  It never takes the GIL.  It alone touches the child list
+ * (g_children) and cg_child.stop_reported.
  *
  * Other threads talk to it through commands (spawn, stop) written as
  * pointers to a pipe, and through an eventfd that says "a stop flag was set"
@@ -196,7 +197,7 @@ static void reap(struct cg_child *c, int64_t t)
 {
     siginfo_t si;
     memset(&si, 0, sizeof si);
-    /* WNOWAIT: look, repair, and only then reap (the pid stays ours). */
+    /* WNOWAIT: look, repair, report; cg_release reaps (the pid stays ours). */
     int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
                    WEXITED | __WALL | WNOHANG | WNOWAIT);
     if (r == 0 && si.si_pid == 0)
