@@ -71,7 +71,7 @@ int dumps_start(int epfd)
     if (!g_cfg.core_dumps)
         return 0;
     g_epfd = epfd;
-    if (pipe2(g_req, O_CLOEXEC) < 0)
+    if (pipe2(g_req, O_CLOEXEC) < 0 || fcntl(g_req[0], F_SETFL, O_NONBLOCK) < 0)
         return -errno;
     g_log = memfd_create("cloneguard-dump-log", MFD_CLOEXEC);
     if (g_log < 0)
@@ -267,18 +267,24 @@ static void helper_ended(int64_t now)
     start_next(now);
 }
 
+/* Every request written so far, onto the queue. */
+static void take_requests(void)
+{
+    struct cg_child *c;
+    while (read(g_req[0], &c, sizeof c) == sizeof c && c) {
+        struct cg_child **end = &g_queue;
+        while (*end)
+            end = &(*end)->dump_next;
+        *end = c;
+    }
+}
+
 /* An epoll event of ours: true if tag was one. */
 bool dumps_event(void *tag, int64_t now)
 {
     if (tag == &TAG_REQ) {
-        struct cg_child *c;
-        if (read(g_req[0], &c, sizeof c) == sizeof c && c) {
-            struct cg_child **end = &g_queue;
-            while (*end)
-                end = &(*end)->dump_next;
-            *end = c;
-            start_next(now);
-        }
+        take_requests();
+        start_next(now);
         return true;
     }
     if (tag == &TAG_HELPER) {
@@ -305,7 +311,7 @@ int dumps_tick(int64_t now, int sleep_ms)
 }
 
 /* Child c is dead and about to be reported: never touch it again. */
-void dumps_forget(struct cg_child *c)
+static void forget(struct cg_child *c)
 {
     for (struct cg_child **p = &g_queue; *p; p = &(*p)->dump_next)
         if (*p == c) {
@@ -323,6 +329,15 @@ void dumps_forget(struct cg_child *c)
         __atomic_store_n(&c->core_dump, CG_CORE_FAILED, __ATOMIC_RELEASE);
     }
     g_child = NULL;
+}
+
+void dumps_forget(struct cg_child *c)
+{
+    /* Its request may still be in the pipe (epoll need not have said so
+       yet): take every one now, or c's would be read after c is freed. */
+    take_requests();
+    forget(c);
+    start_next(cg_mono_ns());    /* the pipe is empty: no event will */
 }
 
 /* The monitor stops (no child left): end a helper still running. */
