@@ -44,7 +44,7 @@ from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, ms, stats
 from .goals import goal_at_most
 from .loads import event_received, stamp_ns, timed_load
-from .modes import label
+from .modes import HEARTBEAT_PARAMS, label
 from .results import Result, Table, summary_row
 from .session import Session
 
@@ -124,7 +124,7 @@ def _start(session: Session, mode: str, others: int, replacing=None):
     """A container of ``mode`` (a fresh one for ``replacing``) with ``others`` idle nodes."""
     running = session.restart(replacing) if replacing is not None else session.start(mode)
     for k in range(others):
-        timed_load(running, node_name=f"other{k}", parameters={"period": 1.0}, timeout=LOAD_TIMEOUT_S)
+        timed_load(running, node_name=f"other{k}", parameters=HEARTBEAT_PARAMS, timeout=LOAD_TIMEOUT_S)
     return running
 
 

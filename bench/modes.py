@@ -6,6 +6,7 @@ from __future__ import annotations
 
 PACKAGE = "cloneguard"
 HEARTBEAT = "cloneguard::Heartbeat"
+HEARTBEAT_PARAMS = {"period": 1.0}  # 1 Hz: an idle node, as the scale runs load them
 LISTENER = "cloneguard::Listener"  # no timer: idle unless a message arrives
 
 # Container modes: key -> (label, container arguments).

@@ -40,7 +40,7 @@ from .figures import fmt_ratio
 from .goals import Goal, goal_at_most, goal_ratio_at_most
 from .loads import timed_load
 from .memory import footprint
-from .modes import PROCESS_PER_NODE, label
+from .modes import HEARTBEAT_PARAMS, PROCESS_PER_NODE, label
 from .results import Result, Table, summary_row
 from .scale_chart import scale_svg
 from .session import Session
@@ -49,7 +49,6 @@ from .shutdown import sigterm_to_exit
 NAME = "scale"
 TITLE = "Scale: N nodes at 1 Hz, per mode"
 DEFAULT_MODES = ["thread", "isolated-shared", "isolated-mixed", "isolated-per-node", PROCESS_PER_NODE]
-HEARTBEAT_PARAMS = {"period": 1.0}
 GOAL_NODES = 48
 #: From the last load to the idle window: discovery among the participants
 #: goes on after the loads (measured, per-node at 48 nodes with 3 s node

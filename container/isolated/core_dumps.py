@@ -70,6 +70,16 @@ def tools() -> Tools:
     return Tools(str(Path(found["gdb"]).resolve()), found["fallocate"] and str(Path(found["fallocate"]).resolve()))
 
 
+def size(path: str) -> str:
+    """What a written dump takes, for the log: on disk and in address space.
+    Never raises (the crash path logs it; the file may be gone already)."""
+    try:
+        st = Path(path).stat()
+    except OSError as exc:
+        return f"now unreadable: {exc.strerror}"
+    return f"{st.st_blocks * 512 >> 20} MiB on disk, {st.st_size >> 20} MiB of address space"
+
+
 def path_for(directory: Path, name: str, pid: int) -> Path:
     """``core.<name>.<pid>``: a node's full name with its slashes as dots
     (what is not a letter, digit, ``_``, ``.`` or ``-`` becomes ``_``)."""

@@ -294,10 +294,12 @@ bool dumps_event(void *tag, int64_t now)
     return false;
 }
 
-/* How long the monitor may sleep for us (ms, -1: forever), given its own
+/* After each of the monitor's rounds: the next dump, if none is under way;
+   how long the monitor may sleep for us (ms, -1: forever), given its own
    wish; a helper past its time is ended (its end comes through epoll). */
 int dumps_tick(int64_t now, int sleep_ms)
 {
+    start_next(now);             /* requests dumps_forget took off the pipe */
     if (g_helper_fd < 0)
         return sleep_ms;
     if (now >= g_deadline) {
@@ -335,9 +337,8 @@ void dumps_forget(struct cg_child *c)
 {
     /* Its request may still be in the pipe (epoll need not have said so
        yet): take every one now, or c's would be read after c is freed. */
-    take_requests();
+    take_requests();             /* the next dumps_tick starts them */
     forget(c);
-    start_next(cg_mono_ns());    /* the pipe is empty: no event will */
 }
 
 /* The monitor stops (no child left): end a helper still running. */

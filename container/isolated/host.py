@@ -61,6 +61,7 @@ from . import listener_wait, mutex_reports
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .core_dumps import path_for as core_dump_path
+from .core_dumps import size as core_dump_size
 from .core_dumps import tools as core_dump_tools
 from .core_events import MutexReport
 from .placeholder import held_context, release_context
@@ -640,10 +641,9 @@ class IsolatedHost:
                 ),
             )
         if death.core_file:
-            st = os.stat(death.core_file)
             self._log.warning(
                 f"{proc.full_name} (unique_id {proc.unique_id}, pid {death.pid}): core dump written: "
-                f"{death.core_file} ({st.st_blocks * 512 >> 20} MiB on disk, {st.st_size >> 20} MiB of address space)"
+                f"{death.core_file} ({core_dump_size(death.core_file)})"
             )
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
