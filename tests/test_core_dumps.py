@@ -125,6 +125,20 @@ def test_a_node_killed_while_gdb_writes_its_dump_leaves_no_partial_file(system_f
     assert f"core dump: {dumps}/core.robot.planner.{planner}" in robot.wait_crashed("/robot/planner").error_message
 
 
+def test_two_nodes_crashing_at_once_are_dumped_one_after_the_other(system_factory, tmp_path):
+    """The monitor writes one dump at a time; the second crash waits its turn."""
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    pids = {name: robot.node(name).pid for name in ("/robot/planner", "/robot/map_server")}
+    for name in pids:
+        robot.kill(name, signal.SIGSEGV)
+    for name, pid in pids.items():
+        dump = dumps / f"core{name.replace('/', '.')}.{pid}"
+        assert f"core dump: {dump}" in robot.wait_crashed(name, timeout=120).error_message
+        assert _is_core_file(dump)
+    assert robot.alive()
+
+
 def test_a_dump_that_cannot_be_written_is_said_why(system_factory, tmp_path):
     dumps = tmp_path / "dumps"
     robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
