@@ -54,7 +54,7 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     dump = dumps / f"core.robot.map_server.{pid}"
     assert crashed.exit_signal == signal.SIGSEGV
     assert f"core dump: {dump}" in crashed.error_message, crashed.error_message
-    assert _is_core_file(dump)
+    assert dump.is_file() and _is_core_file(dump)
     st = dump.stat()
     assert st.st_blocks * 512 < st.st_size  # its runs of zeros are holes
     _gdb_reads(dump, pid)
@@ -123,6 +123,20 @@ def test_a_node_killed_while_gdb_writes_its_dump_leaves_no_partial_file(system_f
     robot.kill("/robot/planner", signal.SIGSEGV)  # the next crash is dumped as ever
     planner = robot.node("/robot/planner").pid
     assert f"core dump: {dumps}/core.robot.planner.{planner}" in robot.wait_crashed("/robot/planner").error_message
+
+
+def test_a_file_in_the_way_is_neither_written_over_nor_taken_for_the_dump(system_factory, tmp_path):
+    """Found by a newcomer: a directory where the dump was to go was
+    reported as the dump ("core dump written: 0 MiB")."""
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    pid = robot.node("/robot/map_server").pid
+    in_the_way = dumps / f"core.robot.map_server.{pid}"
+    in_the_way.mkdir()
+    robot.kill("/robot/map_server", signal.SIGSEGV)
+    crashed = robot.wait_crashed("/robot/map_server", timeout=60)
+    assert f"no core dump: something is in the way: {in_the_way}" in crashed.error_message, crashed.error_message
+    assert in_the_way.is_dir() and list(in_the_way.iterdir()) == []
 
 
 def test_two_nodes_crashing_at_once_are_dumped_one_after_the_other(system_factory, tmp_path):

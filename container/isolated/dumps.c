@@ -154,6 +154,13 @@ static const char *last_line(void)
     }
 }
 
+/* gdb wrote path: a regular file (start_next saw nothing there before). */
+static bool written(const char *path)
+{
+    struct stat st;
+    return lstat(path, &st) == 0 && S_ISREG(st.st_mode);
+}
+
 static int spawn_helper(char *const argv[], int64_t now)
 {
     if (ftruncate(g_log, 0) < 0)
@@ -209,8 +216,14 @@ static void start_next(int64_t now)
         g_queue = c->dump_next;
         c->dump_next = NULL;
         g_child = c;
+        struct stat st;
         if (!read_path(c)) {
             say(c, "no file was named for it", NULL);
+            finish(CG_CORE_FAILED);
+            continue;
+        }
+        if (lstat(g_path, &st) == 0) {   /* not ours: never written over, */
+            say(c, "something is in the way: ", g_path);   /* taken or removed */
             finish(CG_CORE_FAILED);
             continue;
         }
@@ -248,7 +261,7 @@ static void helper_ended(int64_t now)
             if (c)
                 say(c, "gdb took over " STR(HELPER_S) " s and was ended", NULL);
             finish(CG_CORE_FAILED);
-        } else if (access(g_path, F_OK) != 0) {
+        } else if (!written(g_path)) {
             const char *line = last_line();
             say(c, "gdb wrote none: ", line[0] ? line : "no output");
             finish(CG_CORE_FAILED);
