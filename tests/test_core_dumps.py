@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -192,3 +193,72 @@ def test_core_dumps_that_cannot_be_written_are_refused_at_start_up(tmp_path, arg
     proc = subprocess.run([CONTAINER, *argv], env={**os.environ, **env}, capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and says in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "dumps").exists() or says != "it needs gdb"
+
+
+def test_a_node_crashing_while_it_waits_for_the_gil_holds_nobody_up_during_its_dump(tmp_path):
+    """Found by CI (1 run in ~10 under load): a node SIGSEGV'd while it
+    waited for the GIL kept its place in the GIL's condvar while it waited
+    for its dump, so the next thread to hand the GIL on waited for it too,
+    holding the GIL's mutex: all of the container's Python stood still for
+    the dump, and two dumps in a row outlasted the watchdog. Here the dump
+    is held back (gdb starts only when `released` appears, 5 s on); this
+    thread and a counting one must get the GIL back long before that. (With
+    no other thread wanting the GIL, this one would wait anyway, in
+    drop_gil, to hand it to the waiter that asked for it: the container
+    always has others.)"""
+    from cloneguard.container.isolated import core_dumps
+    from cloneguard.container.isolated.core import CloneCore, Repair
+
+    if (why := core_dumps.unavailable(tmp_path)) is not None:
+        pytest.skip(why)
+    real = core_dumps.tools()
+    gate, released = tmp_path / "gate", tmp_path / "released"
+    os.mkfifo(gate)
+    gdb = tmp_path / "gdb"
+    gdb.write_text(f'#!/bin/sh\nread go < "{gate}"\nexec "{real.gdb}" "$@"\n')
+    gdb.chmod(0o755)
+    dump = tmp_path / "core.waiter"
+    core = CloneCore(dump_tools=core_dumps.Tools(str(gdb), real.fallocate))
+    counting = [0, True]
+
+    def count():
+        while counting[1]:
+            counting[0] += 1
+
+    counter = threading.Thread(target=count, daemon=True)
+    counter.start()
+    helpers: list[subprocess.Popen] = []
+    try:
+        running = threading.Event()
+
+        def child():
+            running.set()
+            while True:
+                sum(range(10))
+
+        c = core.spawn(child)
+        core.name_dump(c, str(dump))
+        assert running.wait(10)
+        killer = subprocess.Popen(["sh", "-c", f"sleep 0.3; kill -SEGV {c.pid}"])
+        opener = subprocess.Popen(["sh", "-c", f'sleep 5; : > "{released}"; echo go 1<>"{gate}"'])
+        helpers += [killer, opener]
+        ctypes.PyDLL(None).usleep(800_000)  # the GIL held: the child waits for it when the signal comes
+        before = counting[0]
+        time.sleep(0.2)
+        assert counting[0] > before and not released.exists(), "Python ran again only once the dump was let through"
+        assert killer.wait(10) == 0 and opener.wait(30) == 0
+        death = core.wait(c, 120)
+        assert death is not None and death.exit_signal == signal.SIGSEGV
+        assert death.core_file == str(dump) and _is_core_file(dump), death.core_missing
+        assert Repair.COND_WAITER in death.repairs, death.repairs
+        core.release(c)
+        # The condvar still works for many hand-overs.
+        sib = core.spawn(lambda: [sum(range(100)) for _ in range(20000)])
+        assert core.wait(sib, 20).exit_code == 0
+        core.release(sib)
+    finally:
+        counting[1] = False
+        counter.join(10)
+        core.close()  # ends a gdb still waiting at the gate
+        for helper in helpers:
+            helper.wait(30)

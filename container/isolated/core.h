@@ -184,12 +184,16 @@ struct cg_child {            /* control block, lives in container memory */
     /* monitor-only */
     int stop_reported;
     int repair_done;         /* gilrepair has looked at this dead child */
+    int gil_ref_dropped;     /* its crashing main task, waiting for its
+                                dump, no longer holds up the GIL's condvar
+                                (repair_step_aside) */
     uint32_t repairs;        /* what it repaired for it */
     int retired;             /* CGA_RETIRE_* (allocguard.h): what it left in
                                 the allocator guard, once reaped */
     struct cg_child *next;
     struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
+    int crash_tid;           /* the task that caught it, */
     int crash_si_code;       /* the fault's si_code (SEGV_PKUERR: 4), */
     int crash_sender;        /* who sent it (si_code <= 0), else 0, */
     int crash_pkey;          /* its key (SEGV_PKUERR), */
@@ -347,6 +351,8 @@ int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
 int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
 void monitor_wake(void);                  /* async-signal-safe */
 void monitor_emit(const struct cg_event *ev);   /* on the monitor thread */
+void repair_step_aside(struct cg_child *c);     /* on the monitor thread:
+                                   c's main task waits for its dump */
 
 /* dumps.c: on the monitor thread, but dumps_ask */
 int dumps_start(int epfd);                /* with cg_config.core_dumps only */

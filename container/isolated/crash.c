@@ -207,6 +207,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         /* The fault, and both stacks, raw: the container writes them once
            it has reported the death. */
         out_flush(&o);
+        c->crash_tid = tid;
         c->crash_si_code = si->si_code;
         c->crash_sender = si->si_code <= 0 ? (int)si->si_pid : 0;
         c->crash_addr = si->si_code > 0 ? si->si_addr : NULL;

@@ -14,7 +14,8 @@
  * GIL, no Python lock, no malloc (the spawn's file actions and attributes
  * are made at start-up), so a task that crashed holding any of them is
  * dumped all the same (if it holds the GIL, the container's Python threads
- * wait for the dump with it).
+ * wait for the dump with it; if it only waited for the GIL, it steps aside
+ * as its request is taken: take_requests).
  *
  * While gdb writes, the allocator guard's reserved and never-used address
  * space is MADV_DONTDUMP (guard_dump_exclude): gdb writes every
@@ -280,11 +281,15 @@ static void helper_ended(int64_t now)
     start_next(now);
 }
 
-/* Every request written so far, onto the queue. */
+/* Every request written so far, onto the queue.  Each asker waits frozen
+   in its crash handler until its dump is written, which may be seconds
+   behind others': if it was waiting for the GIL, it stops holding up those
+   who hand the GIL on (repair_step_aside). */
 static void take_requests(void)
 {
     struct cg_child *c;
     while (read(g_req[0], &c, sizeof c) == sizeof c && c) {
+        repair_step_aside(c);
         struct cg_child **end = &g_queue;
         while (*end)
             end = &(*end)->dump_next;

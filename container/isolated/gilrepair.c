@@ -26,7 +26,10 @@
  *      waits for the reference to go, forever (glibc 2.36's group switch)
  *                                                           -> cancel it
  *      the way pthread_cancel would: glibc's own cleanup routine, which the
- *      waiter registered in its struct pthread (.cleanup) before blocking
+ *      waiter registered in its struct pthread (.cleanup) before blocking;
+ *      a waiter that crashed and waits in its handler for its core dump
+ *      (dumps.c) will never return to its wait either: its reference is
+ *      dropped as soon as it asks (cg_gil_step_aside), the rest at death
  *   4. a condvar's internal lock taken (it died signalling)  -> clear it,
  *      holding the condvar's mutex, once every live task that could hold
  *      it is seen blocked elsewhere (unstick_cond_lock: no owner is
@@ -294,7 +297,7 @@ static bool inside(const void *p, size_t len, const struct cg_dead *d)
     return (const char *)p >= d->stack_lo && (const char *)p + len <= d->stack_hi;
 }
 
-static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
+static bool find_waiter(const struct cg_dead *d, const struct cg_repair_cfg *cfg,
                         struct waiter *w)
 {
     struct _gil_runtime_state *gil = GIL;
@@ -312,7 +315,7 @@ static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
         w->bit = CG_REPAIR_SWITCH_WAITER;
     else
         return false;   /* some other condvar: not ours to touch */
-    w->who = d, w->buf = buf, w->cb = cb;
+    w->who = (struct cg_dead *)d, w->buf = buf, w->cb = cb;
     w->cond = cb->cond, w->mutex = cb->mutex;
     return true;
 }
@@ -345,6 +348,18 @@ static unsigned pending_on(const struct waiter *w, int nw, int from,
     return k;
 }
 
+bool cg_gil_step_aside(const struct cg_dead *d, const struct cg_repair_cfg *cfg)
+{
+    struct waiter w;
+    if (!cfg->condvar || !cfg->cond_cleanup || !find_waiter(d, cfg, &w))
+        return false;
+    /* Its futex wait is interrupted by the crash handler, which ends in
+       the task's death: the wait never resumes to drop the reference
+       itself.  Its registration stays for the repair to cancel. */
+    drop_group_ref(&w);
+    return true;
+}
+
 uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg)
 {
     struct _gil_runtime_state *gil = GIL;
@@ -365,7 +380,8 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
             if (find_waiter(&d[i], cfg, &w[nw]))
                 nw++;
         for (int i = 0; i < nw; i++)
-            drop_group_ref(&w[i]);
+            if (!w[i].who->ref_dropped)   /* else cg_gil_step_aside did */
+                drop_group_ref(&w[i]);
     }
 
     /* 1. Mutexes a dead task owns.  If it owned both, it was in take_gil's

@@ -143,6 +143,33 @@ static bool child_is_dead(struct cg_child *c)
     return si.si_pid != 0;
 }
 
+/* What the repair (gilrepair.c) knows of child c's main task. */
+static struct cg_dead as_dead(const struct cg_child *c)
+{
+    return (struct cg_dead){.pid = c->pid, .tcb = c->tcb, .stack_lo = c->map,
+                            .stack_hi = c->map + c->map_len,
+                            .slot = c->ctx ? c->ctx->slot : 0,
+                            .ref_dropped = c->gil_ref_dropped};
+}
+
+static struct cg_repair_cfg repair_cfg(void)
+{
+    return (struct cg_repair_cfg){g_cfg.gil_repair, g_cfg.condvar_repair, g_cfg.interp_repair,
+                                  g_layout.cleanup, (uintptr_t)g_layout.cond_cleanup};
+}
+
+void repair_step_aside(struct cg_child *c)
+{
+    /* Only the main task is described (tcb, stack); another crashing
+       task leaves it running, free to end its wait itself. */
+    if (c->crash_tid != c->pid)
+        return;
+    struct cg_dead d = as_dead(c);
+    struct cg_repair_cfg cfg = repair_cfg();
+    if (!c->gil_ref_dropped && cg_gil_step_aside(&d, &cfg))
+        c->gil_ref_dropped = 1;
+}
+
 /* Undo what dead children left in the GIL (gilrepair.c): every dead child
    not looked at yet, so that one repair never waits for a lock or a
    condvar reference another dead child holds. */
@@ -155,12 +182,10 @@ static void repair_after_death(struct cg_child *reaped)
     int n = 0;
     for (struct cg_child *c = g_children; c && n < 32; c = c->next)
         if (!c->repair_done && (c == reaped || child_is_dead(c))) {
-            d[n] = (struct cg_dead){c->pid, c->tcb, c->map, c->map + c->map_len,
-                                    c->ctx ? c->ctx->slot : 0, 0, NULL, 0};
+            d[n] = as_dead(c);
             who[n++] = c;
         }
-    struct cg_repair_cfg cfg = {g_cfg.gil_repair, g_cfg.condvar_repair, g_cfg.interp_repair,
-                                g_layout.cleanup, (uintptr_t)g_layout.cond_cleanup};
+    struct cg_repair_cfg cfg = repair_cfg();
     uint32_t misc = cg_gil_repair(d, n, &cfg);
     for (int i = 0; i < n; i++) {
         who[i]->repairs |= d[i].repairs;

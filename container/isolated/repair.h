@@ -8,6 +8,7 @@
 #ifndef CLONEGUARD_REPAIR_H
 #define CLONEGUARD_REPAIR_H
 
+#include <stdbool.h>
 #include <stdint.h>
 #include <sys/types.h>
 
@@ -45,6 +46,9 @@ struct cg_dead {
     void *gil_code;         /* out: it held the GIL: its innermost Python
                                frame's code object (NULL: none), */
     int gil_lasti;          /* ... and instruction offset */
+    int ref_dropped;        /* in: cg_gil_step_aside dropped its condvar
+                               group reference while it waited for its
+                               core dump */
 };
 
 struct cg_repair_cfg {
@@ -70,6 +74,15 @@ struct cg_cond_cbuf {
 /* gilrepair.c.  Runs on the monitor thread, never takes the GIL.  Returns
    repairs that belong to no particular dead task. */
 uint32_t cg_gil_repair(struct cg_dead *dead, int n, const struct cg_repair_cfg *cfg);
+/* gilrepair.c, on the monitor thread, for a child whose crashing main task
+   waits in its crash handler (for its core dump) and will never return to
+   what it was doing: if it was blocked on one of the GIL's condvars, drop
+   the group reference it holds there, so that no live signaller waits for
+   it until it dies (each one would hold gil->mutex meanwhile, and every
+   Python thread would wait for the dump).  d describes the task as for the
+   repair; true if a reference was dropped (then the repair after its death
+   must be told: cg_dead.ref_dropped). */
+bool cg_gil_step_aside(const struct cg_dead *d, const struct cg_repair_cfg *cfg);
 
 /* interp.c: the interpreter after a death with the GIL held (slot: the
    dead task's, 0 if none; dead: its thread state), called while the GIL is
@@ -128,7 +141,6 @@ int cg_frame_text(void *code, int lasti, char *buf, int size);
 
 /* interp.c: read len bytes at addr into out without faulting (false where
    any is unmapped).  What a dead task left is read only so. */
-#include <stdbool.h>
 #include <stddef.h>
 bool cg_peek(const void *addr, void *out, size_t len);
 #define PEEK(addr, var) cg_peek((addr), &(var), sizeof(var))
