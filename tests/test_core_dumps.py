@@ -11,10 +11,10 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
+from gil_waiters import Counter, signal_while_gil_held, spawn_busy
 from std_msgs.msg import Float64
 
 from cloneguard.harness import procfs, stops
@@ -219,34 +219,18 @@ def test_a_node_crashing_while_it_waits_for_the_gil_holds_nobody_up_during_its_d
     gdb.chmod(0o755)
     dump = tmp_path / "core.waiter"
     core = CloneCore(dump_tools=core_dumps.Tools(str(gdb), real.fallocate))
-    counting = [0, True]
-
-    def count():
-        while counting[1]:
-            counting[0] += 1
-
-    counter = threading.Thread(target=count, daemon=True)
-    counter.start()
+    counter = Counter()
     helpers: list[subprocess.Popen] = []
     try:
-        running = threading.Event()
-
-        def child():
-            running.set()
-            while True:
-                sum(range(10))
-
-        c = core.spawn(child)
+        c = spawn_busy(core)
         core.name_dump(c, str(dump))
-        assert running.wait(10)
-        killer = subprocess.Popen(["sh", "-c", f"sleep 0.3; kill -SEGV {c.pid}"])
         opener = subprocess.Popen(["sh", "-c", f'sleep 5; : > "{released}"; echo go 1<>"{gate}"'])
-        helpers += [killer, opener]
-        ctypes.PyDLL(None).usleep(800_000)  # the GIL held: the child waits for it when the signal comes
-        before = counting[0]
-        time.sleep(0.2)
-        assert counting[0] > before and not released.exists(), "Python ran again only once the dump was let through"
-        assert killer.wait(10) == 0 and opener.wait(30) == 0
+        helpers.append(opener)
+        signal_while_gil_held(c.pid, "SEGV")
+        assert counter.advances(timeout=1.0) and not released.exists(), (
+            "Python ran again only once the dump was let through"
+        )
+        assert opener.wait(30) == 0
         death = core.wait(c, 120)
         assert death is not None and death.exit_signal == signal.SIGSEGV
         assert death.core_file == str(dump) and _is_core_file(dump), death.core_missing
@@ -257,8 +241,7 @@ def test_a_node_crashing_while_it_waits_for_the_gil_holds_nobody_up_during_its_d
         assert core.wait(sib, 20).exit_code == 0
         core.release(sib)
     finally:
-        counting[1] = False
-        counter.join(10)
+        counter.stop()
         core.close()  # ends a gdb still waiting at the gate
         for helper in helpers:
             helper.wait(30)

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from gil_waiters import Counter, signal_while_gil_held, spawn_busy
 
 from cloneguard.bench import random_kill as killbench
 from cloneguard.container.isolated.core import CloneCore, Repair
@@ -28,33 +29,6 @@ from cloneguard.container.isolated.core_events import INTERPRETER_REPAIRS
 from cloneguard.faults._gilfault import lib as gilfault
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-class Counter:
-    """A Python thread of the container that counts while the GIL is free."""
-
-    def __init__(self) -> None:
-        self.value = 0
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop:
-            self.value += 1
-
-    def advances(self, timeout: float = 5.0) -> bool:
-        start = self.value
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            time.sleep(0.005)
-            if self.value != start:
-                return True
-        return False
-
-    def stop(self) -> None:
-        self._stop = True
-        self._thread.join(5)
 
 
 @pytest.fixture
@@ -168,18 +142,8 @@ def test_a_child_killed_while_waiting_for_the_gil_is_cancelled(core, counter):
     """This thread keeps the GIL in a C call (ctypes.PyDLL keeps it held) so
     the child blocks in take_gil's wait on gil->cond; another process kills
     it there.  Its condvar registration must be cancelled."""
-    running = threading.Event()
-
-    def child():
-        running.set()
-        while True:
-            sum(range(10))
-
-    c = core.spawn(child)
-    assert running.wait(10)
-    killer = subprocess.Popen(["sh", "-c", f"sleep 0.3; kill -9 {c.pid}"])
-    ctypes.PyDLL(None).usleep(800_000)  # the GIL held throughout
-    killer.wait(10)
+    c = spawn_busy(core)
+    signal_while_gil_held(c.pid, "KILL")
     death = core.wait(c, 10)
     assert death is not None and death.exit_signal == signal.SIGKILL
     assert Repair.COND_WAITER in death.repairs, death.repairs
