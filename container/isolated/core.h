@@ -193,8 +193,6 @@ struct cg_child {            /* control block, lives in container memory */
     struct cg_child *next;
     struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
-    int died_of;             /* the fatal signal it ends itself for with
-                                SIGKILL (monitor.c reports that), 0: none */
     int crash_tid;           /* the task that caught it, */
     int crash_si_code;       /* the fault's si_code (SEGV_PKUERR: 4), */
     int crash_sender;        /* who sent it (si_code <= 0), else 0, */

@@ -132,8 +132,7 @@ static void wait_for_dump(struct cg_child *c, bool timer_ok, int timer)
 /* One report on fd 2, then the same death as without us: the handler was
    installed SA_RESETHAND, so the disposition is SIG_DFL again, and the
    signal is re-sent to this thread; it is delivered (and kills the child)
-   as the handler returns.  (A child ends itself with SIGKILL first, which
-   the monitor reports as the signal: see the end.)  A fault inside here kills at once (SIG_DFL).
+   as the handler returns.  A fault inside here kills at once (SIG_DFL).
    Everything used is async-signal-safe, except backtrace (its unwinder was
    loaded by cg_start; on glibc 2.35+ it finds FDEs without locks), the
    Python stack dump (faulthandler's, lock-free) and, in a thread the child
@@ -239,15 +238,6 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         struct itimerspec off = {{0, 0}, {0, 0}};
         if (timer_ok)
             syscall(SYS_timer_settime, timer, 0, &off, NULL);
-    } else if (c && !(c->flags & CG_FLAG_ALLOW_CORE)) {
-        /* A child: SIGKILL, not the signal itself.  A fatal SIGSEGV & co.
-           takes the kernel's core-dump path even with RLIMIT_CORE=1
-           (child.c): it stops every task of the process and waits for each
-           before it finds it may not write (one more round of waking them
-           all; ~15 tasks in a node process).  The monitor reports the
-           death as of died_of, as waitid would have. */
-        __atomic_store_n(&c->died_of, sig, __ATOMIC_RELEASE);
-        syscall(SYS_kill, pid, SIGKILL);
     }
     syscall(SYS_tgkill, pid, tid, sig);
     errno = saved;

@@ -233,9 +233,6 @@ static void reap(struct cg_child *c, int64_t t)
        It is dead, the status is lost: report code 0. */
     int status = r == 0 ? si.si_status : -1;
     int code = r == 0 ? si.si_code : 0;
-    int died_of = __atomic_load_n(&c->died_of, __ATOMIC_ACQUIRE);
-    if (code == CLD_KILLED && status == SIGKILL && died_of)
-        status = died_of;        /* its crash handler's SIGKILL (crash.c) */
 
     repair_after_death(c);
     /* Every task of the child is gone: whether it died inside the allocator
