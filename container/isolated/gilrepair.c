@@ -297,7 +297,7 @@ static bool inside(const void *p, size_t len, const struct cg_dead *d)
     return (const char *)p >= d->stack_lo && (const char *)p + len <= d->stack_hi;
 }
 
-static bool find_waiter(const struct cg_dead *d, const struct cg_repair_cfg *cfg,
+static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
                         struct waiter *w)
 {
     struct _gil_runtime_state *gil = GIL;
@@ -315,7 +315,7 @@ static bool find_waiter(const struct cg_dead *d, const struct cg_repair_cfg *cfg
         w->bit = CG_REPAIR_SWITCH_WAITER;
     else
         return false;   /* some other condvar: not ours to touch */
-    w->who = (struct cg_dead *)d, w->buf = buf, w->cb = cb;
+    w->who = d, w->buf = buf, w->cb = cb;
     w->cond = cb->cond, w->mutex = cb->mutex;
     return true;
 }
@@ -348,7 +348,7 @@ static unsigned pending_on(const struct waiter *w, int nw, int from,
     return k;
 }
 
-bool cg_gil_step_aside(const struct cg_dead *d, const struct cg_repair_cfg *cfg)
+bool cg_gil_step_aside(struct cg_dead *d, const struct cg_repair_cfg *cfg)
 {
     struct waiter w;
     if (!cfg->condvar || !cfg->cond_cleanup || !find_waiter(d, cfg, &w))

@@ -161,13 +161,15 @@ static struct cg_repair_cfg repair_cfg(void)
 void repair_step_aside(struct cg_child *c)
 {
     /* Only the main task is described (tcb, stack); another crashing
-       task leaves it running, free to end its wait itself. */
-    if (c->crash_tid != c->pid)
+       task leaves it running, free to end its wait itself.  A request
+       taken after the asker's death (dumps_forget empties the pipe after
+       the repair) is the repair's: it dropped the reference already, and
+       a waiter it could not cancel still looks registered. */
+    if (c->crash_tid != c->pid || c->repair_done)
         return;
     struct cg_dead d = as_dead(c);
     struct cg_repair_cfg cfg = repair_cfg();
-    if (!c->gil_ref_dropped && cg_gil_step_aside(&d, &cfg))
-        c->gil_ref_dropped = 1;
+    c->gil_ref_dropped = cg_gil_step_aside(&d, &cfg);
 }
 
 /* Undo what dead children left in the GIL (gilrepair.c): every dead child

@@ -82,7 +82,7 @@ uint32_t cg_gil_repair(struct cg_dead *dead, int n, const struct cg_repair_cfg *
    Python thread would wait for the dump).  d describes the task as for the
    repair; true if a reference was dropped (then the repair after its death
    must be told: cg_dead.ref_dropped). */
-bool cg_gil_step_aside(const struct cg_dead *d, const struct cg_repair_cfg *cfg);
+bool cg_gil_step_aside(struct cg_dead *d, const struct cg_repair_cfg *cfg);
 
 /* interp.c: the interpreter after a death with the GIL held (slot: the
    dead task's, 0 if none; dead: its thread state), called while the GIL is
