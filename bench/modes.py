@@ -24,7 +24,7 @@ MODES = {
     "thread-mt": ("thread mode (multi-threaded executor)", ["--use_multi_threaded_executor"]),
     # What memory protection keys cost, side by side with the same allocator
     # without them (named with --modes only; --pkeys needs a CPU with PKU).
-    "isolated-jemalloc": ("isolated, per-node, jemalloc", ["--isolated", "--jemalloc"]),
+    "isolated-jemalloc": ("isolated, per-node, jemalloc, --no-pkeys", ["--isolated", "--jemalloc", "--no-pkeys"]),
     "isolated-pkeys": ("isolated, per-node, jemalloc, --pkeys", ["--isolated", "--jemalloc", "--pkeys"]),
 }
 #: the modes every benchmark that takes --modes can run by default

@@ -257,11 +257,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     isolated.add_argument(
         "--pkeys",
-        action="store_true",
-        help="with --jemalloc: each node process's native heap under a memory protection key "
-        "of its own, writable by it and the container only, so that a stray write into "
-        "another node's heap kills the writer before it lands (refused where the CPU or "
-        "kernel has no keys)",
+        action="store_const",
+        const=True,
+        default=None,
+        help="each node process's native heap under a memory protection key of its own, writable "
+        "by it and the container only, so that a stray write into another node's heap kills the "
+        "writer before it lands; needs --jemalloc and the allocator guard (default: on wherever "
+        "they can be: --jemalloc, the guard, and a CPU and kernel with keys; asked for "
+        "explicitly, refused where they cannot be)",
+    )
+    isolated.add_argument(
+        "--no-pkeys",
+        dest="pkeys",
+        action="store_const",
+        const=False,
+        help="no protection keys over node heaps, even where they could be (to measure without)",
     )
     isolated.add_argument(
         "--core-dumps",
@@ -290,6 +300,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
             "--jemalloc-arenas needs --jemalloc and --no-alloc-guard (the allocator guard "
             "gives every node process an arena of its own)"
         )
+    if "--pkeys" in given and "--no-pkeys" in given:
+        parser.error("--pkeys and --no-pkeys: one or the other")
     if opts.pkeys and not (opts.jemalloc and not opts.no_alloc_guard):
         parser.error(
             "--pkeys needs --jemalloc and the allocator guard (the keys tag the ranges the "
@@ -348,6 +360,45 @@ def _announce_nodes_every(seconds: float, logger) -> None:
     logger.info(f"node processes' participants announce every {after:g} s (the container's own: {before:g} s)")
 
 
+def _heap_keys_wanted(opts: argparse.Namespace) -> bool:
+    """Ask the allocator guard for protection keys as it starts? Asked for
+    (--pkeys), or by default wherever they could be (jemalloc and the
+    guard; the guard finds out whether the CPU and kernel have them)."""
+    if not opts.isolated or opts.pkeys is False:
+        return False
+    return bool(opts.pkeys) or (opts.jemalloc and not opts.no_alloc_guard)
+
+
+def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
+    """Say in the log whether node heaps are under protection keys, and
+    why not; refuse an explicit --pkeys that cannot be had, and keys the
+    guard holds where a fact they rest on does not hold (pkeys.c)."""
+    from .isolated import pkeys
+
+    if not _heap_keys_wanted(opts):
+        if opts.pkeys is False:
+            why = "--no-pkeys"
+        elif opts.no_alloc_guard:
+            why = "--no-alloc-guard: the keys tag the ranges the guard's arenas carve node heaps from"
+        else:
+            why = pkeys.cpu_lacks_keys() or pkeys.NEEDS_JEMALLOC
+        logger.info(f"memory protection keys over node heaps: off ({why})")
+        return
+    keys = pkeys.heap_keys()
+    if isinstance(keys, str) and not opts.pkeys:  # the default, where the CPU or kernel has none
+        logger.info(f"memory protection keys over node heaps: off ({pkeys.cpu_lacks_keys() or keys})")
+        return
+    why = keys if isinstance(keys, str) else pkeys.probe().unavailable
+    if why is not None:
+        if opts.pkeys:
+            raise SystemExit(f"component_container: --pkeys is unavailable here: {why}")
+        raise SystemExit(
+            "component_container: protection keys over node heaps (the default with --jemalloc) cannot "
+            f"be had here: {why}; --no-pkeys runs without them"
+        )
+    logger.info(pkeys.heap_keys_describe())
+
+
 def _make_host(opts, argv, executor, context, logger):
     if not opts.isolated:
         return ThreadHost(executor, context)
@@ -373,13 +424,7 @@ def _make_host(opts, argv, executor, context, logger):
             f"core dumps of node processes that crash go to {opts.core_dumps}: each holds "
             "the whole shared address space (every node's memory and the container's)"
         )
-    if opts.pkeys:
-        from .isolated import pkeys
-
-        why = pkeys.heap_keys_unavailable()
-        if why is not None:
-            raise SystemExit(f"component_container: --pkeys is unavailable here: {why}")
-        logger.info(pkeys.heap_keys_describe())
+    _check_heap_keys(opts, logger)
     from .isolated.cgroups import CgroupsUnavailable, NodeCgroups
     from .isolated.core import Mitigations
     from .isolated.host import IsolatedHost
@@ -471,7 +516,7 @@ def _prepare_process(argv: list[str]) -> tuple[argparse.Namespace, tuple[int, in
                 jemalloc=opts.jemalloc,
                 python_pools=not opts.no_python_pools,
                 python_locks=python_locks,
-                pkeys=opts.isolated and opts.pkeys,
+                pkeys=_heap_keys_wanted(opts),
             )
         except allocator.AllocatorUnavailable as exc:
             raise SystemExit(f"component_container: {exc}") from None

@@ -93,7 +93,7 @@ def test_a_wild_write_into_the_containers_state(keys, rig_factory, resilience, r
             "allocator tables land there, and nothing notices"
         ),
     )
-    extra = ("--jemalloc", "--pkeys") if keys else ("--jemalloc",)
+    extra = ("--jemalloc", "--pkeys") if keys else ("--jemalloc", "--no-pkeys")
     trials = FAULTS[TABLES](rig_factory("per-node", extra_args=extra))
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     if keys:

@@ -13,6 +13,7 @@ from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.skips import heap_keys_missing
 
 KEYS = ["--isolated", "--jemalloc", "--pkeys"]
+NO_KEYS = ["--isolated", "--jemalloc", "--no-pkeys"]  # they are on by default with --jemalloc
 MISSING = heap_keys_missing()
 needs_keys = pytest.mark.skipif(MISSING is not None, reason=f"--pkeys: {MISSING}")
 
@@ -22,6 +23,42 @@ def test_pkeys_is_refused_where_there_are_none(container_factory):
     proc = container_factory.start(KEYS)
     assert proc.wait(timeout=60) == 1
     assert "--pkeys is unavailable here: the CPU or kernel has no memory protection keys" in proc.log_text()
+
+
+def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(container_factory):
+    """No flag: with --jemalloc and the guard, keys wherever the CPU and
+    kernel have them (a wild write is caught); elsewhere the log says they
+    are off and why, and the container serves as before."""
+    proc = container_factory.start(["--isolated", "--jemalloc"])
+    client = container_factory.connect(proc)
+    victim = client.load_ok(TESTRIG, "faults::HeapVictim")
+    if MISSING is not None:
+        assert "memory protection keys over node heaps: off (the CPU has no memory protection keys" in (
+            proc.log_text()
+        )
+        return
+    assert "memory protection keys over node heaps: off" not in proc.log_text()
+    writer = client.load_ok(TESTRIG, "faults::WildWriter", parameters={"delay": 0.05})
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
+    assert "protection-key violation: wrote into /heap_victim (pid " in crashed.error_message
+    assert [uid for uid, _ in client.list()] == [victim.unique_id]
+
+
+@pytest.mark.parametrize(
+    ("args", "why"),
+    [
+        (["--isolated"], "node heaps are keyed on jemalloc only (--jemalloc)"),
+        (NO_KEYS, "--no-pkeys"),
+        (["--isolated", "--jemalloc", "--no-alloc-guard"], "--no-alloc-guard"),
+    ],
+    ids=["glibc", "no-pkeys", "no-alloc-guard"],
+)
+def test_the_log_says_why_keys_are_off(args, why, container_factory):
+    proc = container_factory.start(args)
+    container_factory.connect(proc).load_ok(TESTRIG, "faults::HeapVictim")
+    if args == ["--isolated"] and MISSING is not None:  # the CPU's reason comes first
+        why = "the CPU has no memory protection keys"
+    assert f"memory protection keys over node heaps: off ({why}" in proc.log_text()
 
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
@@ -53,7 +90,7 @@ def test_nodes_freeing_and_holding_each_others_memory_never_fault(keys, profile,
     intra-process messages (Python objects, their buffers in the
     publisher's shared arena) whose reference counts another node changes
     and whose last reference it drops."""
-    proc = container_factory.start([*(KEYS if keys else KEYS[:-1]), "--profile", profile])
+    proc = container_factory.start([*(KEYS if keys else NO_KEYS), "--profile", profile])
     client = container_factory.connect(proc)
     client.load_ok(TESTRIG, "faults::MallocDrain")
     client.load_ok(TESTRIG, "faults::MallocHammer", parameters={"delay": 0.0})
@@ -123,7 +160,7 @@ def test_the_garbage_collector_freeing_every_nodes_cycles_never_faults(keys, con
     themselves: the collector runs on a container thread
     (isolated/collector.py), whose finalizers free every node's blocks
     (handed back to their owners); nothing faults."""
-    proc = container_factory.start(KEYS if keys else KEYS[:-1])
+    proc = container_factory.start(KEYS if keys else NO_KEYS)
     client = container_factory.connect(proc)
     for i in range(3):
         client.load_ok(TESTRIG, "faults::CycleMaker", node_name=f"cycles{i}")

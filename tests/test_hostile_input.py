@@ -239,6 +239,7 @@ def test_a_bad_watchdog_value_is_one_line_and_exit_2(flag, value):
         ["--profile=shared"],
         ["--node-watchdog", "5"],
         ["--node-announcement", "1"],
+        ["--no-pkeys"],
     ],
     ids=lambda a: a[0],
 )
@@ -274,6 +275,8 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
         (["--isolated", "--profile", "shared", "--node-announcement", "1"], "--node-announcement needs the per-node"),
         (["--isolated", "--node-announcement", "0.001"], "argument --node-announcement: must be 0"),
         (["--isolated", "--node-announcement", "nan"], "argument --node-announcement: must be 0"),
+        (["--isolated", "--jemalloc", "--pkeys", "--no-pkeys"], "--pkeys and --no-pkeys: one or the other"),
+        (["--isolated", "--pkeys"], "--pkeys needs --jemalloc and the allocator guard"),
     ],
     ids=[
         "shared-arenas-guarded",
@@ -286,6 +289,8 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
         "announcement-shared",
         "announcement-too-short",
         "announcement-nan",
+        "pkeys-both",
+        "pkeys-glibc",
     ],
 )
 def test_an_option_that_means_nothing_here_is_refused_in_one_line(args, needs):

@@ -77,6 +77,34 @@ def probe() -> Support:
     )
 
 
+# Why node heaps on glibc malloc stay unkeyed (protection keys are on by
+# default only where jemalloc is): the guard routes a node process's
+# allocations by caller, the ROS stack's and the interpreter's to memory
+# every node writes (heapkeys.c); glibc picks an arena per thread, not per
+# call, so they would land under the node's key and fault the next node
+# that writes them (Fast DDS's payload pools, rclpy's registry: the isolated
+# README).
+NEEDS_JEMALLOC = (
+    "node heaps are keyed on jemalloc only (--jemalloc): glibc picks an arena per thread, not per "
+    "call, so what the ROS stack allocates in a node process could not stay writable by every node"
+)
+
+
+def cpu_lacks_keys() -> str | None:
+    """Why this CPU or kernel has no protection keys, from /proc/cpuinfo
+    (no probe, no key taken), or None."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError as exc:
+        return f"/proc/cpuinfo unreadable: {exc}"
+    if "pku" not in flags:
+        return "the CPU has no memory protection keys (no pku in /proc/cpuinfo)"
+    if "ospke" not in flags:
+        return "the kernel did not enable memory protection keys (no ospke in /proc/cpuinfo)"
+    return None
+
+
 def heap_keys() -> list[int] | str:
     """The keys the allocator guard holds for node heaps, or why none."""
     from cloneguard.container.isolated._clonecore import ffi, lib
