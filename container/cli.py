@@ -399,6 +399,23 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
     logger.info(pkeys.heap_keys_describe())
 
 
+def _fastdds_intraprocess_off(logger) -> None:
+    """No Fast DDS participant thread delivers into another participant's
+    readers by calling into them (docs/fastdds.md: a node process killed in
+    there leaves the other's locks held; with protection keys it faults)."""
+    from .isolated.dds_defaults import DdsDefaultsUnavailable, intraprocess_off
+
+    try:
+        was = intraprocess_off()
+    except DdsDefaultsUnavailable as exc:
+        raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
+    if was != "OFF":
+        logger.warning(
+            f"Fast DDS intraprocess delivery turned off (the profile had {was}): in an isolated container "
+            "no DDS participant's thread may run inside another one's readers (docs/fastdds.md)"
+        )
+
+
 def _make_host(opts, argv, executor, context, logger):
     if not opts.isolated:
         return ThreadHost(executor, context)
@@ -535,7 +552,9 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
     _ros_init(argv)
     context = rclpy.get_default_context()
     node = Node(DEFAULT_NODE_NAME, context=context)
-    if opts.node_announcement > 0:  # the container's own participant (its Context's) exists now
+    if opts.isolated:  # the container's own participant (its Context's) exists now
+        _fastdds_intraprocess_off(node.get_logger())
+    if opts.node_announcement > 0:
         _announce_nodes_every(opts.node_announcement, node.get_logger())
     if raised_fd_limit:
         node.get_logger().info(

@@ -24,9 +24,12 @@
 
 #include <fastdds/dds/domain/DomainParticipantFactory.hpp>
 #include <fastdds/dds/domain/qos/DomainParticipantQos.hpp>
+#include <fastrtps/xmlparser/XMLProfileManager.h>
 
 using eprosima::fastdds::dds::DomainParticipantFactory;
 using eprosima::fastdds::dds::DomainParticipantQos;
+using eprosima::fastrtps::LibrarySettingsAttributes;
+using eprosima::fastrtps::xmlparser::XMLProfileManager;
 
 extern "C" {
 
@@ -62,5 +65,20 @@ __attribute__((visibility("default"))) int cg_dds_set_announcement(int64_t perio
     d.leaseDuration = eprosima::fastrtps::Duration_t(static_cast<int32_t>(lease_ns / 1000000000),
                                                      static_cast<uint32_t>(lease_ns % 1000000000));
     return factory->set_default_participant_qos(qos) == eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK ? 0 : -1;
+}
+
+// Fast DDS's intraprocess delivery off for every match made from now on;
+// what it was (0 off, 1 user data only, 2 full) in *was. Fast DDS reads
+// the process-wide library settings each time a writer matches a reader
+// of the same process (RTPSDomainImpl::should_intraprocess_between), so
+// this holds for every node participant made after it, whatever the XML
+// profile said (the profile was loaded with the container's participant).
+__attribute__((visibility("default"))) int cg_dds_intraprocess_off(int* was)
+{
+    LibrarySettingsAttributes settings = XMLProfileManager::library_settings();
+    *was = static_cast<int>(settings.intraprocess_delivery);
+    settings.intraprocess_delivery = eprosima::fastrtps::INTRAPROCESS_OFF;
+    XMLProfileManager::library_settings(settings);
+    return 0;
 }
 }

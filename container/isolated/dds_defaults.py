@@ -1,9 +1,10 @@
 """How often the DDS participants of node processes announce themselves
 (dds_defaults.cpp: why only the container's own participant must be found
-fast, and what this rests on).
+fast, and what this rests on), and Fast DDS's intraprocess delivery off.
 
-``announce_nodes_every(seconds)`` is called once, in the container, after
-its own participant exists and before any node process's is made."""
+``announce_nodes_every(seconds)`` and ``intraprocess_off()`` are called
+once, in the container, after its own participant exists and before any
+node process's is made."""
 
 from __future__ import annotations
 
@@ -28,8 +29,9 @@ def _lib() -> ctypes.CDLL:
         lib = ctypes.CDLL(str(LIBRARY))
     except OSError as exc:
         raise DdsDefaultsUnavailable(f"its library was not built or does not load ({exc})") from None
-    for name in ("cg_dds_announcement", "cg_dds_set_announcement"):
+    for name in ("cg_dds_announcement", "cg_dds_set_announcement", "cg_dds_intraprocess_off"):
         getattr(lib, name).restype = ctypes.c_int
+    lib.cg_dds_intraprocess_off.argtypes = [ctypes.POINTER(ctypes.c_int)]
     lib.cg_dds_announcement.argtypes = [ctypes.POINTER(ctypes.c_int64), ctypes.POINTER(ctypes.c_int64)]
     lib.cg_dds_set_announcement.argtypes = [ctypes.c_int64, ctypes.c_int64]
     return lib
@@ -53,3 +55,16 @@ def announce_nodes_every(seconds: float) -> tuple[float, float]:
     if _lib().cg_dds_set_announcement(period_ns, lease_ns) != 0:
         raise DdsDefaultsUnavailable(f"Fast DDS refused an announcement period of {seconds:g} s")
     return before, announcement()[0]
+
+
+#: Fast DDS's IntraprocessDeliveryType, by value
+INTRAPROCESS = ("OFF", "USER_DATA_ONLY", "FULL")
+
+
+def intraprocess_off() -> str:
+    """Fast DDS's intraprocess delivery off for every match made from now
+    on (docs/fastdds.md says why an isolated container needs it); what the
+    profile had (``INTRAPROCESS``)."""
+    was = ctypes.c_int()
+    _lib().cg_dds_intraprocess_off(ctypes.byref(was))
+    return INTRAPROCESS[was.value] if 0 <= was.value < len(INTRAPROCESS) else str(was.value)
