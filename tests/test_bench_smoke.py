@@ -8,7 +8,9 @@ import sys
 import pytest
 
 from cloneguard.bench import __main__ as bench_all
+from cloneguard.bench.modes import MODES
 from cloneguard.bench.results import SUMMARY_COLUMNS
+from cloneguard.container.isolated import pkeys
 from cloneguard.harness.process import REPO_ROOT
 
 # The tables each benchmark writes, with the "tiny" preset's parameters.
@@ -235,3 +237,40 @@ def test_the_discovery_benchmark_probes_from_fresh_processes(tmp_path):
     for t in trials:
         assert t["service_s"] is not None and t["node_s"] <= t["service_s"]
     assert (tmp_path / "discovery.md").exists()
+
+
+def test_the_cost_of_protection_keys_is_measured_where_the_cpu_has_them_and_said_why_not_elsewhere(tiny_run):
+    out, _, _, _ = tiny_run
+    data = json.loads((out / "pkeys_cost.json").read_text())
+    assert [t["columns"] for t in data["tables"]] == [
+        ["measure", MODES["isolated-jemalloc"][0], MODES["isolated-pkeys"][0], "with keys", "verdict"]
+    ]
+    why = pkeys.cpu_lacks_keys()
+    if why is not None:
+        assert data["tables"][0]["rows"] == [] and data["goals"] == []
+        assert [r["verdict"] for r in data["summary"]] == [f"not measured: {why}"]
+        assert f"Not measured on this machine: {why}." in (out / "pkeys_cost.md").read_text()
+        return
+    rows = data["tables"][0]["rows"]
+    assert [r["measure"].split(" (")[0] for r in rows] == [
+        "LoadNode → LOADED at client",
+        "intra-process delivery, 1KiB plain message: publish → callback",
+        "intra-process delivery, 1MiB plain message: publish → callback",
+        "malloc/free 64 B, node process",
+        "malloc/free 4096 B, node process",
+    ]
+    assert all(r["with keys"].endswith("%") and r["verdict"] for r in rows)
+
+
+def test_the_participants_benchmark_compares_the_two_shapes_per_count(tmp_path):
+    from cloneguard.bench import participants
+
+    result = participants.run(counts=[1, 2], settle=0.1, idle=0.2, out=tmp_path, quiet=True)
+    rows = result.tables[0].rows
+    assert [(r["nodes"], r["shape"]) for r in rows] == [
+        (str(n), participants.SHAPES[s]) for n in (1, 2) for s in ("one", "per-node")
+    ]
+    # a participant of its own brings its own Fast DDS threads with it
+    assert all(int(rows[i + 1]["threads"]) > int(rows[i]["threads"]) for i in (0, 2))
+    assert [r["nodes"] for r in result.tables[1].rows] == ["1", "2"]
+    assert (tmp_path / "participants.md").exists()

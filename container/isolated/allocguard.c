@@ -516,6 +516,8 @@ static void *shared_in(int s, size_t n, size_t align, bool zero)
 {
     enter(s);
     drain_mine(s);
+    /* With keys nearly all of a Python node's allocating comes this way. */
+    cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
                                  (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
     leave(s);
