@@ -17,7 +17,18 @@ import sys
 import traceback
 from pathlib import Path
 
-from . import child_start, crash_latency, intra, load_latency, lock_doctor, memory, python_locks, scale, shutdown
+from . import (
+    child_start,
+    crash_latency,
+    intra,
+    load_latency,
+    lock_doctor,
+    memory,
+    pkeys_cost,
+    python_locks,
+    scale,
+    shutdown,
+)
 from .cli import DEFAULT_OUT, command_line
 from .results import SUMMARY_COLUMNS, Table, host, host_line
 
@@ -31,6 +42,7 @@ BENCHMARKS = {
     "python_locks": python_locks,
     "lock_doctor": lock_doctor,
     "scale": scale,
+    "pkeys_cost": pkeys_cost,
 }
 PRESETS = {
     "default": {
@@ -43,6 +55,7 @@ PRESETS = {
         "python_locks": {"rounds": 15, "ops": 200_000},
         "lock_doctor": {"nodes": [1, 10, 40], "threads": 4, "seconds": 5.0},
         "scale": {"counts": [12, 24, 48, 96], "idle": 10.0},
+        "pkeys_cost": {"n": 30, "count": 100},
     },
     "tiny": {
         "child_start": {"n": 2, "n_raw": 2},
@@ -59,6 +72,7 @@ PRESETS = {
             "settle": 0.1,
             "modes": ["thread", "isolated-per-node", "process-per-node"],
         },
+        "pkeys_cost": {"n": 2, "count": 2, "pairs": 20_000, "repeat": 1},
     },
 }
 

@@ -76,6 +76,35 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
     return out
 
 
+def measure_config(
+    label: str, preload: bool, activate: bool, jemalloc: bool, pairs: int, blocks: int, repeat: int
+) -> dict[str, list[float]]:
+    """ns per operation, each measure's repeats, of one configuration (a
+    row of CONFIGS, or KEYED), in a fresh worker process with its preload."""
+    from cloneguard.container import allocator
+
+    env = dict(os.environ)
+    env["LD_PRELOAD"] = " ".join(
+        ([allocator.GUARD_PATH] if preload else []) + ([allocator.jemalloc_path() or ""] if jemalloc else [])
+    )
+    if label == KEYED[0]:
+        env["CLONEGUARD_PKEYS"] = "1"  # what the container's --pkeys sets (heapkeys.c)
+    else:
+        env.pop("CLONEGUARD_PKEYS", None)
+    worker = [str(int(activate)), str(pairs), str(blocks), str(repeat)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "cloneguard.bench.alloc_guard", "--worker", *worker],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=1800,
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"worker ({label}) failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = arg_parser("alloc_guard", __doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=2_000_000)
@@ -92,8 +121,6 @@ def main(argv: list[str] | None = None) -> int:
         activate, pairs, blocks, repeat = (int(x) for x in args.worker)
         print(json.dumps(_worker(bool(activate), pairs, blocks, repeat)))
         return 0
-    from cloneguard.container import allocator
-
     configs = list(CONFIGS)
     if args.pkeys:
         from cloneguard.container.isolated import pkeys
@@ -102,34 +129,10 @@ def main(argv: list[str] | None = None) -> int:
         if why:
             raise SystemExit(f"--pkeys cannot be measured here: {why}")
         configs.append(KEYED)
-    raw = {}
-    for label, preload, activate, jemalloc in configs:
-        env = dict(os.environ)
-        env["LD_PRELOAD"] = " ".join(
-            ([allocator.GUARD_PATH] if preload else []) + ([allocator.jemalloc_path()] if jemalloc else [])
-        )
-        if label == KEYED[0]:
-            env["CLONEGUARD_PKEYS"] = "1"  # what the container's --pkeys sets (heapkeys.c)
-        proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "cloneguard.bench.alloc_guard",
-                "--worker",
-                str(int(activate)),
-                str(args.pairs),
-                str(args.blocks),
-                str(args.repeat),
-            ],
-            capture_output=True,
-            text=True,
-            env=env,
-            cwd=REPO_ROOT,
-            timeout=1800,
-        )
-        if proc.returncode != 0:
-            raise SystemExit(f"worker ({label}) failed:\n{proc.stderr[-3000:]}")
-        raw[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+    raw = {
+        label: measure_config(label, preload, activate, jemalloc, args.pairs, args.blocks, args.repeat)
+        for label, preload, activate, jemalloc in configs
+    }
     measures = list(next(iter(raw.values())))
     table = Table("ns per operation (median of the repeats)", ["measure", *[c[0] for c in configs]])
     for m in measures:

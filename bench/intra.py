@@ -241,8 +241,10 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
     return out
 
 
-def measure(session: Session, sizes: list[int], transports: list[str], p: dict, floor: bool = True) -> dict:
-    running = session.start(MODE)
+def measure(
+    session: Session, sizes: list[int], transports: list[str], p: dict, floor: bool = True, mode: str = MODE
+) -> dict:
+    running = session.start(mode)
     data = {}
     index = 0
     try:

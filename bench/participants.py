@@ -31,9 +31,10 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from cloneguard.harness import domains
-from cloneguard.harness.process import REPO_ROOT, process_environment
+from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, process_environment
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .results import Result, Table
@@ -92,14 +93,14 @@ def _worker(shape: str, n: int, settle: float, idle: float, arenas: str) -> dict
     return {"made_s": made_s, "pss_kib": pss, "pss_before_kib": base_pss, "cpu_share": cpu, "threads": threads}
 
 
-def measure(counts: list[int], settle: float, idle: float, arenas: str) -> dict:
+def measure(counts: list[int], settle: float, idle: float, arenas: str, profile: Path = NO_SHM_PROFILE) -> dict:
     """Figures by count and shape, each from a fresh worker process."""
     data: dict[int, dict[str, dict]] = {}
     for n in counts:
         for shape in SHAPES:  # the two shapes of one count in turn
             lease = domains.lease()
             try:
-                env = process_environment(lease.domain_id)
+                env = process_environment(lease.domain_id, fastdds_profile=profile)
                 proc = subprocess.run(
                     [
                         sys.executable,
@@ -132,13 +133,16 @@ def run(
     settle: float = 15.0,
     idle: float = 10.0,
     arenas: str = "per-task",
+    fastdds_profile: Path = NO_SHM_PROFILE,
     out=DEFAULT_OUT,
     keep_logs: bool = False,
     quiet: bool = False,
 ) -> Result:
     del keep_logs  # no container: nothing logs
     args = {"counts": list(counts), "settle": settle, "idle": idle, "arenas": arenas}
-    data = measure(list(counts), settle, idle, arenas)
+    if Path(fastdds_profile) != NO_SHM_PROFILE:
+        args["fastdds_profile"] = str(fastdds_profile)
+    data = measure(list(counts), settle, idle, arenas, Path(fastdds_profile))
     table = Table(
         "By node count and shape (one worker process each)",
         ["nodes", "shape", "make all (s)", "PSS (MiB)", "idle CPU (% of a core)", "threads"],
@@ -195,13 +199,26 @@ def main(argv=None) -> int:
         help="glibc malloc with an arena per thread, as the isolated container has it, or glibc's own few "
         "(default: %(default)s)",
     )
+    parser.add_argument(
+        "--fastdds-profile",
+        type=Path,
+        default=NO_SHM_PROFILE,
+        help="the Fast DDS XML profile the workers run under (default: the harness's no-SHM one)",
+    )
     parser.add_argument("--worker", nargs=5, help=argparse_hidden())
     opts = parser.parse_args(argv)
     if opts.worker:
         shape, n, settle, idle, arenas = opts.worker
         print(json.dumps(_worker(shape, int(n), float(settle), float(idle), arenas)))
         return 0
-    run(counts=opts.counts, settle=opts.settle, idle=opts.idle, arenas=opts.arenas, out=opts.out)
+    run(
+        counts=opts.counts,
+        settle=opts.settle,
+        idle=opts.idle,
+        arenas=opts.arenas,
+        fastdds_profile=opts.fastdds_profile,
+        out=opts.out,
+    )
     return 0
 
 
