@@ -301,12 +301,21 @@ HIDDEN void hk_refresh_shared(void)
     (void)old;                              /* a node process may still read it */
 }
 
-HIDDEN int hk_shared_caller(const void *pc)
+/* Per thread, the answers for the last few callers, each with the table it
+   came from: a table is never freed or changed once published, so an entry
+   from an older one is recognised by its pointer and looked up again.
+   Nearly all of a node process's allocating comes from a handful of call
+   sites (the interpreter's, rcl's, Fast DDS's), so most calls find theirs
+   here instead of searching the table (every malloc asks). */
+#define CALLER_CACHE 8
+static __thread struct {
+    const void *pc;
+    const struct table *t;
+    int shared;
+} t_callers[CALLER_CACHE] __attribute__((tls_model("initial-exec")));
+
+static int search(const struct table *t, uintptr_t a)
 {
-    const struct table *t = atomic_load_explicit(&g_shared, memory_order_acquire);
-    if (!t)
-        return 0;
-    uintptr_t a = (uintptr_t)pc;
     int lo = 0, hi = t->n - 1;
     while (lo <= hi) {
         int mid = (lo + hi) / 2;
@@ -318,4 +327,19 @@ HIDDEN int hk_shared_caller(const void *pc)
             return 1;
     }
     return 0;
+}
+
+HIDDEN int hk_shared_caller(const void *pc)
+{
+    const struct table *t = atomic_load_explicit(&g_shared, memory_order_acquire);
+    if (!t)
+        return 0;
+    unsigned i = (unsigned)((uintptr_t)pc >> 2) % CALLER_CACHE;
+    if (t_callers[i].pc == pc && t_callers[i].t == t)
+        return t_callers[i].shared;
+    int shared = search(t, (uintptr_t)pc);
+    t_callers[i].pc = pc;
+    t_callers[i].t = t;
+    t_callers[i].shared = shared;
+    return shared;
 }
