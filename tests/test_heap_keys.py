@@ -32,12 +32,11 @@ def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(containe
     proc = container_factory.start(["--isolated", "--jemalloc"])
     client = container_factory.connect(proc)
     victim = client.load_ok(TESTRIG, "faults::HeapVictim")
+    log = proc.log_text()
     if MISSING is not None:
-        assert "memory protection keys over node heaps: off (the CPU has no memory protection keys" in (
-            proc.log_text()
-        )
+        assert "memory protection keys over node heaps: off (the CPU has no memory protection keys" in log
         return
-    assert "memory protection keys over node heaps: off" not in proc.log_text()
+    assert "memory protection keys over node heaps: off" not in log
     writer = client.load_ok(TESTRIG, "faults::WildWriter", parameters={"delay": 0.05})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
     assert "protection-key violation: wrote into /heap_victim (pid " in crashed.error_message
