@@ -388,13 +388,13 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
     if isinstance(keys, str) and not opts.pkeys:  # the default, where the CPU or kernel has none
         logger.info(f"memory protection keys over node heaps: off ({pkeys.cpu_lacks_keys() or keys})")
         return
-    why = keys if isinstance(keys, str) else pkeys.probe().unavailable
-    if why is not None:
+    broken = keys if isinstance(keys, str) else pkeys.probe().unavailable
+    if broken is not None:
         if opts.pkeys:
-            raise SystemExit(f"component_container: --pkeys is unavailable here: {why}")
+            raise SystemExit(f"component_container: --pkeys is unavailable here: {broken}")
         raise SystemExit(
             "component_container: protection keys over node heaps (the default with --jemalloc) cannot "
-            f"be had here: {why}; --no-pkeys runs without them"
+            f"be had here: {broken}; --no-pkeys runs without them"
         )
     logger.info(pkeys.heap_keys_describe())
 
