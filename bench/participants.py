@@ -43,6 +43,13 @@ NAME = "participants"
 TITLE = "A DDS participant per node: what it costs in one process, by node count"
 SHAPES = {"one": "one participant, N nodes", "per-node": "a participant per node"}
 NODE_ANNOUNCEMENT_S = 3.0  # the container's default for node processes' participants
+# The nodes' endpoints, which every other participant keeps a proxy of:
+# rclpy's defaults (6 parameter services, /rosout, /parameter_events), or
+# without the parameter services and /rosout.
+NODE_OPTIONS: dict[str, dict] = {
+    "all": {},
+    "minimal": {"start_parameter_services": False, "enable_rosout": False},
+}
 
 
 def _pss_kib() -> int:
@@ -55,7 +62,7 @@ def _cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def _worker(shape: str, n: int, settle: float, idle: float, arenas: str) -> dict:
+def _worker(shape: str, n: int, settle: float, idle: float, arenas: str, endpoints: str) -> dict:
     if arenas == "per-task":
         from cloneguard.container import allocator
 
@@ -78,7 +85,7 @@ def _worker(shape: str, n: int, settle: float, idle: float, arenas: str) -> dict
             ctx = Context()
             rclpy.init(context=ctx)
             contexts.append(ctx)
-        nodes.append(Node(f"n{i}", context=contexts[-1]))
+        nodes.append(Node(f"n{i}", context=contexts[-1], **NODE_OPTIONS[endpoints]))
     made_s = time.monotonic() - t0
     time.sleep(settle)
     pss = _pss_kib()
@@ -93,7 +100,9 @@ def _worker(shape: str, n: int, settle: float, idle: float, arenas: str) -> dict
     return {"made_s": made_s, "pss_kib": pss, "pss_before_kib": base_pss, "cpu_share": cpu, "threads": threads}
 
 
-def measure(counts: list[int], settle: float, idle: float, arenas: str, profile: Path = NO_SHM_PROFILE) -> dict:
+def measure(
+    counts: list[int], settle: float, idle: float, arenas: str, profile: Path = NO_SHM_PROFILE, endpoints: str = "all"
+) -> dict:
     """Figures by count and shape, each from a fresh worker process."""
     data: dict[int, dict[str, dict]] = {}
     for n in counts:
@@ -112,6 +121,7 @@ def measure(counts: list[int], settle: float, idle: float, arenas: str, profile:
                         str(settle),
                         str(idle),
                         arenas,
+                        endpoints,
                     ],
                     capture_output=True,
                     text=True,
@@ -134,15 +144,16 @@ def run(
     idle: float = 10.0,
     arenas: str = "per-task",
     fastdds_profile: Path = NO_SHM_PROFILE,
+    endpoints: str = "all",
     out=DEFAULT_OUT,
     keep_logs: bool = False,
     quiet: bool = False,
 ) -> Result:
     del keep_logs  # no container: nothing logs
-    args = {"counts": list(counts), "settle": settle, "idle": idle, "arenas": arenas}
+    args = {"counts": list(counts), "settle": settle, "idle": idle, "arenas": arenas, "endpoints": endpoints}
     if Path(fastdds_profile) != NO_SHM_PROFILE:
         args["fastdds_profile"] = str(fastdds_profile)
-    data = measure(list(counts), settle, idle, arenas, Path(fastdds_profile))
+    data = measure(list(counts), settle, idle, arenas, Path(fastdds_profile), endpoints)
     table = Table(
         "By node count and shape (one worker process each)",
         ["nodes", "shape", "make all (s)", "PSS (MiB)", "idle CPU (% of a core)", "threads"],
@@ -174,6 +185,12 @@ def run(
         "no timer, no executor: what is measured is rclpy's Context and Fast DDS, not the container.",
         f"A participant per node: the first Context's participant at the profile's announcement period (100 ms), "
         f"the node's at {NODE_ANNOUNCEMENT_S:g} s, as in a per-node container.",
+        "Each node's endpoints: "
+        + (
+            "rclpy's defaults (6 parameter services, /rosout, /parameter_events)."
+            if endpoints == "all"
+            else "no parameter services and no /rosout (start_parameter_services=False, enable_rosout=False)."
+        ),
         "glibc malloc, "
         + (
             "an arena per thread (mallopt M_ARENA_MAX, as the isolated container without --jemalloc)."
@@ -205,11 +222,18 @@ def main(argv=None) -> int:
         default=NO_SHM_PROFILE,
         help="the Fast DDS XML profile the workers run under (default: the harness's no-SHM one)",
     )
-    parser.add_argument("--worker", nargs=5, help=argparse_hidden())
+    parser.add_argument(
+        "--endpoints",
+        choices=list(NODE_OPTIONS),
+        default="all",
+        help="the N nodes with every endpoint an rclpy node has, or 'minimal': no parameter services, "
+        "no /rosout (default: %(default)s)",
+    )
+    parser.add_argument("--worker", nargs=6, help=argparse_hidden())
     opts = parser.parse_args(argv)
     if opts.worker:
-        shape, n, settle, idle, arenas = opts.worker
-        print(json.dumps(_worker(shape, int(n), float(settle), float(idle), arenas)))
+        shape, n, settle, idle, arenas, endpoints = opts.worker
+        print(json.dumps(_worker(shape, int(n), float(settle), float(idle), arenas, endpoints)))
         return 0
     run(
         counts=opts.counts,
@@ -217,6 +241,7 @@ def main(argv=None) -> int:
         idle=opts.idle,
         arenas=opts.arenas,
         fastdds_profile=opts.fastdds_profile,
+        endpoints=opts.endpoints,
         out=opts.out,
     )
     return 0

@@ -262,10 +262,13 @@ def test_the_cost_of_protection_keys_is_measured_where_the_cpu_has_them_and_said
     assert all(r["with keys"].endswith("%") and r["verdict"] for r in rows)
 
 
-def test_the_participants_benchmark_compares_the_two_shapes_per_count(tmp_path):
+@pytest.mark.parametrize("endpoints", ["all", "minimal"])
+def test_the_participants_benchmark_compares_the_two_shapes_per_count(tmp_path, endpoints):
     from cloneguard.bench import participants
 
-    result = participants.run(counts=[1, 2], settle=0.1, idle=0.2, out=tmp_path, quiet=True)
+    result = participants.run(counts=[1, 2], settle=0.1, idle=0.2, endpoints=endpoints, out=tmp_path, quiet=True)
+    [said] = [note for note in result.notes if note.startswith("Each node's endpoints: ")]
+    assert ("no parameter services" in said) == (endpoints == "minimal")
     rows = result.tables[0].rows
     assert [(r["nodes"], r["shape"]) for r in rows] == [
         (str(n), participants.SHAPES[s]) for n in (1, 2) for s in ("one", "per-node")
