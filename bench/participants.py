@@ -25,6 +25,7 @@ its endpoints).
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import resource
@@ -33,6 +34,7 @@ import sys
 import time
 from pathlib import Path
 
+from cloneguard.container.cli import NODE_ANNOUNCEMENT_S
 from cloneguard.harness import domains
 from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, process_environment
 
@@ -42,7 +44,6 @@ from .results import Result, Table
 NAME = "participants"
 TITLE = "A DDS participant per node: what it costs in one process, by node count"
 SHAPES = {"one": "one participant, N nodes", "per-node": "a participant per node"}
-NODE_ANNOUNCEMENT_S = 3.0  # the container's default for node processes' participants
 # The nodes' endpoints, which every other participant keeps a proxy of:
 # rclpy's defaults (6 parameter services, /rosout, /parameter_events), or
 # without the parameter services and /rosout.
@@ -63,6 +64,7 @@ def _cpu_s() -> float:
 
 
 def _worker(shape: str, n: int, settle: float, idle: float, arenas: str, endpoints: str) -> dict:
+    """One count and shape, in this process (a fresh one per call)."""
     if arenas == "per-task":
         from cloneguard.container import allocator
 
@@ -73,7 +75,6 @@ def _worker(shape: str, n: int, settle: float, idle: float, arenas: str, endpoin
 
     from cloneguard.container.isolated.dds_defaults import announce_nodes_every
 
-    base_pss = _pss_kib()
     t0 = time.monotonic()
     first = Context()
     rclpy.init(context=first)
@@ -97,37 +98,30 @@ def _worker(shape: str, n: int, settle: float, idle: float, arenas: str, endpoin
         node.destroy_node()
     for ctx in contexts:
         rclpy.shutdown(context=ctx)
-    return {"made_s": made_s, "pss_kib": pss, "pss_before_kib": base_pss, "cpu_share": cpu, "threads": threads}
+    return {"made_s": made_s, "pss_kib": pss, "cpu_share": cpu, "threads": threads}
 
 
-def measure(
-    counts: list[int], settle: float, idle: float, arenas: str, profile: Path = NO_SHM_PROFILE, endpoints: str = "all"
-) -> dict:
-    """Figures by count and shape, each from a fresh worker process."""
+def measure(counts: list[int], profile: Path, **worker) -> dict:
+    """Figures by count and shape, each from a fresh worker process
+    (``worker``: _worker's settle, idle, arenas and endpoints)."""
     data: dict[int, dict[str, dict]] = {}
     for n in counts:
         for shape in SHAPES:  # the two shapes of one count in turn
             lease = domains.lease()
             try:
-                env = process_environment(lease.domain_id, fastdds_profile=profile)
                 proc = subprocess.run(
                     [
                         sys.executable,
                         "-m",
                         f"cloneguard.bench.{NAME}",
                         "--worker",
-                        shape,
-                        str(n),
-                        str(settle),
-                        str(idle),
-                        arenas,
-                        endpoints,
+                        json.dumps(worker | {"shape": shape, "n": n}),
                     ],
                     capture_output=True,
                     text=True,
-                    env=env,
+                    env=process_environment(lease.domain_id, fastdds_profile=profile),
                     cwd=REPO_ROOT,
-                    timeout=600 + settle + idle,
+                    timeout=600 + worker["settle"] + worker["idle"],
                 )
             finally:
                 lease.release()
@@ -153,7 +147,7 @@ def run(
     args = {"counts": list(counts), "settle": settle, "idle": idle, "arenas": arenas, "endpoints": endpoints}
     if Path(fastdds_profile) != NO_SHM_PROFILE:
         args["fastdds_profile"] = str(fastdds_profile)
-    data = measure(list(counts), settle, idle, arenas, Path(fastdds_profile), endpoints)
+    data = measure(list(counts), Path(fastdds_profile), settle=settle, idle=idle, arenas=arenas, endpoints=endpoints)
     table = Table(
         "By node count and shape (one worker process each)",
         ["nodes", "shape", "make all (s)", "PSS (MiB)", "idle CPU (% of a core)", "threads"],
@@ -181,8 +175,8 @@ def run(
             f"{(each['threads'] - one['threads']) / n:.1f}",
         )
     notes = [
-        "Plain rclpy nodes (parameter services, /rosout, /parameter_events: the endpoints every rclpy node has), "
-        "no timer, no executor: what is measured is rclpy's Context and Fast DDS, not the container.",
+        "Plain rclpy nodes, no timer, no executor: what is measured is rclpy's Context and Fast DDS, not the "
+        "container.",
         f"A participant per node: the first Context's participant at the profile's announcement period (100 ms), "
         f"the node's at {NODE_ANNOUNCEMENT_S:g} s, as in a per-node container.",
         "Each node's endpoints: "
@@ -229,11 +223,10 @@ def main(argv=None) -> int:
         help="the N nodes with every endpoint an rclpy node has, or 'minimal': no parameter services, "
         "no /rosout (default: %(default)s)",
     )
-    parser.add_argument("--worker", nargs=6, help=argparse_hidden())
+    parser.add_argument("--worker", metavar="JSON", help=argparse.SUPPRESS)
     opts = parser.parse_args(argv)
     if opts.worker:
-        shape, n, settle, idle, arenas, endpoints = opts.worker
-        print(json.dumps(_worker(shape, int(n), float(settle), float(idle), arenas, endpoints)))
+        print(json.dumps(_worker(**json.loads(opts.worker))))
         return 0
     run(
         counts=opts.counts,
@@ -245,12 +238,6 @@ def main(argv=None) -> int:
         out=opts.out,
     )
     return 0
-
-
-def argparse_hidden() -> str:
-    import argparse
-
-    return argparse.SUPPRESS
 
 
 if __name__ == "__main__":

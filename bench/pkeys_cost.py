@@ -46,7 +46,7 @@ def keys_missing() -> str | None:
     """Why keys cannot be measured here, or None."""
     from cloneguard.container.isolated import pkeys
 
-    return pkeys.cpu_lacks_keys() or pkeys.probe().unavailable
+    return pkeys.probe().unavailable
 
 
 def judge(measure: str, without: float | None, with_keys: float | None) -> Goal:

@@ -388,7 +388,7 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
     if isinstance(keys, str) and not opts.pkeys:  # the default, where the CPU or kernel has none
         logger.info(f"memory protection keys over node heaps: off ({pkeys.cpu_lacks_keys() or keys})")
         return
-    broken = keys if isinstance(keys, str) else pkeys.probe().unavailable
+    broken = pkeys.heap_keys_unavailable()
     if broken is not None:
         if opts.pkeys:
             raise SystemExit(f"component_container: --pkeys is unavailable here: {broken}")
@@ -402,7 +402,7 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
 def _fastdds_intraprocess_off(logger) -> None:
     """No Fast DDS participant thread delivers into another participant's
     readers by calling into them (docs/fastdds.md: a node process killed in
-    there leaves the other's locks held; with protection keys it faults)."""
+    there leaves the other's locks held)."""
     from .isolated.dds_defaults import DdsDefaultsUnavailable, intraprocess_off
 
     try:

@@ -8,9 +8,9 @@ import sys
 import pytest
 
 from cloneguard.bench import __main__ as bench_all
+from cloneguard.bench import pkeys_cost
 from cloneguard.bench.modes import MODES
 from cloneguard.bench.results import SUMMARY_COLUMNS
-from cloneguard.container.isolated import pkeys
 from cloneguard.harness.process import REPO_ROOT
 
 # The tables each benchmark writes, with the "tiny" preset's parameters.
@@ -245,7 +245,7 @@ def test_the_cost_of_protection_keys_is_measured_where_the_cpu_has_them_and_said
     assert [t["columns"] for t in data["tables"]] == [
         ["measure", MODES["isolated-jemalloc"][0], MODES["isolated-pkeys"][0], "with keys", "verdict"]
     ]
-    why = pkeys.cpu_lacks_keys()
+    why = pkeys_cost.keys_missing()
     if why is not None:
         assert data["tables"][0]["rows"] == [] and data["goals"] == []
         assert [r["verdict"] for r in data["summary"]] == [f"not measured: {why}"]

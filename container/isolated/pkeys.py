@@ -17,6 +17,10 @@ from dataclasses import dataclass
 # access-disabled (the kernel's init_pkru), so that pages under a key are
 # untouchable by threads that never asked for it.
 DEFAULT_PKRU = 0x55555554
+# Why there are no keys at all, whether learnt from CPUID (the probe) or
+# from /proc/cpuinfo (cpu_lacks_keys).
+NO_PKU = "the CPU has no memory protection keys (no pku in /proc/cpuinfo)"
+NO_OSPKE = "the kernel did not enable memory protection keys (no ospke in /proc/cpuinfo)"
 
 
 @dataclass(frozen=True)
@@ -34,9 +38,9 @@ class Support:
     def unavailable(self) -> str | None:
         """Why keys cannot protect a node's heap here, or None."""
         if not self.cpu_pku:
-            return "the CPU has no memory protection keys (no pku in /proc/cpuinfo)"
+            return NO_PKU
         if not self.os_pke:
-            return "the kernel did not enable memory protection keys (no ospke in /proc/cpuinfo)"
+            return NO_OSPKE
         if self.keys == 0:
             return f"pkey_alloc gives no key: {os.strerror(self.alloc_errno)}"
         broken = [
@@ -99,9 +103,9 @@ def cpu_lacks_keys() -> str | None:
     except OSError as exc:
         return f"/proc/cpuinfo unreadable: {exc}"
     if "pku" not in flags:
-        return "the CPU has no memory protection keys (no pku in /proc/cpuinfo)"
+        return NO_PKU
     if "ospke" not in flags:
-        return "the kernel did not enable memory protection keys (no ospke in /proc/cpuinfo)"
+        return NO_OSPKE
     return None
 
 
