@@ -94,6 +94,10 @@ class Outcome:
     latency_ms: dict[str, float] = field(default_factory=dict)
     details: dict = field(default_factory=dict)
     diagnosis: diagnose.Diagnosis | None = None
+    #: judge_death saw the fault node alive after its timeout, the container
+    #: going on (FAILED: the fault did not kill it). What the trial saw then,
+    #: not what /proc says later: the node may still die of its fault after.
+    fault_node_lived: bool = False
 
     @property
     def survived(self) -> bool:
@@ -197,7 +201,8 @@ class Rig:
             ev = self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=unique_id, timeout=timeout)
         except HarnessTimeout:
             if procfs.alive(pid) and self.goes_on() is None:
-                return Outcome(TrialOutcome.FAILED, details={"pid": pid, "why": f"the fault did not kill pid {pid}"})
+                why = f"the fault did not kill pid {pid} within {timeout:.0f} s"
+                return Outcome(TrialOutcome.FAILED, details={"pid": pid, "why": why}, fault_node_lived=True)
             return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
         out = Outcome(
             TrialOutcome.SURVIVED,

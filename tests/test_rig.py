@@ -84,3 +84,19 @@ def test_a_rig_replaces_its_container_after_its_bound_of_node_deaths(container_f
     assert rig.proc.pid != first and rig.restarts == 1
     assert rig.node_deaths() == 0  # a fresh container, and the survivor beats in it
     rig.beats.wait_count(3, timeout=10)
+
+
+def test_a_fault_node_that_outlives_its_judgement_and_dies_after_is_judged_once_dead(container_factory):
+    """What OwnHeapOverflow relies on: judge_death says the node lived on
+    (its one look, not a later /proc read); a node that dies after that
+    can no longer be unloaded, and judging it again finds its death."""
+    rig = Rig(container_factory, "per-node")
+    node = rig.client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="late")
+    pid = rig.loaded_pid(node.unique_id)
+    out = rig.judge_death(node.unique_id, pid, signal_expected=None, fault_ns=None, timeout=0.5)
+    assert out.outcome == "failed" and out.fault_node_lived, out
+    os.kill(pid, signal.SIGSEGV)
+    rig.client.wait_for_event(ComponentEvent.CRASHED, unique_id=node.unique_id)
+    assert not rig.client.unload(node.unique_id).success
+    late = rig.judge_death(node.unique_id, pid, signal_expected=None, fault_ns=None)
+    assert late.survived and not late.fault_node_lived and late.details["exit_signal"] == signal.SIGSEGV
