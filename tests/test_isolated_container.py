@@ -35,6 +35,25 @@ def test_each_node_is_its_own_process_in_one_address_space(client, container):
         assert procfs.same_address_space(container.pid, pid)
     # A plain process is not in that address space (the check can say no).
     assert not procfs.same_address_space(container.pid, os.getpid())
+    # ps and top show each by its node's name (the kernel keeps 15 bytes).
+    for i, pid in enumerate(pids):
+        _wait_for_comm(pid, f"hb{i}")
+
+
+@pytest.mark.parametrize("container_args", [["--isolated"]])
+def test_a_node_process_is_named_after_its_node_cut_to_the_kernels_15_bytes(client):
+    uid = client.load_ok(
+        PKG, "cloneguard::Heartbeat", node_name="a_rather_long_node_name", node_namespace="/ns"
+    ).unique_id
+    _wait_for_comm(_loaded_pid(client, uid), "a_rather_long_n")
+
+
+def _wait_for_comm(pid: int, name: str, timeout: float = 10.0) -> None:
+    """Its node starts spinning just after LOADED: the name comes then."""
+    deadline = time.monotonic() + timeout
+    while (comm := procfs.stat(pid).comm) != name:
+        assert time.monotonic() < deadline, f"pid {pid} is named {comm!r}, not {name!r}"
+        time.sleep(0.02)
 
 
 @pytest.mark.parametrize("container_args", PROFILES)

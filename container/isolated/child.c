@@ -174,6 +174,9 @@ static int child_main(void *arg)
     prctl(PR_SET_PDEATHSIG, SIGKILL);
     if (getppid() != c->parent_tgid)
         return 127;
+    /* ps and top name us "cg-node", not after the monitor thread we were
+       cloned from ("cg-monitor"); the host renames us after our node. */
+    prctl(PR_SET_NAME, "cg-node");
     /* 5. Graceful stop: our own SIGTERM/SIGINT handler (CLONE_CLEAR_SIGHAND
        left every handler at SIG_DFL); crash reports on a stack of our own;
        the allocator; then unblock what the monitor blocked. */

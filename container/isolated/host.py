@@ -30,6 +30,7 @@ counted and logged, a bounded leak per crash.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import select
 import signal
@@ -350,6 +351,7 @@ class IsolatedHost:
         the executor's spin_once runs them, stamping the board when each
         starts and recording progress when it ends. It starts once the
         container lets it (``run``)."""
+        _name_this_process(proc.full_name)
         self.board.set_pid(proc.slot, os.getpid())
         wait_for_go()
         executor = proc.executor
@@ -663,6 +665,21 @@ def _robust_context_lock(context: Context, logger) -> None:
         logger.warning("rclpy Context has no plain _lock here: its lock stays non-robust")
         return
     context._lock = RobustMutex()  # type: ignore[assignment]  # used as a context manager only
+
+
+_PR_SET_NAME = 15  # <linux/prctl.h>
+_TASK_COMM_LEN = 16  # the kernel's bound on a task's name, its NUL included
+# Looked up in the container, at import: a node process never dlopens for it
+# (the loader's lock is one for every process of the address space).
+_prctl = ctypes.CDLL(None).prctl
+
+
+def _name_this_process(full_node_name: str) -> None:
+    """ps, top and /proc/<pid>/comm show a node's process by its node's
+    name (its first 15 bytes), as ``ros2 run`` would show the node as a
+    process of its own; until then it is "cg-node" (child.c)."""
+    name = full_node_name.rsplit("/", 1)[-1].encode()[: _TASK_COMM_LEN - 1]
+    _prctl(_PR_SET_NAME, ctypes.c_char_p(name), 0, 0, 0)
 
 
 def _stopping() -> None:
