@@ -2,6 +2,7 @@
 
     python -m cloneguard.bench.scale                          # 12, 24, 48 nodes, every mode
     python -m cloneguard.bench.scale --counts 12 24 48 96 --idle 10
+    python -m cloneguard.bench.scale --discovery-server     # every mode under a discovery server
 
 For each node count and mode (thread mode, isolated shared, isolated
 shared with one node in ten per-node (``--profile-for``), isolated
@@ -23,6 +24,12 @@ against the node count, a line a mode. Goals, judged at 48 nodes (or the
 largest count measured): per-node load-all ≤ 2× thread mode's; per-node
 idle CPU and PSS ≤ 1.5× the shared profile's; per-node SIGTERM → exit
 ≤ 2 s; thread mode idle CPU ≤ 30% of a core.
+
+With ``--discovery-server`` every participant, the benchmark's own
+included, finds the others through a Fast DDS discovery server of the
+benchmark's own (bench.discovery_server, ``ROS_DISCOVERY_SERVER``)
+instead of by multicast, and the results are written as
+``scale-discovery-server``; the server's own PSS and CPU are in the notes.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ import time
 
 from cloneguard.harness import procfs
 
+from . import discovery_server as ds
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ratio
 from .goals import Goal, goal_at_most, goal_ratio_at_most
@@ -64,13 +72,26 @@ def cpu_seconds(pids: list[int]) -> float:
     return sum(st.cpu_ticks for st in stats if st is not None) / CLK_TCK
 
 
-def idle_cpu_percent(pids_fn, seconds: float) -> float:
-    """CPU the processes used over ``seconds``, as % of one core."""
+def _dds_thread_ticks(pids: list[int]) -> dict[tuple[int, int], int]:
+    """(pid, tid) -> CPU ticks of each Fast DDS thread (Fast DDS names its
+    threads dds.*: receive, event, asynchronous writer...) of these processes."""
+    return {
+        (pid, tid): ticks
+        for pid in pids
+        for tid, (name, ticks) in procfs.threads(pid).items()
+        if name.startswith("dds.")
+    }
+
+
+def idle_cpu_percent(pids_fn, seconds: float) -> tuple[float, float]:
+    """CPU the processes used over ``seconds``, as % of one core: all of
+    it, and their Fast DDS threads' part (of the threads there throughout)."""
     pids = pids_fn()
-    t0, c0 = time.monotonic(), cpu_seconds(pids)
+    t0, c0, d0 = time.monotonic(), cpu_seconds(pids), _dds_thread_ticks(pids)
     time.sleep(seconds)
-    c1, t1 = cpu_seconds(pids), time.monotonic()
-    return 100.0 * (c1 - c0) / (t1 - t0)
+    c1, d1, t1 = cpu_seconds(pids), _dds_thread_ticks(pids), time.monotonic()
+    dds = sum(d1[k] - d0[k] for k in d0.keys() & d1.keys()) / CLK_TCK
+    return 100.0 * (c1 - c0) / (t1 - t0), 100.0 * dds / (t1 - t0)
 
 
 def measure_container(session: Session, mode: str, count: int, settle: float, idle: float) -> dict:
@@ -85,13 +106,13 @@ def measure_container(session: Session, mode: str, count: int, settle: float, id
             return [running.proc.pid] + [p for p in running.proc.group_members() if p != running.proc.pid]
 
         time.sleep(settle)
-        cpu = idle_cpu_percent(pids, idle)
+        cpu, dds = idle_cpu_percent(pids, idle)
         memory = footprint(pids())
         exit_ns = sigterm_to_exit(running.proc.pid, EXIT_TIMEOUT_S)
     finally:
         session.stop(running)
-    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "pss_kb": memory["pss_kb"], "exit_ns": exit_ns,
-            "processes": memory["processes"]}  # fmt: skip
+    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "idle_dds_pct": dds, "pss_kb": memory["pss_kb"],
+            "exit_ns": exit_ns, "processes": memory["processes"]}  # fmt: skip
 
 
 def measure_runners(session: Session, count: int, settle: float, idle: float) -> dict:
@@ -105,7 +126,7 @@ def measure_runners(session: Session, count: int, settle: float, idle: float) ->
             r.wait_ready(timeout=120.0)
         load_all = time.monotonic_ns() - t0
         time.sleep(settle)
-        cpu = idle_cpu_percent(lambda: [r.pid for r in runners], idle)
+        cpu, dds = idle_cpu_percent(lambda: [r.pid for r in runners], idle)
         memory = footprint([r.pid for r in runners])
         t1 = time.monotonic_ns()
         for r in runners:
@@ -116,8 +137,8 @@ def measure_runners(session: Session, count: int, settle: float, idle: float) ->
         for r in runners:
             session.stop_runner(r)
         session.release(lease)
-    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "pss_kb": memory["pss_kb"], "exit_ns": exit_ns,
-            "processes": memory["processes"]}  # fmt: skip
+    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "idle_dds_pct": dds, "pss_kb": memory["pss_kb"],
+            "exit_ns": exit_ns, "processes": memory["processes"]}  # fmt: skip
 
 
 def _exited(runner, deadline_ns: int) -> bool:
@@ -163,12 +184,25 @@ def run(
     out=DEFAULT_OUT,
     keep_logs: bool = False,
     quiet: bool = False,
+    discovery_server: bool = False,
 ) -> Result:
     counts, modes = sorted(counts), list(modes)
     params = {"counts": counts, "modes": modes, "settle": settle, "idle": idle, "out": str(out)}
-    session = Session(NAME, keep_logs=keep_logs)
+    name = NAME
+    if discovery_server:
+        if os.environ.get(ds.VARIABLE):
+            raise SystemExit(f"--discovery-server: this process is already under one ({ds.VARIABLE} is set)")
+        params["discovery_server"] = True
+        name = f"{NAME}-discovery-server"
+    session = Session(name, keep_logs=keep_logs)
     data: dict[str, dict[int, dict]] = {m: {} for m in modes}
+    server_notes = []
     try:
+        if discovery_server:
+            # Before this process's first participant, which reads it.
+            server = session.discovery_server()
+            os.environ[ds.VARIABLE] = server.address
+            cpu0 = cpu_seconds([server.pid])
         for count in counts:
             for mode in modes:
                 try:
@@ -180,22 +214,32 @@ def run(
                     data[mode][count] = {"error": str(exc).splitlines()[0]}
                 if not quiet:
                     print(f"{mode} × {count}: {data[mode][count]}", file=sys.stderr, flush=True)
+        if discovery_server:
+            pss_mib, cpu_s = footprint([server.pid])["pss_kb"] / 1024, cpu_seconds([server.pid]) - cpu0
+            server.stop()
+            server_notes.append(
+                f"Under a discovery server ({ds.VARIABLE}={server.address}): a process of the benchmark's own, "
+                f"one rclpy participant as the SERVER, not counted in the rows; at the end its PSS was "
+                f"{pss_mib:.0f} MiB, it used {cpu_s:.1f} s of CPU over the whole run, and it knew of up to "
+                f"{server.most_nodes()} nodes at once."
+            )
     finally:
         problems = session.close()
 
     table = Table(
         f"{', '.join(map(str, counts))} Heartbeat nodes at 1 Hz (one container, or one runner a node, each)",
-        ["mode", "nodes", "load all (s)", "idle CPU (% of a core)", "PSS (MiB)", "SIGTERM → exit (s)", "processes"],
-    )
+        ["mode", "nodes", "load all (s)", "idle CPU (% of a core)", "of it, Fast DDS threads", "PSS (MiB)",
+         "SIGTERM → exit (s)", "processes"],
+    )  # fmt: skip
     for mode in modes:
         for count in counts:
             d = data[mode][count]
             if "error" in d:
-                table.add(label(mode), count, f"failed: {d['error']}", "–", "–", "–", "–")
+                table.add(label(mode), count, f"failed: {d['error']}", "–", "–", "–", "–", "–")
                 continue
             exit_s = "did not exit" if d["exit_ns"] is None else f"{d['exit_ns'] / 1e9:.2f}"
             table.add(label(mode), count, f"{d['load_all_ns'] / 1e9:.2f}", f"{d['idle_cpu_pct']:.1f}",
-                      f"{d['pss_kb'] / 1024:.0f}", exit_s, d["processes"])  # fmt: skip
+                      f"{d['idle_dds_pct']:.1f}", f"{d['pss_kb'] / 1024:.0f}", exit_s, d["processes"])  # fmt: skip
     judged = GOAL_NODES if GOAL_NODES in counts else max(counts)
     goal_list = goals(data, judged)
     growth = Table("Growth: cost at the largest count ÷ cost at the smallest", ["mode", "load all", "idle CPU", "PSS"])
@@ -209,28 +253,30 @@ def run(
                 for k in ("load_all_ns", "idle_cpu_pct", "pss_kb")
             ),
         )
-    svg = scale_svg(data, counts, {m: label(m) for m in modes})
+    under = ", under a discovery server" if discovery_server else ""
+    svg = scale_svg(data, counts, {m: label(m) + under for m in modes})
     result = Result(
-        name=NAME,
-        title=TITLE,
+        name=name,
+        title=TITLE + under,
         command=command_line(NAME, {k: v for k, v in params.items() if k != "out"}),
         params=params,
         tables=[table, growth],
         goals=goal_list,
         notes=[
             f"Nodes ×{hi / lo:g} from {lo} to {hi}; a cost that grows linearly grows ×{hi / lo:g} too.",
-            "The picture: scale.svg beside this file (each measure against the node count, a line a mode).",
+            f"The picture: {name}.svg beside this file (each measure against the node count, a line a mode).",
             "Modes and counts run one after the other on one machine; this machine is shared and noisy: "
             "compare within one run.",
+            *server_notes,
         ],
         summary=[
-            summary_row(NAME, f"{g.goal}", "", None, median=g.measured, goal=g.goal, verdict=g.verdict)
+            summary_row(name, f"{g.goal}", "", None, median=g.measured, goal=g.goal, verdict=g.verdict)
             for g in goal_list
         ],
         raw={"data": {m: {str(c): d for c, d in v.items()} for m, v in data.items()}},
         cleanup=problems,
     )
-    result.attachments["scale.svg"] = svg
+    result.attachments[f"{name}.svg"] = svg
     return finish(result, out, quiet=quiet)
 
 
@@ -240,9 +286,14 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", nargs="+", default=DEFAULT_MODES, choices=DEFAULT_MODES + ["thread-mt"])
     parser.add_argument("--settle", type=float, default=SETTLE_S, help="s after the last load before measuring")
     parser.add_argument("--idle", type=float, default=10.0, help="s of idle over which CPU is measured")
+    parser.add_argument(
+        "--discovery-server",
+        action="store_true",
+        help="every participant finds the others through a discovery server of the benchmark's own",
+    )
     args = parser.parse_args(argv)
     result = run(counts=args.counts, modes=args.modes, settle=args.settle, idle=args.idle, out=args.out,
-                 keep_logs=args.keep_logs)  # fmt: skip
+                 keep_logs=args.keep_logs, discovery_server=args.discovery_server)  # fmt: skip
     return 0 if not result.cleanup else 1
 
 

@@ -43,6 +43,7 @@ use_loopback_ros()
 from cloneguard.harness.client import ContainerClient, HarnessTimeout  # noqa: E402
 from cloneguard.harness.factory import log_tail, wait_ready  # noqa: E402
 
+from .discovery_server import DiscoveryServer  # noqa: E402
 from .modes import HEARTBEAT, MODES, PACKAGE, label  # noqa: E402
 
 
@@ -168,6 +169,7 @@ class Session:
         self.keep_logs = keep_logs
         self._running: list[Running] = []
         self._runners: list[NodeProcess] = []
+        self._servers: list[DiscoveryServer] = []
         self._leases: list[domains.DomainLease] = []
         self._pgids: list[int] = []
         self._shm_before = shm.segments()
@@ -229,6 +231,14 @@ class Session:
             self._runners.remove(r)
         return code
 
+    def discovery_server(self) -> DiscoveryServer:
+        """A discovery server (bench.discovery_server) until :meth:`close`."""
+        lease = self.lease()
+        server = DiscoveryServer(lease.domain_id, self._log_path("discovery-server"))
+        self._pgids.append(server.pgid)
+        self._servers.append(server)
+        return server
+
     def core_worker(self, what: str, n: int, timeout: float = 600.0) -> dict:
         """Run ``python -m cloneguard.bench._core_worker`` (its own CloneCore) and return its JSON."""
         log = self._log_path(f"core-worker-{what}")
@@ -261,6 +271,8 @@ class Session:
                 print(f"bench: stopping {running.label}: {exc}", file=sys.stderr)
         for r in list(self._runners):
             self.stop_runner(r)
+        for server in self._servers:
+            server.stop()
         for lease in list(self._leases):
             self.release(lease)
         problems = []

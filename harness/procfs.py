@@ -52,9 +52,10 @@ def stat(pid: int) -> ProcStat | None:
     )
 
 
-def thread_cpu_ticks(pid: int) -> dict[int, int]:
-    """CPU time (user + system, in clock ticks) of every thread of ``pid``."""
-    out: dict[int, int] = {}
+def threads(pid: int) -> dict[int, tuple[str, int]]:
+    """Every thread of ``pid``: tid -> (its name, its CPU time: user +
+    system, in clock ticks)."""
+    out: dict[int, tuple[str, int]] = {}
     try:
         tids = os.listdir(f"/proc/{pid}/task")
     except (FileNotFoundError, ProcessLookupError):
@@ -62,8 +63,13 @@ def thread_cpu_ticks(pid: int) -> dict[int, int]:
     for tid in tids:
         read = _stat_fields(f"/proc/{pid}/task/{tid}/stat")
         if read is not None:
-            out[int(tid)] = _cpu_ticks(read[1])
+            out[int(tid)] = (read[0], _cpu_ticks(read[1]))
     return out
+
+
+def thread_cpu_ticks(pid: int) -> dict[int, int]:
+    """CPU time (user + system, in clock ticks) of every thread of ``pid``."""
+    return {tid: ticks for tid, (_, ticks) in threads(pid).items()}
 
 
 def all_stats() -> list[ProcStat]:

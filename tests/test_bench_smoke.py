@@ -122,7 +122,16 @@ EXPECTED_TABLES = {
         ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"]
     ],
     "scale": [
-        ["mode", "nodes", "load all (s)", "idle CPU (% of a core)", "PSS (MiB)", "SIGTERM → exit (s)", "processes"],
+        [
+            "mode",
+            "nodes",
+            "load all (s)",
+            "idle CPU (% of a core)",
+            "of it, Fast DDS threads",
+            "PSS (MiB)",
+            "SIGTERM → exit (s)",
+            "processes",
+        ],
         ["mode", "load all", "idle CPU", "PSS"],
     ],
 }
@@ -191,6 +200,8 @@ def test_the_scale_benchmark_draws_its_curves(tiny_run):
     per_node = [r for r in rows if r["mode"].startswith("isolated, per-node")]
     # the container, one process a node, and the warm spare (the next node's, made ahead)
     assert [int(r["processes"]) for r in per_node] == [3, 4]
+    # Fast DDS's threads' part of the idle CPU is a part of it
+    assert all(0 <= float(r["of it, Fast DDS threads"]) <= float(r["idle CPU (% of a core)"]) + 0.1 for r in rows)
 
 
 def test_summary_has_a_row_per_measure(tiny_run):
@@ -277,3 +288,45 @@ def test_the_participants_benchmark_compares_the_two_shapes_per_count(tmp_path, 
     assert all(int(rows[i + 1]["threads"]) > int(rows[i]["threads"]) for i in (0, 2))
     assert [r["nodes"] for r in result.tables[1].rows] == ["1", "2"]
     assert (tmp_path / "participants.md").exists()
+
+
+def test_the_scale_benchmark_runs_under_a_discovery_server_of_its_own(tmp_path):
+    """In a process of its own (Fast DDS reads ROS_DISCOVERY_SERVER at a
+    process's first participant): the loads it times are discovered
+    through its server, which knew of the nodes, and nothing is left."""
+    import os
+
+    from cloneguard.bench import discovery_server as ds
+
+    env = {k: v for k, v in os.environ.items() if k != ds.VARIABLE}
+    done = subprocess.run(
+        [sys.executable, "-m", "cloneguard.bench.scale", "--discovery-server", "--counts", "2",
+         "--modes", "isolated-per-node", "thread", "--settle", "0.2", "--idle", "0.2", "--out", str(tmp_path)],
+        cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    data = json.loads((tmp_path / "scale-discovery-server.json").read_text())
+    rows = data["tables"][0]["rows"]
+    assert [r["nodes"] for r in rows] == ["2", "2"] and not any("failed" in r["load all (s)"] for r in rows)
+    [note] = [n for n in data["notes"] if n.startswith("Under a discovery server")]
+    # its own node, the benchmark's client, the container and its 2 nodes at least
+    assert int(note.rsplit("up to ", 1)[1].split()[0]) >= 5, note
+    assert (tmp_path / "scale-discovery-server.svg").exists()
+
+
+def test_a_discovery_server_profile_is_the_no_shm_one_made_a_server():
+    import xml.etree.ElementTree as ET
+
+    from cloneguard.bench import discovery_server as ds
+
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.fromstring(ds.server_profile(12345))
+    [rtps] = root.findall(".//f:participant[@is_default_profile='true']/f:rtps", ns)
+    assert rtps.find("f:useBuiltinTransports", ns).text == "false"  # no shared memory
+    assert rtps.find("f:prefix", ns).text == ds.SERVER_PREFIX
+    assert rtps.find("f:builtin/f:discovery_config/f:discoveryProtocol", ns).text == "SERVER"
+    udp = rtps.find("f:builtin/f:metatrafficUnicastLocatorList/f:locator/f:udpv4", ns)
+    assert (udp.find("f:address", ns).text, udp.find("f:port", ns).text) == ("127.0.0.1", "12345")
+    # the profile's announcement period and library settings stay
+    assert rtps.find("f:builtin/f:discovery_config/f:leaseAnnouncement", ns) is not None
+    assert root.find("f:library_settings/f:intraprocess_delivery", ns).text == "OFF"
