@@ -88,16 +88,21 @@ class DiscoveryServer:
         env["PYTHONUNBUFFERED"] = "1"
         self.log_path = Path(log_path)
         self._log = open(self.log_path, "ab", buffering=0)
-        # setpriv: it dies with the benchmark, whatever ends that.
-        self.popen = subprocess.Popen(
-            ["setpriv", "--pdeathsig", "KILL", "--", sys.executable, "-m", "cloneguard.bench.discovery_server"],
-            cwd=REPO_ROOT,
-            env=env,
-            stdin=subprocess.DEVNULL,
-            stdout=self._log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
+        try:
+            # setpriv: it dies with the benchmark, whatever ends that.
+            self.popen = subprocess.Popen(
+                ["setpriv", "--pdeathsig", "KILL", "--", sys.executable, "-m", "cloneguard.bench.discovery_server"],
+                cwd=REPO_ROOT,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=self._log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        except BaseException:
+            self._log.close()
+            self._dir.cleanup()
+            raise
         self.pid = self.pgid = self.popen.pid
         deadline = time.monotonic() + timeout
         while READY not in self.log_path.read_text(errors="replace"):

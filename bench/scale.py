@@ -72,7 +72,7 @@ def cpu_seconds(pids: list[int]) -> float:
     return sum(st.cpu_ticks for st in stats if st is not None) / CLK_TCK
 
 
-def _dds_thread_ticks(pids: list[int]) -> dict[tuple[int, int], int]:
+def dds_thread_ticks(pids: list[int]) -> dict[tuple[int, int], int]:
     """(pid, tid) -> CPU ticks of each Fast DDS thread (Fast DDS names its
     threads dds.*: receive, event, asynchronous writer...) of these processes."""
     return {
@@ -85,11 +85,12 @@ def _dds_thread_ticks(pids: list[int]) -> dict[tuple[int, int], int]:
 
 def idle_cpu_percent(pids_fn, seconds: float) -> tuple[float, float]:
     """CPU the processes used over ``seconds``, as % of one core: all of
-    it, and their Fast DDS threads' part (of the threads there throughout)."""
+    it, and their Fast DDS threads' part (of the threads there throughout,
+    read inside the window the whole is read over)."""
     pids = pids_fn()
-    t0, c0, d0 = time.monotonic(), cpu_seconds(pids), _dds_thread_ticks(pids)
+    t0, c0, d0 = time.monotonic(), cpu_seconds(pids), dds_thread_ticks(pids)
     time.sleep(seconds)
-    c1, d1, t1 = cpu_seconds(pids), _dds_thread_ticks(pids), time.monotonic()
+    d1, c1, t1 = dds_thread_ticks(pids), cpu_seconds(pids), time.monotonic()
     dds = sum(d1[k] - d0[k] for k in d0.keys() & d1.keys()) / CLK_TCK
     return 100.0 * (c1 - c0) / (t1 - t0), 100.0 * dds / (t1 - t0)
 
@@ -106,13 +107,12 @@ def measure_container(session: Session, mode: str, count: int, settle: float, id
             return [running.proc.pid] + [p for p in running.proc.group_members() if p != running.proc.pid]
 
         time.sleep(settle)
-        cpu, dds = idle_cpu_percent(pids, idle)
+        cpu = idle_cpu_percent(pids, idle)
         memory = footprint(pids())
         exit_ns = sigterm_to_exit(running.proc.pid, EXIT_TIMEOUT_S)
     finally:
         session.stop(running)
-    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "idle_dds_pct": dds, "pss_kb": memory["pss_kb"],
-            "exit_ns": exit_ns, "processes": memory["processes"]}  # fmt: skip
+    return _row(load_all, cpu, memory, exit_ns)
 
 
 def measure_runners(session: Session, count: int, settle: float, idle: float) -> dict:
@@ -126,7 +126,7 @@ def measure_runners(session: Session, count: int, settle: float, idle: float) ->
             r.wait_ready(timeout=120.0)
         load_all = time.monotonic_ns() - t0
         time.sleep(settle)
-        cpu, dds = idle_cpu_percent(lambda: [r.pid for r in runners], idle)
+        cpu = idle_cpu_percent(lambda: [r.pid for r in runners], idle)
         memory = footprint([r.pid for r in runners])
         t1 = time.monotonic_ns()
         for r in runners:
@@ -137,8 +137,13 @@ def measure_runners(session: Session, count: int, settle: float, idle: float) ->
         for r in runners:
             session.stop_runner(r)
         session.release(lease)
-    return {"load_all_ns": load_all, "idle_cpu_pct": cpu, "idle_dds_pct": dds, "pss_kb": memory["pss_kb"],
-            "exit_ns": exit_ns, "processes": memory["processes"]}  # fmt: skip
+    return _row(load_all, cpu, memory, exit_ns)
+
+
+def _row(load_all_ns: int, cpu: tuple[float, float], memory: dict, exit_ns: int | None) -> dict:
+    """One mode and count's measurements (``cpu``: idle_cpu_percent's)."""
+    return {"load_all_ns": load_all_ns, "idle_cpu_pct": cpu[0], "idle_dds_pct": cpu[1],
+            "pss_kb": memory["pss_kb"], "exit_ns": exit_ns, "processes": memory["processes"]}  # fmt: skip
 
 
 def _exited(runner, deadline_ns: int) -> bool:
@@ -225,6 +230,8 @@ def run(
             )
     finally:
         problems = session.close()
+        if discovery_server:  # what this process starts next is under no server
+            os.environ.pop(ds.VARIABLE, None)
 
     table = Table(
         f"{', '.join(map(str, counts))} Heartbeat nodes at 1 Hz (one container, or one runner a node, each)",

@@ -272,7 +272,10 @@ class Session:
         for r in list(self._runners):
             self.stop_runner(r)
         for server in self._servers:
-            server.stop()
+            try:
+                server.stop()
+            except Exception as exc:  # keep stopping the rest
+                print(f"bench: stopping the discovery server: {exc}", file=sys.stderr)
         for lease in list(self._leases):
             self.release(lease)
         problems = []

@@ -201,7 +201,7 @@ class Rig:
             ev = self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=unique_id, timeout=timeout)
         except HarnessTimeout:
             if procfs.alive(pid) and self.goes_on() is None:
-                why = f"the fault did not kill pid {pid} within {timeout:.0f} s"
+                why = f"the fault did not kill pid {pid} within {timeout:g} s"
                 return Outcome(TrialOutcome.FAILED, details={"pid": pid, "why": why}, fault_node_lived=True)
             return self.not_survived(f"no CRASHED event for pid {pid} within {timeout:.0f} s")
         out = Outcome(
