@@ -30,8 +30,7 @@ import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from cloneguard.harness import procfs
-from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, process_environment
+from cloneguard.harness.process import NO_SHM_PROFILE, REPO_ROOT, process_environment, stop_group
 
 VARIABLE = "ROS_DISCOVERY_SERVER"
 #: The GUID prefix Fast DDS expects of the server at index 0 of
@@ -128,14 +127,7 @@ class DiscoveryServer:
         return None
 
     def stop(self, grace: float = 5.0) -> int:
-        if self.popen.poll() is None:
-            os.killpg(self.pgid, signal.SIGTERM)
-            try:
-                self.popen.wait(grace)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.pgid, signal.SIGKILL)
-        code = self.popen.wait()
-        procfs.wait_group_empty(self.pgid, timeout=grace)
+        code, _ = stop_group(self.popen, self.pgid, grace)
         if not self._log.closed:
             self._log.close()
         self._dir.cleanup()

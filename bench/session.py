@@ -19,7 +19,6 @@ import json
 import os
 import select
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -33,6 +32,7 @@ from cloneguard.harness.process import (
     REPO_ROOT,
     ContainerProcess,
     process_environment,
+    stop_group,
     use_loopback_ros,
 )
 
@@ -139,25 +139,9 @@ class NodeProcess:
         if self._ready_r >= 0:
             os.close(self._ready_r)
             self._ready_r = -1
-        if self.popen.poll() is None:
-            _killpg(self.pgid, signal.SIGTERM)
-            try:
-                self.popen.wait(grace)
-            except subprocess.TimeoutExpired:
-                _killpg(self.pgid, signal.SIGKILL)
-        code = self.popen.wait()
-        if procfs.pids_in_group(self.pgid):
-            _killpg(self.pgid, signal.SIGKILL)
-            procfs.wait_group_empty(self.pgid, timeout=grace)
+        code, _ = stop_group(self.popen, self.pgid, grace)
         self._log.close()
         return code
-
-
-def _killpg(pgid: int, sig: int) -> None:
-    try:
-        os.killpg(pgid, sig)
-    except ProcessLookupError:
-        pass
 
 
 class Session:

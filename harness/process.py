@@ -86,6 +86,34 @@ def use_loopback_ros() -> None:
     os.environ.update(loopback_variables())
 
 
+def stop_group(popen: subprocess.Popen, pgid: int, grace: float) -> tuple[int, bool]:
+    """Stop a process we started as the leader of group ``pgid``: SIGTERM
+    the group, SIGKILL it after ``grace`` s; then whatever is still in the
+    group (a child that outlived its leader: ours too) is killed.
+    (its return code, whether SIGKILL was needed)."""
+    forced = False
+    if popen.poll() is None:
+        _killpg(pgid, signal.SIGTERM)
+        try:
+            popen.wait(grace)
+        except subprocess.TimeoutExpired:
+            forced = True
+            _killpg(pgid, signal.SIGKILL)
+    code = popen.wait()
+    if procfs.pids_in_group(pgid):
+        forced = True
+        _killpg(pgid, signal.SIGKILL)
+        procfs.wait_group_empty(pgid, timeout=grace)
+    return code, forced
+
+
+def _killpg(pgid: int, sig: int) -> None:
+    try:
+        os.killpg(pgid, sig)
+    except ProcessLookupError:
+        pass
+
+
 @dataclass(frozen=True)
 class ExitStatus:
     returncode: int  # as subprocess reports it: -N for signal N
@@ -192,29 +220,10 @@ class ContainerProcess:
         if self.alive():
             self.record_shm()
         t0 = time.monotonic()
-        forced = False
-        if self.alive():
-            self._killpg(signal.SIGTERM)
-            if self.wait(grace) is None:
-                forced = True
-                self._killpg(signal.SIGKILL)
-                self._popen.wait()
-        code = self._popen.wait()
-        # The leader is gone; anything left in its group is a leak of the
-        # container's (a child that outlived it). It is ours: end it.
-        if procfs.pids_in_group(self.pgid):
-            forced = True
-            self._killpg(signal.SIGKILL)
-            procfs.wait_group_empty(self.pgid, timeout=grace)
+        code, forced = stop_group(self._popen, self.pgid, grace)
         self._log.close()
         self.exit_status = ExitStatus(code, forced, time.monotonic() - t0)
         return self.exit_status
-
-    def _killpg(self, sig: int) -> None:
-        try:
-            os.killpg(self.pgid, sig)
-        except ProcessLookupError:
-            pass
 
     def __enter__(self):
         return self
