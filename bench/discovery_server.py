@@ -20,6 +20,7 @@ runners it starts inherit it.
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import socket
@@ -79,18 +80,24 @@ class DiscoveryServer:
 
     def __init__(self, domain_id: int, log_path: Path, timeout: float = 30.0):
         self.port = _free_udp_port()
-        self._dir = tempfile.TemporaryDirectory(prefix="cloneguard-discovery-server-")
-        profile = Path(self._dir.name) / "server.xml"
-        profile.write_text(server_profile(self.port))
-        env = process_environment(domain_id, fastdds_profile=profile)
-        env.pop(VARIABLE, None)  # the server is no client
+        env = process_environment(domain_id)
         env["PYTHONUNBUFFERED"] = "1"
         self.log_path = Path(log_path)
         self._log = open(self.log_path, "ab", buffering=0)
         try:
             # setpriv: it dies with the benchmark, whatever ends that.
             self.popen = subprocess.Popen(
-                ["setpriv", "--pdeathsig", "KILL", "--", sys.executable, "-m", "cloneguard.bench.discovery_server"],
+                [
+                    "setpriv",
+                    "--pdeathsig",
+                    "KILL",
+                    "--",
+                    sys.executable,
+                    "-m",
+                    "cloneguard.bench.discovery_server",
+                    "--port",
+                    str(self.port),
+                ],  # fmt: skip
                 cwd=REPO_ROOT,
                 env=env,
                 stdin=subprocess.DEVNULL,
@@ -100,7 +107,6 @@ class DiscoveryServer:
             )
         except BaseException:
             self._log.close()
-            self._dir.cleanup()
             raise
         self.pid = self.pgid = self.popen.pid
         deadline = time.monotonic() + timeout
@@ -130,13 +136,23 @@ class DiscoveryServer:
         code, _ = stop_group(self.popen, self.pgid, grace)
         if not self._log.closed:
             self._log.close()
-        self._dir.cleanup()
         return code
 
 
-def serve() -> None:
-    """In the server process: its participant until SIGTERM."""
+def serve(port: int) -> None:
+    """In the server process: its participant, listening on
+    127.0.0.1:``port``, until SIGTERM or SIGINT."""
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM, signal.SIGINT})
+    with tempfile.NamedTemporaryFile("w", prefix="cloneguard-discovery-server-", suffix=".xml") as profile:
+        profile.write(server_profile(port))
+        profile.flush()
+        # Read by Fast DDS at this process's first participant; a server is no client.
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = profile.name
+        os.environ.pop(VARIABLE, None)
+        _serve(port)
+
+
+def _serve(port: int) -> None:
     import rclpy
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
@@ -144,7 +160,7 @@ def serve() -> None:
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("_discovery_server", context=ctx)
-    print(f"{READY} (pid {os.getpid()})", flush=True)
+    print(f"{READY} (pid {os.getpid()}): {VARIABLE}=127.0.0.1:{port}", flush=True)
     most = 0
     while signal.sigtimedwait({signal.SIGTERM, signal.SIGINT}, 0.25) is None:
         most = max(most, len(node.get_node_names()))
@@ -153,5 +169,15 @@ def serve() -> None:
     rclpy.shutdown(context=ctx)
 
 
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m cloneguard.bench.discovery_server",
+        description="A Fast DDS discovery server (server 0 of ROS_DISCOVERY_SERVER) on 127.0.0.1, "
+        "UDP only, no shared memory, until SIGTERM or Ctrl-C.",
+    )
+    parser.add_argument("--port", type=int, default=11811, help="its UDP port (default: %(default)s)")
+    serve(parser.parse_args(argv).port)
+
+
 if __name__ == "__main__":
-    serve()
+    main()
