@@ -23,7 +23,7 @@ has no such stamp); it is measured instead on a standalone CloneCore in a
 worker process (python -m cloneguard.bench._core_worker kill): an idle child killed from
 outside -> the monitor's detection stamp, and -> the Python on_event call.
 
-Goal: median ≤ 1 ms (fault -> CRASHED).
+Goal: median ≤ 0.8 ms (fault -> CRASHED), one node and among 47 others.
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ from .session import Session
 
 NAME = "crash_latency"
 TITLE = "Crash latency: fault → CRASHED event"
-GOAL_MS = 1.0
+GOAL_MS = 0.8
+GOAL = f"median ≤ {GOAL_MS:g} ms"
 PROFILES = ["isolated-per-node", "isolated-shared"]
 SIGNALS = ["SIGKILL", "SIGSEGV"]
 EVENT_TIMEOUT_S = 10.0
@@ -249,7 +250,7 @@ def run(
             "stamp: max",
             "→ CRASHED at client: median",
             "at client: p90",
-            "median vs goal 1 ms",
+            f"median vs goal {GOAL_MS:g} ms",
         ],
     )
     goals, summary = [], []
@@ -257,7 +258,7 @@ def run(
         for s in signals:
             d = data[p][s]
             st, cl = stats(ms(d["stamp"])), stats(ms(d["client"]))
-            g = goal_at_most("median ≤ 1 ms", f"{label(p)}, {s}: kill → CRASHED stamp", st["median"], GOAL_MS, "ms")
+            g = goal_at_most(GOAL, f"{label(p)}, {s}: kill → CRASHED stamp", st["median"], GOAL_MS, "ms")
             goals.append(g)
             table.add(
                 label(p),
@@ -278,7 +279,7 @@ def run(
                     f"outside {s} → CRASHED (event stamp)",
                     label(p),
                     st,
-                    goal="median ≤ 1 ms",
+                    goal=GOAL,
                     verdict=g.verdict,
                 )
             )
@@ -351,11 +352,15 @@ def run(
     wrong = sum(data[p][s]["wrong_signal"] for p in profiles for s in signals)
     notes = [
         "Kill time: time.time_ns() and time.monotonic_ns() in the benchmark just before os.kill(); the "
-        "CRASHED stamp is the container's time.time_ns() when it publishes the event (same host clock), "
+        "CRASHED stamp is the container's wall clock when it publishes the event (same host clock), "
         "the client time is when the benchmark's subscription callback recorded it.",
-        "Path in the container: the C monitor's pidfd becomes readable → waitid → a record on a pipe → "
-        "the core's listener thread → IsolatedHost → ComponentManager.on_death → the event is "
-        "published. The standalone table is only the first steps (monitor, on_event). The container-side "
+        "Path in the container: the C monitor's pidfd becomes readable → waitid → the repair → the "
+        "monitor hands the event, serialized, to the core's herald thread, which stamps and publishes it "
+        "through rcl (isolated/herald.c; no Python); the death's record goes on down a pipe to the core's "
+        "listener thread → IsolatedHost → ComponentManager.on_death (the log lines). With a restart policy, "
+        "or a death whose event only Python can word (it held the GIL, a protection-key fault, a core "
+        "dump), the manager publishes it instead. The standalone table is only the first steps (monitor, "
+        "on_event). The container-side "
         "table adds the rcutils wall-clock stamps of the two lines the container logs about the death "
         "(each also goes out on /rosout, a DDS publish of its own); which come before the publish depends "
         "on the container's code, the stamps say." + gap,

@@ -108,6 +108,8 @@ int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t
 int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
                   char *err, size_t err_size);
 int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
+int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
+                    char *err, size_t err_size);
 
 /* waker.h */
 #define CGW_TOKENS ...

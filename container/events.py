@@ -76,6 +76,21 @@ class EventPublisher:
             return None
         return msg
 
+    @property
+    def handle(self):
+        """rclpy's handle of the publisher underneath: whoever publishes on
+        it from C (``publish_from_c``) keeps it in use (``with handle``)."""
+        return self._pub.handle
+
+    def publish_from_c(self) -> tuple[int, int]:
+        """(the address of rclglue's cgr_publish_cdr, the rcl publisher's):
+        what a thread without the GIL needs to publish serialized events
+        here (isolated/herald.c)."""
+        from . import _rclglue
+
+        publish = _rclglue.ffi.cast("uintptr_t", _rclglue.ffi.addressof(_rclglue.lib, "cgr_publish_cdr"))
+        return int(publish), self.handle.pointer
+
     def _context_ok(self) -> bool:
         """Is the context still up? (Once destroyed, asking raises.)"""
         try:

@@ -19,6 +19,12 @@ node its own clone(CLONE_VM) child. Both take the same calls:
 ``report_deaths_to(on_death)``
     the manager, once made, says where a node the host loses on its own (a
     child that dies) is reported: ``on_death(unique_id, death)``.
+``publish_crashed_with(events)``, ``announce_crash(hosted, ...)``
+    a host that can may publish a node's CRASHED event itself, on the
+    manager's event publisher, as soon as the node dies; ``on_death`` then
+    says so (``death.announced``). ``disarm_crash(hosted)`` takes that back
+    (False: too late, the node is dead and announced); ``crash_announced``
+    says whether it happened.
 """
 
 from __future__ import annotations
@@ -105,6 +111,18 @@ class ThreadHost:
     def report_deaths_to(self, on_death) -> None:
         """Nothing to report: a node on the container's executor dies only
         with the container."""
+
+    def publish_crashed_with(self, events) -> None:
+        """No deaths, nothing to announce (see report_deaths_to)."""
+
+    def announce_crash(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+        pass
+
+    def disarm_crash(self, hosted: Hosted) -> bool:
+        return True
+
+    def crash_announced(self, hosted: Hosted) -> bool:
+        return False
 
     def close(self, hosted_nodes) -> None:
         for hosted in hosted_nodes:

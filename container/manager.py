@@ -128,6 +128,9 @@ class ComponentManager:
         self._builders = ThreadPoolExecutor(self.BUILDERS, thread_name_prefix="cloneguard-build")
         self._restarts = None if restart_limit is None else RestartPolicy(node, self.reload, limit=restart_limit)
         host.report_deaths_to(self.on_death)
+        # A node's CRASHED then goes out from the host's core where it can
+        # (isolated mode, no restart policy: announce_crash below).
+        host.publish_crashed_with(self._events)
         # The intra-process bus is container-owned: made here, before any child.
         intra.get_bus()
         group = ReentrantCallbackGroup()
@@ -208,6 +211,8 @@ class ComponentManager:
         if early_death is not None:
             self._report_crash(entry, early_death)
         else:
+            if self._restarts is None:  # else CRASHED says what the policy decided
+                self._host.announce_crash(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
             # Its callbacks start now, not while the event and the log line
             # above were competing with them for the GIL.
             self._host.run(hosted)
@@ -221,7 +226,12 @@ class ComponentManager:
 
     def _unload(self, request, response):
         with self._lock:
-            entry = self._loaded.pop(request.unique_id, None)
+            entry = self._loaded.get(request.unique_id)
+            # A node whose death the host announced is gone (on_death follows).
+            if entry is not None and self._host.disarm_crash(entry.hosted):
+                del self._loaded[request.unique_id]
+            else:
+                entry = None
         if entry is None:
             response.success = False
             response.error_message = f"No node found with unique_id: {request.unique_id}"
@@ -239,7 +249,7 @@ class ComponentManager:
 
     def _list(self, request, response):
         with self._lock:
-            entries = sorted(self._loaded.items())
+            entries = [(uid, e) for uid, e in sorted(self._loaded.items()) if not self._host.crash_announced(e.hosted)]
         response.unique_ids = [uid for uid, _ in entries]
         response.full_node_names = [e.hosted.full_node_name for _, e in entries]
         return response
@@ -265,15 +275,17 @@ class ComponentManager:
         if self._restarts is not None and self._node.context.ok():
             restart = self._restarts.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))
         reason = death.reason if restart is None else f"{death.reason}; {restart.text}"
-        # The event first: logging goes to /rosout too, a DDS publish of its own.
-        self._publish(
-            events.CRASHED,
-            entry,
-            error_message=reason,
-            exit_signal=death.exit_signal,
-            exit_code=death.exit_code,
-            allocator_quarantined=death.allocator_quarantined,
-        )
+        # The event first: logging goes to /rosout too, a DDS publish of its
+        # own. The host may have published it already (announce_crash).
+        if not death.announced:
+            self._publish(
+                events.CRASHED,
+                entry,
+                error_message=reason,
+                exit_signal=death.exit_signal,
+                exit_code=death.exit_code,
+                allocator_quarantined=death.allocator_quarantined,
+            )
         self._log.error(f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) died: {reason}")
 
     def reload(self, request, lineage: Lineage) -> None:
@@ -303,6 +315,8 @@ class ComponentManager:
             self._restarts.cancel_all()
         with self._lock:
             entries, self._loaded = list(self._loaded.values()), {}
+            for e in entries:  # their deaths from here on are no crashes
+                self._host.disarm_crash(e.hosted)
         for uid in [e.hosted.unique_id for e in entries]:
             intra.get_bus().forget(uid)
         self._host.close([e.hosted for e in entries])

@@ -8,7 +8,9 @@
  * publisher_gid are both the writer's GUID (12-byte prefix + 4-byte entity
  * id), so a byte comparison is exact.
  *
- * And finalize a service rclpy leaves unfinalized (cgr_service_fini).
+ * And finalize a service rclpy leaves unfinalized (cgr_service_fini), and
+ * publish bytes already serialized, from a thread without the GIL: the clone
+ * core's herald, which publishes a node's CRASHED event (cgr_publish_cdr).
  *
  * The pointers come from rclpy's handles (`handle.pointer`).  The caller
  * keeps the handle in use (`with handle:`) around every call, so rclpy can
@@ -157,6 +159,25 @@ int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t
     rcl_ret_t ret = rcl_service_fini(service, node);
     if (ret != RCL_RET_OK) {
         take_error("rcl_service_fini", ret, err, err_size);
+        return CGR_ERROR;
+    }
+    return 0;
+}
+
+/* Publish cdr (len bytes, serialized with its CDR header) on publisher.
+ * Called by the clone core's herald thread (isolated/herald.c), never with
+ * the GIL; the publisher outlives it (the herald stops first). */
+int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
+                    char *err, size_t err_size)
+{
+    rcl_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
+    msg.buffer = cdr;
+    msg.buffer_length = len;
+    msg.buffer_capacity = len;
+    msg.allocator = rcutils_get_default_allocator();   /* never used: not resized */
+    rcl_ret_t ret = rcl_publish_serialized_message(publisher, &msg, NULL);
+    if (ret != RCL_RET_OK) {
+        take_error("rcl_publish_serialized_message", ret, err, err_size);
         return CGR_ERROR;
     }
     return 0;

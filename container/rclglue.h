@@ -45,4 +45,9 @@ int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
                   char *err, size_t err_size);
 int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
 
+/* Publish serialized bytes (CDR header included): 0, or CGR_ERROR with the
+   text in err.  For a thread without the GIL (isolated/herald.c). */
+int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
+                    char *err, size_t err_size);
+
 #endif

@@ -45,7 +45,7 @@ EXPECTED_TABLES = {
             "stamp: max",
             "→ CRASHED at client: median",
             "at client: p90",
-            "median vs goal 1 ms",
+            "median vs goal 0.8 ms",
         ],
         [
             "profile",

@@ -36,6 +36,7 @@ SOURCES = (
     "mutexes.c",
     "listenerwait.c",
     "pkeys.c",
+    "herald.c",
 )
 
 CDEF = r"""
@@ -80,6 +81,7 @@ struct cg_event {
     uint64_t addr;
     int32_t tid;
     int32_t owner;
+    uint32_t flags;
 };
 
 struct cga_py_stats {
@@ -170,6 +172,8 @@ struct cg_child {
     int core_dump;
     char core_path[1024];
     char core_why[160];
+    int herald_state;
+    char death_text[768];
     ...;
 };
 
@@ -226,12 +230,24 @@ int cg_gc_wait_due(int interval_us, int *wake);
 long cg_gc_collect(void *collect, int generation);
 int cg_py_allocator_active(void);
 int cg_bound_listener_wait(char *why_out, int why_size);
+int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
+                      int stop_signal, char *out, int size);
+int cg_herald_start(void *publish, const void *publisher);
+int cg_herald_stop(int timeout_ms);
+void cg_herald_counts(long *published, long *failed);
+int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
+                  const char *package_name, const char *plugin_name, int pid,
+                  uint64_t start_time_ns);
+int cg_herald_disarm(struct cg_child *c);
+int cg_herald_claimed(const struct cg_child *c);
 long cg_listener_waits_bounded(void);
 
 #define CG_EV_DEATH ...
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...
 #define CG_EV_MUTEX ...
+#define CG_EVF_ANNOUNCED ...
+#define CG_DEATH_TEXT ...
 #define CG_CORE_NONE ...
 #define CG_CORE_DONE ...
 #define CG_CORE_FAILED ...

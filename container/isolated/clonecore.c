@@ -95,6 +95,7 @@ static struct cg_child *g_ahead;     /* atomic exchange; NULL: none */
 
 static void block_free(struct cg_child *c)
 {
+    herald_forget(c);
     if (c->tstate)
         forget_thread_state(c->tstate);
     if (c->alt)
@@ -260,6 +261,7 @@ int cg_abandon(struct cg_child *c)
 {
     if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
         return -EBUSY;
+    herald_forget(c);
     if (c->ctx)
         tls_give_back(c);
     if (c->pidfd >= 0) {

@@ -20,6 +20,8 @@
  *                layout, and the allocator in use
  *   pkeys.c      memory protection keys: what the machine has, and the facts
  *                per-node heap protection rests on
+ *   herald.c     the words for a death, and a node's CRASHED event published
+ *                by a thread of the core's own, without Python
  *
  * x86_64 and glibc only.  Everything layout-dependent comes from
  * assumptions.py through struct cg_layout (g_layout), checked against a live
@@ -91,7 +93,7 @@ struct cg_config {           /* per CloneCore; see core.Mitigations */
 };
 
 enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
-struct cg_event {            /* one record on the event pipe: 56 bytes */
+struct cg_event {            /* one record on the event pipe: 64 bytes */
     uint32_t kind;
     int32_t pid;             /* death, stop: the child; mutex: the dead child
                                 that held it (the last one to die if none
@@ -111,7 +113,10 @@ struct cg_event {            /* one record on the event pipe: 56 bytes */
     uint64_t addr;           /* mutex: its address (the lock word's) */
     int32_t tid;             /* mutex: the task blocked on it */
     int32_t owner;           /* mutex: its owner's tid, 0: none recorded */
+    uint32_t flags;          /* death: CG_EVF_* */
 };
+#define CG_EVF_ANNOUNCED 1u  /* its CRASHED event is the herald's (herald.c) */
+#define CG_DEATH_TEXT 768    /* cg_child.death_text */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
 enum {
     CG_MUTEX_RELEASED = 1,   /* plain mutex of a proven-dead owner: released */
@@ -214,6 +219,12 @@ struct cg_child {            /* control block, lives in container memory */
     char core_path[CG_CORE_PATH];  /* where (Python names it; "": nowhere) */
     char core_why[CG_CORE_WHY];    /* CG_CORE_FAILED: why */
     struct cg_child *dump_next;    /* the monitor's queue of dumps */
+    /* herald.c: its CRASHED event, and who owns it (atomic) */
+    struct cg_herald *herald;
+    int herald_state;
+    /* written by the monitor at its death (cg_describe_death), read by
+       Python once reported */
+    char death_text[CG_DEATH_TEXT];
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -302,6 +313,17 @@ static inline int64_t cg_mono_ns(void)
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
+/* herald.c */
+int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
+                      int stop_signal, char *out, int size);
+int cg_herald_start(void *publish, const void *publisher);
+int cg_herald_stop(int timeout_ms);
+void cg_herald_counts(long *published, long *failed);
+int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
+                  const char *package_name, const char *plugin_name, int pid,
+                  uint64_t start_time_ns);
+int cg_herald_disarm(struct cg_child *c);
+int cg_herald_claimed(const struct cg_child *c);
 /* listenerwait.c */
 int cg_bound_listener_wait(char *why_out, int why_size);
 long cg_listener_waits_bounded(void);
@@ -395,5 +417,9 @@ int guard_dump_exclude(int exclude);      /* dumps.c, while gdb writes */
 
 /* probes.c */
 mallctl_fn find_mallctl(void);
+
+/* herald.c: herald_claim on the monitor thread, herald_forget on Python's */
+bool herald_claim(struct cg_child *c, int status, int code, bool quarantined);
+void herald_forget(struct cg_child *c);
 
 #endif

@@ -531,6 +531,74 @@ class CloneCore:
         if rc < 0:
             raise OSError(-rc, f"abandon failed: {os.strerror(-rc)}")
 
+    # -- the herald (herald.c): CRASHED events published without Python ------
+
+    def start_herald(self, publish: int, publisher: int) -> None:
+        """From now on the core publishes an armed child's CRASHED event
+        itself, at its death. ``publish``: the address of rclglue's
+        cgr_publish_cdr; ``publisher``: an rcl_publisher_t's, which must
+        outlive stop_herald() (close() calls it)."""
+        ffi, lib = _lib()
+        rc = lib.cg_herald_start(ffi.cast("void *", publish), ffi.cast("void *", publisher))
+        if rc < 0:
+            raise OSError(-rc, f"cannot start the herald: {os.strerror(-rc)}")
+
+    def stop_herald(self, timeout: float = 2.0) -> bool:
+        """Publish what was claimed, claim no more: every death after it is
+        Python's to report. False if the herald is still inside a publish
+        after ``timeout`` (then its publisher must never be destroyed); True
+        otherwise, and when it was not running."""
+        _, lib = _lib()
+        return lib.cg_herald_stop(int(timeout * 1000)) != -errno.ETIMEDOUT
+
+    def arm_crashed(
+        self,
+        child: Child,
+        *,
+        unique_id: int,
+        full_node_name: str,
+        package_name: str,
+        plugin_name: str,
+        pid: int,
+        start_time_ns: int,
+    ) -> bool:
+        """Have the herald publish the child's CRASHED event with these
+        fields if it dies (the death's own come from the monitor). False if
+        it is dead already."""
+        _, lib = _lib()
+        with self._lock:
+            if self._entry(child).dead:
+                return False
+            rc = lib.cg_herald_arm(
+                child._block,
+                unique_id,
+                full_node_name.encode(),
+                package_name.encode(),
+                plugin_name.encode(),
+                pid,
+                start_time_ns,
+            )
+        if rc < 0:
+            raise OSError(-rc, f"cannot arm the CRASHED event: {os.strerror(-rc)}")
+        return True
+
+    def disarm_crashed(self, child: Child) -> bool:
+        """Take the child's CRASHED event back from the herald: True if its
+        death, if any, is the caller's to report; False if the herald has
+        announced it (the child is dead)."""
+        _, lib = _lib()
+        with self._lock:
+            self._entry(child)
+            return bool(lib.cg_herald_disarm(child._block))
+
+    def crashed_announced(self, child: Child) -> bool:
+        """The herald has announced the child's death (it may not be reported
+        to on_event yet)."""
+        _, lib = _lib()
+        with self._lock:
+            entry = self._entries.get(child.serial)
+            return entry is not None and entry.child is child and bool(lib.cg_herald_claimed(child._block))
+
     allocator = staticmethod(allocator)
 
     def slot_stats(self, slot: int) -> dict | None:
@@ -595,6 +663,7 @@ class CloneCore:
         """
         if threading.current_thread() is self._listener:
             raise RuntimeError("close() cannot be called from on_event")
+        self.stop_herald()  # the deaths below are not crashes to announce
         with self._lock:
             if self._stopped:
                 return
@@ -699,6 +768,7 @@ class CloneCore:
             ffi, lib = _lib()
             block = entry.child._block
             stacks = self._crash_stacks.take(block)
+            event = replace(event, text=ffi.string(block.death_text).decode(errors="replace"))
             if block.crash_si_code == SEGV_PKUERR and block.crash_pkey:
                 event = replace(event, pkey_fault=self._pkey_fault(block))
             if block.gil_code != ffi.NULL:

@@ -41,7 +41,8 @@ class Repair(enum.IntFlag):
     #     out of the collector's sight
 
     def names(self) -> list[str]:
-        """["GIL_RELEASED", ...]: the single flags set, in bit order."""
+        """["GIL_RELEASED", ...]: the single flags set, in bit order (as the
+        core's words for a death name them, herald.c)."""
         return [m.name or "" for m in Repair if m and m in self]
 
 
@@ -92,6 +93,8 @@ class Death:
     # protection key not its own (heapkeys.c)
     core_file: str = ""  # --core-dumps: the dump written of it (dumps.c),
     core_missing: str = ""  # or why it asked for one and got none
+    text: str = ""  # what the core says of it (cg_describe_death, herald.c)
+    announced: bool = False  # the herald published its CRASHED event
 
     @property
     def status_lost(self) -> bool:
@@ -170,6 +173,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             alloc_quarantined=bool(r.alloc & lib.CG_ALLOC_QUARANTINED),
             alloc_faulted=bool(r.alloc & lib.CG_ALLOC_FAULTED),
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),
+            announced=bool(r.flags & lib.CG_EVF_ANNOUNCED),
         )
     if kind == KIND_STOP:
         by_signal = r.status == STOP_BY_SIGNAL

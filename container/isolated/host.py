@@ -90,6 +90,7 @@ class NodeDeath:
     exit_code: int
     reason: str
     allocator_quarantined: bool = False
+    announced: bool = False  # its CRASHED event is out already (announce_crash)
 
 
 class _Handoff:
@@ -137,7 +138,6 @@ class _NodeProcess:
     slot: int = -1  # this node's slot on the progress board
     start_ns: int = 0
     stop_guard: Any = None  # triggered to wake the child's spin loop
-    stopped_by: Any = None  # the outside signal that asked it to stop
     cgroup: Any = None  # NodeCgroup, with --cgroups
     error: str = ""  # why construction failed in the child
     aborted: str = ""  # why the container aborted it (node watchdog)
@@ -166,6 +166,7 @@ class IsolatedHost:
         self.profile = profile
         self.profile_rules = list(profile_rules)  # --profile-for, before the default
         self._on_death = None  # report_deaths_to
+        self._herald_handle = None  # publish_crashed_with: the publisher, in use
         self._log = logger
         # The container's command line: the global ROS arguments a node built
         # with forward_global_arguments gets on its own Context (per-node).
@@ -204,6 +205,49 @@ class IsolatedHost:
         if self._on_death is not None:
             raise RuntimeError("deaths are already reported elsewhere")
         self._on_death = on_death
+
+    def publish_crashed_with(self, events) -> None:
+        """Let the core publish a node's CRASHED event itself, on ``events``'
+        publisher (herald.c: a thread of its own, no Python on the way), for
+        the nodes ``announce_crash`` arms. The publisher stays in use, so
+        that rclpy cannot destroy it, until close() has stopped the herald."""
+        handle = events.handle
+        handle.__enter__()
+        try:
+            self._core.start_herald(*events.publish_from_c())
+        except BaseException:
+            handle.__exit__(None, None, None)
+            raise
+        self._herald_handle = handle
+
+    def announce_crash(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+        """Should the node's process die from now on, the core publishes its
+        CRASHED event (``publish_crashed_with``), and the manager hears of the
+        death with ``announced`` set. Undone by ``disarm_crash``."""
+        proc = hosted.detail
+        with self._lock:  # against a stop or an abort changing its state
+            if self._herald_handle is None or proc.state != "running":
+                return
+            self._core.arm_crashed(
+                proc.child,
+                unique_id=hosted.unique_id,
+                full_node_name=hosted.full_node_name,
+                package_name=package_name,
+                plugin_name=plugin_name,
+                pid=hosted.pid,
+                start_time_ns=hosted.start_time_ns,
+            )
+
+    def disarm_crash(self, hosted: Hosted) -> bool:
+        """Take the node's CRASHED event back from the core: True if its
+        death, should it come, is the caller's to report; False if the core
+        has announced it (the node is dead; on_death follows)."""
+        return self._core.disarm_crashed(hosted.detail.child)
+
+    def crash_announced(self, hosted: Hosted) -> bool:
+        """The core has announced the node's death; on_death may not have
+        been called yet."""
+        return self._core.crashed_announced(hosted.detail.child)
 
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
@@ -330,6 +374,16 @@ class IsolatedHost:
     def close(self, hosted_nodes) -> None:
         with self._lock:
             self._closing = True
+        # Before the nodes stop: no CRASHED for them.
+        if not self._core.stop_herald():
+            # Its publisher stays in use: rclpy must never destroy it under it.
+            self._log.error(
+                "the core's herald thread is stuck publishing a CRASHED event (a dead node may hold "
+                "a lock of Fast DDS's); it is left as it is"
+            )
+        elif self._herald_handle is not None:
+            self._herald_handle.__exit__(None, None, None)
+        self._herald_handle = None
         if self._spare_maker is not None:
             self._spare_maker.shutdown(wait=True)
         with self._lock:
@@ -574,7 +628,6 @@ class IsolatedHost:
         if isinstance(event, StopRequested):
             # Someone sent the child SIGTERM/SIGINT: let its executor see the flag.
             if event.by_signal:
-                proc.stopped_by = event.signal
                 _wake(proc)
             return
         assert isinstance(event, Death)
@@ -601,7 +654,8 @@ class IsolatedHost:
         no running node has that id."""
         with self._lock:
             proc = next((p for p in self._by_pid.values() if p.unique_id == unique_id and p.state == "running"), None)
-            if proc is None or proc.aborted:
+            # Its event must say why: taken back from the core first.
+            if proc is None or proc.aborted or not self._core.disarm_crashed(proc.child):
                 return False
             proc.aborted = why
         self._log.error(
@@ -624,13 +678,11 @@ class IsolatedHost:
         """A node's process ended without being unloaded: a crash, or a clean
         exit after an outside SIGTERM/SIGINT (the container's own process
         group being stopped, say)."""
-        reason = _describe(death)
-        if proc.stopped_by is not None:
-            reason += f" after an outside {proc.stopped_by.name}"
+        reason = _describe(death)  # with "after an outside SIGTERM", if so
         if proc.aborted:
             reason += f" by the container: {proc.aborted}"
-        # Tell the manager first (it publishes CRASHED); the bookkeeping and
-        # its log lines can wait the few hundred microseconds.
+        # Tell the manager first (it publishes CRASHED, unless the core has);
+        # the bookkeeping and its log lines can wait.
         if self._on_death is not None:
             self._on_death(
                 proc.unique_id,
@@ -640,6 +692,7 @@ class IsolatedHost:
                     exit_code=death.exit_code or 0,
                     reason=reason,
                     allocator_quarantined=death.alloc_quarantined,
+                    announced=death.announced,
                 ),
             )
         if death.core_file:
@@ -696,39 +749,29 @@ def _wake(proc: _NodeProcess) -> None:
 
 
 def _describe(death: Death | None) -> str:
+    """The core's words for a death (cg_describe_death: how it ended, what
+    was repaired, its arena, an outside stop signal), and what only Python
+    says: whose memory a protection-key fault hit, where it held the GIL, its
+    core dump. The core announces no death that has any of these."""
     if death is None:
         return "unknown"
-    if death.exit_signal:
-        what = f"killed by {signal.Signals(death.exit_signal).name}"
-        if death.pkey_fault is not None:
-            fault = death.pkey_fault
-            if fault.victim_slot == 0:
-                victim = "the container's allocator tables"
-            elif fault.victim_pid:
-                victim = f"{processes.who(fault.victim_pid)}'s heap"
-            elif fault.victim_slot > 0:
-                victim = f"allocator slot {fault.victim_slot}'s heap"
-            else:
-                victim = "memory under a key not its own"
-            what += (
-                f": protection-key violation: wrote into {victim} at {fault.addr:#x} "
-                f"(key {fault.key}); the write did not land"
-            )
-    elif death.status_lost:
-        what = "exited, status unknown"
-    else:
-        what = f"exited with code {death.exit_code}"
+    what = death.text
+    if death.pkey_fault is not None:
+        fault = death.pkey_fault
+        if fault.victim_slot == 0:
+            victim = "the container's allocator tables"
+        elif fault.victim_pid:
+            victim = f"{processes.who(fault.victim_pid)}'s heap"
+        elif fault.victim_slot > 0:
+            victim = f"allocator slot {fault.victim_slot}'s heap"
+        else:
+            victim = "memory under a key not its own"
+        what += (
+            f"; protection-key violation: wrote into {victim} at {fault.addr:#x} "
+            f"(key {fault.key}); the write did not land"
+        )
     if death.gil_frame:
         what += f"; it held the GIL in {death.gil_frame}"
-    if death.repaired:
-        # e.g. "killed by SIGSEGV; repaired: GIL_RELEASED"
-        what += "; repaired: " + ", ".join(death.repairs.names())
-    if death.alloc_faulted:
-        what += "; it faulted, so its heap may be torn: its arena is quarantined"
-    elif death.alloc_quarantined:
-        what += "; it died inside the allocator: its arena is quarantined"
-    if death.py_abandoned:
-        what += "; it died inside Python's object allocator: its pools are abandoned"
     if death.core_file:
         what += f"; core dump: {death.core_file}"
     elif death.core_missing:

@@ -4,8 +4,9 @@
  * dies, so children die with the monitor, i.e. with the container).  It
  * waits on the children's pidfds with epoll, and after a death calls
  * gilrepair.c to undo what the dead task left in CPython's GIL; then it
- * reports to Python through a pipe of fixed-size records (struct cg_event)
- * and leaves the zombie for cg_release to reap.  Between events, and after
+ * words the death and hands its CRASHED event to the herald thread if the
+ * node is armed (herald.c), reports to Python through a pipe of fixed-size
+ * records (struct cg_event) and leaves the zombie for cg_release to reap.  Between events, and after
  * each, it runs the lock doctor (mutexes.c), which says how long it may
  * sleep.  With --core-dumps it also has crashing children dumped
  * (dumps.c).  It never takes the GIL.  It alone touches the child list
@@ -82,18 +83,23 @@ void monitor_emit(const struct cg_event *ev)
     }
 }
 
-static void emit(uint32_t kind, const struct cg_child *c, int status,
-                 int code, int64_t t, uint32_t repairs)
+/* The record's alloc word for child c (CG_ALLOC_*, its slot). */
+static uint32_t alloc_word(const struct cg_child *c)
 {
-    uint32_t alloc = 0;
-    if (c && c->ctx)
-        alloc = (uint32_t)c->ctx->slot |
-                (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
-                (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0) |
-                (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0);
+    if (!c || !c->ctx)
+        return 0;
+    return (uint32_t)c->ctx->slot |
+           (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
+           (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0) |
+           (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0);
+}
+
+static void emit(uint32_t kind, const struct cg_child *c, int status,
+                 int code, int64_t t, uint32_t repairs, uint32_t flags)
+{
     struct cg_event ev = {.kind = kind, .pid = c ? c->pid : 0, .status = status,
                           .code = code, .serial = c ? c->serial : 0, .t_ns = t,
-                          .repairs = repairs, .alloc = alloc};
+                          .repairs = repairs, .alloc = alloc_word(c), .flags = flags};
     monitor_emit(&ev);
 }
 
@@ -103,7 +109,7 @@ static void report_stop(struct cg_child *c, int64_t t)
     if (s != CG_STOP_NONE && !c->stop_reported) {
         c->stop_reported = 1;
         emit(CG_EV_STOP, c, s, __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE),
-             t, 0);
+             t, 0, 0);
     }
 }
 
@@ -241,6 +247,14 @@ static void reap(struct cg_child *c, int64_t t)
        is settled now (before anything hears of the death). */
     if (c->ctx)
         c->retired = guard_retire(c->ctx, r == 0 && faulted_itself(c, status, code));
+    /* Its words, and its CRASHED event out at once if the herald may say it
+       (herald.c), before the rest of the bookkeeping. */
+    uint32_t alloc = alloc_word(c);
+    int asked = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
+    cg_describe_death(status, code, c->repairs, alloc,
+                      asked == CG_STOP_SIGNAL ? __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE) : 0,
+                      c->death_text, CG_DEATH_TEXT);
+    uint32_t flags = herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
     /* Left a zombie (its pid still ours) for Python's release to reap
        (clonecore.c): the reaping waitid took ~0.9 ms of kernel time with 48
        node processes (median, bench.crash_latency --others 47), on the CPU
@@ -256,7 +270,7 @@ static void reap(struct cg_child *c, int64_t t)
             break;
         }
     __atomic_store_n(&c->state, CG_REAPED, __ATOMIC_RELEASE);
-    emit(CG_EV_DEATH, c, status, code, t, c->repairs);
+    emit(CG_EV_DEATH, c, status, code, t, c->repairs, flags);
 }
 
 static void *monitor_main(void *unused)
@@ -292,7 +306,7 @@ static void *monitor_main(void *unused)
                     if (g_children) {
                         cmd_finish(cmd, -EBUSY);
                     } else {
-                        emit(CG_EV_CLOSED, NULL, 0, 0, t, 0);
+                        emit(CG_EV_CLOSED, NULL, 0, 0, t, 0, 0);
                         cmd_finish(cmd, 0);
                         return NULL;
                     }

@@ -1,0 +1,431 @@
+/*
+ * herald.c - a node's CRASHED event, published by the core itself, and the
+ * words that describe a death.
+ *
+ * Through Python, a death reached its CRASHED publish 0.3-0.4 ms after the
+ * monitor's record (bench/README.md, "step by step"): the listener thread,
+ * woken cold, decodes the record, takes the GIL and walks the host's and
+ * the manager's bookkeeping before the publish.  Here the monitor claims
+ * the event as it writes the record and hands it to the herald thread,
+ * which publishes it through rcl (rclglue's cgr_publish_cdr): no Python and
+ * no GIL on the way, so the event also goes out when a dead node left the
+ * GIL unusable.  Python still does the rest (log, bookkeeping), and does
+ * not publish what the record says was announced (CG_EVF_ANNOUNCED).
+ *
+ * Who owns an armed node's event, one word (cg_child.herald_state):
+ *   OFF -> ARMED        cg_herald_arm (Python), once the node's LOADED is out
+ *   ARMED -> CLAIMED    the monitor, at the node's death (herald_claim)
+ *   ARMED -> OFF        cg_herald_disarm (Python: unload, abort, shutdown)
+ * Whoever moves it from ARMED owns the buffer made at arming.  A CLAIMED
+ * node is dead and its CRASHED out (or on its way): Python neither lists
+ * it nor unloads it any more.
+ *
+ * The monitor claims only a death whose event says nothing Python alone
+ * knows: not with a protection-key fault (the victim's name), the frame it
+ * held the GIL in, or a core dump asked for.  Python does not arm with a
+ * restart policy (the event says what it decided) and disarms before it
+ * aborts a node (the event says why).
+ *
+ * The monitor never publishes itself: a dead node may hold a lock of Fast
+ * DDS's, and the monitor must go on reaping whatever happens.  Nor does it
+ * allocate (a dead node may hold an allocator lock): it serializes into the
+ * buffer made at arming and passes its pointer down a non-blocking pipe.
+ * If the pipe is full (a herald stuck in Fast DDS) the claim is undone and
+ * Python publishes, as without the herald.
+ *
+ * The wire format (what rmw_fastrtps takes as a serialized message): CDR,
+ * little-endian, encapsulation CDR_LE (00 01 00 00), then the fields of
+ * cloneguard_interfaces/msg/ComponentEvent.msg in its order, each aligned
+ * to its own size counted from the end of the 4-byte header; a string is a
+ * uint32 length counting its NUL, its bytes, the NUL.  tests/test_herald.py
+ * has rclpy deserialize what this writes.
+ */
+#include "core.h"
+
+#include <errno.h>
+#include <fcntl.h>
+#include <pthread.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+enum { OFF = 0, ARMED = 1, CLAIMED = 2 };
+#define CDR_HEADER 4
+#define EVENT_CRASHED 3      /* ComponentEvent.CRASHED */
+#define SEGV_PKUERR_CODE 4   /* si_code of a protection-key fault */
+#define STAMP_AT CDR_HEADER  /* the stamp (sec, nanosec) is the first field */
+
+struct cg_herald {           /* one armed node's event, one allocation */
+    uint64_t unique_id, start_time_ns;
+    int32_t pid;
+    const char *full_node_name, *package_name, *plugin_name;  /* in text[] */
+    size_t len, cap;         /* of cdr[] */
+    uint8_t *cdr;            /* after text[] */
+    char text[];
+};
+
+typedef int (*publish_fn)(const void *publisher, uint8_t *cdr, size_t len,
+                          char *err, size_t err_size);
+
+struct herald_thread {       /* what one herald thread works with: its own,
+                                so that a stuck one (cg_herald_stop) never
+                                touches what a later one uses */
+    int fd;                  /* the pipe's read end */
+    publish_fn publish;
+    const void *publisher;
+};
+
+static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* g_on, g_pipe[1] */
+static int g_on;             /* the herald runs: the monitor may claim */
+static int g_pipe[2] = {-1, -1};
+static pthread_t g_thread;
+static long g_published, g_failed;   /* atomic */
+
+/* ---- the words ---------------------------------------------------------- */
+
+/* Names of the CG_REPAIR_* bits, in bit order: core_events.Repair's names. */
+static const char *const REPAIR_NAMES[] = {
+    "GIL_RELEASED", "GIL_MUTEX", "SWITCH_MUTEX", "COND_WAITER", "SWITCH_WAITER",
+    "COND_LOCK", "GIL_TIMEOUT", "PY_POOLS", "GC_LINKS", "FREELISTS", "PY_OBJECTS",
+};
+
+static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
+    __attribute__((format(printf, 4, 5)));
+static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
+{
+    if (*n >= size - 1)
+        return;
+    va_list ap;
+    va_start(ap, fmt);
+    int k = vsnprintf(out + *n, size - *n, fmt, ap);
+    va_end(ap);
+    if (k > 0)
+        *n = *n + (size_t)k < size - 1 ? *n + (size_t)k : size - 1;
+}
+
+/* What the event and the log say of a death, as far as the core knows it:
+   how it ended (code: CLD_*, 0 when someone else reaped it), what the
+   monitor repaired, what the allocator guard did with its arena (CG_ALLOC_*
+   bits of the record's alloc word), and the outside signal that asked it
+   to stop (0: none).  Python adds what it alone knows. */
+int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
+                      int stop_signal, char *out, int size)
+{
+    size_t n = 0, cap = (size_t)size;
+    if (size < 1)
+        return 0;
+    out[0] = '\0';
+    if (code == CLD_KILLED || code == CLD_DUMPED) {
+        const char *abbrev = sigabbrev_np(status);
+        if (abbrev)
+            add(out, cap, &n, "killed by SIG%s", abbrev);
+        else
+            add(out, cap, &n, "killed by signal %d", status);
+    } else if (code == 0) {
+        add(out, cap, &n, "exited, status unknown");
+    } else {
+        add(out, cap, &n, "exited with code %d", status);
+    }
+    if (repairs & ~(uint32_t)CG_REPAIR_GIL_TIMEOUT) {
+        const char *sep = "; repaired: ";
+        for (unsigned b = 0; b < sizeof REPAIR_NAMES / sizeof *REPAIR_NAMES; b++)
+            if (repairs & (1u << b)) {
+                add(out, cap, &n, "%s%s", sep, REPAIR_NAMES[b]);
+                sep = ", ";
+            }
+    }
+    if (alloc & CG_ALLOC_FAULTED)
+        add(out, cap, &n, "; it faulted, so its heap may be torn: its arena is quarantined");
+    else if (alloc & CG_ALLOC_QUARANTINED)
+        add(out, cap, &n, "; it died inside the allocator: its arena is quarantined");
+    if (alloc & CG_ALLOC_PY_ABANDONED)
+        add(out, cap, &n, "; it died inside Python's object allocator: its pools are abandoned");
+    if (stop_signal > 0) {
+        const char *abbrev = sigabbrev_np(stop_signal);
+        if (abbrev)
+            add(out, cap, &n, " after an outside SIG%s", abbrev);
+        else
+            add(out, cap, &n, " after an outside signal %d", stop_signal);
+    }
+    return (int)n;
+}
+
+/* ---- CDR ----------------------------------------------------------------- */
+
+struct cdr {
+    uint8_t *p;
+    size_t n;
+};
+
+static void put(struct cdr *w, const void *v, size_t size)
+{
+    while ((w->n - CDR_HEADER) % size)
+        w->p[w->n++] = 0;
+    memcpy(w->p + w->n, v, size);
+    w->n += size;
+}
+
+static void put_string(struct cdr *w, const char *s)
+{
+    uint32_t len = (uint32_t)strlen(s) + 1;
+    put(w, &len, sizeof len);
+    memcpy(w->p + w->n, s, len);
+    w->n += len;
+}
+
+/* Room a CRASHED event needs beyond its strings' bytes: header, fixed-size
+   fields, lengths, NULs and alignment (less than 96). */
+#define CDR_ROOM 128
+
+/* Serialize h's event, dead of (status, code), with error_message text. */
+static void serialize(struct cg_herald *h, int status, int code, bool quarantined,
+                      const char *text)
+{
+    struct cdr w = {h->cdr, 0};
+    static const uint8_t CDR_LE[CDR_HEADER] = {0x00, 0x01, 0x00, 0x00};
+    memcpy(w.p, CDR_LE, CDR_HEADER);
+    w.n = CDR_HEADER;
+    int32_t sec = 0;
+    uint32_t nanosec = 0;    /* stamped by the herald, just before the publish */
+    uint8_t type = EVENT_CRASHED, q = quarantined;
+    bool killed = code == CLD_KILLED || code == CLD_DUMPED;
+    int32_t exit_signal = killed ? status : 0, exit_code = code == CLD_EXITED ? status : 0;
+    put(&w, &sec, 4);
+    put(&w, &nanosec, 4);
+    put(&w, &type, 1);
+    put(&w, &h->unique_id, 8);
+    put_string(&w, h->full_node_name);
+    put_string(&w, h->package_name);
+    put_string(&w, h->plugin_name);
+    put_string(&w, text);
+    put(&w, &h->pid, 4);
+    put(&w, &exit_signal, 4);
+    put(&w, &exit_code, 4);
+    put(&w, &h->start_time_ns, 8);
+    put(&w, &q, 1);
+    put_string(&w, "");      /* repaired_state */
+    h->len = w.n;
+}
+
+/* ---- the herald thread ----------------------------------------------------- */
+
+static void say(const char *fmt, ...) __attribute__((format(printf, 1, 2)));
+static void say(const char *fmt, ...)
+{
+    /* write(2), not stdio: a dead node may hold stderr's FILE lock. */
+    char line[512];
+    va_list ap;
+    va_start(ap, fmt);
+    int k = vsnprintf(line, sizeof line, fmt, ap);
+    va_end(ap);
+    if (k > 0 && write(2, line, (size_t)k < sizeof line ? (size_t)k : sizeof line - 1) < 0) {
+        /* nowhere else to say it */
+    }
+}
+
+static void *herald_main(void *arg)
+{
+    struct herald_thread *self = arg;
+    for (;;) {
+        struct cg_herald *h;
+        ssize_t n = read(self->fd, &h, sizeof h);
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n != (ssize_t)sizeof h) {    /* closed: cg_herald_stop */
+            close(self->fd);
+            free(self);
+            return NULL;
+        }
+        struct timespec now;
+        clock_gettime(CLOCK_REALTIME, &now);
+        int32_t sec = (int32_t)now.tv_sec;
+        uint32_t nanosec = (uint32_t)now.tv_nsec;
+        memcpy(h->cdr + STAMP_AT, &sec, 4);
+        memcpy(h->cdr + STAMP_AT + 4, &nanosec, 4);
+        char err[256] = "";
+        if (self->publish(self->publisher, h->cdr, h->len, err, sizeof err) == 0) {
+            __atomic_add_fetch(&g_published, 1, __ATOMIC_RELAXED);
+        } else {
+            __atomic_add_fetch(&g_failed, 1, __ATOMIC_RELAXED);
+            say("cloneguard: the CRASHED event of %s (pid %d) was not published: %s\n",
+                h->full_node_name, h->pid, err);
+        }
+        free(h);
+    }
+}
+
+/* Start publishing armed nodes' CRASHED events with publish(publisher, ...)
+   (rclglue's cgr_publish_cdr, on the container's event publisher).  The
+   publisher must outlive cg_herald_stop. */
+int cg_herald_start(void *publish, const void *publisher)
+{
+    pthread_mutex_lock(&g_lock);
+    int r = 0;
+    if (g_on) {
+        r = -EALREADY;
+        goto out;
+    }
+    struct herald_thread *self = malloc(sizeof *self);
+    if (!self) {
+        r = -ENOMEM;
+        goto out;
+    }
+    if (pipe2(g_pipe, O_CLOEXEC) < 0) {
+        r = -errno;
+        free(self);
+        goto out;
+    }
+    fcntl(g_pipe[1], F_SETFL, O_NONBLOCK);   /* the monitor never waits */
+    *self = (struct herald_thread){g_pipe[0], (publish_fn)publish, publisher};
+    /* Signals go to the container's other threads (as for the monitor),
+       but the ones a fault raises: the container's crash report names it. */
+    sigset_t all, old;
+    sigfillset(&all);
+    sigdelset(&all, SIGSEGV), sigdelset(&all, SIGBUS), sigdelset(&all, SIGILL);
+    sigdelset(&all, SIGFPE), sigdelset(&all, SIGABRT);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
+    r = -pthread_create(&g_thread, NULL, herald_main, self);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
+    if (r < 0) {
+        close(g_pipe[0]), close(g_pipe[1]);
+        g_pipe[0] = g_pipe[1] = -1;
+        free(self);
+        goto out;
+    }
+    pthread_setname_np(g_thread, "cg-herald");
+    g_on = 1;
+out:
+    pthread_mutex_unlock(&g_lock);
+    return r;
+}
+
+/* Claim no more deaths, publish the ones claimed, end the thread: 0, or
+   -ETIMEDOUT if it is still inside a publish after timeout_ms (stuck on a
+   lock of Fast DDS's a dead node held, say: it is left as it is, and its
+   publisher must never be destroyed).  After it, every death is Python's
+   to report. */
+int cg_herald_stop(int timeout_ms)
+{
+    pthread_mutex_lock(&g_lock);
+    int was = g_on;
+    g_on = 0;
+    if (was) {
+        close(g_pipe[1]);    /* the thread drains the pipe, then reads EOF */
+        g_pipe[1] = -1;
+    }
+    pthread_mutex_unlock(&g_lock);
+    if (!was)
+        return -EALREADY;
+    struct timespec until;
+    clock_gettime(CLOCK_REALTIME, &until);
+    until.tv_sec += timeout_ms / 1000;
+    until.tv_nsec += (long)(timeout_ms % 1000) * 1000000;
+    if (until.tv_nsec >= 1000000000)
+        until.tv_sec++, until.tv_nsec -= 1000000000;
+    g_pipe[0] = -1;          /* the thread's now: it closes it as it ends */
+    if (pthread_timedjoin_np(g_thread, NULL, &until) != 0) {
+        pthread_detach(g_thread);
+        return -ETIMEDOUT;
+    }
+    return 0;
+}
+
+/* Events published, and failed, since the core was loaded. */
+void cg_herald_counts(long *published, long *failed)
+{
+    *published = __atomic_load_n(&g_published, __ATOMIC_RELAXED);
+    *failed = __atomic_load_n(&g_failed, __ATOMIC_RELAXED);
+}
+
+/* ---- arming and claiming ---------------------------------------------- */
+
+/* Arm c's CRASHED event with its fixed fields (Python, once its LOADED is
+   out).  0; -EALREADY if armed or claimed; -ENOMEM. */
+int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
+                  const char *package_name, const char *plugin_name, int pid,
+                  uint64_t start_time_ns)
+{
+    if (__atomic_load_n(&c->herald_state, __ATOMIC_ACQUIRE) != OFF)
+        return -EALREADY;
+    size_t l1 = strlen(full_node_name) + 1, l2 = strlen(package_name) + 1;
+    size_t l3 = strlen(plugin_name) + 1;
+    size_t cap = CDR_ROOM + l1 + l2 + l3 + CG_DEATH_TEXT;
+    struct cg_herald *h = malloc(sizeof *h + l1 + l2 + l3 + cap);
+    if (!h)
+        return -ENOMEM;
+    h->unique_id = unique_id;
+    h->start_time_ns = start_time_ns;
+    h->pid = pid;
+    char *t = h->text;
+    h->full_node_name = memcpy(t, full_node_name, l1);
+    h->package_name = memcpy(t + l1, package_name, l2);
+    h->plugin_name = memcpy(t + l1 + l2, plugin_name, l3);
+    h->cdr = (uint8_t *)(t + l1 + l2 + l3);
+    h->cap = cap;
+    h->len = 0;
+    c->herald = h;
+    __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);
+    return 0;
+}
+
+/* Take c's event back (Python): 1 if its death, if any, is Python's to
+   report now; 0 if the monitor claimed it (c is dead, its CRASHED out). */
+int cg_herald_disarm(struct cg_child *c)
+{
+    int armed = ARMED;
+    if (__atomic_compare_exchange_n(&c->herald_state, &armed, OFF, false,
+                                    __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
+        free(c->herald);
+        c->herald = NULL;
+        return 1;
+    }
+    return armed != CLAIMED;
+}
+
+/* Was c's death announced by the herald? */
+int cg_herald_claimed(const struct cg_child *c)
+{
+    return __atomic_load_n(&c->herald_state, __ATOMIC_ACQUIRE) == CLAIMED;
+}
+
+/* A block going away (cg_release, cg_abandon: c is reaped, so the monitor
+   is done with it): free an event nobody claimed. */
+void herald_forget(struct cg_child *c)
+{
+    if (__atomic_load_n(&c->herald_state, __ATOMIC_ACQUIRE) == ARMED) {
+        free(c->herald);
+        c->herald = NULL;
+        __atomic_store_n(&c->herald_state, OFF, __ATOMIC_RELEASE);
+    }
+}
+
+/* On the monitor thread, at c's death (status, code as in its record),
+   c->death_text written: announce it if armed and nothing in its event is
+   Python's alone to say.  True if the herald has it. */
+bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
+{
+    if (c->gil_code != NULL || c->core_dump != CG_CORE_NONE ||
+        (c->crash_si_code == SEGV_PKUERR_CODE && c->crash_pkey) ||
+        __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) == CG_STOP_PARENT)
+        return false;
+    int armed = ARMED;
+    if (!__atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false,
+                                     __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE))
+        return false;
+    struct cg_herald *h = c->herald;
+    serialize(h, status, code, quarantined, c->death_text);
+    /* Under g_lock (held by others only to flip g_on, never long): once
+       cg_herald_stop has run, nothing more goes down the pipe. */
+    pthread_mutex_lock(&g_lock);
+    bool sent = g_on && write(g_pipe[1], &h, sizeof h) == (ssize_t)sizeof h;
+    pthread_mutex_unlock(&g_lock);
+    if (sent) {
+        c->herald = NULL;    /* the herald frees it */
+        return true;
+    }
+    __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);   /* Python's */
+    return false;
+}

@@ -1,0 +1,339 @@
+"""A node's CRASHED event published by the clone core itself (herald.c).
+
+In-process: a CloneCore and a real rcl publisher (the container's event
+publisher on a node of this process): the herald's bytes, deserialized by
+rclpy at a real subscription, are the event; who owns the event between the
+monitor's claim and Python's disarm. In a container: the event's fields, once
+per death, and what ListNodes and UnloadNode say of a node announced dead.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import re
+import signal
+import sys
+import threading
+import time
+
+import pytest
+from cloneguard_interfaces.msg import ComponentEvent
+from ros_support import ros_nodes
+from test_isolated_core import Recorder, blocked_in, wait_sleeping, wait_until
+
+from cloneguard.container import events
+from cloneguard.container.isolated._clonecore import ffi, lib
+from cloneguard.container.isolated.core import CloneCore
+from cloneguard.container.isolated.core_events import Repair
+from cloneguard.faults import PACKAGE as TESTRIG
+from cloneguard.harness.client import HarnessTimeout
+
+PKG = "cloneguard"
+PROFILES = [
+    pytest.param(["--isolated", "--profile", "per-node"], id="per-node"),
+    pytest.param(["--isolated", "--profile", "shared"], id="shared"),
+]
+TEXT_SIZE = 768
+
+
+def words(status: int, code: int, repairs: int = 0, alloc: int = 0, stop_signal: int = 0) -> str:
+    buf = ffi.new("char[]", TEXT_SIZE)
+    lib.cg_describe_death(status, code, repairs, alloc, stop_signal, buf, TEXT_SIZE)
+    return ffi.string(buf).decode()
+
+
+def test_the_words_for_a_death():
+    assert words(signal.SIGKILL, os.CLD_KILLED) == "killed by SIGKILL"
+    assert words(signal.SIGSEGV, os.CLD_DUMPED) == "killed by SIGSEGV"
+    assert words(3, os.CLD_EXITED) == "exited with code 3"
+    assert words(-1, 0) == "exited, status unknown"
+    assert words(0, os.CLD_EXITED, stop_signal=signal.SIGTERM) == "exited with code 0 after an outside SIGTERM"
+    # A timeout alone is no repair; with one, it is named too.
+    assert words(9, os.CLD_KILLED, repairs=lib.CG_REPAIR_GIL_TIMEOUT) == "killed by SIGKILL"
+    assert words(9, os.CLD_KILLED, repairs=lib.CG_REPAIR_GIL_RELEASED | lib.CG_REPAIR_GIL_TIMEOUT) == (
+        "killed by SIGKILL; repaired: GIL_RELEASED, GIL_TIMEOUT"
+    )
+    assert words(11, os.CLD_KILLED, alloc=lib.CG_ALLOC_FAULTED | lib.CG_ALLOC_QUARANTINED) == (
+        "killed by SIGSEGV; it faulted, so its heap may be torn: its arena is quarantined"
+    )
+    assert words(9, os.CLD_KILLED, alloc=lib.CG_ALLOC_QUARANTINED | lib.CG_ALLOC_PY_ABANDONED) == (
+        "killed by SIGKILL; it died inside the allocator: its arena is quarantined; "
+        "it died inside Python's object allocator: its pools are abandoned"
+    )
+
+
+@pytest.mark.parametrize("repair", [r for r in Repair if r and r is not Repair.GIL_TIMEOUT], ids=lambda r: r.name)
+def test_each_repair_is_named_as_python_names_it(repair):
+    assert words(9, os.CLD_KILLED, repairs=int(repair)) == f"killed by SIGKILL; repaired: {repair.name}"
+
+
+def test_a_long_text_is_cut_not_overrun():
+    buf = ffi.new("char[]", 24)
+    n = lib.cg_describe_death(9, os.CLD_KILLED, int(Repair.GIL_RELEASED), 0, 0, buf, 24)
+    assert n == 23 and ffi.string(buf).decode() == "killed by SIGKILL; repa"
+
+
+# -- in-process: the herald on a real publisher ---------------------------------
+
+
+class Heard:
+    """The events one subscription received."""
+
+    def __init__(self):
+        self.msgs: list = []
+        self.cond = threading.Condition()
+        self.publisher = None  # the EventPublisher heard
+
+    def __call__(self, msg) -> None:
+        with self.cond:
+            self.msgs.append(msg)
+            self.cond.notify_all()
+
+    def wait(self, n: int, timeout: float = 10.0) -> list:
+        with self.cond:
+            assert self.cond.wait_for(lambda: len(self.msgs) >= n, timeout), f"{len(self.msgs)} of {n} events heard"
+            return list(self.msgs)
+
+
+@pytest.fixture
+def herald():
+    """(core, recorder, heard, spin): a CloneCore whose herald publishes on a
+    container-like event publisher, a subscription to it, both in this
+    process, spun on a thread."""
+    rec, heard = Recorder(), Heard()
+    with ros_nodes("herald_test_container", "herald_test_client") as ((container, client), executor):
+        pub = events.EventPublisher(container)
+        topic = events.EVENTS_TOPIC.replace("~", container.get_fully_qualified_name())
+        client.create_subscription(ComponentEvent, topic, heard, events.EVENTS_QOS)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        core = CloneCore(on_event=rec)
+        with pub.handle:
+            core.start_herald(*pub.publish_from_c())
+            heard.publisher = pub
+            try:
+                yield core, rec, heard
+            finally:
+                core.close()
+        executor.shutdown()
+        spinner.join(5)
+
+
+def _armed_sleeper(core, **fields):
+    child = core.spawn(lambda: time.sleep(60))
+    wait_sleeping(child)
+    core.arm_crashed(child, **{**ARM, "pid": child.pid, **fields})
+    return child
+
+
+ARM = {
+    "unique_id": 42,
+    "full_node_name": "/robot/planner_é",  # not ASCII: the bytes go as they are
+    "package_name": "my_pkg",
+    "plugin_name": "my_pkg::Planner",
+    "start_time_ns": 1_764_000_000_123_456_789,
+}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV])
+def test_the_core_publishes_an_armed_childs_crashed_event(herald, sig):
+    core, rec, heard = herald
+    child = _armed_sleeper(core)
+    before = time.time_ns()
+    core.kill(child, sig)
+    death = core.wait(child, 10)
+    rec.wait_for(lambda: death in rec.events)
+    assert death.announced and death.text == f"killed by {sig.name}"
+    assert core.crashed_announced(child)
+    assert core.disarm_crashed(child) is False  # too late: it is announced
+    (msg,) = heard.wait(1)
+    stamp = msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec
+    assert before < stamp < time.time_ns()
+    assert (msg.event_type, msg.unique_id, msg.pid) == (ComponentEvent.CRASHED, 42, child.pid)
+    assert (msg.full_node_name, msg.package_name, msg.plugin_name) == (
+        ARM["full_node_name"],
+        ARM["package_name"],
+        ARM["plugin_name"],
+    )
+    assert (msg.error_message, msg.exit_signal, msg.exit_code) == (f"killed by {sig.name}", sig, 0)
+    assert (msg.start_time, msg.allocator_quarantined, msg.repaired_state) == (ARM["start_time_ns"], False, "")
+    core.release(child)
+
+
+def _exit_5_later():
+    time.sleep(0.3)
+    sys.exit(5)
+
+
+def test_an_exit_is_published_with_its_code(herald):
+    core, rec, heard = herald
+    child = core.spawn(_exit_5_later)
+    core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    death = core.wait(child, 10)
+    assert death.announced
+    (msg,) = heard.wait(1)
+    assert (msg.error_message, msg.exit_signal, msg.exit_code) == ("exited with code 5", 0, 5)
+    core.release(child)
+
+
+def _exit_5_holding_the_gil():
+    time.sleep(0.3)
+    os._exit(5)  # the _exit system call, with the GIL held
+
+
+def test_a_death_holding_the_gil_is_left_to_python(herald):
+    # Where it held the GIL is Python's to say (core.py reads its frame):
+    # the core does not announce it.
+    core, rec, heard = herald
+    child = core.spawn(_exit_5_holding_the_gil)
+    core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    death = core.wait(child, 10)
+    rec.wait_for(lambda: death in rec.events)
+    assert death.gil_frame and not death.announced
+    assert core.disarm_crashed(child) is True
+    core.release(child)
+    assert heard.msgs == []
+
+
+def test_a_disarmed_childs_death_is_pythons_to_report(herald):
+    core, rec, heard = herald
+    child = _armed_sleeper(core)
+    assert core.disarm_crashed(child) is True
+    assert core.disarm_crashed(child) is True  # twice: still the caller's
+    core.kill(child, signal.SIGKILL)
+    death = core.wait(child, 10)
+    assert not death.announced and not core.crashed_announced(child)
+    assert death.text == "killed by SIGKILL"  # the words, whoever publishes
+    # A second, armed child's event is the mark that the first one had none.
+    marker = _armed_sleeper(core, unique_id=43)
+    core.kill(marker, signal.SIGKILL)
+    core.wait(marker, 10)
+    assert [m.unique_id for m in heard.wait(1)] == [43]
+    core.release(child)
+    core.release(marker)
+
+
+def test_a_child_asked_to_stop_by_its_parent_is_not_announced(herald):
+    core, rec, heard = herald
+    child = _armed_sleeper(core)
+    core.request_stop(child)
+    core.kill(child, signal.SIGKILL)
+    death = core.wait(child, 10)
+    assert not death.announced and core.disarm_crashed(child) is True
+    core.release(child)
+    assert heard.msgs == []
+
+
+def test_after_the_herald_stops_every_death_is_pythons(herald):
+    core, rec, heard = herald
+    child = _armed_sleeper(core)
+    core.stop_herald()
+    core.stop_herald()  # again: nothing to stop
+    core.kill(child, signal.SIGKILL)
+    death = core.wait(child, 10)
+    assert not death.announced
+    assert core.disarm_crashed(child) is True  # the claim was undone: still armed
+    core.release(child)
+    assert heard.msgs == []
+
+
+def test_without_a_herald_an_armed_childs_death_is_pythons():
+    # No herald running: the monitor's claim fails and is undone, so the
+    # event stays armed: taken back by a disarm, or freed by the release
+    # (glibc aborts this process on a double free).
+    core = CloneCore(on_event=Recorder())
+    try:
+        for i in range(100):
+            child = core.spawn(lambda: None)
+            core.arm_crashed(child, **{**ARM, "unique_id": i, "pid": child.pid})
+            death = core.wait(child, 10)
+            assert death is not None and not death.announced and not core.crashed_announced(child)
+            if i % 2:
+                assert core.disarm_crashed(child) is True
+            core.release(child)
+    finally:
+        core.close()
+
+
+# -- in a container ---------------------------------------------------------------
+
+
+def _crash(client, sig=signal.SIGKILL, **load):
+    uid = client.load_ok(PKG, "cloneguard::Heartbeat", **load).unique_id
+    pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=uid).pid
+    before = time.time_ns()
+    os.kill(pid, sig)
+    return uid, pid, before, client.wait_for_event(ComponentEvent.CRASHED, unique_id=uid)
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_a_crash_in_a_container_is_announced_once_with_every_field(client, container):
+    keep = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="keep").unique_id
+    uid, pid, before, crashed = _crash(client, node_name="dies")
+    loaded = client.wait_for_event(ComponentEvent.LOADED, unique_id=uid)
+    names = (crashed.full_node_name, crashed.package_name, crashed.plugin_name)
+    assert names == ("/dies", PKG, "cloneguard::Heartbeat")
+    assert (crashed.pid, crashed.exit_signal, crashed.exit_code) == (pid, signal.SIGKILL, 0)
+    assert (crashed.start_time, crashed.allocator_quarantined) == (loaded.start_time, False)
+    assert crashed.error_message.startswith("killed by SIGKILL")  # and what was repaired
+    assert before < crashed.stamp.sec * 1_000_000_000 + crashed.stamp.nanosec
+    # Gone from the list as soon as its CRASHED is out, and not unloadable.
+    assert client.list() == [(keep, "/keep")]
+    resp = client.unload(uid)
+    assert not resp.success and resp.error_message == f"No node found with unique_id: {uid}"
+    # The container's log says it died, once; a later event marks the end of
+    # what the crash published: one CRASHED, no UNLOADED.
+    container.wait_for_log(re.escape(f"(unique_id {uid}, pid {pid}) died: killed by SIGKILL"), timeout=10)
+    assert client.unload(keep).success
+    client.wait_for_event(ComponentEvent.UNLOADED, unique_id=keep)
+    about_it = [(m.event_type, m.unique_id) for m in client.events.messages() if m.unique_id == uid]
+    assert about_it == [(ComponentEvent.LOADED, uid), (ComponentEvent.CRASHED, uid)]
+
+
+@pytest.mark.parametrize("container_args", PROFILES)
+def test_a_crash_is_announced_while_no_python_in_the_container_can_run(client, container):
+    victim = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="victim").unique_id
+    victim_pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=victim).pid
+    # A node that blocks in libc's sleep() holding the GIL: from then on no
+    # Python thread of the container runs until it dies. It does so 1 s
+    # after it starts to run, when its LoadNode has long been answered (the
+    # answer follows the node's start by about a millisecond; with no delay
+    # the hog could take the GIL before it).
+    hog = client.load_ok(TESTRIG, "faults::HangInCallback", parameters={"delay": 1.0, "mode": "gil"}).unique_id
+    hog_pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=hog).pid
+    wait_until(lambda: blocked_in(hog_pid), what="the hog asleep holding the GIL")
+    os.kill(victim_pid, signal.SIGKILL)
+    crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=victim)
+    assert crashed.error_message.startswith("killed by SIGKILL")  # and what was repaired
+    # It was the core's: the container's Python still cannot answer.
+    with pytest.raises(HarnessTimeout):
+        client.list(timeout=1.0)
+    assert blocked_in(hog_pid)
+    os.kill(hog_pid, signal.SIGKILL)  # dies holding the GIL: repaired, Python goes on
+    hog_crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=hog)
+    assert "repaired: GIL_RELEASED" in hog_crashed.error_message
+    assert client.list() == []
+    container.wait_for_log(re.escape(f"(unique_id {victim}, pid {victim_pid}) died: killed by SIGKILL"), timeout=10)
+
+
+def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
+    core, rec, heard = herald
+    # A "publish" that never returns (libc's pause(): the herald thread has
+    # every signal that could end it blocked), as a publish stuck on a lock
+    # of Fast DDS's that a dead node held would be.
+    pause = ctypes.cast(ctypes.CDLL(None).pause, ctypes.c_void_p).value
+    core.stop_herald()
+    core.start_herald(pause, 0)
+    stuck = _armed_sleeper(core)
+    core.kill(stuck, signal.SIGKILL)
+    assert core.wait(stuck, 10).announced  # handed to the herald, which hangs
+    assert core.stop_herald(timeout=0.2) is False
+    # The next herald (the fixture's publisher again) has pipe and thread of its own.
+    core.start_herald(*heard.publisher.publish_from_c())
+    child = _armed_sleeper(core, unique_id=7)
+    core.kill(child, signal.SIGKILL)
+    assert core.wait(child, 10).announced
+    assert [m.unique_id for m in heard.wait(1)] == [7]
+    core.release(stuck)
+    core.release(child)
