@@ -215,9 +215,10 @@ class IsolatedHost:
         handle.__enter__()
         try:
             self._core.start_herald(*events.publish_from_c())
-        except BaseException:
+        except OSError as exc:
             handle.__exit__(None, None, None)
-            raise
+            self._log.warning(f"CRASHED events go out through Python only: {exc}")
+            return
         self._herald_handle = handle
 
     def announce_crash(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
