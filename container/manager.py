@@ -212,7 +212,10 @@ class ComponentManager:
             self._report_crash(entry, early_death)
         else:
             if self._restarts is None:  # else CRASHED says what the policy decided
-                self._host.announce_crash(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
+                try:
+                    self._host.announce_crash(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
+                except Exception as exc:  # then its CRASHED goes out through Python
+                    self._log.warning(f"unique_id {unique_id}: its CRASHED stays Python's: {type(exc).__name__}: {exc}")
             # Its callbacks start now, not while the event and the log line
             # above were competing with them for the GIL.
             self._host.run(hosted)

@@ -19,13 +19,17 @@ import time
 
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
+from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from ros_support import ros_nodes
 from test_isolated_core import Recorder, blocked_in, wait_sleeping, wait_until
 
 from cloneguard.container import events
+from cloneguard.container.hosting import ThreadHost
 from cloneguard.container.isolated._clonecore import ffi, lib
 from cloneguard.container.isolated.core import CloneCore
 from cloneguard.container.isolated.core_events import Repair
+from cloneguard.container.isolated.host import NodeDeath
+from cloneguard.container.manager import ComponentManager
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.client import HarnessTimeout
 
@@ -123,8 +127,22 @@ def herald():
 def _armed_sleeper(core, **fields):
     child = core.spawn(lambda: time.sleep(60))
     wait_sleeping(child)
-    core.arm_crashed(child, **{**ARM, "pid": child.pid, **fields})
+    assert core.arm_crashed(child, **{**ARM, "pid": child.pid, **fields})
     return child
+
+
+MARKER = 99
+
+
+def _only_the_marker_is_heard(core, heard) -> None:
+    """An armed child killed after the case under test: its event is the
+    one heard (the herald publishes in order, on one reliable writer), so
+    the case published none."""
+    marker = _armed_sleeper(core, unique_id=MARKER)
+    core.kill(marker, signal.SIGKILL)
+    assert core.wait(marker, 10).announced
+    assert [m.unique_id for m in heard.wait(1)] == [MARKER]
+    core.release(marker)
 
 
 ARM = {
@@ -169,7 +187,7 @@ def _exit_5_later():
 def test_an_exit_is_published_with_its_code(herald):
     core, rec, heard = herald
     child = core.spawn(_exit_5_later)
-    core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
     death = core.wait(child, 10)
     assert death.announced
     (msg,) = heard.wait(1)
@@ -187,13 +205,13 @@ def test_a_death_holding_the_gil_is_left_to_python(herald):
     # the core does not announce it.
     core, rec, heard = herald
     child = core.spawn(_exit_5_holding_the_gil)
-    core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
     death = core.wait(child, 10)
     rec.wait_for(lambda: death in rec.events)
     assert death.gil_frame and not death.announced
     assert core.disarm_crashed(child) is True
     core.release(child)
-    assert heard.msgs == []
+    _only_the_marker_is_heard(core, heard)
 
 
 def test_a_disarmed_childs_death_is_pythons_to_report(herald):
@@ -205,13 +223,8 @@ def test_a_disarmed_childs_death_is_pythons_to_report(herald):
     death = core.wait(child, 10)
     assert not death.announced and not core.crashed_announced(child)
     assert death.text == "killed by SIGKILL"  # the words, whoever publishes
-    # A second, armed child's event is the mark that the first one had none.
-    marker = _armed_sleeper(core, unique_id=43)
-    core.kill(marker, signal.SIGKILL)
-    core.wait(marker, 10)
-    assert [m.unique_id for m in heard.wait(1)] == [43]
     core.release(child)
-    core.release(marker)
+    _only_the_marker_is_heard(core, heard)
 
 
 def test_a_child_asked_to_stop_by_its_parent_is_not_announced(herald):
@@ -222,7 +235,7 @@ def test_a_child_asked_to_stop_by_its_parent_is_not_announced(herald):
     death = core.wait(child, 10)
     assert not death.announced and core.disarm_crashed(child) is True
     core.release(child)
-    assert heard.msgs == []
+    _only_the_marker_is_heard(core, heard)
 
 
 def test_after_the_herald_stops_every_death_is_pythons(herald):
@@ -233,20 +246,22 @@ def test_after_the_herald_stops_every_death_is_pythons(herald):
     core.kill(child, signal.SIGKILL)
     death = core.wait(child, 10)
     assert not death.announced
-    assert core.disarm_crashed(child) is True  # the claim was undone: still armed
+    assert core.disarm_crashed(child) is True  # never claimed: still armed
     core.release(child)
-    assert heard.msgs == []
+    core.start_herald(*heard.publisher.publish_from_c())
+    _only_the_marker_is_heard(core, heard)
 
 
 def test_without_a_herald_an_armed_childs_death_is_pythons():
-    # No herald running: the monitor's claim fails and is undone, so the
-    # event stays armed: taken back by a disarm, or freed by the release
-    # (glibc aborts this process on a double free).
+    # No herald running: the monitor claims nothing, so the event stays
+    # armed: taken back by a disarm, or freed by the release (glibc aborts
+    # this process on a double free).
     core = CloneCore(on_event=Recorder())
     try:
-        for i in range(100):
-            child = core.spawn(lambda: None)
-            core.arm_crashed(child, **{**ARM, "unique_id": i, "pid": child.pid})
+        for i in range(40):
+            child = core.spawn(lambda: time.sleep(60))
+            assert core.arm_crashed(child, **{**ARM, "unique_id": i, "pid": child.pid})
+            core.kill(child, signal.SIGKILL)
             death = core.wait(child, 10)
             assert death is not None and not death.announced and not core.crashed_announced(child)
             if i % 2:
@@ -337,3 +352,63 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
     assert [m.unique_id for m in heard.wait(1)] == [7]
     core.release(stuck)
     core.release(child)
+
+
+# -- the manager, with a host that has announced a death -----------------------------
+
+
+class AnnouncingHost(ThreadHost):
+    """Thread mode's host, which also says, for the ids in ``announced``,
+    that it has published their CRASHED itself: what the isolated host
+    says between the core's publish and the death reaching the manager."""
+
+    def __init__(self, executor, context):
+        super().__init__(executor, context)
+        self.announced: set[int] = set()
+        self.armed: list[int] = []
+
+    def announce_crash(self, hosted, *, package_name, plugin_name):
+        self.armed.append(hosted.unique_id)
+
+    def disarm_crash(self, hosted):
+        return hosted.unique_id not in self.announced
+
+    def crash_announced(self, hosted):
+        return hosted.unique_id in self.announced
+
+
+def test_the_manager_neither_lists_nor_unloads_a_node_announced_dead_nor_publishes_it_again():
+    with ros_nodes("herald_manager", "herald_manager_client") as ((node, client), executor):
+        host = AnnouncingHost(executor, node.context)
+        manager = ComponentManager(node, host)
+        heard = Heard()
+        topic = events.EVENTS_TOPIC.replace("~", node.get_fully_qualified_name())
+        client.create_subscription(ComponentEvent, topic, heard, events.EVENTS_QOS)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        try:
+            ids = []
+            for name in ("dead", "alive"):
+                request = LoadNode.Request(package_name=PKG, plugin_name="cloneguard::Heartbeat", node_name=name)
+                response = manager._load(request, LoadNode.Response(), None)
+                assert response.success, response.error_message
+                ids.append(response.unique_id)
+            dead, alive = ids
+            assert host.armed == ids  # each armed once its LOADED was out
+            host.announced.add(dead)
+            listed = manager._list(ListNodes.Request(), ListNodes.Response())
+            assert list(listed.unique_ids) == [alive]
+            refused = manager._unload(UnloadNode.Request(unique_id=dead), UnloadNode.Response())
+            assert not refused.success and refused.error_message == f"No node found with unique_id: {dead}"
+            # Its death reaches the manager: no second CRASHED. Then one the
+            # host did not announce: the manager publishes that one.
+            manager.on_death(dead, NodeDeath(pid=1, exit_signal=9, exit_code=0, reason="killed", announced=True))
+            manager.on_death(alive, NodeDeath(pid=2, exit_signal=9, exit_code=0, reason="killed"))
+            heard.wait(3)  # LOADED, LOADED, and the one CRASHED
+            crashed = [m.unique_id for m in heard.wait(3) if m.event_type == ComponentEvent.CRASHED]
+            assert crashed == [alive]
+            assert list(manager._list(ListNodes.Request(), ListNodes.Response()).unique_ids) == []
+        finally:
+            manager.close()
+            executor.shutdown()
+            spinner.join(5)

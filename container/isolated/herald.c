@@ -30,8 +30,11 @@
  * DDS's, and the monitor must go on reaping whatever happens.  Nor does it
  * allocate (a dead node may hold an allocator lock): it serializes into the
  * buffer made at arming and passes its pointer down a non-blocking pipe.
- * If the pipe is full (a herald stuck in Fast DDS) the claim is undone and
- * Python publishes, as without the herald.
+ * The lock it takes for that (g_lock) is held by others only to flip the
+ * herald on and off, around nothing that can block.  With MAX_IN_FLIGHT
+ * events handed over and not yet published (a herald stuck in Fast DDS, on
+ * a lock a dead node held), the monitor claims no more and Python publishes,
+ * as without the herald; the ones already handed over wait with the herald.
  *
  * The wire format (what rmw_fastrtps takes as a serialized message): CDR,
  * little-endian, encapsulation CDR_LE (00 01 00 00), then the fields of
@@ -78,11 +81,13 @@ struct herald_thread {       /* what one herald thread works with: its own,
     const void *publisher;
 };
 
-static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* g_on, g_pipe[1] */
+#define MAX_IN_FLIGHT 32     /* events handed to the herald, not yet published */
+
+static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* the three below */
 static int g_on;             /* the herald runs: the monitor may claim */
-static int g_pipe[2] = {-1, -1};
+static int g_pipe_w = -1;    /* the pipe's write end */
 static pthread_t g_thread;
-static long g_published, g_failed;   /* atomic */
+static long g_published, g_failed, g_in_flight;   /* atomic */
 
 /* ---- the words ---------------------------------------------------------- */
 
@@ -254,6 +259,7 @@ static void *herald_main(void *arg)
                 h->full_node_name, h->pid, err);
         }
         free(h);
+        __atomic_sub_fetch(&g_in_flight, 1, __ATOMIC_RELEASE);
     }
 }
 
@@ -262,24 +268,21 @@ static void *herald_main(void *arg)
    publisher must outlive cg_herald_stop. */
 int cg_herald_start(void *publish, const void *publisher)
 {
-    pthread_mutex_lock(&g_lock);
-    int r = 0;
-    if (g_on) {
-        r = -EALREADY;
-        goto out;
-    }
+    if (__atomic_load_n(&g_on, __ATOMIC_ACQUIRE))
+        return -EALREADY;
+    /* Everything made before g_lock is taken: the monitor may be waiting
+       for it, and malloc may wait for an arena lock. */
     struct herald_thread *self = malloc(sizeof *self);
-    if (!self) {
-        r = -ENOMEM;
-        goto out;
-    }
-    if (pipe2(g_pipe, O_CLOEXEC) < 0) {
-        r = -errno;
+    if (!self)
+        return -ENOMEM;
+    int fds[2];
+    if (pipe2(fds, O_CLOEXEC) < 0) {
+        int err = errno;
         free(self);
-        goto out;
+        return -err;
     }
-    fcntl(g_pipe[1], F_SETFL, O_NONBLOCK);   /* the monitor never waits */
-    *self = (struct herald_thread){g_pipe[0], (publish_fn)publish, publisher};
+    fcntl(fds[1], F_SETFL, O_NONBLOCK);   /* the monitor never waits */
+    *self = (struct herald_thread){fds[0], (publish_fn)publish, publisher};
     /* Signals go to the container's other threads (as for the monitor),
        but the ones a fault raises: the container's crash report names it. */
     sigset_t all, old;
@@ -287,19 +290,29 @@ int cg_herald_start(void *publish, const void *publisher)
     sigdelset(&all, SIGSEGV), sigdelset(&all, SIGBUS), sigdelset(&all, SIGILL);
     sigdelset(&all, SIGFPE), sigdelset(&all, SIGABRT);
     pthread_sigmask(SIG_SETMASK, &all, &old);
-    r = -pthread_create(&g_thread, NULL, herald_main, self);
+    pthread_t thread;
+    int r = -pthread_create(&thread, NULL, herald_main, self);
     pthread_sigmask(SIG_SETMASK, &old, NULL);
     if (r < 0) {
-        close(g_pipe[0]), close(g_pipe[1]);
-        g_pipe[0] = g_pipe[1] = -1;
+        close(fds[0]), close(fds[1]);
         free(self);
-        goto out;
+        return r;
     }
-    pthread_setname_np(g_thread, "cg-herald");
-    g_on = 1;
-out:
+    pthread_setname_np(thread, "cg-herald");
+    pthread_mutex_lock(&g_lock);
+    bool running = g_on;
+    if (!running) {
+        g_pipe_w = fds[1];
+        g_thread = thread;
+        __atomic_store_n(&g_on, 1, __ATOMIC_RELEASE);
+    }
     pthread_mutex_unlock(&g_lock);
-    return r;
+    if (running) {           /* another start came first: this one ends */
+        close(fds[1]);
+        pthread_join(thread, NULL);
+        return -EALREADY;
+    }
+    return 0;
 }
 
 /* Claim no more deaths, publish the ones claimed, end the thread: 0, or
@@ -311,10 +324,11 @@ int cg_herald_stop(int timeout_ms)
 {
     pthread_mutex_lock(&g_lock);
     int was = g_on;
-    g_on = 0;
+    pthread_t thread = g_thread;
     if (was) {
-        close(g_pipe[1]);    /* the thread drains the pipe, then reads EOF */
-        g_pipe[1] = -1;
+        __atomic_store_n(&g_on, 0, __ATOMIC_RELEASE);
+        close(g_pipe_w);     /* the thread drains the pipe, reads EOF, ends */
+        g_pipe_w = -1;
     }
     pthread_mutex_unlock(&g_lock);
     if (!was)
@@ -325,9 +339,8 @@ int cg_herald_stop(int timeout_ms)
     until.tv_nsec += (long)(timeout_ms % 1000) * 1000000;
     if (until.tv_nsec >= 1000000000)
         until.tv_sec++, until.tv_nsec -= 1000000000;
-    g_pipe[0] = -1;          /* the thread's now: it closes it as it ends */
-    if (pthread_timedjoin_np(g_thread, NULL, &until) != 0) {
-        pthread_detach(g_thread);
+    if (pthread_timedjoin_np(thread, NULL, &until) != 0) {
+        pthread_detach(thread);
         return -ETIMEDOUT;
     }
     return 0;
@@ -411,21 +424,26 @@ bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
         (c->crash_si_code == SEGV_PKUERR_CODE && c->crash_pkey) ||
         __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) == CG_STOP_PARENT)
         return false;
-    int armed = ARMED;
-    if (!__atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false,
-                                     __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE))
-        return false;
-    struct cg_herald *h = c->herald;
-    serialize(h, status, code, quarantined, c->death_text);
-    /* Under g_lock (held by others only to flip g_on, never long): once
-       cg_herald_stop has run, nothing more goes down the pipe. */
+    /* Under g_lock: once cg_herald_stop has run, nothing more goes down
+       the pipe, and nothing is claimed that cannot go (a claim undone
+       after a failed write would have looked announced meanwhile). */
     pthread_mutex_lock(&g_lock);
-    bool sent = g_on && write(g_pipe[1], &h, sizeof h) == (ssize_t)sizeof h;
-    pthread_mutex_unlock(&g_lock);
-    if (sent) {
-        c->herald = NULL;    /* the herald frees it */
-        return true;
+    bool sent = false;
+    int armed = ARMED;
+    if (g_on && __atomic_load_n(&g_in_flight, __ATOMIC_ACQUIRE) < MAX_IN_FLIGHT &&
+        __atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false,
+                                    __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
+        struct cg_herald *h = c->herald;
+        serialize(h, status, code, quarantined, c->death_text);
+        __atomic_add_fetch(&g_in_flight, 1, __ATOMIC_ACQ_REL);
+        sent = write(g_pipe_w, &h, sizeof h) == (ssize_t)sizeof h;
+        if (sent) {
+            c->herald = NULL;    /* the herald frees it */
+        } else {                 /* cannot fail with room for MAX_IN_FLIGHT */
+            __atomic_sub_fetch(&g_in_flight, 1, __ATOMIC_RELEASE);
+            __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);   /* Python's */
+        }
     }
-    __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);   /* Python's */
-    return false;
+    pthread_mutex_unlock(&g_lock);
+    return sent;
 }

@@ -215,9 +215,9 @@ class IsolatedHost:
         handle.__enter__()
         try:
             self._core.start_herald(*events.publish_from_c())
-        except OSError as exc:
+        except Exception as exc:  # the container goes on: Python publishes them all
             handle.__exit__(None, None, None)
-            self._log.warning(f"CRASHED events go out through Python only: {exc}")
+            self._log.warning(f"CRASHED events go out through Python only: {type(exc).__name__}: {exc}")
             return
         self._herald_handle = handle
 
@@ -384,6 +384,8 @@ class IsolatedHost:
             )
         elif self._herald_handle is not None:
             self._herald_handle.__exit__(None, None, None)
+        if self._herald_handle is not None and (failed := self._core.herald_counts()[1]):
+            self._log.warning(f"{failed} CRASHED event(s) could not be published by the core (said above)")
         self._herald_handle = None
         if self._spare_maker is not None:
             self._spare_maker.shutdown(wait=True)
