@@ -132,6 +132,7 @@ def _armed_sleeper(core, **fields):
 
 
 MARKER = 99
+IN_FLIGHT = 32  # herald.c's MAX_IN_FLIGHT
 
 
 def _only_the_marker_is_heard(core, heard) -> None:
@@ -340,9 +341,14 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
     pause = ctypes.cast(ctypes.CDLL(None).pause, ctypes.c_void_p).value
     core.stop_herald()
     core.start_herald(pause, 0)
-    stuck = _armed_sleeper(core)
-    core.kill(stuck, signal.SIGKILL)
-    assert core.wait(stuck, 10).announced  # handed to the herald, which hangs
+    # Handed to it while fewer than IN_FLIGHT wait (the first hangs in its
+    # publish); past that, the deaths are Python's again.
+    stuck = [_armed_sleeper(core, unique_id=i) for i in range(IN_FLIGHT + 2)]
+    announced = []
+    for child in stuck:
+        core.kill(child, signal.SIGKILL)
+        announced.append(core.wait(child, 10).announced)
+    assert announced == [True] * IN_FLIGHT + [False, False]
     assert core.stop_herald(timeout=0.2) is False
     # The next herald (the fixture's publisher again) has pipe and thread of its own.
     core.start_herald(*heard.publisher.publish_from_c())
@@ -350,8 +356,8 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
     core.kill(child, signal.SIGKILL)
     assert core.wait(child, 10).announced
     assert [m.unique_id for m in heard.wait(1)] == [7]
-    core.release(stuck)
-    core.release(child)
+    for c in [*stuck, child]:
+        core.release(c)
 
 
 # -- the manager, with a host that has announced a death -----------------------------

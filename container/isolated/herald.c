@@ -79,15 +79,17 @@ struct herald_thread {       /* what one herald thread works with: its own,
     int fd;                  /* the pipe's read end */
     publish_fn publish;
     const void *publisher;
+    long in_flight;          /* handed to it, not yet published (atomic) */
 };
 
 #define MAX_IN_FLIGHT 32     /* events handed to the herald, not yet published */
 
-static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* the three below */
+static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* the four below */
 static int g_on;             /* the herald runs: the monitor may claim */
 static int g_pipe_w = -1;    /* the pipe's write end */
 static pthread_t g_thread;
-static long g_published, g_failed, g_in_flight;   /* atomic */
+static struct herald_thread *g_self;   /* the running herald's */
+static long g_published, g_failed;   /* atomic */
 
 /* ---- the words ---------------------------------------------------------- */
 
@@ -259,7 +261,7 @@ static void *herald_main(void *arg)
                 h->full_node_name, h->pid, err);
         }
         free(h);
-        __atomic_sub_fetch(&g_in_flight, 1, __ATOMIC_RELEASE);
+        __atomic_sub_fetch(&self->in_flight, 1, __ATOMIC_RELEASE);
     }
 }
 
@@ -282,7 +284,7 @@ int cg_herald_start(void *publish, const void *publisher)
         return -err;
     }
     fcntl(fds[1], F_SETFL, O_NONBLOCK);   /* the monitor never waits */
-    *self = (struct herald_thread){fds[0], (publish_fn)publish, publisher};
+    *self = (struct herald_thread){fds[0], (publish_fn)publish, publisher, 0};
     /* Signals go to the container's other threads (as for the monitor),
        but the ones a fault raises: the container's crash report names it. */
     sigset_t all, old;
@@ -304,6 +306,7 @@ int cg_herald_start(void *publish, const void *publisher)
     if (!running) {
         g_pipe_w = fds[1];
         g_thread = thread;
+        g_self = self;
         __atomic_store_n(&g_on, 1, __ATOMIC_RELEASE);
     }
     pthread_mutex_unlock(&g_lock);
@@ -327,8 +330,10 @@ int cg_herald_stop(int timeout_ms)
     pthread_t thread = g_thread;
     if (was) {
         __atomic_store_n(&g_on, 0, __ATOMIC_RELEASE);
-        close(g_pipe_w);     /* the thread drains the pipe, reads EOF, ends */
+        close(g_pipe_w);     /* the thread drains the pipe, reads EOF, ends
+                                (and frees g_self: not touched after this) */
         g_pipe_w = -1;
+        g_self = NULL;
     }
     pthread_mutex_unlock(&g_lock);
     if (!was)
@@ -430,17 +435,17 @@ bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
     pthread_mutex_lock(&g_lock);
     bool sent = false;
     int armed = ARMED;
-    if (g_on && __atomic_load_n(&g_in_flight, __ATOMIC_ACQUIRE) < MAX_IN_FLIGHT &&
+    if (g_on && __atomic_load_n(&g_self->in_flight, __ATOMIC_ACQUIRE) < MAX_IN_FLIGHT &&
         __atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false,
                                     __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
         struct cg_herald *h = c->herald;
         serialize(h, status, code, quarantined, c->death_text);
-        __atomic_add_fetch(&g_in_flight, 1, __ATOMIC_ACQ_REL);
+        __atomic_add_fetch(&g_self->in_flight, 1, __ATOMIC_ACQ_REL);
         sent = write(g_pipe_w, &h, sizeof h) == (ssize_t)sizeof h;
         if (sent) {
             c->herald = NULL;    /* the herald frees it */
         } else {                 /* cannot fail with room for MAX_IN_FLIGHT */
-            __atomic_sub_fetch(&g_in_flight, 1, __ATOMIC_RELEASE);
+            __atomic_sub_fetch(&g_self->in_flight, 1, __ATOMIC_RELEASE);
             __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);   /* Python's */
         }
     }
