@@ -261,62 +261,65 @@ def run(
             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
             start_new_session=True,
         )
-        pids: dict[int, str] = {}
-        dead: set[int] = set()
-        buf = b""
-        ready = False
-        last = time.monotonic()
-        outcome = None
-        while outcome is None:
-            limit = (60.0 if not ready else hang_s) - (time.monotonic() - last)
-            r, _, _ = select.select([proc.stdout], [], [], max(0.0, limit))
-            if not r:
-                outcome = "hung"
-                break
-            chunk = os.read(proc.stdout.fileno(), 65536)
-            if not chunk:
-                outcome = "exited"
-                break
-            buf += chunk
-            while b"\n" in buf:
-                line, buf = buf.split(b"\n", 1)
-                words = line.decode().split()
-                last = time.monotonic()
-                if words[0] == "ready":
-                    ready = True
-                    pids[int(words[1])] = "sibling"
-                elif words[0] == "spawned":
-                    pids[int(words[2])] = f"victim {words[1]}"
-                    dead.add(int(words[2]))
-                    time.sleep(rng.uniform(0, max_delay_ms / 1000))
-                    try:
-                        os.kill(int(words[2]), signal.SIGKILL)
-                    except ProcessLookupError:
-                        pass
-                    last = time.monotonic()
-                elif words[0] == "ok":
-                    res.kills += 1
-                    res.survived += 1
-                    for name in Repair(int(words[2])).names():
-                        res.repairs[name] += 1
-                    res.quarantined += int(words[4])
-                    res.py_abandoned += int(words[5])
-                elif words[0] == "stuck":
-                    res.notes.append(" ".join(words))
+        try:
+            pids: dict[int, str] = {}
+            dead: set[int] = set()
+            buf = b""
+            ready = False
+            last = time.monotonic()
+            outcome = None
+            while outcome is None:
+                limit = (60.0 if not ready else hang_s) - (time.monotonic() - last)
+                r, _, _ = select.select([proc.stdout], [], [], max(0.0, limit))
+                if not r:
                     outcome = "hung"
-                elif words[0] == "done":
-                    outcome = "done"
-        if outcome == "hung" and ready:
-            res.kills += 1
-            res.hung += 1
-            if diagnose.gdb_available():
-                d = diagnose.diagnose(proc.pid, nodes_by_pid=pids, dead_pids=dead)
-                res.hangs.append(d.summary())
-                if diagnose_dir:
-                    with open(os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt"), "w") as out:
-                        out.write(d.summary() + "\n\n" + d.stacks_text)
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+                    break
+                chunk = os.read(proc.stdout.fileno(), 65536)
+                if not chunk:
+                    outcome = "exited"
+                    break
+                buf += chunk
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    words = line.decode().split()
+                    last = time.monotonic()
+                    if words[0] == "ready":
+                        ready = True
+                        pids[int(words[1])] = "sibling"
+                    elif words[0] == "spawned":
+                        pids[int(words[2])] = f"victim {words[1]}"
+                        dead.add(int(words[2]))
+                        time.sleep(rng.uniform(0, max_delay_ms / 1000))
+                        try:
+                            os.kill(int(words[2]), signal.SIGKILL)
+                        except ProcessLookupError:
+                            pass
+                        last = time.monotonic()
+                    elif words[0] == "ok":
+                        res.kills += 1
+                        res.survived += 1
+                        for name in Repair(int(words[2])).names():
+                            res.repairs[name] += 1
+                        res.quarantined += int(words[4])
+                        res.py_abandoned += int(words[5])
+                    elif words[0] == "stuck":
+                        res.notes.append(" ".join(words))
+                        outcome = "hung"
+                    elif words[0] == "done":
+                        outcome = "done"
+            if outcome == "hung" and ready:
+                res.kills += 1
+                res.hung += 1
+                if diagnose.gdb_available():
+                    d = diagnose.diagnose(proc.pid, nodes_by_pid=pids, dead_pids=dead)
+                    res.hangs.append(d.summary())
+                    if diagnose_dir:
+                        with open(os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt"), "w") as out:
+                            out.write(d.summary() + "\n\n" + d.stacks_text)
+        finally:  # whatever happened reading it (an error of ours too), it goes
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
         rc = proc.wait()
         err = proc.stderr.read().decode(errors="replace")
         if outcome == "exited":

@@ -27,6 +27,7 @@ from cloneguard.bench import random_kill as killbench
 from cloneguard.container.isolated.core import CloneCore, Repair
 from cloneguard.container.isolated.core_events import INTERPRETER_REPAIRS
 from cloneguard.faults._gilfault import lib as gilfault
+from cloneguard.harness import procfs
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -168,6 +169,29 @@ def test_random_kills_in_a_tight_python_loop_all_survived():
     assert (res.survived, res.hung, res.crashed) == (120, 0, 0), (res.line(), res.notes)
     # The kills landed in every part of the GIL's life.
     assert res.repairs["GIL_RELEASED"] > 10 and res.repairs["COND_WAITER"] > 10
+
+
+def test_an_error_reading_the_random_kills_leaves_no_process_behind(monkeypatch):
+    # Seen once: the reader raised (a name it looked up was gone) and the
+    # worker, in a session of its own, spun on for an hour.
+    started = []
+
+    class Recorded(subprocess.Popen):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            started.append(self)
+
+    def broken(self):
+        raise RuntimeError("the reader's own error")
+
+    monkeypatch.setattr(killbench.subprocess, "Popen", Recorded)
+    monkeypatch.setattr(Repair, "names", broken)
+    with pytest.raises(RuntimeError, match="the reader's own error"):
+        killbench.run(5, seed=3, hang_s=5.0, budget_s=60)
+    assert len(started) == 1 and started[0].returncode is not None
+    # Nothing of its group is left (its killed victims, reparented, are
+    # reaped by init a moment later).
+    assert procfs.wait_group_empty(started[0].pid, 10), procfs.pids_in_group(started[0].pid)
 
 
 def test_without_condvar_repair_random_kills_hang():
