@@ -318,7 +318,7 @@ int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
                       int stop_signal, char *out, int size);
 int cg_herald_start(void *publish, const void *publisher);
 int cg_herald_stop(int timeout_ms);
-void cg_herald_counts(long *published, long *failed);
+long cg_herald_failures(void);
 int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
                   const char *package_name, const char *plugin_name, int pid,
                   uint64_t start_time_ns);

@@ -65,7 +65,7 @@ struct cg_herald {           /* one armed node's event, one allocation */
     uint64_t unique_id, start_time_ns;
     int32_t pid;
     const char *full_node_name, *package_name, *plugin_name;  /* in text[] */
-    size_t len, cap;         /* of cdr[] */
+    size_t len;              /* of cdr[] in use */
     uint8_t *cdr;            /* after text[] */
     char text[];
 };
@@ -89,7 +89,7 @@ static int g_on;             /* the herald runs: the monitor may claim */
 static int g_pipe_w = -1;    /* the pipe's write end */
 static pthread_t g_thread;
 static struct herald_thread *g_self;   /* the running herald's */
-static long g_published, g_failed;   /* atomic */
+static long g_failed;        /* publishes that failed, ever (atomic) */
 
 /* ---- the words ---------------------------------------------------------- */
 
@@ -253,9 +253,7 @@ static void *herald_main(void *arg)
         memcpy(h->cdr + STAMP_AT, &sec, 4);
         memcpy(h->cdr + STAMP_AT + 4, &nanosec, 4);
         char err[256] = "";
-        if (self->publish(self->publisher, h->cdr, h->len, err, sizeof err) == 0) {
-            __atomic_add_fetch(&g_published, 1, __ATOMIC_RELAXED);
-        } else {
+        if (self->publish(self->publisher, h->cdr, h->len, err, sizeof err) != 0) {
             __atomic_add_fetch(&g_failed, 1, __ATOMIC_RELAXED);
             say("cloneguard: the CRASHED event of %s (pid %d) was not published: %s\n",
                 h->full_node_name, h->pid, err);
@@ -351,11 +349,10 @@ int cg_herald_stop(int timeout_ms)
     return 0;
 }
 
-/* Events published, and failed, since the core was loaded. */
-void cg_herald_counts(long *published, long *failed)
+/* Events the herald failed to publish since the core was loaded. */
+long cg_herald_failures(void)
 {
-    *published = __atomic_load_n(&g_published, __ATOMIC_RELAXED);
-    *failed = __atomic_load_n(&g_failed, __ATOMIC_RELAXED);
+    return __atomic_load_n(&g_failed, __ATOMIC_RELAXED);
 }
 
 /* ---- arming and claiming ---------------------------------------------- */
@@ -382,7 +379,6 @@ int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_
     h->package_name = memcpy(t + l1, package_name, l2);
     h->plugin_name = memcpy(t + l1 + l2, plugin_name, l3);
     h->cdr = (uint8_t *)(t + l1 + l2 + l3);
-    h->cap = cap;
     h->len = 0;
     c->herald = h;
     __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);

@@ -384,7 +384,7 @@ class IsolatedHost:
             )
         elif self._herald_handle is not None:
             self._herald_handle.__exit__(None, None, None)
-        if self._herald_handle is not None and (failed := self._core.herald_counts()[1]):
+        if self._herald_handle is not None and (failed := self._core.herald_failures()):
             self._log.warning(f"{failed} CRASHED event(s) could not be published by the core (said above)")
         self._herald_handle = None
         if self._spare_maker is not None:
