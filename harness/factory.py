@@ -8,6 +8,7 @@ every client it connects is closed by :meth:`stop_all`, and only those.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,8 +20,24 @@ from .process import NO_SHM_PROFILE, ContainerProcess
 READY_TIMEOUT_S = float(os.environ.get("CLONEGUARD_READY_TIMEOUT", "20"))
 
 
+# Where a container's log has every thread's stack: its watchdog's banner
+# (docs/options.md, --watchdog), or faulthandler's, whose C thread dumps
+# them when no Python thread can run.
+_STACKS_BANNER = re.compile(r"^(cloneguard watchdog: .*the stacks of all threads follow|Timeout \(\d+:\d\d:\d\d\)!)")
+STACKS_MAX_LINES = 600
+
+
 def log_tail(text: str, lines: int = 60) -> str:
-    return "\n".join(text.splitlines()[-lines:])
+    """The log's last ``lines`` lines; if it holds a dump of every thread's
+    stack, from that dump's banner on instead (at most STACKS_MAX_LINES), as
+    the thread that explains a hang is seldom among the last lines."""
+    all_lines = text.splitlines()
+    start = len(all_lines) - lines
+    for i in range(len(all_lines) - 1, -1, -1):
+        if _STACKS_BANNER.match(all_lines[i]):
+            start = min(start, max(i, len(all_lines) - STACKS_MAX_LINES))
+            break
+    return "\n".join(all_lines[max(start, 0) :])
 
 
 def wait_ready(cli: ContainerClient, proc: ContainerProcess, timeout: float = READY_TIMEOUT_S) -> None:

@@ -6,6 +6,7 @@ import time
 import pytest
 
 from cloneguard.faults import PACKAGE as TESTRIG
+from cloneguard.harness.factory import log_tail
 
 
 def _hang_until_the_watchdog_ends_it(client, container, mode: str) -> str:
@@ -16,7 +17,16 @@ def _hang_until_the_watchdog_ends_it(client, container, mode: str) -> str:
     assert code == 1, f"exit code {code}"
     log = container.log_text()
     assert "faults/components.py" in log and "in fire" in log
+    # What a failing test shows of the log (the harness's teardown section)
+    # holds every thread's stack, not only the last lines'.
+    tail = log_tail(log)
+    assert "in fire" in tail
+    assert _threads_in(tail) == _threads_in(log) > 0
     return log
+
+
+def _threads_in(text: str) -> int:
+    return sum(line.startswith(("Thread 0x", "Current thread 0x")) for line in text.splitlines())
 
 
 @pytest.mark.parametrize("container_args", [["--watchdog", "2"]])
