@@ -42,7 +42,7 @@ from .manager import ComponentManager
 from .restart import DEFAULT_LIMIT as DEFAULT_RESTART_LIMIT
 from .restart import POLICIES
 from .stop_signals import StopSignals
-from .watchdog import Watchdog, bound_shutdown
+from .watchdog import ClockFactory, MonotonicClock, Watchdog, bound_shutdown
 
 DEFAULT_NODE_NAME = "ComponentManager"
 # Threads serving LoadNode/UnloadNode/ListNodes (and the watchdog, restarts):
@@ -416,6 +416,17 @@ def _fastdds_intraprocess_off(logger) -> None:
         )
 
 
+def _watch_clock(opts) -> ClockFactory:
+    """What the watchdog and the shutdown bound read time on: in isolated
+    mode the clone core's clock, which stands still while a core dump is
+    written (a node that crashed holding the GIL waits for it with the GIL)."""
+    if not opts.isolated:
+        return MonotonicClock
+    from .isolated.watch_clock import DumpPausedClock
+
+    return DumpPausedClock
+
+
 def _make_host(opts, argv, executor, context, logger):
     if not opts.isolated:
         return ThreadHost(executor, context)
@@ -587,7 +598,7 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
         # In isolated mode each tick also reads the progress board, so a lock
         # a dead child left on it is found and repaired even when idle.
         on_tick = host.board.snapshot if opts.isolated else None
-        watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick)
+        watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick, clock=_watch_clock(opts))
     node_watchdog = NodeWatchdog(node, host, opts.node_watchdog) if opts.node_watchdog > 0 else None
     return _Container(
         opts, stop_signals, context, node, executor, services, host, manager, watchdog_s, watchdog, node_watchdog
@@ -624,7 +635,7 @@ def _stop(c: _Container, signum: int) -> int:
     if c.watchdog is not None:
         c.watchdog.close()
     shutdown_s = c.opts.shutdown_timeout if c.opts.shutdown_timeout is not None else c.watchdog_s
-    shutdown_bound = bound_shutdown(shutdown_s) if shutdown_s > 0 else None
+    shutdown_bound = bound_shutdown(shutdown_s, _watch_clock(c.opts)) if shutdown_s > 0 else None
     if c.node_watchdog is not None:
         c.node_watchdog.close()
     c.manager.stopping()  # answer loads still waiting for their node

@@ -11,11 +11,18 @@ The dump has two stages, because the two ways to take it fail differently:
 - At ``timeout``, a Python thread of the watchdog dumps every thread's stack
   while it holds the GIL, so no other thread's frames change under the dump.
 - If that thread cannot run (the GIL itself is stuck: a dead child left the
-  interpreter, or a C call holds it), faulthandler's own C thread dumps
-  ``FALLBACK_GRACE_S`` later without the GIL and without any lock, and exits.
-  That dump reads the frames of threads that may be running, so it is only
-  the last resort: taken while Python threads still run, it can read a frame
-  being freed and crash the container with SIGSEGV instead of exiting 1.
+  interpreter, or a C call holds it), a C thread dumps ``FALLBACK_GRACE_S``
+  later without the GIL and without any lock, and exits: faulthandler's in
+  thread mode, the clone core's in isolated mode (``Clock``). That dump reads
+  the frames of threads that may be running, so it is only the last resort:
+  taken while Python threads still run, it can read a frame being freed and
+  crash the container with SIGSEGV instead of exiting 1.
+
+Time is read on a ``Clock``. In isolated mode it stands still while a core
+dump is asked for or written (--core-dumps): a node that crashed holding
+the GIL keeps it until its dump is written, seconds in which no Python runs
+and which are no hang (so a hang of another kind that overlaps a dump is
+found that much later).
 The typical cause in isolated mode is a child that died holding a lock the
 container then waits for; in thread mode, a callback that never returns.
 
@@ -33,18 +40,55 @@ import os
 import sys
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 BANNER = "cloneguard watchdog"
 FALLBACK_GRACE_S = 2.0
 
 
+class Clock(Protocol):
+    """What a deadline's time is read on, with its last resort: a C thread
+    that, unless armed again first, prints every thread's stack (after the
+    banner it was made with) and ends the container with status 1."""
+
+    def now(self) -> float: ...
+
+    def arm_last_resort(self, after_s: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class MonotonicClock:
+    """Thread mode's: CLOCK_MONOTONIC, and faulthandler's C thread (which
+    prints its own banner, ``Timeout (h:mm:ss)!``)."""
+
+    def __init__(self, banner: str):
+        pass
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def arm_last_resort(self, after_s: float) -> None:
+        faulthandler.dump_traceback_later(after_s, repeat=False, file=sys.stderr, exit=True)
+
+    def close(self) -> None:
+        faulthandler.cancel_dump_traceback_later()
+
+
+ClockFactory = Callable[[str], Clock]  # from the last resort's banner
+
+
 class _Deadline:
     """The two-stage dump and exit at a deadline that ``arm`` moves."""
 
-    def __init__(self, timeout_s: float, what: str):
+    def __init__(self, timeout_s: float, what: str, clock: ClockFactory):
         self.timeout_s = timeout_s
         self._what = what  # "<what> for <timeout> s" is the reason printed
+        self._clock = clock(
+            f"{BANNER}: {what} for {timeout_s + FALLBACK_GRACE_S:g} s and no Python thread could run since; "
+            "the stacks of all threads follow and the container exits with status 1\n"
+        )
         self._deadline = 0.0
         self._closed = threading.Event()
         self.arm()
@@ -52,12 +96,12 @@ class _Deadline:
         self._thread.start()
 
     def arm(self) -> None:
-        self._deadline = time.monotonic() + self.timeout_s
-        faulthandler.dump_traceback_later(self.timeout_s + FALLBACK_GRACE_S, repeat=False, file=sys.stderr, exit=True)
+        self._deadline = self._clock.now() + self.timeout_s
+        self._clock.arm_last_resort(self.timeout_s + FALLBACK_GRACE_S)
 
     def _watch(self) -> None:
         while True:
-            remaining = self._deadline - time.monotonic()
+            remaining = self._deadline - self._clock.now()
             if remaining <= 0:
                 break
             if self._closed.wait(remaining):
@@ -75,18 +119,18 @@ class _Deadline:
 
     def close(self) -> None:
         self._closed.set()
-        faulthandler.cancel_dump_traceback_later()
+        self._clock.close()
         self._thread.join()
 
 
-def bound_shutdown(timeout_s: float) -> _Deadline:
+def bound_shutdown(timeout_s: float, clock: ClockFactory = MonotonicClock) -> _Deadline:
     """From now on, the container exits with every thread's stack if it is
     still stopping ``timeout_s`` seconds later. ``close()`` once stopped."""
-    return _Deadline(timeout_s, "still stopping")
+    return _Deadline(timeout_s, "still stopping", clock)
 
 
 class Watchdog:
-    def __init__(self, node, timeout_s: float, *, executors=(), on_tick=None):
+    def __init__(self, node, timeout_s: float, *, executors=(), on_tick=None, clock: ClockFactory = MonotonicClock):
         """``node`` spins on the executor whose timer drives the watchdog;
         ``executors`` are the others that must keep making progress."""
         if timeout_s <= 0:
@@ -98,7 +142,7 @@ class Watchdog:
         self._lock = threading.Lock()
         self._progressed: set[int] = set()  # indexes into _watched since the last arming
         self._pending: dict[int, Any] = {}  # a task handed out, not yet run
-        self._deadline = _Deadline(timeout_s, "no progress")
+        self._deadline = _Deadline(timeout_s, "no progress", clock)
         self._timer = node.create_timer(min(1.0, timeout_s / 4), self._tick)
         self._log.info(
             f"{BANNER}: if an executor makes no progress for {timeout_s:g} s, "

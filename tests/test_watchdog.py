@@ -48,6 +48,16 @@ def test_a_callback_that_keeps_the_gil_is_still_reported_and_ends_the_container(
     assert "cloneguard watchdog: no progress" not in log
 
 
+@pytest.mark.parametrize("container_args", [["--isolated", "--watchdog", "2"]])
+def test_in_isolated_mode_the_clone_core_dumps_when_a_node_keeps_the_gil(client, container):
+    # The node's process keeps the GIL: no thread of the container runs
+    # Python again. The clone core's C thread (lastresort.c), not
+    # faulthandler's, dumps 2 s after the watchdog's time.
+    log = _hang_until_the_watchdog_ends_it(client, container, "gil")
+    assert "cloneguard watchdog: no progress for 4 s and no Python thread could run since" in log
+    assert "Timeout (" not in log
+
+
 @pytest.mark.parametrize("container_args", [["--watchdog", "60", "--shutdown-timeout", "2"]])
 def test_a_shutdown_that_does_not_end_is_reported_with_stacks_and_exit_1(client, container):
     # Thread mode stops its nodes' executor after their callbacks: one that

@@ -37,6 +37,7 @@ SOURCES = (
     "listenerwait.c",
     "pkeys.c",
     "herald.c",
+    "lastresort.c",
 )
 
 CDEF = r"""
@@ -241,6 +242,10 @@ int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_
 int cg_herald_disarm(struct cg_child *c);
 int cg_herald_claimed(const struct cg_child *c);
 long cg_listener_waits_bounded(void);
+int64_t cg_watch_clock_ns(void);
+int cg_lastresort_start(int fd, const char *banner);
+void cg_lastresort_arm(int64_t after_ns);
+void cg_lastresort_stop(void);
 
 #define CG_EV_DEATH ...
 #define CG_EV_STOP ...

@@ -54,8 +54,9 @@ Where each value comes from and how it is checked:
                      reference on its group (cond.__g_refs[wseq & 1] == 2);
                      once the wait returns TCB+cleanup is what it was before.
   CPython 3.11 GIL (Include/internal/pycore_gil.h, Python/ceval_gil.h; what
-  GIL repair rests on).  gilrepair.c is compiled against the internal
-  headers; cg_gil_probe checks them against the running interpreter:
+  GIL repair rests on).  gilrepair.c (and lastresort.c, for
+  _Py_DumpTracebackThreads) is compiled against the internal headers;
+  cg_gil_probe checks them against the running interpreter:
     the interpreter is the exact release the headers are (PY_VERSION_HEX ==
     Py_Version) and sizeof(_PyRuntimeState) equals the ELF size of the
     _PyRuntime symbol; holding the GIL, gil.locked == 1 and gil.last_holder

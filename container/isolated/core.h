@@ -324,6 +324,10 @@ int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_
                   uint64_t start_time_ns);
 int cg_herald_disarm(struct cg_child *c);
 int cg_herald_claimed(const struct cg_child *c);
+/* lastresort.c */
+int cg_lastresort_start(int fd, const char *banner);
+void cg_lastresort_arm(int64_t after_ns);
+void cg_lastresort_stop(void);
 /* listenerwait.c */
 int cg_bound_listener_wait(char *why_out, int why_size);
 long cg_listener_waits_bounded(void);
@@ -383,6 +387,7 @@ bool dumps_event(void *tag, int64_t now); /* true: an epoll tag of dumps.c's */
 int dumps_tick(int64_t now, int sleep_ms);/* sleep ms, -1 */
 void dumps_forget(struct cg_child *c);    /* c is dead, about to be reported */
 void dumps_stop(void);
+int64_t cg_watch_clock_ns(void);          /* any thread: CLOCK_MONOTONIC less dumps' time */
 
 /* mutexes.c: all on the monitor thread */
 int mutexes_start(void);                  /* -ENOENT: no pid cursor to read */

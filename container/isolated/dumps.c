@@ -17,6 +17,9 @@
  * wait for the dump with it; if it only waited for the GIL, it steps aside
  * as its request is taken: take_requests).
  *
+ * The watch clock (cg_watch_clock_ns), which the container's watchdog reads,
+ * stands still from a request to the end of the last dump queued.
+ *
  * While gdb writes, the allocator guard's reserved and never-used address
  * space is MADV_DONTDUMP (guard_dump_exclude): gdb writes every
  * readable page, and that space is tens of GiB of zeros.
@@ -63,6 +66,45 @@ static int g_helper_fd = -1;      /* the helper's pidfd */
 static int64_t g_deadline;
 static bool g_timed_out;
 static char g_path[CG_CORE_PATH];
+
+/* The watch clock (cg_watch_clock_ns): CLOCK_MONOTONIC less the time the
+   monitor had a dump asked for or under way.  While a node that crashed
+   holding the GIL waits for its dump, no Python runs: the container's
+   watchdog (lastresort.c, container/watchdog.py) reads this clock so that
+   it does not take that for a hang.  Written here only, on the monitor
+   thread; read from any thread: the sequence count (odd while the two
+   words change) makes them one reading. */
+static unsigned g_pause_seq;
+static int64_t g_paused_ns;       /* in dumps that are over */
+static int64_t g_pause_since;     /* 0: no dump asked for or under way */
+
+static void note_busy(int64_t now)
+{
+    bool busy = g_stage != IDLE || g_queue != NULL;
+    if (busy == (g_pause_since != 0))
+        return;
+    __atomic_store_n(&g_pause_seq, g_pause_seq + 1, __ATOMIC_RELAXED);
+    __atomic_thread_fence(__ATOMIC_RELEASE);
+    if (busy) {
+        __atomic_store_n(&g_pause_since, now, __ATOMIC_RELAXED);
+    } else {
+        __atomic_store_n(&g_paused_ns, g_paused_ns + (now - g_pause_since), __ATOMIC_RELAXED);
+        __atomic_store_n(&g_pause_since, 0, __ATOMIC_RELAXED);
+    }
+    __atomic_store_n(&g_pause_seq, g_pause_seq + 1, __ATOMIC_RELEASE);
+}
+
+int64_t cg_watch_clock_ns(void)
+{
+    for (;;) {
+        unsigned seq = __atomic_load_n(&g_pause_seq, __ATOMIC_ACQUIRE);
+        int64_t paused = __atomic_load_n(&g_paused_ns, __ATOMIC_RELAXED);
+        int64_t since = __atomic_load_n(&g_pause_since, __ATOMIC_RELAXED);
+        __atomic_thread_fence(__ATOMIC_ACQUIRE);
+        if ((seq & 1) == 0 && __atomic_load_n(&g_pause_seq, __ATOMIC_RELAXED) == seq)
+            return (since ? since : cg_mono_ns()) - paused;
+    }
+}
 
 /* What the helpers run with: nothing of the container's environment. */
 static char *const HELPER_ENV[] = {"PATH=/usr/bin:/bin", "LC_ALL=C", NULL};
@@ -303,13 +345,13 @@ bool dumps_event(void *tag, int64_t now)
     if (tag == &TAG_REQ) {
         take_requests();
         start_next(now);
-        return true;
-    }
-    if (tag == &TAG_HELPER) {
+    } else if (tag == &TAG_HELPER) {
         helper_ended(now);
-        return true;
+    } else {
+        return false;
     }
-    return false;
+    note_busy(now);
+    return true;
 }
 
 /* After each of the monitor's rounds: the next dump, if none is under way;
@@ -318,6 +360,7 @@ bool dumps_event(void *tag, int64_t now)
 int dumps_tick(int64_t now, int sleep_ms)
 {
     start_next(now);             /* requests dumps_forget took off the pipe */
+    note_busy(now);
     if (g_helper_fd < 0)
         return sleep_ms;
     if (now >= g_deadline) {
@@ -373,6 +416,7 @@ void dumps_stop(void)
     }
     g_stage = IDLE;
     g_child = g_queue = NULL;
+    note_busy(cg_mono_ns());
     for (int i = 0; i < 2; i++)
         if (g_req[i] >= 0)
             close(g_req[i]), g_req[i] = -1;
