@@ -335,5 +335,7 @@ def test_each_crash_report_shows_its_own_process_python_stack(client, container)
         log = container.log_text()
         stack = log[log.index(head) : log.index(f"cloneguard: pid {pid} native stack:")]
         assert " in fire" not in stack and "components.py" not in stack, stack
-        # Idle in its executor's wait, as a node between callbacks is.
-        assert "executors.py" in stack and "_spin_until_stopped" in stack, stack
+        # Its own loop: mostly idle in its executor's wait, but the signal
+        # may land in the loop's own steps around a callback (seen once in
+        # ~20 runs: board.beat, right after a heartbeat).
+        assert "_spin_until_stopped" in stack, stack
