@@ -345,13 +345,13 @@ bool dumps_event(void *tag, int64_t now)
     if (tag == &TAG_REQ) {
         take_requests();
         start_next(now);
-    } else if (tag == &TAG_HELPER) {
-        helper_ended(now);
-    } else {
-        return false;
+        return true;
     }
-    note_busy(now);
-    return true;
+    if (tag == &TAG_HELPER) {
+        helper_ended(now);
+        return true;
+    }
+    return false;
 }
 
 /* After each of the monitor's rounds: the next dump, if none is under way;
@@ -360,7 +360,7 @@ bool dumps_event(void *tag, int64_t now)
 int dumps_tick(int64_t now, int sleep_ms)
 {
     start_next(now);             /* requests dumps_forget took off the pipe */
-    note_busy(now);
+    note_busy(now);              /* every round ends here (monitor.c) */
     if (g_helper_fd < 0)
         return sleep_ms;
     if (now >= g_deadline) {

@@ -31,9 +31,9 @@
 
 #include "core.h"
 
-/* The watch clock may stand still, which a timed wait cannot see: the
-   thread looks again at least this often. */
-#define LOOK_NS 100000000
+/* How long to wait before looking again when not armed (the first arm
+   comes right after the start). */
+#define UNARMED_NS 100000000
 
 static pthread_t g_thread;
 static bool g_running;
@@ -58,9 +58,12 @@ static void write_all(const char *s, size_t n)
 static void *watch(void *arg)
 {
     (void)arg;
+    /* Sleeping `left` on CLOCK_MONOTONIC is never too long: the watch
+       clock goes no faster (it stands still during dumps), so on waking it
+       has gone at most that far, and the thread looks again. */
     while (!__atomic_load_n(&g_stop, __ATOMIC_ACQUIRE)) {
         int64_t due = __atomic_load_n(&g_due, __ATOMIC_ACQUIRE);
-        int64_t left = due ? due - cg_watch_clock_ns() : LOOK_NS;
+        int64_t left = due ? due - cg_watch_clock_ns() : UNARMED_NS;
         if (left <= 0) {
             write_all(g_banner, strlen(g_banner));
             const char *err = _Py_DumpTracebackThreads(g_fd, g_interp, NULL);
@@ -70,7 +73,7 @@ static void *watch(void *arg)
             }
             _exit(1);
         }
-        struct timespec ts = {0, left < LOOK_NS ? left : LOOK_NS};
+        struct timespec ts = {left / 1000000000, left % 1000000000};
         syscall(SYS_futex, &g_stop, FUTEX_WAIT_PRIVATE, 0, &ts, NULL, 0);
     }
     return NULL;
