@@ -320,7 +320,7 @@ def run(
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-        rc = proc.wait()
+        rc = proc.returncode
         err = proc.stderr.read().decode(errors="replace")
         if outcome == "exited":
             if not ready:

@@ -16,11 +16,6 @@ import sys
 from cloneguard.container.isolated._clonecore import lib
 
 
-def now() -> float:
-    """The watch clock, in seconds."""
-    return lib.cg_watch_clock_ns() / 1e9
-
-
 class DumpPausedClock:
     def __init__(self, banner: str):
         rc = lib.cg_lastresort_start(sys.stderr.fileno(), banner.encode())
@@ -28,7 +23,8 @@ class DumpPausedClock:
             raise OSError(-rc, f"the watchdog's last-resort thread did not start: {os.strerror(-rc)}")
 
     def now(self) -> float:
-        return now()
+        """The watch clock, in seconds."""
+        return lib.cg_watch_clock_ns() / 1e9
 
     def arm_last_resort(self, after_s: float) -> None:
         lib.cg_lastresort_arm(int(after_s * 1e9))
