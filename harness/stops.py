@@ -4,6 +4,7 @@ whatever instant a signal happens to arrive.
 
     at = stop_at(pid, "allocation")   # stopped (SIGSTOP) inside malloc, or HarnessTimeout
     os.kill(pid, signal.SIGKILL)       # dies there
+    # or: signal_there(pid, signal.SIGSEGV), a fault it takes right there
 
 The places (``PLACES``):
 
@@ -51,6 +52,19 @@ def _request(pid: int, value: int) -> None:
     if _libc.sigqueue(pid, STOP_SIGNAL, ctypes.c_void_p(value)) != 0:
         err = ctypes.get_errno()
         raise ProcessLookupError(err, f"cannot ask process {pid} to stop: {os.strerror(err)}")
+
+
+_SYS_TGKILL = 234  # x86_64, the only platform an isolated container runs on
+
+
+def signal_there(pid: int, sig: int) -> None:
+    """Send ``sig`` to the stopped process's main task, the one that stopped
+    at the place (a signal to the process could be taken by any of its
+    threads), and let it go: it takes the signal right there."""
+    if _libc.syscall(_SYS_TGKILL, pid, pid, int(sig)) != 0:
+        err = ctypes.get_errno()
+        raise ProcessLookupError(err, f"cannot signal process {pid}: {os.strerror(err)}")
+    os.kill(pid, signal.SIGCONT)
 
 
 def is_stopped(pid: int) -> bool:

@@ -177,16 +177,23 @@ class System:
         self.faults.append(Fault(full_name, signal.Signals(sig).name, at, at, running.unique_id))
         return at
 
-    def kill_at(self, full_name: str, place: str, *, after: int = 1, timeout: float = 5.0) -> int:
-        """SIGKILL the node's process at a place in its own code
-        (stops.py's ``PLACES``: ``allocation``, ``python-allocation``,
-        ``python-lock``), at its ``after``-th pass from now; when it was
-        seen stopped there, just before the kill. HarnessTimeout if it did
-        not get there within ``timeout`` (it is left running)."""
+    def kill_at(
+        self, full_name: str, place: str, *, after: int = 1, timeout: float = 5.0, sig: int = signal.SIGKILL
+    ) -> int:
+        """Kill the node's process at a place in its own code (stops.py's
+        ``PLACES``: ``allocation``, ``python-allocation``, ``python-lock``),
+        at its ``after``-th pass from now: SIGKILL, or ``sig`` taken there by
+        the task that got there (SIGSEGV: a crash, with its crash report and
+        any core dump); when it was seen stopped there, just before the
+        signal. HarnessTimeout if it did not get there within ``timeout``
+        (it is left running)."""
         running = self._own_process(full_name)
         at = stops.stop_at(running.pid, place, after=after, timeout=timeout)
-        os.kill(running.pid, signal.SIGKILL)
-        self.faults.append(Fault(full_name, f"SIGKILL at {place}", at, at, running.unique_id))
+        if sig == signal.SIGKILL:
+            os.kill(running.pid, signal.SIGKILL)
+        else:
+            stops.signal_there(running.pid, sig)
+        self.faults.append(Fault(full_name, f"{signal.Signals(sig).name} at {place}", at, at, running.unique_id))
         return at
 
     def freeze(self, full_name: str, seconds: float) -> tuple[int, int]:

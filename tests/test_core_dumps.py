@@ -6,7 +6,6 @@ is said why; a bad setting is refused before anything starts."""
 
 from __future__ import annotations
 
-import ctypes
 import os
 import shutil
 import signal
@@ -18,7 +17,7 @@ import pytest
 from gil_waiters import Counter, signal_while_gil_held, spawn_busy
 from std_msgs.msg import Float64
 
-from cloneguard.harness import procfs, stops
+from cloneguard.harness import procfs
 from cloneguard.harness.system import NodeSpec, longest_gap
 
 ROBOT = [
@@ -28,14 +27,6 @@ ROBOT = [
     NodeSpec("demo_robot", "demo_robot::MapServer", namespace="/robot"),
 ]
 CONTAINER = os.path.join(sys.prefix, "bin", "component_container")
-_SYS_TGKILL = 234  # x86_64
-
-
-def _tgkill(tgid: int, tid: int, sig: int) -> int:
-    libc = ctypes.CDLL(None, use_errno=True)
-    return libc.syscall(_SYS_TGKILL, tgid, tid, int(sig))
-
-
 ET_CORE = 4
 
 
@@ -101,9 +92,9 @@ def test_a_node_that_crashes_holding_the_gil_is_dumped_and_the_rest_goes_on_afte
     odom = robot.topic(Float64, "/odom")
     odom.wait_count(10, timeout=10)
     pid = robot.node("/robot/planner").pid
-    at = stops.stop_at(pid, "python-allocation")  # on its main task, the executor's, GIL held
-    assert _tgkill(pid, pid, signal.SIGSEGV) == 0
-    os.kill(pid, signal.SIGCONT)  # it takes the SIGSEGV right there
+    # On its main task, the executor's, with the GIL held.
+    at = robot.kill_at("/robot/planner", "python-allocation", sig=signal.SIGSEGV)
+    assert robot.faults[-1].what == "SIGSEGV at python-allocation"
     crashed = robot.wait_crashed("/robot/planner", timeout=120)
     dump = dumps / f"core.robot.planner.{pid}"
     assert crashed.exit_signal == signal.SIGSEGV
@@ -170,6 +161,32 @@ def test_two_nodes_crashing_at_once_are_dumped_one_after_the_other(system_factor
         dump = dumps / f"core{name.replace('/', '.')}.{pid}"
         assert f"core dump: {dump}" in robot.wait_crashed(name, timeout=120).error_message
         assert _is_core_file(dump)
+    assert robot.alive()
+
+
+def test_a_node_holding_the_gil_that_waits_behind_another_dump_is_no_hang_either(system_factory, tmp_path, monkeypatch):
+    """Found by CI: two nodes crashed at once, the one holding the GIL was
+    dumped second, and the watchdog ended the container. Here the planner
+    crashes holding the GIL while the map server's dump is under way, and
+    holds it through both dumps (each gdb starts 7 s late: over 12 s in all,
+    the watchdog's last resort)."""
+    monkeypatch.setenv("PATH", _slow_gdb(tmp_path / "bin", 7))
+    dumps = tmp_path / "dumps"
+    robot = system_factory(ROBOT, ["--isolated", "--core-dumps", str(dumps)])
+    odom = robot.topic(Float64, "/odom")
+    odom.wait_count(10, timeout=10)
+    map_server, planner = robot.node("/robot/map_server").pid, robot.node("/robot/planner").pid
+    robot.kill("/robot/map_server", signal.SIGSEGV)
+    _gdb_running_under(robot.proc.pid)  # its dump is under way
+    at = robot.kill_at("/robot/planner", "python-allocation", sig=signal.SIGSEGV)  # GIL held
+    for name, pid in (("/robot/map_server", map_server), ("/robot/planner", planner)):
+        crashed = robot.wait_crashed(name, timeout=120)
+        assert f"core dump: {dumps}/core{name.replace('/', '.')}.{pid}" in crashed.error_message, crashed.error_message
+    assert "it held the GIL" in crashed.error_message, crashed.error_message
+    odom.wait_count(len(odom) + 50, timeout=10)
+    gap = longest_gap(odom, at)
+    print(f"odometry's longest gap, both dumps' time with the GIL held: {gap:.2f} s")
+    assert gap > 12  # past the last resort's time, on CLOCK_MONOTONIC
     assert robot.alive()
 
 
