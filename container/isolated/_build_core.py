@@ -53,6 +53,11 @@ struct cg_layout {
     long mutex_ret_slot;
     long mutex_ret[5];
     long private_wait_pc;
+    long timed_wait_pc;
+    long timed_ret_slot;
+    long mutex_timed_ret[4];
+    long rwlock_ret[6];
+    long rwlock_futex_off[6];
 };
 
 struct cg_config {
@@ -129,6 +134,27 @@ struct cg_mutexwait_probe {
     uintptr_t private_pc;
 };
 
+struct cg_timedwait_probe {
+    int self_tid;
+    int seen[8];
+    int op[8], val[8];
+    uintptr_t pc[8];
+    int ret_slot[8];
+    uintptr_t ret[8];
+    int ret_in_libc[8];
+    int kind[8];
+    int owner_is_self[8];
+    int rw_seen[6];
+    int rw_op[6], rw_val[6];
+    uintptr_t rw_pc[6];
+    long rw_futex_off[6];
+    int rw_ret_slot[6];
+    uintptr_t rw_ret[6];
+    int rw_writer_recorded[6];
+    int rw_released[6];
+    long off_wrphase_futex, off_writers_futex;
+};
+
 struct cg_gil_probe {
     unsigned long compiled_hex, running_hex;
     long runtime_size_compiled, runtime_size_elf;
@@ -201,6 +227,7 @@ int cg_alloc_slot_of(const void *p);
 int cg_child_slot(const struct cg_child *c);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
+int cg_probe_timedwait(struct cg_timedwait_probe *out);
 int cg_gil_probe(struct cg_gil_probe *out);
 int cg_interp_probe(struct cg_interp_probe *out);
 int cg_allocator(char *buf, size_t len);
@@ -259,6 +286,10 @@ void cg_lastresort_stop(void);
 #define CG_TOOL_PATH ...
 #define CG_CORE_PATH ...
 #define CG_MUTEX_CALLERS ...
+#define CG_TIMED_TYPES ...
+#define CG_TIMED_PROBES ...
+#define CG_RWLOCK_CALLERS ...
+#define CG_RWLOCK_KIND ...
 #define CG_MUTEX_RELEASED ...
 #define CG_MUTEX_UNPROVEN ...
 #define CG_MUTEX_NO_OWNER ...

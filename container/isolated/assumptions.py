@@ -99,6 +99,26 @@ Where each value comes from and how it is checked:
                      while held, __kind is the type and __owner the holder;
     private_wait_pc  a waiter in __lll_lock_wait_private (glibc's internal
                      locks) waits at a pc of its own;
+  and on live pthreads blocked in pthread_mutex_timedlock (CLOCK_REALTIME)
+  and pthread_mutex_clocklock (CLOCK_MONOTONIC) on a mutex of each type, and
+  in each pthread_rwlock lock call ({wr,rd}lock, timed..., clock...) on a
+  rwlock whose writer ended holding it (cg_probe_timedwait):
+    timed_wait_pc    every one waits in futex(word, FUTEX_WAIT_BITSET, v) at
+                     this one pc (__futex_abstimed_wait64's call), v = 2 for
+                     a mutex, its word the mutex's __lock; not mutex_wait_pc;
+    timed_ret_slot   the word above sp where dladdr finds the return address
+                     into each rwlock call, the same for all six; for the
+                     timed mutexes (waiting at the same pc) the word there
+                     lies in libc (their function is not exported),
+    mutex_timed_ret  one per type, the same for timedlock and clocklock, none
+                     a pthread_mutex_lock return or a rwlock's;
+    rwlock_ret       one per rwlock call, and rwlock_futex_off the word it
+                     waits on: __writers_futex for a writer, __wrphase_futex
+                     for a reader; __cur_writer is the writer's tid, and a
+                     thread that writes its own tid there and calls
+                     pthread_rwlock_unlock lets the waiter in (the release);
+  a failure here leaves these waits unrecognized and says why
+  (Report.timed_wait_unavailable); plain waits are still recognized.
   and the kernel's pid cursor (/proc/sys/kernel/ns_last_pid) is readable.
   These do not refuse isolation: they say why dead nodes' mutexes cannot be
   released (Report.mutex_repair_unavailable).
@@ -161,6 +181,11 @@ class Layout:
     mutex_ret_slot: int = 0
     mutex_ret: tuple[int, ...] = (0, 0, 0, 0, 0)
     private_wait_pc: int = 0
+    timed_wait_pc: int = 0
+    timed_ret_slot: int = 0
+    mutex_timed_ret: tuple[int, ...] = (0,) * 4
+    rwlock_ret: tuple[int, ...] = (0,) * 6
+    rwlock_futex_off: tuple[int, ...] = (0,) * 6
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -177,6 +202,9 @@ class Report:
     notes: tuple[str, ...] = field(default=())
     # Why native mutexes of dead nodes cannot be released here ("": they can).
     mutex_repair_unavailable: str = ""
+    # Why waits in pthread_mutex_timedlock/_clocklock and on a rwlock are not
+    # recognized here ("": they are).
+    timed_wait_unavailable: str = ""
 
     def __str__(self) -> str:
         head = f"isolation available: {self.machine}, glibc {self.glibc}, Python {self.python}, kernel {self.kernel}"
@@ -286,6 +314,7 @@ def self_check(
 
     layout = _discover_and_verify(ck, ffi, lib, overrides)
     layout, mutex_unavailable = _probe_mutexwait(ck, ffi, lib, layout, overrides)
+    layout, timed_unavailable = _probe_timedwait(ck, ffi, lib, layout, overrides)
     try:
         with open("/proc/sys/kernel/core_pattern") as f:
             pattern = f.read().strip()
@@ -307,6 +336,7 @@ def self_check(
         tuple(ck.passed),
         tuple(ck.notes),
         mutex_repair_unavailable=mutex_unavailable,
+        timed_wait_unavailable=timed_unavailable,
     )
 
 
@@ -436,6 +466,113 @@ def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
         "mutex_ret": tuple(int(p.ret[k]) for k in range(len(MUTEX_TYPES))) if not failed else (0,) * len(MUTEX_TYPES),
         "private_wait_pc": int(p.private_pc) if not failed else 0,
     }
+    values.update({k: v for k, v in overrides.items() if k in values})
+    return Layout(**{**L.as_dict(), **values}), "; ".join(failed)
+
+
+TIMED_CALLS = ("pthread_mutex_timedlock", "pthread_mutex_clocklock")
+RWLOCK_CALLS = (
+    "pthread_rwlock_wrlock",
+    "pthread_rwlock_timedwrlock",
+    "pthread_rwlock_clockwrlock",
+    "pthread_rwlock_rdlock",
+    "pthread_rwlock_timedrdlock",
+    "pthread_rwlock_clockrdlock",
+)
+FUTEX_WAIT_BITSET = 9
+FUTEX_CLOCK_REALTIME = 256
+TIMED_FIELDS = ("timed_wait_pc", "timed_ret_slot", "mutex_timed_ret", "rwlock_ret", "rwlock_futex_off")
+
+
+def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tuple[Layout, str]:
+    """Live pthreads blocked in the timed mutex locks and in the rwlock lock
+    calls, read from outside the way mutexes.c reads a waiter. Needs the
+    plain waits' layout (mutex_wait_pc) to tell them apart. A failure does
+    not refuse isolation nor the plain waits: it says why these waits are
+    not recognized (the second value), and they are not."""
+    failed: list[str] = []
+
+    def check(ok: bool, good: str, bad: str) -> None:
+        (ck.passed if ok else failed).append(good if ok else bad)
+
+    p = ffi.new("struct cg_timedwait_probe *")
+    rc = lib.cg_probe_timedwait(p)
+    if not L.mutex_wait_pc:
+        failed.append("plain mutex waits are not recognized here")
+    elif rc < 0:
+        failed.append(f"timed waiter probe failed: {os.strerror(-rc)}")
+    else:
+        pc, slot = int(p.rw_pc[0]), int(p.rw_ret_slot[0])
+        for k, call in enumerate(RWLOCK_CALLS):
+            where = f"a waiter in {call} on a write-locked rwlock"
+            check(bool(p.rw_seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&rwlock) within 2 s")
+            if not p.rw_seen[k]:
+                continue
+            want_off = p.off_writers_futex if k < 3 else p.off_wrphase_futex  # writers, then readers
+            check(
+                p.rw_op[k] & FUTEX_CMD_MASK == FUTEX_WAIT_BITSET and p.rw_futex_off[k] == want_off,
+                f"{where}: FUTEX_WAIT_BITSET on rwlock+{p.rw_futex_off[k]}",
+                f"{where} waits with futex op {p.rw_op[k]:#x} on rwlock+{p.rw_futex_off[k]}, "
+                f"not FUTEX_WAIT_BITSET on rwlock+{want_off}",
+            )
+            check(
+                p.rw_pc[k] == pc and pc not in (0, L.mutex_wait_pc, L.private_wait_pc),
+                f"{where}: at pc {p.rw_pc[k]:#x}",
+                f"{where} waits at pc {p.rw_pc[k]:#x}, not one pc of its own shared by every rwlock and timed wait",
+            )
+            check(
+                p.rw_ret[k] != 0 and p.rw_ret_slot[k] == slot,
+                f"{where}: returns to {p.rw_ret[k]:#x} (stack word {p.rw_ret_slot[k]})",
+                f"{where}: no return address into {call} at stack word {slot}",
+            )
+            check(
+                bool(p.rw_writer_recorded[k]) and bool(p.rw_released[k]),
+                f"{where}: __cur_writer = the writer; released as mutexes.c does",
+                f"{where}: __cur_writer was not the writer, or taking its place there and calling "
+                "pthread_rwlock_unlock did not let the waiter in",
+            )
+        plain = set(L.mutex_ret)
+        for k in range(2 * len(MUTEX_TYPES[:4])):
+            call, name = TIMED_CALLS[k % 2], MUTEX_TYPES[k // 2]
+            where = f"a waiter in {call} on a {name} mutex"
+            check(bool(p.seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&mutex) within 2 s")
+            if not p.seen[k]:
+                continue
+            realtime = FUTEX_CLOCK_REALTIME if k % 2 == 0 else 0
+            check(
+                p.op[k] & FUTEX_CMD_MASK == FUTEX_WAIT_BITSET
+                and p.op[k] & FUTEX_CLOCK_REALTIME == realtime
+                and p.val[k] == 2,
+                f"{where}: FUTEX_WAIT_BITSET for 2",
+                f"{where} waits with futex op {p.op[k]:#x} value {p.val[k]}, not FUTEX_WAIT_BITSET for 2"
+                f"{' on CLOCK_REALTIME' if realtime else ''}",
+            )
+            check(p.pc[k] == pc, f"{where}: at pc {p.pc[k]:#x}", f"{where} waits at pc {p.pc[k]:#x}, not {pc:#x}")
+            check(
+                p.ret[k] != 0
+                and bool(p.ret_in_libc[k])
+                and p.ret[k] == p.ret[k & ~1]
+                and p.ret[k] not in plain
+                and p.ret[k] not in set(p.rw_ret),
+                f"{where}: returns to {p.ret[k]:#x} (stack word {p.ret_slot[k]})",
+                f"{where}: stack word {slot} ({p.ret[k]:#x}) is not a return address into libc of its own, "
+                "the same for timedlock and clocklock",
+            )
+            want = k // 2
+            check(
+                p.kind[k] & ~MUTEX_NO_ELISION == want and bool(p.owner_is_self[k]),
+                f"{where}: __kind {p.kind[k]}, __owner = holder",
+                f"{where}: __kind {p.kind[k]} (want type {want}) or __owner is not the holder's tid",
+            )
+    values: dict[str, Any] = {
+        "timed_wait_pc": int(p.rw_pc[0]),
+        "timed_ret_slot": int(p.rw_ret_slot[0]),
+        "mutex_timed_ret": tuple(int(p.ret[2 * t]) for t in range(4)),
+        "rwlock_ret": tuple(int(r) for r in p.rw_ret),
+        "rwlock_futex_off": tuple(int(o) for o in p.rw_futex_off),
+    }
+    if failed:  # refuse to guess: none of these waits is recognized
+        values = {name: getattr(Layout, name) for name in TIMED_FIELDS}
     values.update({k: v for k, v in overrides.items() if k in values})
     return Layout(**{**L.as_dict(), **values}), "; ".join(failed)
 

@@ -52,6 +52,8 @@
 /* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
 
 #define CG_MUTEX_CALLERS 5   /* mutex_ret: 4 mutex types + the condvar relock */
+#define CG_TIMED_TYPES 4     /* mutex_timed_ret: the 4 mutex types */
+#define CG_RWLOCK_CALLERS 6  /* rwlock_ret: {wr,rd} x {plain, timed, clock} */
 struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
     long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
@@ -69,6 +71,20 @@ struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
                                 call for each type (0-3), pthread_cond_wait's
                                 relock (CG_MUTEX_CALLERS of them) */
     long private_wait_pc;    /* pc of a task in __lll_lock_wait_private */
+    /* Where a task blocked in a timed mutex lock or in a rwlock waits
+       (cg_probe_timedwait); all 0: such waits are not recognized. */
+    long timed_wait_pc;      /* its pc, in __futex_abstimed_wait64's call */
+    long timed_ret_slot;     /* the word above its sp holding the return
+                                address into the caller, */
+    long mutex_timed_ret[CG_TIMED_TYPES];   /* pthread_mutex_timedlock's and
+                                _clocklock's (one shared function) for each
+                                type (0-3), */
+    long rwlock_ret[CG_RWLOCK_CALLERS];     /* or pthread_rwlock_wrlock,
+                                _timedwrlock, _clockwrlock, _rdlock,
+                                _timedrdlock, _clockrdlock's, blocked on a
+                                writer, */
+    long rwlock_futex_off[CG_RWLOCK_CALLERS];   /* at this offset of the
+                                rwlock (its futex word minus the rwlock) */
 };
 
 #define CG_TOOL_PATH 256     /* a helper program's path (cg_config) */
@@ -104,7 +120,8 @@ struct cg_event {            /* one record on the event pipe: 64 bytes */
                                 0 if someone else reaped the child;
                                 stop: the signal (0: asked by the parent);
                                 mutex: its __data.__kind, -1: not a
-                                pthread mutex (a glibc-internal lock) */
+                                pthread mutex (a glibc-internal lock),
+                                CG_RWLOCK_KIND: a pthread_rwlock_t */
     uint64_t serial;
     int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
     uint32_t repairs;        /* death: CG_REPAIR_* (repair.h) */
@@ -115,6 +132,7 @@ struct cg_event {            /* one record on the event pipe: 64 bytes */
     int32_t owner;           /* mutex: its owner's tid, 0: none recorded */
     uint32_t flags;          /* death: CG_EVF_* */
 };
+#define CG_RWLOCK_KIND (-2)   /* cg_event.code of a rwlock (mutexes.c) */
 #define CG_EVF_ANNOUNCED 1u  /* its CRASHED event is the herald's (herald.c) */
 #define CG_DEATH_TEXT 768    /* cg_child.death_text */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
@@ -261,6 +279,36 @@ struct cg_mutexwait_probe {
     uintptr_t private_pc;            /* ... in __lll_lock_wait_private */
 };
 
+/* Timed mutex waiters and rwlock waiters blocked on a writer, as the monitor
+   sees them from outside (cg_probe_timedwait checks them on live pthreads).
+   Mutex probe k: type k / 2, k % 2 == 0 pthread_mutex_timedlock
+   (CLOCK_REALTIME), 1 pthread_mutex_clocklock(CLOCK_MONOTONIC).  Rwlock
+   probe k: the order of cg_layout.rwlock_ret. */
+#define CG_TIMED_PROBES (2 * CG_TIMED_TYPES)
+struct cg_timedwait_probe {
+    int self_tid;
+    int seen[CG_TIMED_PROBES];
+    int op[CG_TIMED_PROBES], val[CG_TIMED_PROBES];
+    uintptr_t pc[CG_TIMED_PROBES];
+    int ret_slot[CG_TIMED_PROBES];   /* = rw_ret_slot[0] */
+    uintptr_t ret[CG_TIMED_PROBES];  /* the word there, */
+    int ret_in_libc[CG_TIMED_PROBES];   /* which lies in libc */
+    int kind[CG_TIMED_PROBES];       /* the mutex's __kind while held */
+    int owner_is_self[CG_TIMED_PROBES];
+    int rw_seen[CG_RWLOCK_CALLERS];
+    int rw_op[CG_RWLOCK_CALLERS], rw_val[CG_RWLOCK_CALLERS];
+    uintptr_t rw_pc[CG_RWLOCK_CALLERS];
+    long rw_futex_off[CG_RWLOCK_CALLERS];   /* futex word - rwlock */
+    int rw_ret_slot[CG_RWLOCK_CALLERS];     /* the word into the function
+                                               (by dladdr), */
+    uintptr_t rw_ret[CG_RWLOCK_CALLERS];
+    int rw_writer_recorded[CG_RWLOCK_CALLERS];  /* __cur_writer = the writer */
+    int rw_released[CG_RWLOCK_CALLERS];     /* a thread that made itself
+                                __cur_writer and called pthread_rwlock_unlock
+                                after the writer ended let the waiter in */
+    long off_wrphase_futex, off_writers_futex;  /* offsetof in the rwlock */
+};
+
 /* A task's system call as /proc/<tid>/syscall shows it. */
 struct task_syscall {
     long nr;                 /* -1: blocked outside a syscall, -2: running
@@ -358,6 +406,7 @@ int cg_alloc_slot_of(const void *p);        /* contexts.c */
 int cg_child_slot(const struct cg_child *c);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
+int cg_probe_timedwait(struct cg_timedwait_probe *out);
 int cg_allocator(char *buf, size_t len);
 int cg_jemalloc_thread_tcache(void);
 int cg_jemalloc_thread_arena(void);

@@ -289,14 +289,23 @@ def _where_possible(m: Mitigations, name: str, why: str | None, cannot: str, wit
 
 
 def _resolve_mutex_repair(m: Mitigations, report: assumptions.Report) -> Mitigations:
-    """mutex_repair: on where the platform checks allow it."""
-    return _where_possible(
+    """mutex_repair: on where the platform checks allow it. Where it is on
+    but the timed waits' checks failed, says so on stderr: a waiter in
+    pthread_mutex_timedlock/_clocklock or on a rwlock is then not seen."""
+    m = _where_possible(
         m,
         "mutex_repair",
         report.mutex_repair_unavailable,
         "native mutex repair is not possible here",
         "dead nodes' native mutexes will not be released",
     )
+    if m.mutex_repair and report.timed_wait_unavailable:
+        print(
+            "cloneguard: a dead node's native mutex will not be released, nor reported, for a task waiting in "
+            f"pthread_mutex_timedlock/_clocklock, nor its rwlock: {report.timed_wait_unavailable}",
+            file=sys.stderr,
+        )
+    return m
 
 
 def _resolve_pybind11_ahead(m: Mitigations) -> Mitigations:

@@ -123,6 +123,9 @@ class StopRequested:
     signal: int | None = None
 
 
+RWLOCK_KIND = lib.CG_RWLOCK_KIND  # MutexReport.mutex_kind of a pthread rwlock
+
+
 class MutexVerdict(enum.IntEnum):
     """What the lock doctor did about a task blocked on a lock (CG_MUTEX_*
     in core.h; mutexes.c says when each applies)."""
@@ -146,7 +149,7 @@ class MutexReport:
     address: int  # the lock word's
     waiter_tid: int
     owner_tid: int  # 0: none recorded
-    mutex_kind: int  # __data.__kind; -1: not a pthread mutex (glibc-internal)
+    mutex_kind: int  # __data.__kind; -1: not a pthread mutex (glibc-internal); RWLOCK_KIND: a rwlock
     detected_monotonic_ns: int
 
 

@@ -12,7 +12,7 @@ silent.
 from __future__ import annotations
 
 from .. import processes, repairs
-from .core_events import MutexReport, MutexVerdict
+from .core_events import RWLOCK_KIND, MutexReport, MutexVerdict
 from .mappings import describe
 
 _TYPES = ("NORMAL", "RECURSIVE", "ERRORCHECK", "ADAPTIVE")
@@ -27,7 +27,9 @@ _FLAGS = (
 
 def kind_name(kind: int) -> str:
     """__data.__kind in words: "RECURSIVE", "robust NORMAL", ...; -1: a
-    glibc-internal lock."""
+    glibc-internal lock; RWLOCK_KIND: a pthread rwlock."""
+    if kind == RWLOCK_KIND:
+        return "rwlock"
     if kind < 0:
         return "glibc-internal lock"
     flags = [name for bit, name in _FLAGS if kind & bit]
@@ -50,13 +52,31 @@ def text(r: MutexReport) -> str:
     and what the container did."""
     tgid = _tgid(r.waiter_tid)
     waiter = f"{processes.who(tgid)} thread {r.waiter_tid}" if tgid else f"thread {r.waiter_tid}"
-    lock = (
-        f"{kind_name(r.mutex_kind)} mutex {r.address:#x}"
-        if r.mutex_kind >= 0
-        else f"glibc-internal lock {r.address:#x}"
-    )
+    rwlock = r.mutex_kind == RWLOCK_KIND
+    if rwlock:
+        lock = f"rwlock {r.address:#x}"
+    elif r.mutex_kind >= 0:
+        lock = f"{kind_name(r.mutex_kind)} mutex {r.address:#x}"
+    else:
+        lock = f"glibc-internal lock {r.address:#x}"
     where = describe(r.address)
     dead = processes.who(r.pid) if r.pid else "a node process"
+    if rwlock and r.verdict == MutexVerdict.RELEASED:
+        return (
+            f"native {lock} in {where}, write-locked by {dead} thread {r.owner_tid} when its process died, was "
+            f"released for {waiter}; what it guards may be half-updated"
+        )
+    if rwlock and r.verdict == MutexVerdict.EXCLUDED:
+        return (
+            f"{waiter} is blocked on native {lock} in {where}, write-locked by {dead} thread {r.owner_tid} when its "
+            "process died: not released (process-shared, or not in the state its writer leaves it in)"
+        )
+    if rwlock and r.verdict == MutexVerdict.NO_OWNER:
+        return (
+            f"{waiter} has been blocked for over a second on native {lock} in {where}, held by readers or with no "
+            f"writer recorded (glibc records no reader: a dead reader cannot be told from a live one; the last node "
+            f"process to die was {dead}): not released"
+        )
     if r.verdict == MutexVerdict.RELEASED:
         return (
             f"native {lock} in {where}, held by {dead} thread {r.owner_tid} when its process died, was released "

@@ -18,9 +18,17 @@
  *            on a plain mutex when it is in futex(uaddr, FUTEX_WAIT, 2) at
  *            the pc of glibc's __lll_lock_wait with, on its stack, a return
  *            address into pthread_mutex_lock or into the relock after
- *            pthread_cond_wait (pc, stack slot and return addresses are
- *            probed at start-up: probes.c, assumptions.py); the mutex is at
- *            uaddr (__data.__lock is its first word);
+ *            pthread_cond_wait or pthread_cond_timedwait/_clockwait (pc,
+ *            stack slot and return addresses are probed at start-up:
+ *            probes.c, assumptions.py); or in futex(uaddr, FUTEX_WAIT_BITSET,
+ *            2) at the pc of glibc's __futex_abstimed_wait64 returning into
+ *            pthread_mutex_timedlock/_clocklock (one function of glibc's:
+ *            its waits time out and are retried by the caller, so each try
+ *            is caught while it waits); the mutex is at uaddr (__data.__lock
+ *            is its first word).  At that same pc, returning into one of the
+ *            pthread_rwlock lock calls, it is blocked on a rwlock a writer
+ *            holds, whose futex word (__writers_futex for a writer,
+ *            __wrphase_futex for a reader: probed) is uaddr;
  *   proves   its owner O was a task of a dead child: O was seen in it, no
  *            task with tid O exists now, and the pid cursor has not come
  *            round to O since (Linux hands pids out in cyclic order, so O
@@ -28,6 +36,10 @@
  *   releases it as its owner's last unlock would: __owner to 0 (only if it
  *            still is O), a recursive count to 0, __nusers one less, the
  *            lock word to 0, one waiter woken; reported CG_MUTEX_RELEASED.
+ *            A rwlock records its writer (__data.__cur_writer, written once
+ *            it holds the lock, cleared first thing in its unlock) and no
+ *            reader: one whose writer W is proven dead is released by
+ *            glibc's own writer unlock, run here in W's name (below).
  *
  * Never touched, reported instead (once per waiter and lock):
  *   UNPROVEN  the owner is gone but was not seen in a dead child (a thread
@@ -41,6 +53,11 @@
  *   LIBC_LOCK a wait of STUCK_NS on one of glibc's internal locks (malloc
  *             arenas, stdio, the loader: __lll_lock_wait_private; they record
  *             no owner), while a death is recent.
+ * For a rwlock (cg_event.code CG_RWLOCK_KIND): UNPROVEN as for a mutex;
+ * EXCLUDED a process-shared one (or one not write-locked while a writer is
+ * recorded); NO_OWNER a wait of STUCK_NS while no writer is recorded (held
+ * by readers, which glibc does not record: a dead reader cannot be told
+ * from a live one), while a death is recent.
  * A live owner's mutex is never touched nor reported.  Condition variables'
  * internal locks are not looked at here (gilrepair.c mends the GIL's).
  *
@@ -446,6 +463,68 @@ static void mutex_waiter(int waiter, uintptr_t addr, int64_t now)
         report(CG_MUTEX_RELEASED, d, waiter, owner, kind, addr);
 }
 
+static bool timed_mutex_caller(uintptr_t ret)
+{
+    for (int i = 0; i < CG_TIMED_TYPES; i++)
+        if (ret && ret == (uintptr_t)g_layout.mutex_timed_ret[i])
+            return true;
+    return false;
+}
+
+/* Which pthread_rwlock lock call ret returns into (cg_layout.rwlock_ret's
+   index), -1: none. */
+static int rwlock_caller(uintptr_t ret)
+{
+    for (int i = 0; i < CG_RWLOCK_CALLERS; i++)
+        if (ret && ret == (uintptr_t)g_layout.rwlock_ret[i])
+            return i;
+    return -1;
+}
+
+/* Release rwlock rw, write-locked by `writer`, proven dead, by glibc's own
+   writer unlock.  pthread_rwlock_unlock unlocks as the writer exactly when
+   __cur_writer is the caller's tid (else it unlocks as a reader), so this
+   thread first takes the writer's place there, by CAS (false if it changed
+   meanwhile).  Safe because only the writer itself writes __cur_writer
+   while it holds the lock (readers and waiters never do) and it is dead;
+   and glibc's unlock takes no lock and never blocks (atomics on the
+   rwlock's words and futex wakes): it hands the lock to a waiting writer or
+   to the readers as the writer's own unlock would have.  Checked on a live
+   rwlock whose writer ended at start-up (cg_probe_timedwait). */
+static bool release_rwlock(pthread_rwlock_t *rw, int writer)
+{
+    int expected = writer;
+    if (!__atomic_compare_exchange_n(&rw->__data.__cur_writer, &expected,
+                                     (int)syscall(SYS_gettid), false,
+                                     __ATOMIC_ACQ_REL, __ATOMIC_RELAXED))
+        return false;
+    return pthread_rwlock_unlock(rw) == 0;
+}
+
+#define RWLOCK_WRLOCKED 2   /* __readers: a writer holds it (glibc 2.36's
+                               PTHREAD_RWLOCK_WRLOCKED) */
+
+static void rwlock_waiter(int waiter, uintptr_t addr, int64_t now)
+{
+    pthread_rwlock_t rw;
+    if (read_mem(addr, &rw, sizeof rw) < 0)
+        return;
+    int writer = rw.__data.__cur_writer;
+    if (writer == 0) {               /* readers hold it, or none recorded */
+        report_if_stuck(CG_MUTEX_NO_OWNER, waiter, 0, CG_RWLOCK_KIND, addr, now);
+        return;
+    }
+    if (writer < 0 || task_exists(writer))
+        return;                      /* alive: never touched */
+    const struct dead_set *d = dead_owner(writer);
+    if (!d)
+        report(CG_MUTEX_UNPROVEN, NULL, waiter, writer, CG_RWLOCK_KIND, addr);
+    else if (rw.__data.__shared || !(rw.__data.__readers & RWLOCK_WRLOCKED))
+        report(CG_MUTEX_EXCLUDED, d, waiter, writer, CG_RWLOCK_KIND, addr);
+    else if (release_rwlock((pthread_rwlock_t *)addr, writer))
+        report(CG_MUTEX_RELEASED, d, waiter, writer, CG_RWLOCK_KIND, addr);
+}
+
 static void look_at(int tid, void *arg)
 {
     int64_t now = *(int64_t *)arg;
@@ -461,6 +540,16 @@ static void look_at(int tid, void *arg)
         if (read_mem(sc.sp + 8 * (uintptr_t)g_layout.mutex_ret_slot, &ret, sizeof ret) == 0 &&
             mutex_caller(ret))
             mutex_waiter(tid, addr, now);
+    } else if (op == FUTEX_WAIT_BITSET && g_layout.timed_wait_pc &&
+               sc.pc == (uintptr_t)g_layout.timed_wait_pc) {
+        uintptr_t ret;
+        int k;
+        if (read_mem(sc.sp + 8 * (uintptr_t)g_layout.timed_ret_slot, &ret, sizeof ret) < 0)
+            return;
+        if ((int)sc.args[2] == 2 && timed_mutex_caller(ret))
+            mutex_waiter(tid, addr, now);
+        else if ((k = rwlock_caller(ret)) >= 0)
+            rwlock_waiter(tid, addr - (uintptr_t)g_layout.rwlock_futex_off[k], now);
     } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)g_layout.private_wait_pc) {
         report_if_stuck(CG_MUTEX_LIBC_LOCK, tid, 0, -1, addr, now);
     } else if (op == FUTEX_LOCK_PI || op == FUTEX_LOCK_PI2) {

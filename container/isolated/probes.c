@@ -13,6 +13,7 @@
 #include <pthread.h>
 #include <sched.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -211,16 +212,22 @@ static void *mutex_waiter_main(void *p)
     return NULL;
 }
 
-/* Wait (~2 s at most) until task tid is in futex(uaddr); its view. */
-static int wait_in_futex(int tid, const void *uaddr, struct task_syscall *sc)
+/* Wait (~2 s at most) until task tid is in futex() on a word in
+   [lo, lo + len); its view. */
+static int wait_in_futex_within(int tid, const void *lo, size_t len, struct task_syscall *sc)
 {
     for (int i = 0; i < 2000; i++) {
         if (task_syscall(tid, sc) == 0 && sc->nr == SYS_futex &&
-            sc->args[0] == (uintptr_t)uaddr)
+            sc->args[0] - (uintptr_t)lo < len)
             return 0;
         usleep(1000);
     }
     return -ETIMEDOUT;
+}
+
+static int wait_in_futex(int tid, const void *uaddr, struct task_syscall *sc)
+{
+    return wait_in_futex_within(tid, uaddr, 1, sc);
 }
 
 static uintptr_t stack_word(uintptr_t sp, int i) { return ((uintptr_t *)sp)[i]; }
@@ -316,5 +323,192 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
     __atomic_store_n(&word, 0, __ATOMIC_RELEASE);
     syscall(SYS_futex, &word, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
     pthread_join(t, NULL);
+    return 0;
+}
+
+/* ---- Where a task blocked in a timed lock or on a rwlock waits --------- */
+
+/* What a timed waiter calls: the two timed mutex locks, then the rwlock
+   calls in the order of cg_layout.rwlock_ret. */
+enum { TW_TIMEDLOCK, TW_CLOCKLOCK, TW_RWLOCK };
+static const char *const rwlock_fn[CG_RWLOCK_CALLERS] = {
+    "pthread_rwlock_wrlock", "pthread_rwlock_timedwrlock", "pthread_rwlock_clockwrlock",
+    "pthread_rwlock_rdlock", "pthread_rwlock_timedrdlock", "pthread_rwlock_clockrdlock",
+};
+
+struct timed_waiter {
+    pthread_mutex_t *m;
+    pthread_rwlock_t *rw;
+    int how;                 /* TW_TIMEDLOCK, TW_CLOCKLOCK, TW_RWLOCK + k */
+    volatile int tid, phase; /* phase 1: about to block, 2: done */
+};
+
+static void *timed_waiter_main(void *p)
+{
+    struct timed_waiter *w = p;
+    /* The ...timed... calls take CLOCK_REALTIME (FUTEX_CLOCK_REALTIME);
+       the ...clock... ones are given CLOCK_MONOTONIC. */
+    int k = w->how - TW_RWLOCK;
+    clockid_t clock = w->how == TW_CLOCKLOCK || k == 2 || k == 5 ? CLOCK_MONOTONIC : CLOCK_REALTIME;
+    struct timespec until;
+    clock_gettime(clock, &until);
+    until.tv_sec += 10;          /* well past the probe's own 2 s waits */
+    w->tid = (int)syscall(SYS_gettid);
+    __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
+    int r;
+    switch (w->how) {
+    case TW_TIMEDLOCK: r = pthread_mutex_timedlock(w->m, &until); break;
+    case TW_CLOCKLOCK: r = pthread_mutex_clocklock(w->m, clock, &until); break;
+    case TW_RWLOCK + 0: r = pthread_rwlock_wrlock(w->rw); break;
+    case TW_RWLOCK + 1: r = pthread_rwlock_timedwrlock(w->rw, &until); break;
+    case TW_RWLOCK + 2: r = pthread_rwlock_clockwrlock(w->rw, clock, &until); break;
+    case TW_RWLOCK + 3: r = pthread_rwlock_rdlock(w->rw); break;
+    case TW_RWLOCK + 4: r = pthread_rwlock_timedrdlock(w->rw, &until); break;
+    default: r = pthread_rwlock_clockrdlock(w->rw, clock, &until); break;
+    }
+    if (r == 0 && w->m)
+        pthread_mutex_unlock(w->m);
+    else if (r == 0)
+        pthread_rwlock_unlock(w->rw);
+    __atomic_store_n(&w->phase, 2, __ATOMIC_RELEASE);
+    return NULL;
+}
+
+static int start_timed_waiter(pthread_t *t, struct timed_waiter *w)
+{
+    if (pthread_create(t, NULL, timed_waiter_main, w) != 0)
+        return -EAGAIN;
+    while (__atomic_load_n(&w->phase, __ATOMIC_ACQUIRE) == 0)
+        sched_yield();
+    return 0;
+}
+
+struct rw_writer {
+    pthread_rwlock_t *rw;
+    int tid;
+};
+
+static void *write_lock_and_end(void *p)   /* a writer that ends holding it */
+{
+    struct rw_writer *w = p;
+    w->tid = (int)syscall(SYS_gettid);
+    pthread_rwlock_wrlock(w->rw);
+    return NULL;
+}
+
+/* Block a pthread in pthread_mutex_timedlock and in pthread_mutex_clocklock
+   on a mutex of each plain type, and in each pthread_rwlock lock call on a
+   rwlock a writer holds, and read where each waits from outside, as
+   mutexes.c will (see cg_probe_mutexwait).  A rwlock waiter's return
+   address is found by dladdr, into the exported rwlock function; a timed
+   mutex waiter's is not (pthread_mutex_timedlock and _clocklock jump to a
+   function of glibc's own, not exported): it is read at the same stack word,
+   since it waits at the same pc (assumptions.py checks that it is, and that
+   what is there is an address into libc of its own).  The rwlock's writer is a thread that ended
+   holding it; then this thread writes itself into __cur_writer and calls
+   pthread_rwlock_unlock, as the monitor releases a dead writer's rwlock:
+   the waiter must get it within 2 s. */
+int cg_probe_timedwait(struct cg_timedwait_probe *out)
+{
+    memset(out, 0, sizeof *out);
+    out->self_tid = (int)syscall(SYS_gettid);
+    out->off_wrphase_futex = (long)offsetof(pthread_rwlock_t, __data.__wrphase_futex);
+    out->off_writers_futex = (long)offsetof(pthread_rwlock_t, __data.__writers_futex);
+    void *libc = dlopen("libc.so.6", RTLD_NOW | RTLD_NOLOAD);
+    void *rw_fn[CG_RWLOCK_CALLERS] = {0};
+    for (int k = 0; libc && k < CG_RWLOCK_CALLERS; k++)
+        rw_fn[k] = dlsym(libc, rwlock_fn[k]);
+    Dl_info libc_info;
+    int have_libc = libc && dladdr(dlsym(libc, "pthread_mutex_timedlock"), &libc_info);
+    if (libc)
+        dlclose(libc);
+    if (!have_libc)
+        return -ENOENT;
+    for (int k = 0; k < CG_RWLOCK_CALLERS; k++) {
+        /* malloc'd: left behind, waiter and all, if the release fails */
+        struct { pthread_rwlock_t rw; struct timed_waiter w; } *b = malloc(sizeof *b);
+        if (!b)
+            return -ENOMEM;
+        pthread_rwlock_t *rw = &b->rw;
+        pthread_rwlock_init(rw, NULL);
+        struct rw_writer wr = {rw, 0};
+        pthread_t t;
+        if (pthread_create(&t, NULL, write_lock_and_end, &wr) != 0) {
+            free(b);
+            return -EAGAIN;
+        }
+        pthread_join(t, NULL);
+        out->rw_writer_recorded[k] = rw->__data.__cur_writer == wr.tid && wr.tid != 0;
+        b->w = (struct timed_waiter){NULL, rw, TW_RWLOCK + k, 0, 0};
+        struct task_syscall sc;
+        if (start_timed_waiter(&t, &b->w) < 0)
+            return -EAGAIN;          /* b stays write-locked: left behind */
+        if (wait_in_futex_within(b->w.tid, rw, sizeof *rw, &sc) == 0) {
+            out->rw_seen[k] = 1;
+            out->rw_op[k] = (int)sc.args[1];
+            out->rw_val[k] = (int)sc.args[2];
+            out->rw_pc[k] = sc.pc;
+            out->rw_futex_off[k] = (long)(sc.args[0] - (uintptr_t)rw);
+            for (int i = 0; i < 32 && rw_fn[k]; i++) {
+                Dl_info info;
+                uintptr_t v = stack_word(sc.sp, i);
+                if (dladdr((void *)v, &info) && info.dli_saddr == rw_fn[k]) {
+                    out->rw_ret_slot[k] = i;
+                    out->rw_ret[k] = v;
+                    break;
+                }
+            }
+        }
+        int writer = wr.tid;
+        if (__atomic_compare_exchange_n(&rw->__data.__cur_writer, &writer, out->self_tid, false,
+                                        __ATOMIC_ACQ_REL, __ATOMIC_RELAXED) &&
+            pthread_rwlock_unlock(rw) == 0)
+            for (int i = 0; i < 2000 && !out->rw_released[k]; i++) {
+                out->rw_released[k] = __atomic_load_n(&b->w.phase, __ATOMIC_ACQUIRE) == 2;
+                if (!out->rw_released[k])
+                    usleep(1000);
+            }
+        if (!out->rw_released[k]) {  /* stuck: leave it behind, say so */
+            pthread_detach(t);
+            return 0;
+        }
+        pthread_join(t, NULL);
+        pthread_rwlock_destroy(rw);
+        free(b);
+    }
+    for (int k = 0; k < CG_TIMED_PROBES; k++) {
+        pthread_mutex_t m;
+        pthread_mutexattr_t at;
+        pthread_mutexattr_init(&at);
+        pthread_mutexattr_settype(&at, k / 2);
+        pthread_mutex_init(&m, &at);
+        pthread_mutexattr_destroy(&at);
+        pthread_mutex_lock(&m);
+        struct timed_waiter w = {&m, NULL, k % 2 ? TW_CLOCKLOCK : TW_TIMEDLOCK, 0, 0};
+        struct task_syscall sc;
+        pthread_t t;
+        if (start_timed_waiter(&t, &w) < 0) {
+            pthread_mutex_unlock(&m);
+            return -EAGAIN;
+        }
+        out->kind[k] = m.__data.__kind;
+        out->owner_is_self[k] = m.__data.__owner == out->self_tid;
+        if (wait_in_futex(w.tid, &m, &sc) == 0) {
+            out->seen[k] = 1;
+            out->op[k] = (int)sc.args[1];
+            out->val[k] = (int)sc.args[2];
+            out->pc[k] = sc.pc;
+            /* The word where the rwlock waiters' return address is: the
+               pc is the same (checked), so is the frame below it. */
+            Dl_info info;
+            out->ret_slot[k] = out->rw_ret_slot[0];
+            out->ret[k] = out->rw_ret[0] ? stack_word(sc.sp, out->rw_ret_slot[0]) : 0;
+            out->ret_in_libc[k] = out->ret[k] && dladdr((void *)out->ret[k], &info) &&
+                                  info.dli_fbase == libc_info.dli_fbase;
+        }
+        pthread_mutex_unlock(&m);
+        pthread_join(t, NULL);
+        pthread_mutex_destroy(&m);
+    }
     return 0;
 }
