@@ -258,8 +258,9 @@ class WaitsForPythonLock(Node):
         self._pub.publish(self._msg(data=self._count))
 
 
-#: The native locks of faults/nativelock.c, by name: g_locks' mutexes, and
-#: "file", a stdio stream's lock (glibc's own: no owner recorded).
+#: The native locks of faults/nativelock.c, by name: g_locks' mutexes,
+#: "file", a stdio stream's lock (glibc's own: no owner recorded), and
+#: "rwlock", g_rwlock.
 NATIVE_LOCKS = {
     "normal": nativelock.NL_NORMAL,
     "recursive": nativelock.NL_RECURSIVE,
@@ -267,8 +268,22 @@ NATIVE_LOCKS = {
     "adaptive": nativelock.NL_ADAPTIVE,
     "robust": nativelock.NL_ROBUST,
     "file": -1,
+    "rwlock": -2,
 }
+_FILE, _RWLOCK = -1, -2
 _HOW = {"sigkill": nativelock.NL_SIGKILL, "segfault": nativelock.NL_SEGFAULT}
+#: How a waiter waits for a mutex: pthread_mutex_lock; pthread_mutex_timedlock
+#: or _clocklock in a loop of 0.2 s tries; the relock after a 20 ms
+#: pthread_cond_timedwait or _clockwait. For the rwlock: "lock" writes,
+#: "read" reads.
+NATIVE_WAITS = {
+    "lock": nativelock.NL_LOCK,
+    "timedlock": nativelock.NL_TIMEDLOCK,
+    "clocklock": nativelock.NL_CLOCKLOCK,
+    "cond-timedwait": nativelock.NL_COND_TIMEDWAIT,
+    "cond-clockwait": nativelock.NL_COND_CLOCKWAIT,
+    "read": -1,
+}
 
 
 def _native_lock(node: Node) -> int:
@@ -280,9 +295,12 @@ def _native_lock(node: Node) -> int:
 
 class DieHoldingNativeMutex(_FaultNode):
     """Takes one of nativelock.c's native locks (``kind``) and dies holding
-    it (``how``: "sigkill" or "segfault"); with ``taking`` true, half-way
-    through pthread_mutex_lock instead: the lock word taken, no owner
-    written. :class:`WaitsForNativeMutex` waits for the same lock. Needs
+    it (``how``: "sigkill" or "segfault"; the rwlock write-locked); with
+    ``taking`` true, half-way through pthread_mutex_lock instead: the lock
+    word taken, no owner written; with ``in_cond_wait`` true, only once a
+    :class:`WaitsForNativeMutex` waiting ``cond-timedwait`` or
+    ``cond-clockwait`` is inside its condvar wait (its next step is the
+    relock). :class:`WaitsForNativeMutex` waits for the same lock. Needs
     ``--isolated``."""
 
     fault = "die-holding-native-mutex"
@@ -292,13 +310,19 @@ class DieHoldingNativeMutex(_FaultNode):
         self.lock = _native_lock(self)
         how = self.declare_parameter("how", "sigkill").value
         self.taking = self.declare_parameter("taking", False).value
-        if how not in _HOW or (self.taking and self.lock in (-1, nativelock.NL_ROBUST)):
-            raise ValueError("how must be 'sigkill' or 'segfault'; taking needs a plain mutex")
+        self.in_cond_wait = self.declare_parameter("in_cond_wait", False).value
+        plain = self.lock not in (_FILE, _RWLOCK, nativelock.NL_ROBUST)
+        if how not in _HOW or ((self.taking or self.in_cond_wait) and not plain):
+            raise ValueError("how must be 'sigkill' or 'segfault'; taking and in_cond_wait need a plain mutex")
         self.how = _HOW[how]
 
     def fire(self):
-        if self.lock == -1:
+        if self.lock == _FILE:
             nativelock.nativelock_die_holding_file(self.how)
+        elif self.lock == _RWLOCK:
+            nativelock.nativelock_rw_hold_and_die(self.how)
+        elif self.in_cond_wait:
+            nativelock.nativelock_hold_and_die_in_cond_wait(self.lock, self.how)
         elif self.taking:
             nativelock.nativelock_die_taking(self.lock, self.how)
         else:
@@ -307,15 +331,27 @@ class DieHoldingNativeMutex(_FaultNode):
 
 class WaitsForNativeMutex(Node):
     """Takes and gives back nativelock.c's ``kind`` lock every ``period`` s
-    (the GIL released) and publishes how many times on ``~/progress``: it
-    stops if the lock is never given back. A robust mutex that comes with
-    EOWNERDEAD is made consistent and counted on ``~/repaired``."""
+    (the GIL released), the way ``wait`` says (:data:`NATIVE_WAITS`), and
+    publishes how many times on ``~/progress``: it stops if the lock is never
+    given back. A robust mutex that comes with EOWNERDEAD is made consistent
+    and counted on ``~/repaired``."""
 
     def __init__(self, **kwargs):
         super().__init__("native_mutex_waiter", **kwargs)
         from std_msgs.msg import UInt64
 
         self.lock = _native_lock(self)
+        wait = self.declare_parameter("wait", "lock").value
+        allowed = (
+            {"lock"}
+            if self.lock == _FILE
+            else {"lock", "read"}
+            if self.lock == _RWLOCK
+            else set(NATIVE_WAITS) - {"read"}
+        )
+        if wait not in allowed:
+            raise ValueError(f"parameter 'wait' for kind {self.lock} must be one of {sorted(allowed)}, not {wait!r}")
+        self.way = NATIVE_WAITS[wait]
         self._count = self._repaired = 0
         self._msg = UInt64
         self._pub = self.create_publisher(UInt64, "~/progress", 10)
@@ -323,7 +359,12 @@ class WaitsForNativeMutex(Node):
         self._timer = self.create_timer(self.declare_parameter("period", 0.01).value, self._tick)
 
     def _tick(self):
-        r = nativelock.nativelock_use_file() if self.lock == -1 else nativelock.nativelock_use(self.lock)
+        if self.lock == _FILE:
+            r = nativelock.nativelock_use_file()
+        elif self.lock == _RWLOCK:
+            r = nativelock.nativelock_rw_use(self.way != -1)
+        else:
+            r = nativelock.nativelock_use_by(self.lock, self.way)
         if r < 0:
             raise OSError(-r, os.strerror(-r))
         if r == 1:
@@ -334,26 +375,32 @@ class WaitsForNativeMutex(Node):
 
 
 class HoldsNativeMutex(Node):
-    """Holds nativelock.c's ``kind`` mutex from its construction for
-    ``hold`` s, then gives it back: a live owner. With ``orphan`` true, a
+    """Holds nativelock.c's ``kind`` mutex (or write-locks its rwlock) from
+    its construction for ``hold`` s, then gives it back: a live owner. With ``orphan`` true, a
     thread of its process takes it and ends instead: an owner that is gone
     but was never a dead node process's."""
 
     def __init__(self, **kwargs):
         super().__init__("native_mutex_owner", **kwargs)
         self.lock = _native_lock(self)
-        if self.lock in (-1, nativelock.NL_ROBUST):
-            raise ValueError("kind must be a plain mutex")
         orphan = self.declare_parameter("orphan", False).value
+        if self.lock in (_FILE, nativelock.NL_ROBUST) or (orphan and self.lock == _RWLOCK):
+            raise ValueError("kind must be a plain mutex, or the rwlock (not orphan)")
         hold = self.declare_parameter("hold", 3.0).value
-        r = (nativelock.nativelock_thread_exits_holding if orphan else nativelock.nativelock_hold)(self.lock)
+        if self.lock == _RWLOCK:
+            r = nativelock.nativelock_rw_hold()
+        else:
+            r = (nativelock.nativelock_thread_exits_holding if orphan else nativelock.nativelock_hold)(self.lock)
         if r < 0:
             raise OSError(-r, os.strerror(-r))
         self._timer = None if orphan else self.create_timer(hold, self._give_back)
 
     def _give_back(self):
         self._timer.cancel()
-        nativelock.nativelock_release(self.lock)
+        if self.lock == _RWLOCK:
+            nativelock.nativelock_rw_release()
+        else:
+            nativelock.nativelock_release(self.lock)
 
 
 class MallocHammer(_FaultNode):

@@ -6,7 +6,11 @@
  *
  * g_locks holds one mutex of each kind: NORMAL (as std::mutex), RECURSIVE
  * (std::recursive_mutex), ERRORCHECK, ADAPTIVE and a robust NORMAL; g_file
- * is a stdio stream, whose lock is one of glibc's internal ones.  cffi
+ * is a stdio stream, whose lock is one of glibc's internal ones; g_rwlock a
+ * rwlock (as std::shared_mutex).  A waiter takes a mutex by
+ * pthread_mutex_lock, by pthread_mutex_timedlock or _clocklock in a loop of
+ * 0.2 s tries (as std::timed_mutex::try_lock_for in a loop), or as the
+ * relock after a pthread_cond_timedwait or _clockwait that times out.  cffi
  * releases the GIL around every call, so a caller blocked here holds no
  * Python state. */
 #define _GNU_SOURCE
@@ -16,12 +20,16 @@
 #include <signal.h>
 #include <stdio.h>
 #include <sys/syscall.h>
+#include <time.h>
 #include <unistd.h>
 
 #include "nativelock.h"
 
 static pthread_mutex_t g_locks[NL_KINDS];
 static FILE *g_file;
+static pthread_rwlock_t g_rwlock = PTHREAD_RWLOCK_INITIALIZER;
+static pthread_cond_t g_cond = PTHREAD_COND_INITIALIZER;   /* never signalled */
+static int g_in_cond_wait[NL_KINDS];   /* written holding g_locks[kind] */
 
 __attribute__((constructor)) static void nativelock_init(void)
 {
@@ -141,3 +149,99 @@ long nativelock_address(int kind)
 {
     return bad(kind) ? 0 : (long)&g_locks[kind];
 }
+
+/* clock's now + ms */
+static struct timespec in_ms(clockid_t clock, long ms)
+{
+    struct timespec t;
+    clock_gettime(clock, &t);
+    t.tv_nsec += ms * 1000000L;
+    t.tv_sec += t.tv_nsec / 1000000000L;
+    t.tv_nsec %= 1000000000L;
+    return t;
+}
+
+/* Take g_locks[kind] as `way` says, and give it back: as nativelock_use.
+   A timed try that times out is tried again (0.2 s each); a condvar wait
+   (20 ms, never signalled) ends in the relock. */
+int nativelock_use_by(int kind, int way)
+{
+    if (bad(kind) || way < 0 || way >= NL_WAYS)
+        return -EINVAL;
+    pthread_mutex_t *m = &g_locks[kind];
+    if (way == NL_LOCK)
+        return nativelock_use(kind);
+    int r, repaired = 0;
+    if (way == NL_TIMEDLOCK || way == NL_CLOCKLOCK) {
+        do {
+            clockid_t clock = way == NL_TIMEDLOCK ? CLOCK_REALTIME : CLOCK_MONOTONIC;
+            struct timespec until = in_ms(clock, 200);
+            r = way == NL_TIMEDLOCK ? pthread_mutex_timedlock(m, &until)
+                                    : pthread_mutex_clocklock(m, clock, &until);
+        } while (r == ETIMEDOUT);
+    } else {
+        r = pthread_mutex_lock(m);
+        if (r == 0 || r == EOWNERDEAD) {
+            repaired = r == EOWNERDEAD;
+            if (repaired)
+                pthread_mutex_consistent(m);
+            g_in_cond_wait[kind] = 1;
+            if (way == NL_COND_TIMEDWAIT) {
+                struct timespec until = in_ms(CLOCK_REALTIME, 20);
+                r = pthread_cond_timedwait(&g_cond, m, &until);
+            } else {
+                struct timespec until = in_ms(CLOCK_MONOTONIC, 20);
+                r = pthread_cond_clockwait(&g_cond, m, CLOCK_MONOTONIC, &until);
+            }
+            g_in_cond_wait[kind] = 0;
+            r = r == ETIMEDOUT ? 0 : r;
+        }
+    }
+    if (r == EOWNERDEAD) {
+        pthread_mutex_consistent(m);
+        repaired = 1;
+    } else if (r) {
+        return -r;
+    }
+    pthread_mutex_unlock(m);
+    return repaired;
+}
+
+/* Take g_locks[kind] while a waiter of nativelock_use_by is inside its
+   condvar wait (it set g_in_cond_wait holding the mutex, and clears it only
+   once it has the mutex back: so, seen set while this holds it, the waiter's
+   next step is the relock), and die holding it.  Tries every 1 ms. */
+int nativelock_hold_and_die_in_cond_wait(int kind, int how)
+{
+    if (bad(kind) || kind == NL_ROBUST)
+        return -EINVAL;
+    for (;;) {
+        pthread_mutex_lock(&g_locks[kind]);
+        if (g_in_cond_wait[kind]) {
+            if (kind == NL_RECURSIVE)
+                pthread_mutex_lock(&g_locks[kind]);
+            die(how);
+        }
+        pthread_mutex_unlock(&g_locks[kind]);
+        usleep(1000);
+    }
+}
+
+/* Take g_rwlock for writing (write true) or reading, and give it back. */
+int nativelock_rw_use(int write)
+{
+    int r = write ? pthread_rwlock_wrlock(&g_rwlock) : pthread_rwlock_rdlock(&g_rwlock);
+    return r ? -r : -pthread_rwlock_unlock(&g_rwlock);
+}
+
+int nativelock_rw_hold_and_die(int how)   /* write-lock it and die */
+{
+    pthread_rwlock_wrlock(&g_rwlock);
+    die(how);
+}
+
+int nativelock_rw_hold(void) { return -pthread_rwlock_wrlock(&g_rwlock); }
+
+int nativelock_rw_release(void) { return -pthread_rwlock_unlock(&g_rwlock); }
+
+long nativelock_rw_address(void) { return (long)&g_rwlock; }

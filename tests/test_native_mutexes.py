@@ -6,6 +6,7 @@ whose locks every node process of an isolated container shares."""
 
 from __future__ import annotations
 
+import errno
 import re
 import time
 
@@ -13,8 +14,8 @@ import pytest
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
-from cloneguard.container.isolated import mappings
-from cloneguard.container.isolated.core_events import MutexReport, MutexVerdict
+from cloneguard.container.isolated import assumptions, mappings
+from cloneguard.container.isolated.core_events import RWLOCK_KIND, MutexReport, MutexVerdict
 from cloneguard.container.isolated.mutex_reports import kind_name, text
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.faults._nativelock import lib as nativelock
@@ -24,8 +25,8 @@ ISOLATED = [["--isolated"]]
 SIZEOF_MUTEX = 40  # pthread_mutex_t, x86_64
 
 
-def _waiting(client, kind: str):
-    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind})
+def _waiting(client, kind: str, wait: str = "lock"):
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind, "wait": wait})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     progress.wait_count(5, timeout=10)
     return progress
@@ -85,22 +86,72 @@ def test_a_dead_owners_mutex_is_released_for_its_waiter(client, container, kind,
     progress.wait_count(len(progress) + 20, timeout=5)
 
 
+# How a waiter waits (faults.components.NATIVE_WAITS), on which lock, and
+# what the holder does: a timed lock retried every 0.2 s (what
+# std::timed_mutex::try_lock_for in a loop does), the relock after a condvar
+# wait that timed out (the holder takes the mutex while the waiter is inside
+# that wait: its next step is the relock), a rwlock's writer or reader.
+WAITS = [
+    ("normal", "timedlock", {}),
+    ("recursive", "timedlock", {}),
+    ("errorcheck", "clocklock", {}),
+    ("adaptive", "clocklock", {}),
+    ("normal", "cond-timedwait", {"in_cond_wait": True}),
+    ("normal", "cond-clockwait", {"in_cond_wait": True}),
+    ("rwlock", "lock", {}),
+    ("rwlock", "read", {}),
+]
+
+
+@pytest.mark.parametrize("container_args", ISOLATED)
+@pytest.mark.parametrize(("kind", "wait", "extra"), WAITS, ids=[f"{k}-{w}" for k, w, _ in WAITS])
+def test_a_dead_owners_lock_is_released_whichever_way_its_waiter_waits(client, container, kind, wait, extra):
+    """Each way of waiting is seen: a REPAIRED naming the lock within 2 s of
+    the CRASHED, the waiter goes on, and a second death is repaired too."""
+    progress = _waiting(client, kind, wait)
+    holder, crashed = _die(client, kind, "sigkill", **extra)
+    repaired = client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder.unique_id, timeout=5)
+    assert repaired.repaired_state == "native-mutex"
+    message = repaired.error_message
+    if kind == "rwlock":
+        assert re.search(r"rwlock 0x[0-9a-f]+ in _nativelock\S*\.so's data \(g_rwlock\+0\)", message), message
+        assert f"write-locked by /native_mutex_holder (pid {crashed.pid})" in message, message
+    else:
+        offset = NATIVE_LOCKS[kind] * SIZEOF_MUTEX
+        assert re.search(
+            rf"{kind.upper()} mutex 0x[0-9a-f]+ in _nativelock\S*\.so's data \(g_locks\+{offset}\)", message
+        )
+        assert f"held by /native_mutex_holder (pid {crashed.pid})" in message, message
+    assert "released for /native_mutex_waiter" in message and "may be half-updated" in message
+    assert _ns(repaired.stamp) - _ns(crashed.stamp) < 2_000_000_000
+    progress.wait_count(len(progress) + 20, timeout=5)
+    holder2, _ = _die(client, kind, "segfault", **extra)
+    client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder2.unique_id, timeout=5)
+    progress.wait_count(len(progress) + 20, timeout=5)
+
+
 @pytest.mark.parametrize("container_args", [["--isolated", "--no-mutex-repair"]])
-def test_without_the_doctor_the_waiter_waits_for_ever(client, container):
-    """The control: the same death, nothing released."""
-    progress = _waiting(client, "normal")
+@pytest.mark.parametrize("wait", ["lock", "timedlock"])
+def test_without_the_doctor_the_waiter_waits_for_ever(client, container, wait):
+    """The control: the same death, nothing released (a timed waiter times
+    out and tries again for ever)."""
+    progress = _waiting(client, "normal", wait)
     holder, _ = _die(client, "normal")
     assert _stalls(progress), "the waiter went on: the mutex was released"
     assert not _native_repairs(client, holder.unique_id)
 
 
 @pytest.mark.parametrize("container_args", ISOLATED)
-def test_a_live_owners_mutex_is_left_alone_after_another_death(client, container):
-    """Another node dies while a live node holds the mutex: the waiter waits
-    until the owner gives it back, and nothing is said of it."""
-    client.load_ok(TESTRIG, "faults::HoldsNativeMutex", parameters={"kind": "normal", "hold": 4.0})
+@pytest.mark.parametrize(
+    ("kind", "wait"), [("normal", "lock"), ("normal", "timedlock"), ("adaptive", "clocklock"), ("rwlock", "lock")]
+)
+def test_a_live_owners_mutex_is_left_alone_after_another_death(client, container, kind, wait):
+    """Another node dies while a live node holds the mutex (or write-locks
+    the rwlock): the waiter waits until the owner gives it back, and nothing
+    is said of it."""
+    client.load_ok(TESTRIG, "faults::HoldsNativeMutex", parameters={"kind": kind, "hold": 4.0})
     started = time.monotonic()
-    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": "normal"})
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind, "wait": wait})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     _die(client, "errorcheck")  # a death: the doctor scans every waiter
     assert len(progress) == 0
@@ -198,3 +249,48 @@ def test_every_verdict_has_its_own_sentence():
         text(MutexReport(0, 0, v, 0x1000, 1, 2, 0 if v != MutexVerdict.LIBC_LOCK else -1, 0)) for v in MutexVerdict
     }
     assert len(sentences) == len(MutexVerdict)
+    rwlock = {v: text(MutexReport(0, 0, v, 0x1000, 1, 2, RWLOCK_KIND, 0)) for v in MutexVerdict if v != v.LIBC_LOCK}
+    assert all("rwlock 0x1000" in t for t in rwlock.values())
+    assert not set(rwlock.values()) & sentences
+    assert "glibc records no reader" in rwlock[MutexVerdict.NO_OWNER]
+
+
+# -- the start-up probe of timed and rwlock waits ----------------------------------
+
+
+def test_timed_and_rwlock_waits_are_probed_here():
+    report = assumptions.self_check()
+    assert report.timed_wait_unavailable == ""
+    L = report.layout
+    assert L.timed_wait_pc not in (0, L.mutex_wait_pc, L.private_wait_pc)
+    assert all(L.mutex_timed_ret) and all(L.rwlock_ret)
+    assert not set(L.mutex_timed_ret) & (set(L.mutex_ret) | set(L.rwlock_ret))
+    assert L.rwlock_futex_off == (12, 12, 12, 8, 8, 8)  # __writers_futex, then __wrphase_futex
+
+
+class _ProbeFails:
+    """The core's lib, but cg_probe_timedwait fails."""
+
+    def __init__(self, lib):
+        self._lib = lib
+
+    def __getattr__(self, name):
+        return getattr(self._lib, name)
+
+    def cg_probe_timedwait(self, p):
+        return -errno.ENOENT
+
+
+def test_a_failed_timed_probe_recognizes_none_of_those_waits_and_says_why():
+    ffi, lib = assumptions.core_module()
+    good = assumptions.self_check().layout
+    for fake_lib, layout, why in [
+        (_ProbeFails(lib), good, "timed waiter probe failed"),
+        (lib, assumptions.Layout(**{**good.as_dict(), "mutex_wait_pc": 0}), "plain mutex waits are not recognized"),
+    ]:
+        ck = assumptions._Checker()
+        L, unavailable = assumptions._probe_timedwait(ck, ffi, fake_lib, layout, {})
+        assert why in unavailable
+        assert (L.timed_wait_pc, L.timed_ret_slot) == (0, 0)
+        assert not any(L.mutex_timed_ret) and not any(L.rwlock_ret) and not any(L.rwlock_futex_off)
+        assert not ck.failed  # isolation itself is not refused
