@@ -311,6 +311,7 @@ class DieHoldingNativeMutex(_FaultNode):
         how = self.declare_parameter("how", "sigkill").value
         self.taking = self.declare_parameter("taking", False).value
         self.in_cond_wait = self.declare_parameter("in_cond_wait", False).value
+        self.reading = self.declare_parameter("reading", False).value  # the rwlock: read-locked
         plain = self.lock not in (_FILE, _RWLOCK, nativelock.NL_ROBUST)
         if how not in _HOW or ((self.taking or self.in_cond_wait) and not plain):
             raise ValueError("how must be 'sigkill' or 'segfault'; taking and in_cond_wait need a plain mutex")
@@ -320,7 +321,7 @@ class DieHoldingNativeMutex(_FaultNode):
         if self.lock == _FILE:
             nativelock.nativelock_die_holding_file(self.how)
         elif self.lock == _RWLOCK:
-            nativelock.nativelock_rw_hold_and_die(self.how)
+            (nativelock.nativelock_rw_read_and_die if self.reading else nativelock.nativelock_rw_hold_and_die)(self.how)
         elif self.in_cond_wait:
             nativelock.nativelock_hold_and_die_in_cond_wait(self.lock, self.how)
         elif self.taking:

@@ -240,6 +240,12 @@ int nativelock_rw_hold_and_die(int how)   /* write-lock it and die */
     die(how);
 }
 
+int nativelock_rw_read_and_die(int how)   /* read-lock it and die */
+{
+    pthread_rwlock_rdlock(&g_rwlock);
+    die(how);
+}
+
 int nativelock_rw_hold(void) { return -pthread_rwlock_wrlock(&g_rwlock); }
 
 int nativelock_rw_release(void) { return -pthread_rwlock_unlock(&g_rwlock); }

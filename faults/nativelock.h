@@ -20,6 +20,7 @@ int nativelock_use_by(int kind, int way);
 int nativelock_hold_and_die_in_cond_wait(int kind, int how);
 int nativelock_rw_use(int write);
 int nativelock_rw_hold_and_die(int how);
+int nativelock_rw_read_and_die(int how);
 int nativelock_rw_hold(void);
 int nativelock_rw_release(void);
 long nativelock_rw_address(void);

@@ -198,6 +198,21 @@ def test_a_mutex_held_with_no_owner_recorded_is_reported(client, container):
 
 
 @pytest.mark.parametrize("container_args", ISOLATED)
+def test_a_rwlock_a_dead_node_read_locked_is_reported(client, container):
+    """Readers record no owner: a writer blocked on it is reported after a
+    second, and the rwlock is left as it is."""
+    progress = _waiting(client, "rwlock")
+    _die(client, "rwlock", reading=True)
+    container.wait_for_log(
+        r"lock not repaired: .*native_mutex_waiter \(pid \d+\) thread \d+ has been blocked for over a second on "
+        r"native rwlock 0x[0-9a-f]+ .*held by readers or with no writer recorded \(glibc records no reader",
+        timeout=3.0,
+    )
+    assert _stalls(progress, 0.5)
+    assert not _native_repairs(client)
+
+
+@pytest.mark.parametrize("container_args", ISOLATED)
 def test_a_robust_mutex_is_left_to_the_kernel(client, container):
     """The kernel marks a dead owner's robust mutex (each node process has
     its robust list): its next locker gets EOWNERDEAD; the doctor never
@@ -265,7 +280,9 @@ def test_timed_and_rwlock_waits_are_probed_here():
     assert L.timed_wait_pc not in (0, L.mutex_wait_pc, L.private_wait_pc)
     assert all(L.mutex_timed_ret) and all(L.rwlock_ret)
     assert not set(L.mutex_timed_ret) & (set(L.mutex_ret) | set(L.rwlock_ret))
-    assert L.rwlock_futex_off == (12, 12, 12, 8, 8, 8)  # __writers_futex, then __wrphase_futex
+    # __writers_futex (writers on a writer), then __wrphase_futex (readers on
+    # a writer, writers on readers)
+    assert L.rwlock_futex_off == (12, 12, 12, 8, 8, 8, 8, 8, 8)
 
 
 class _ProbeFails:

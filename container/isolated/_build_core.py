@@ -56,8 +56,8 @@ struct cg_layout {
     long timed_wait_pc;
     long timed_ret_slot;
     long mutex_timed_ret[4];
-    long rwlock_ret[6];
-    long rwlock_futex_off[6];
+    long rwlock_ret[9];
+    long rwlock_futex_off[9];
 };
 
 struct cg_config {
@@ -144,14 +144,14 @@ struct cg_timedwait_probe {
     int ret_in_libc[8];
     int kind[8];
     int owner_is_self[8];
-    int rw_seen[6];
-    int rw_op[6], rw_val[6];
-    uintptr_t rw_pc[6];
-    long rw_futex_off[6];
-    int rw_ret_slot[6];
-    uintptr_t rw_ret[6];
-    int rw_writer_recorded[6];
-    int rw_released[6];
+    int rw_seen[9];
+    int rw_op[9], rw_val[9];
+    uintptr_t rw_pc[9];
+    long rw_futex_off[9];
+    int rw_ret_slot[9];
+    uintptr_t rw_ret[9];
+    int rw_writer_recorded[9];
+    int rw_released[9];
     long off_wrphase_futex, off_writers_futex;
 };
 

@@ -102,7 +102,8 @@ Where each value comes from and how it is checked:
   and on live pthreads blocked in pthread_mutex_timedlock (CLOCK_REALTIME)
   and pthread_mutex_clocklock (CLOCK_MONOTONIC) on a mutex of each type, and
   in each pthread_rwlock lock call ({wr,rd}lock, timed..., clock...) on a
-  rwlock whose writer ended holding it (cg_probe_timedwait):
+  rwlock whose writer ended holding it, and in each wrlock call on a rwlock
+  readers hold (cg_probe_timedwait):
     timed_wait_pc    every one waits in futex(word, FUTEX_WAIT_BITSET, v) at
                      this one pc (__futex_abstimed_wait64's call), v = 2 for
                      a mutex, its word the mutex's __lock; not mutex_wait_pc;
@@ -113,8 +114,10 @@ Where each value comes from and how it is checked:
     mutex_timed_ret  one per type, the same for timedlock and clocklock, none
                      a pthread_mutex_lock return or a rwlock's;
     rwlock_ret       one per rwlock call, and rwlock_futex_off the word it
-                     waits on: __writers_futex for a writer, __wrphase_futex
-                     for a reader; __cur_writer is the writer's tid, and a
+                     waits on: __writers_futex for a writer on a writer,
+                     __wrphase_futex for a reader on a writer and a writer
+                     on readers; __cur_writer is the writer's tid (0 under
+                     readers), and a
                      thread that writes its own tid there and calls
                      pthread_rwlock_unlock lets the waiter in (the release);
   a failure here leaves these waits unrecognized and says why
@@ -184,8 +187,8 @@ class Layout:
     timed_wait_pc: int = 0
     timed_ret_slot: int = 0
     mutex_timed_ret: tuple[int, ...] = (0,) * 4
-    rwlock_ret: tuple[int, ...] = (0,) * 6
-    rwlock_futex_off: tuple[int, ...] = (0,) * 6
+    rwlock_ret: tuple[int, ...] = (0,) * 9
+    rwlock_futex_off: tuple[int, ...] = (0,) * 9
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -478,6 +481,9 @@ RWLOCK_CALLS = (
     "pthread_rwlock_rdlock",
     "pthread_rwlock_timedrdlock",
     "pthread_rwlock_clockrdlock",
+    "pthread_rwlock_wrlock",
+    "pthread_rwlock_timedwrlock",
+    "pthread_rwlock_clockwrlock",
 )
 FUTEX_WAIT_BITSET = 9
 FUTEX_CLOCK_REALTIME = 256
@@ -504,11 +510,13 @@ def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
     else:
         pc, slot = int(p.rw_pc[0]), int(p.rw_ret_slot[0])
         for k, call in enumerate(RWLOCK_CALLS):
-            where = f"a waiter in {call} on a write-locked rwlock"
+            where = f"a waiter in {call} on a {'read' if k >= 6 else 'write'}-locked rwlock"
             check(bool(p.rw_seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&rwlock) within 2 s")
             if not p.rw_seen[k]:
                 continue
-            want_off = p.off_writers_futex if k < 3 else p.off_wrphase_futex  # writers, then readers
+            # a writer waits for a writer on __writers_futex; a reader for a
+            # writer, and a writer for readers, on __wrphase_futex
+            want_off = p.off_writers_futex if k < 3 else p.off_wrphase_futex
             check(
                 p.rw_op[k] & FUTEX_CMD_MASK == FUTEX_WAIT_BITSET and p.rw_futex_off[k] == want_off,
                 f"{where}: FUTEX_WAIT_BITSET on rwlock+{p.rw_futex_off[k]}",
@@ -527,9 +535,9 @@ def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
             )
             check(
                 bool(p.rw_writer_recorded[k]) and bool(p.rw_released[k]),
-                f"{where}: __cur_writer = the writer; released as mutexes.c does",
-                f"{where}: __cur_writer was not the writer, or taking its place there and calling "
-                "pthread_rwlock_unlock did not let the waiter in",
+                f"{where}: __cur_writer = the writer (0 under readers); released as mutexes.c does",
+                f"{where}: __cur_writer was not the writer (0 under readers), or taking its place there and "
+                "calling pthread_rwlock_unlock did not let the waiter in",
             )
         plain = set(L.mutex_ret)
         for k in range(2 * len(MUTEX_TYPES[:4])):

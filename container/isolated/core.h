@@ -53,7 +53,8 @@
 
 #define CG_MUTEX_CALLERS 5   /* mutex_ret: 4 mutex types + the condvar relock */
 #define CG_TIMED_TYPES 4     /* mutex_timed_ret: the 4 mutex types */
-#define CG_RWLOCK_CALLERS 6  /* rwlock_ret: {wr,rd} x {plain, timed, clock} */
+#define CG_RWLOCK_CALLERS 9  /* rwlock_ret: {wr,rd} x {plain, timed, clock}
+                                on a writer, + wr x ... on readers */
 struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
     long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
@@ -82,7 +83,8 @@ struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
     long rwlock_ret[CG_RWLOCK_CALLERS];     /* or pthread_rwlock_wrlock,
                                 _timedwrlock, _clockwrlock, _rdlock,
                                 _timedrdlock, _clockrdlock's, blocked on a
-                                writer, */
+                                writer, then the three writers' blocked on
+                                readers (no writer recorded), */
     long rwlock_futex_off[CG_RWLOCK_CALLERS];   /* at this offset of the
                                 rwlock (its futex word minus the rwlock) */
 };
@@ -302,7 +304,8 @@ struct cg_timedwait_probe {
     int rw_ret_slot[CG_RWLOCK_CALLERS];     /* the word into the function
                                                (by dladdr), */
     uintptr_t rw_ret[CG_RWLOCK_CALLERS];
-    int rw_writer_recorded[CG_RWLOCK_CALLERS];  /* __cur_writer = the writer */
+    int rw_writer_recorded[CG_RWLOCK_CALLERS];  /* __cur_writer = the writer
+                                (0 while readers hold it: k >= 6) */
     int rw_released[CG_RWLOCK_CALLERS];     /* a thread that made itself
                                 __cur_writer and called pthread_rwlock_unlock
                                 after the writer ended let the waiter in */

@@ -27,8 +27,9 @@
  *            is caught while it waits); the mutex is at uaddr (__data.__lock
  *            is its first word).  At that same pc, returning into one of the
  *            pthread_rwlock lock calls, it is blocked on a rwlock a writer
- *            holds, whose futex word (__writers_futex for a writer,
- *            __wrphase_futex for a reader: probed) is uaddr;
+ *            or readers hold, whose futex word (probed: __writers_futex for
+ *            a writer on a writer, __wrphase_futex for a reader on a writer
+ *            or a writer on readers) is uaddr;
  *   proves   its owner O was a task of a dead child: O was seen in it, no
  *            task with tid O exists now, and the pid cursor has not come
  *            round to O since (Linux hands pids out in cyclic order, so O

@@ -329,11 +329,13 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
 /* ---- Where a task blocked in a timed lock or on a rwlock waits --------- */
 
 /* What a timed waiter calls: the two timed mutex locks, then the rwlock
-   calls in the order of cg_layout.rwlock_ret. */
+   calls in the order of cg_layout.rwlock_ret (the last three are the first
+   three again, on a rwlock readers hold). */
 enum { TW_TIMEDLOCK, TW_CLOCKLOCK, TW_RWLOCK };
 static const char *const rwlock_fn[CG_RWLOCK_CALLERS] = {
     "pthread_rwlock_wrlock", "pthread_rwlock_timedwrlock", "pthread_rwlock_clockwrlock",
     "pthread_rwlock_rdlock", "pthread_rwlock_timedrdlock", "pthread_rwlock_clockrdlock",
+    "pthread_rwlock_wrlock", "pthread_rwlock_timedwrlock", "pthread_rwlock_clockwrlock",
 };
 
 struct timed_waiter {
@@ -348,15 +350,16 @@ static void *timed_waiter_main(void *p)
     struct timed_waiter *w = p;
     /* The ...timed... calls take CLOCK_REALTIME (FUTEX_CLOCK_REALTIME);
        the ...clock... ones are given CLOCK_MONOTONIC. */
-    int k = w->how - TW_RWLOCK;
-    clockid_t clock = w->how == TW_CLOCKLOCK || k == 2 || k == 5 ? CLOCK_MONOTONIC : CLOCK_REALTIME;
+    int k = (w->how - TW_RWLOCK) % 6;
+    clockid_t clock = w->how == TW_CLOCKLOCK || (w->how >= TW_RWLOCK && k % 3 == 2) ? CLOCK_MONOTONIC
+                                                                                 : CLOCK_REALTIME;
     struct timespec until;
     clock_gettime(clock, &until);
     until.tv_sec += 10;          /* well past the probe's own 2 s waits */
     w->tid = (int)syscall(SYS_gettid);
     __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
     int r;
-    switch (w->how) {
+    switch (w->how < TW_RWLOCK ? w->how : TW_RWLOCK + k) {
     case TW_TIMEDLOCK: r = pthread_mutex_timedlock(w->m, &until); break;
     case TW_CLOCKLOCK: r = pthread_mutex_clocklock(w->m, clock, &until); break;
     case TW_RWLOCK + 0: r = pthread_rwlock_wrlock(w->rw); break;
@@ -404,10 +407,12 @@ static void *write_lock_and_end(void *p)   /* a writer that ends holding it */
    mutex waiter's is not (pthread_mutex_timedlock and _clocklock jump to a
    function of glibc's own, not exported): it is read at the same stack word,
    since it waits at the same pc (assumptions.py checks that it is, and that
-   what is there is an address into libc of its own).  The rwlock's writer is a thread that ended
-   holding it; then this thread writes itself into __cur_writer and calls
-   pthread_rwlock_unlock, as the monitor releases a dead writer's rwlock:
-   the waiter must get it within 2 s. */
+   what is there is an address into libc of its own).  The rwlock's writer is a
+   thread that ended holding it; then this thread writes itself into
+   __cur_writer and calls pthread_rwlock_unlock, as the monitor releases a
+   dead writer's rwlock: the waiter must get it within 2 s.  For the last
+   three (writers blocked on readers, who record nothing) this thread holds
+   it for reading, and gives it back. */
 int cg_probe_timedwait(struct cg_timedwait_probe *out)
 {
     memset(out, 0, sizeof *out);
@@ -433,12 +438,16 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
         pthread_rwlock_init(rw, NULL);
         struct rw_writer wr = {rw, 0};
         pthread_t t;
-        if (pthread_create(&t, NULL, write_lock_and_end, &wr) != 0) {
+        bool readers = k >= 6;
+        if (readers) {
+            pthread_rwlock_rdlock(rw);
+        } else if (pthread_create(&t, NULL, write_lock_and_end, &wr) != 0) {
             free(b);
             return -EAGAIN;
+        } else {
+            pthread_join(t, NULL);
         }
-        pthread_join(t, NULL);
-        out->rw_writer_recorded[k] = rw->__data.__cur_writer == wr.tid && wr.tid != 0;
+        out->rw_writer_recorded[k] = readers || (rw->__data.__cur_writer == wr.tid && wr.tid != 0);
         b->w = (struct timed_waiter){NULL, rw, TW_RWLOCK + k, 0, 0};
         struct task_syscall sc;
         if (start_timed_waiter(&t, &b->w) < 0)
@@ -449,6 +458,8 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
             out->rw_val[k] = (int)sc.args[2];
             out->rw_pc[k] = sc.pc;
             out->rw_futex_off[k] = (long)(sc.args[0] - (uintptr_t)rw);
+            if (readers)             /* a blocked writer records nothing */
+                out->rw_writer_recorded[k] = rw->__data.__cur_writer == 0;
             for (int i = 0; i < 32 && rw_fn[k]; i++) {
                 Dl_info info;
                 uintptr_t v = stack_word(sc.sp, i);
@@ -460,9 +471,10 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
             }
         }
         int writer = wr.tid;
-        if (__atomic_compare_exchange_n(&rw->__data.__cur_writer, &writer, out->self_tid, false,
-                                        __ATOMIC_ACQ_REL, __ATOMIC_RELAXED) &&
-            pthread_rwlock_unlock(rw) == 0)
+        if (readers ? pthread_rwlock_unlock(rw) == 0
+                    : __atomic_compare_exchange_n(&rw->__data.__cur_writer, &writer, out->self_tid, false,
+                                                  __ATOMIC_ACQ_REL, __ATOMIC_RELAXED) &&
+                          pthread_rwlock_unlock(rw) == 0)
             for (int i = 0; i < 2000 && !out->rw_released[k]; i++) {
                 out->rw_released[k] = __atomic_load_n(&b->w.phase, __ATOMIC_ACQUIRE) == 2;
                 if (!out->rw_released[k])
