@@ -33,6 +33,7 @@ from .errors import HarnessTimeout
 from .factory import ContainerFactory
 from .process import ContainerProcess
 from .schedule import run_schedule
+from .talk import GoalOutcome, Talker
 
 #: How long a load, a death's CRASHED event or a restart is waited for.
 WAIT_S = 15.0
@@ -112,6 +113,7 @@ class System:
     def _start(self) -> None:
         self.proc = self._factory.start(self.container_args)
         self.client = self._factory.connect(self.proc)
+        self._talk = Talker(self.client)
         self.nodes = {}
         for spec in self.specs:
             running = self._load(spec)
@@ -145,6 +147,31 @@ class System:
     def service(self, srv_type, name: str):
         """An rclpy client of ``name``, for ``call_latency``."""
         return self.client.service_client(srv_type, name)
+
+    # -- talking to the nodes (talk.py) ------------------------------------------------
+
+    def call(self, srv_type, name: str, request, timeout: float = WAIT_S):
+        """Call service ``name`` (of type ``srv_type``) with ``request``; its
+        answer. HarnessTimeout if it is not offered, or does not answer,
+        within ``timeout``."""
+        return self._talk.call(srv_type, name, request, timeout)
+
+    def send_goal(self, action_type, name: str, goal, timeout: float = WAIT_S) -> GoalOutcome:
+        """Send ``goal`` to action server ``name``: a GoalOutcome (accepted,
+        the feedback it sent, its final status and result), waited for
+        within ``timeout``."""
+        return self._talk.send_goal(action_type, name, goal, timeout)
+
+    def change_state(self, full_name: str, transition: str, timeout: float = WAIT_S) -> bool:
+        """Lifecycle node ``full_name``: ask for ``transition`` by label
+        (``configure``, ``activate``, ``deactivate``, ``cleanup``,
+        ``shutdown``); whether it made it."""
+        return self._talk.change_state(full_name, transition, timeout)
+
+    def get_state(self, full_name: str, timeout: float = WAIT_S) -> str:
+        """Lifecycle node ``full_name``'s state: ``unconfigured``,
+        ``inactive``, ``active`` or ``finalized``."""
+        return self._talk.get_state(full_name, timeout)
 
     def node(self, full_name: str) -> Running:
         try:
@@ -248,6 +275,21 @@ class System:
         """The container's CRASHED event for the node's current process."""
         running = self.node(full_name)
         return self.client.wait_for_event(ComponentEvent.CRASHED, unique_id=running.unique_id, timeout=timeout)
+
+    def wait_repaired(self, full_name: str, timeout: float = WAIT_S, what: str = "") -> ComponentEvent:
+        """The container's REPAIRED event for what the node's current
+        process left behind when it died (``what``: its ``repaired_state``,
+        e.g. ``python-lock`` or ``native-mutex``; any if empty)."""
+        running = self.node(full_name)
+
+        def repaired(ev) -> bool:
+            return (
+                ev.event_type == ComponentEvent.REPAIRED
+                and ev.unique_id == running.unique_id
+                and (not what or ev.repaired_state == what)
+            )
+
+        return self.client.events.wait_for(repaired, timeout, f"REPAIRED {what or '(any)'} after {full_name}'s death")
 
     def wait_back(self, full_name: str, timeout: float = WAIT_S) -> Running:
         """Under ``--restart-policy on-crash``: wait until the node is loaded
