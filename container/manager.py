@@ -289,7 +289,10 @@ class ComponentManager:
                 exit_code=death.exit_code,
                 allocator_quarantined=death.allocator_quarantined,
             )
-        self._log.error(f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) died: {reason}")
+        # A clean exit after an outside SIGTERM (the container's process
+        # group stopped) is no error; its CRASHED says how it ended all the same.
+        log, verb = (self._log.info, "ended") if death.stopped else (self._log.error, "died")
+        log(f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) {verb}: {reason}")
 
     def reload(self, request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""

@@ -91,6 +91,9 @@ class NodeDeath:
     reason: str
     allocator_quarantined: bool = False
     announced: bool = False  # its CRASHED event is out already (announce_crash)
+    # It exited with status 0 after an outside SIGTERM or SIGINT (the
+    # container's process group being stopped, say): a clean stop, no crash.
+    stopped: bool = False
 
 
 class _Handoff:
@@ -141,6 +144,7 @@ class _NodeProcess:
     cgroup: Any = None  # NodeCgroup, with --cgroups
     error: str = ""  # why construction failed in the child
     aborted: str = ""  # why the container aborted it (node watchdog)
+    stop_signal: int | None = None  # an outside SIGTERM/SIGINT it was sent
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
 
@@ -631,6 +635,7 @@ class IsolatedHost:
         if isinstance(event, StopRequested):
             # Someone sent the child SIGTERM/SIGINT: let its executor see the flag.
             if event.by_signal:
+                proc.stop_signal = event.signal
                 _wake(proc)
             return
         assert isinstance(event, Death)
@@ -696,6 +701,7 @@ class IsolatedHost:
                     reason=reason,
                     allocator_quarantined=death.alloc_quarantined,
                     announced=death.announced,
+                    stopped=death.exit_code == 0 and proc.stop_signal is not None and not death.repaired,
                 ),
             )
         if death.core_file:
