@@ -35,6 +35,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from . import allocator, seams
+from .executors import NodesMultiThreadedExecutor
 from .hosting import ThreadHost
 from .isolated import profiles
 from .isolated.node_watchdog import NodeWatchdog
@@ -577,7 +578,7 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
     # node's callback, nor a LoadNode waiting for a constructor, can keep
     # them from answering.
     executor = (
-        MultiThreadedExecutor(context=context)
+        NodesMultiThreadedExecutor(context=context)
         if opts.use_multi_threaded_executor
         else SingleThreadedExecutor(context=context)
     )
