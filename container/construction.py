@@ -51,15 +51,47 @@ def _destroy_half_built(exc: BaseException) -> None:
 
 
 def destroy(node: Node) -> None:
-    """Destroy a node the container built, with its intra-process endpoints
-    (which ``Node.destroy_node`` does not know about) and its type
-    description service. The node is in no executor's wait any more."""
+    """Destroy a node the container built, with what ``Node.destroy_node``
+    does not know about: its intra-process endpoints, its waitables (action
+    servers and clients), a lifecycle node's state machine, and its type
+    description service. The node is in no executor's wait any more.
+
+    Each of these holds the rcl node (and so its Context and, in a node's
+    own process, the DDS participant and its threads) until the garbage
+    collector frees it: a node left so stays in the ROS graph after its
+    unload, and its process never ends (it was SIGKILLed after 500 ms, and
+    its participant left in memory)."""
     intra.api.destroy_endpoints(node)
     _finish_type_description_service(node)
     if hasattr(node, "_type_description_service"):
         node.destroy_node()
     else:
         _destroy_half_made(node)
+    _destroy_waitables(node)
+    _destroy_state_machine(node)
+
+
+def _destroy_waitables(node: Node) -> None:
+    """What rclpy 7.1's ``destroy_node`` leaves on the node: it destroys
+    its publishers' and subscriptions' event handlers, not the other
+    waitables. An ``ActionServer`` or ``ActionClient`` keeps its rcl action
+    handle, which holds the rcl node. A waitable with no ``destroy`` (a
+    user's own: rclpy's base class has none) is only taken off the node."""
+    for waitable in list(node.waitables):
+        destroy_waitable = getattr(waitable, "destroy", None)
+        if destroy_waitable is not None:
+            destroy_waitable()
+        if any(w is waitable for w in node.waitables):  # destroy() took it off, or not
+            node.remove_waitable(waitable)
+
+
+def _destroy_state_machine(node: Node) -> None:
+    """An ``rclpy.lifecycle.LifecycleNode`` keeps an rcl lifecycle state
+    machine that holds the rcl node; rclpy 7.1 never destroys it (its
+    services, which ``destroy_node`` does destroy, are the machine's)."""
+    machine = getattr(node, "_state_machine", None)
+    if machine is not None and hasattr(machine, "destroy_when_not_in_use"):
+        machine.destroy_when_not_in_use()
 
 
 def _destroy_half_made(node: Node) -> None:

@@ -44,21 +44,46 @@ MISFITS = {
 }
 
 
+def _throwaway_distribution(site: Path, name: str, module: str, groups: dict[str, dict[str, str]]) -> Path:
+    """Install module ``module`` of tests/fixtures into ``site`` as an
+    installed (dist-info) distribution ``name`` whose entry points are
+    ``groups`` (group -> {entry point name: target}); put ``site`` on a
+    container's PYTHONPATH to make them loadable."""
+    dist = site / f"{name.replace('-', '_')}-0.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.0\n")
+    (dist / "entry_points.txt").write_text(
+        "".join(
+            f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items()) for group, entries in groups.items()
+        )
+    )
+    (site / f"{module}.py").write_text((FIXTURES / f"{module}.py").read_text())
+    return site
+
+
 @pytest.fixture(scope="session")
 def misfit_site(tmp_path_factory) -> Path:
-    """A directory holding an installed (dist-info) distribution of bad
-    components; put it on a container's PYTHONPATH to make them loadable."""
-    site = tmp_path_factory.mktemp("misfit_site")
-    dist = site / "misfit_components-0.0.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: misfit-components\nVersion: 0.0\n")
-    lines = "".join(f"{name} = {target}\n" for name, target in MISFITS.items())
-    # One more, registered only in rclpy's composition proposal's group.
-    (dist / "entry_points.txt").write_text(
-        "[cloneguard.components]\n" + lines + "[rclpy_components]\nmisfits::RclpyStyle = misfit_components:RclpyStyle\n"
+    """Bad components ("misfit-components"), and one registered only in
+    rclpy's composition proposal's group."""
+    return _throwaway_distribution(
+        tmp_path_factory.mktemp("misfit_site"),
+        "misfit-components",
+        "misfit_components",
+        {
+            "cloneguard.components": MISFITS,
+            "rclpy_components": {"misfits::RclpyStyle": "misfit_components:RclpyStyle"},
+        },
     )
-    (site / "misfit_components.py").write_text((FIXTURES / "misfit_components.py").read_text())
-    return site
+
+
+@pytest.fixture(scope="session")
+def node_kinds_site(tmp_path_factory) -> Path:
+    """A component per kind of rclpy entity ("node-kinds": fixtures/node_kinds.py)."""
+    from fixtures.node_kinds import KINDS
+
+    return _throwaway_distribution(
+        tmp_path_factory.mktemp("node_kinds_site"), "node-kinds", "node_kinds", {"cloneguard.components": KINDS}
+    )
 
 
 @pytest.fixture
