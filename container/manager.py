@@ -290,9 +290,14 @@ class ComponentManager:
                 allocator_quarantined=death.allocator_quarantined,
             )
         # A clean exit after an outside SIGTERM (the container's process
-        # group stopped) is no error; its CRASHED says how it ended all the same.
-        log, verb = (self._log.info, "ended") if death.stopped else (self._log.error, "died")
-        log(f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid}) {verb}: {reason}")
+        # group stopped) is no error; its CRASHED says how it ended all the
+        # same. (Two calls: rclpy refuses one call site logging at two
+        # severities.)
+        who = f"{hosted.full_node_name} (unique_id {hosted.unique_id}, pid {death.pid})"
+        if death.stopped:
+            self._log.info(f"{who} ended: {reason}")
+        else:
+            self._log.error(f"{who} died: {reason}")
 
     def reload(self, request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""
