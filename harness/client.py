@@ -248,6 +248,18 @@ class ContainerClient:
         what = EVENT_NAMES.get(event_type, str(event_type)) + (f" for unique_id {unique_id}" if unique_id else "")
         return self.events.wait_for(match, timeout, what)
 
+    def nodes_by_pid(self) -> dict[int, str]:
+        """Every node process the events named (LOADED, CRASHED): pid -> full name."""
+        return {
+            e.pid: e.full_node_name
+            for e in self.events.messages()
+            if e.event_type in (ComponentEvent.LOADED, ComponentEvent.CRASHED) and e.pid
+        }
+
+    def dead_pids(self) -> set[int]:
+        """The node processes a CRASHED event said died."""
+        return {e.pid for e in self.events.messages() if e.event_type == ComponentEvent.CRASHED}
+
     def close(self) -> None:
         if self._closed:
             return

@@ -410,6 +410,15 @@ def diagnose(
     return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names, not_repaired_lines(log))
 
 
+def of_container(proc, client) -> Diagnosis | None:
+    """The diagnosis of a hung container (a ContainerProcess) whose
+    ContainerClient saw its events, naming its nodes from them; None
+    where gdb is missing."""
+    if not gdb_available() or not procfs.alive(proc.pid):
+        return None
+    return diagnose(proc.pid, nodes_by_pid=client.nodes_by_pid(), dead_pids=client.dead_pids(), log=proc.log_text())
+
+
 def _owners(pid: int, waits) -> dict[tuple[str, str], int | None]:
     """The owner tid of every lock waited on that records one: a mutex's
     ``__owner`` (read in the waiter's process: one gdb call per process),

@@ -116,7 +116,7 @@ def long_run(config) -> bool:
     return is_deep(config) or config.getoption("--trials") is not None
 
 
-def pytest_collection_modifyitems(config, items) -> None:
+def give_long_timeouts(config, items) -> None:
     """A deep run's tests get LONG_RUN_TIMEOUT_S (before any timeout marker
     of their own, which sized the quick run)."""
     if long_run(config):
@@ -165,19 +165,23 @@ def record_trial(resilience):
 
     def record(index: int, seed: int, out) -> None:
         resilience.trial(outcome=out.outcome, index=index, seed=seed, latency_ms=out.latency_ms, details=out.details)
-        d = out.diagnosis
-        if d is not None:
-            first = d.blocked[0] if d.blocked else None
-            resilience.hang(
-                trial=index,
-                summary=d.summary(),
-                stacks=d.stacks_text,
-                lock=first.address if first else "",
-                owner_tid=first.owner_tid if first else None,
-                owner_node=first.owner_node if first else None,
-            )
+        if out.diagnosis is not None:
+            record_hang(resilience, index, out.diagnosis)
 
     return record
+
+
+def record_hang(resilience, index: int, d) -> None:
+    """A hung trial's diagnosis (diagnose.Diagnosis) into the report."""
+    first = d.blocked[0] if d.blocked else None
+    resilience.hang(
+        trial=index,
+        summary=d.summary(),
+        stacks=d.stacks_text,
+        lock=first.address if first else "",
+        owner_tid=first.owner_tid if first else None,
+        owner_node=first.owner_node if first else None,
+    )
 
 
 @pytest.fixture

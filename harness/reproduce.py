@@ -217,7 +217,7 @@ def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:
         if not wait:
             print(f"\nThe container (pid {rig.proc.pid}) is still stuck; stopping it now (--no-wait).")
             return
-        kids = sorted(rig.nodes_by_pid())
+        kids = sorted(rig.client.nodes_by_pid())
         print(f"\nThe container is still stuck: pid {rig.proc.pid} (node processes {kids}).")
         print(f"Attach a debugger:  gdb -p {rig.proc.pid}    then: thread apply all bt")
         print("Python stacks:      gdb -p PID -batch -ex 'py-bt'   (with CPython's gdb extension)")

@@ -135,16 +135,6 @@ class Rig:
 
     # -- what the harness knows about pids ---------------------------------------------
 
-    def nodes_by_pid(self) -> dict[int, str]:
-        return {
-            e.pid: e.full_node_name
-            for e in self.client.events.messages()
-            if e.event_type in (ComponentEvent.LOADED, ComponentEvent.CRASHED) and e.pid
-        }
-
-    def dead_pids(self) -> set[int]:
-        return {e.pid for e in self.client.events.messages() if e.event_type == ComponentEvent.CRASHED}
-
     def firing_ns(self, pid: int) -> int | None:
         """When the fault in ``pid`` announced itself (time.time_ns()), from the log."""
         return next((ns for _, ns, who in firing.parse(self.proc.log_text()) if who == pid), None)
@@ -265,13 +255,7 @@ class Rig:
             ][-DEATHS_BEFORE:]
         else:
             out.outcome = TrialOutcome.HUNG
-            if diagnose.gdb_available():
-                out.diagnosis = diagnose.diagnose(
-                    self.proc.pid,
-                    nodes_by_pid=self.nodes_by_pid(),
-                    dead_pids=self.dead_pids(),
-                    log=self.proc.log_text(),
-                )
+            out.diagnosis = diagnose.of_container(self.proc, self.client)
         return out
 
     def settle(self, outcome: Outcome) -> bool:

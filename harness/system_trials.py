@@ -3,8 +3,8 @@ again, each outcome recorded in the crash-resilience report with what every
 watched topic did and which faults were injected when, and a survival rate
 with its interval judged at the end (docs/testing-your-nodes.md).
 
-Public, and kept stable like ``system.py``: the ``system_trials`` fixture
-and ``SystemTrial``.
+Public, and kept stable like ``system.py``: the ``system_trials`` fixture,
+``SystemTrial`` and ``Measure``.
 
 One trial is a call of your function with a ``SystemTrial`` (its index,
 seed, a Random seeded from it, and when it started). Its outcome:
@@ -36,11 +36,14 @@ import signal
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import pytest
 
+from . import diagnose
 from .cpu_starve import CpuStarveUnavailable
 from .errors import HarnessTimeout
+from .plan import record_hang
 from .report.model import TrialOutcome
 
 #: A container is replaced after this many node deaths (each dead node
@@ -76,6 +79,28 @@ class SystemTrial:
         seconds = self.rng.uniform(0.0, at_most_s)
         time.sleep(seconds)
         return seconds
+
+
+class Measure(NamedTuple):
+    """A trial's measurement in a unit other than milliseconds: return
+    ``{"restarts": Measure(3, "count")}`` from a trial (a bare number is in
+    ms). A series keeps the unit of its first trial."""
+
+    value: float
+    unit: str
+
+
+def _measurements(measured: Mapping | None, resilience) -> dict:
+    """A trial's returned measurements as the report takes them: values,
+    with the units of those not in ms told to the scenario."""
+    if measured is None:
+        return {}
+    if not isinstance(measured, Mapping):
+        raise TypeError(f"a trial returns a mapping of measurements (or None), not {type(measured).__name__}")
+    units = {name: v.unit for name, v in measured.items() if isinstance(v, Measure)}
+    if units:
+        resilience.describe(units=units)
+    return {name: v.value if isinstance(v, Measure) else v for name, v in measured.items()}
 
 
 def profile_of(container_args) -> str:
@@ -180,6 +205,33 @@ def crash_reports(system, start_ns: int, end_ns: int, faults, *, all_deaths: boo
     return out
 
 
+#: The container's events a trial records among its facts (LOADED ones are
+#: the harness's own reloads, after the trial).
+TRIAL_EVENTS = ("CRASHED", "REPAIRED", "LOAD_FAILED", "UNLOADED")
+
+
+def container_events(system, start_ns: int, end_ns: int) -> list[dict]:
+    """The container's CRASHED, REPAIRED, LOAD_FAILED and UNLOADED events
+    between the two times, in order: when (ms from ``start_ns``), which,
+    of which node and process, and what it says."""
+    from .client import EVENT_NAMES  # imports the interfaces: not at the plugin's import
+
+    out = []
+    for item in system.client.events.items():
+        ev = item.msg
+        name = EVENT_NAMES.get(ev.event_type, str(ev.event_type))
+        if name not in TRIAL_EVENTS or not start_ns <= item.at_ns <= end_ns:
+            continue
+        record = {"at_ms": round((item.at_ns - start_ns) / 1e6, 1), "event": name, "node": ev.full_node_name}
+        record["pid"] = ev.pid
+        if ev.repaired_state:
+            record["repaired"] = ev.repaired_state
+        if ev.error_message:
+            record["what"] = ev.error_message
+        out.append(record)
+    return out
+
+
 def _heard_again(system, within_s: float) -> None:
     """Until each watched topic has had HEARD_AGAIN messages more, or
     ``within_s``."""
@@ -216,7 +268,8 @@ def run_trials(
     system, trial: Callable[[SystemTrial], Mapping | None], planned, resilience, hold: Callable | None = None
 ) -> None:
     """Each planned (index, seed) trial of ``system``, recorded. A trial
-    may return a mapping of measurements in ms (a latency series each).
+    may return a mapping of measurements (a series each): numbers in ms, or
+    ``Measure(value, unit)``.
     With ``hold``, the first trial that does not survive is the last:
     ``hold(system, index, seed, cause)`` is called before anything is
     settled, with the container as the trial left it."""
@@ -239,13 +292,23 @@ def run_trials(
             details["why"] = cause
         details["faults"] = [fault_record(f, start) for f in faults]
         details["topics"] = topic_facts(system, start, end)
+        if system.alive():
+            details["events"] = container_events(system, start, end)
         reports = crash_reports(system, start, end, faults, all_deaths=outcome != TrialOutcome.SURVIVED.value)
         if reports:
             details["crash_reports"] = reports
+        if outcome == TrialOutcome.HUNG.value:
+            # What the container's threads were waiting on, as the project's
+            # own scenarios get it: every stack, the lock and its holder.
+            diagnosis = diagnose.of_container(system.proc, system.client)
+            if diagnosis is not None:
+                record_hang(resilience, index, diagnosis)
         if outcome == TrialOutcome.CRASHED.value:
             details["container_log"] = "\n".join(system.proc.log_text().splitlines()[-CONTAINER_LOG_LINES:])
         if hold is not None and outcome != TrialOutcome.SURVIVED.value:
-            resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
+            resilience.trial(
+                outcome, index=index, seed=seed, latency_ms=_measurements(measured, resilience), details=details
+            )
             hold(system, index, seed, f"{outcome}: {cause}")
             return
         try:
@@ -256,7 +319,9 @@ def run_trials(
             if outcome != TrialOutcome.SURVIVED.value or index == planned[0][0]:
                 _heard_again(system, TIMELINE_TAIL_S)
                 details["timeline"] = timeline(system, start, _bin_end(start))
-            resilience.trial(outcome, index=index, seed=seed, latency_ms=dict(measured or {}), details=details)
+            resilience.trial(
+                outcome, index=index, seed=seed, latency_ms=_measurements(measured, resilience), details=details
+            )
 
 
 def holder(config, seconds: float) -> Callable:

@@ -120,7 +120,7 @@ def test_lost_events_and_a_dead_node_are_never_loaded(tracked, resilience, recor
     node = tracker.load("cloneguard", "cloneguard::Talker", extra_arguments=DROP)
     # Without its LOADED event the harness finds the node's process the
     # black-box way: the container's one child that no event named.
-    known = set(rig.nodes_by_pid())
+    known = set(rig.client.nodes_by_pid())
     (pid,) = [p for p in procfs.children_of(rig.proc.pid) if p not in known]
     rig.client.events.remove_listener(tracker._on_event)  # the CRASHED event is "lost"
     os.kill(pid, signal.SIGKILL)

@@ -300,6 +300,21 @@ def test_no_report_without_scenarios(pytester, report_root):
     assert "cloneguard resilience report" not in result.stdout.str()
 
 
+@pytest.mark.parametrize("dirs", ["hil_tests", "robot/hil_tests"])
+def test_a_projects_own_test_folder_is_named_a_scenario_folder_in_its_ini(pytester, report_root, dirs):
+    pytester.makeini(f"[pytest]\ncloneguard_scenario_dirs = {dirs}\n")
+    folder = pytester.mkpydir("robot") / "hil_tests"
+    folder.mkdir()
+    (folder / "test_robot.py").write_text("def test_planner_outlives():\n    pass\n")
+    pytester.makepyfile(test_unit="def test_one():\n    pass\n")
+    result = pytester.runpytest(*plugin_args())
+    result.assert_outcomes(passed=2)
+    (run_dir,) = [p for p in report_root.iterdir() if p.name != "latest"]
+    names = [s["name"] for s in json.loads((run_dir / "report.json").read_text())["scenarios"]]
+    assert names == ["test_planner_outlives"]  # that folder's tests only
+    assert (run_dir / "junit.xml").is_file()
+
+
 def test_resilience_outside_scenarios_still_reports(pytester, report_root):
     """Nothing on the command line said "scenarios", so pytest's JUnit writer
     was not redirected: the plugin writes junit.xml itself."""
@@ -704,3 +719,31 @@ def test_the_host_line_says_whether_keys_protect_and_past_how_many_nodes_they_sh
     html = render_html(report)
     assert ("PKU yes" in html and "up to 14" in html and "past 14, nodes share keys" in html) == pku
     assert ("PKU no" in html) == (not pku)
+
+
+# --------------------------------------------------------------------------
+# measurements in units other than ms
+# --------------------------------------------------------------------------
+def test_a_trials_measurements_keep_their_units_through_the_report(tmp_path):
+    from cloneguard.harness.report.record import Resilience
+    from cloneguard.harness.system_trials import Measure, _measurements
+
+    scenario = Scenario(nodeid="scenarios/test_robot.py::test_replans", name="test_replans")
+    resilience = Resilience(scenario)
+    for i, replans in enumerate([2, 3, 2]):
+        values = _measurements({"replans": Measure(replans, "count"), "get_map": 1.5 + i}, resilience)
+        resilience.trial("survived", index=i, seed=i, latency_ms=values)
+    assert scenario.units == {"replans": "count"} and scenario.unit("get_map") == "ms"
+    with pytest.raises(ValueError, match="'replans' is in count, not MiB"):
+        _measurements({"replans": Measure(1, "MiB")}, resilience)
+    with pytest.raises(TypeError, match="mapping of measurements"):
+        _measurements([1.0], resilience)
+
+    html = render_html(Report(RunInfo(id="u"), [scenario]))
+    assert "Measurements" in html and "replans count</th>" in html and "get_map ms</th>" in html
+    assert "replans, count" in html and "median 2 count" in html  # the chart's axis and median
+    original = Report(RunInfo(id="u"), [scenario])
+    original.save_json(tmp_path)
+    assert load_report(tmp_path).scenarios[0].units == {"replans": "count"}
+    text = format_comparison(compare_reports(original, original))
+    assert "measured replans: median 2 count -> 2 count" in text and "latency get_map: median 2.5 ms" in text

@@ -127,6 +127,9 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     assert all([(f["node"], f["kind"]) for f in t["details"]["faults"]] == [("/planner", "SIGSEGV")]
                for t in cannot["trials"])  # fmt: skip
     assert all(t["details"]["topics"]["/odom"]["messages"] >= 4 for t in cannot["trials"])
+    for t in cannot["trials"]:  # the container's events of the trial, among its facts
+        [crashed] = [ev for ev in t["details"]["events"] if ev["event"] == "CRASHED"]
+        assert crashed["node"] == "/planner" and "SIGSEGV" in crashed["what"] and crashed["at_ms"] >= 0
     assert [t["index"] for t in cannot["trials"]] == [0, 1]
     assert all("timeline" in t["details"] for t in cannot["trials"])  # every non-survivor is drawn
     survived = [e for e in cannot["expectations"] if e["outcome"] == "survived"]
@@ -137,11 +140,15 @@ def test_failed_and_hung_trials_are_recorded_with_their_cause_first(tmp_path):
     assert [t["outcome"] for t in silent["trials"]] == ["hung", "hung"]
     assert "0 of 1 messages" in silent["trials"][0]["details"]["why"]
     assert silent["outcome"] == "passed"  # no rate was promised
+    # a hung trial gets the diagnosis the project's own get: every thread's stack
+    assert [h["trial"] for h in silent["hangs"]] == [0, 1]
+    assert all("no thread waits on a lock" in h["summary"] and "Thread " in h["stacks"] for h in silent["hangs"])
 
     html = (report / "report.html").read_text()
     assert "odometry is not at 1 kHz" in html and "Topics during the trials" in html
     assert "Timeline of trial 0 (failed)" in html and "Faults by node" in html
     assert "SIGSEGV → /planner at " in html  # the trial's faults in words
+    assert "CRASHED /planner (pid " in html  # and its events
     # a trial that did not survive keeps the crash report of the node its fault ended
     for t in cannot["trials"]:
         [(who, written)] = t["details"]["crash_reports"].items()

@@ -96,10 +96,11 @@ def _use_log(values: Sequence[float]) -> bool:
     return lo > 0 and hi / lo >= 100
 
 
-def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
-    """A strip plot of every value (deterministic jitter) over a box from the
-    25th to the 75th percentile, whiskers to min and max, and the median
-    marked and labelled. A logarithmic axis when values span >= 100x."""
+def latency_strip(name: str, values: Sequence[float], unit: str = "ms", width: int = 640) -> str:
+    """A strip plot of every value (in ``unit``; deterministic jitter) over
+    a box from the 25th to the 75th percentile, whiskers to min and max, and
+    the median marked and labelled. A logarithmic axis when values span
+    >= 100x."""
     data = sorted(float(v) for v in values)
     if not data:
         return ""
@@ -129,7 +130,7 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
     median = summary.median
     title = (
         f"{name}: n={summary.n}, min {fmt_ms(summary.min)}, median {fmt_ms(median)}, "
-        f"p90 {fmt_ms(summary.p90)}, p99 {fmt_ms(summary.p99)}, max {fmt_ms(summary.max)} ms"
+        f"p90 {fmt_ms(summary.p90)}, p99 {fmt_ms(summary.p99)}, max {fmt_ms(summary.max)} {unit}"
     )
     out = [
         f'<svg class="chart" xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
@@ -147,7 +148,7 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
             f'<text x="{tx:.1f}" y="{axis_y + 15}" text-anchor="{anchor}" class="tick">{escape(_tick_label(t))}</text>'
         )
     out.append(f'<line x1="{left}" y1="{axis_y}" x2="{left + plot_w:.1f}" y2="{axis_y}" class="axis"/>')
-    axis_title = f"{name} latency, ms" + (" (log scale)" if log else "")
+    axis_title = (f"{name} latency, ms" if unit == "ms" else f"{name}, {unit}") + (" (log scale)" if log else "")
     out.append(
         f'<text x="{left + plot_w / 2:.1f}" y="{height - 4}" text-anchor="middle" class="axis-title">'
         f"{escape(axis_title)}</text>"
@@ -159,7 +160,8 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
         out.append(f'<line x1="{x(v):.1f}" y1="{mid - 6}" x2="{x(v):.1f}" y2="{mid + 6}" class="whisker"/>')
     out.append(
         f'<rect x="{x(q1):.1f}" y="{mid - 11}" width="{max(1.0, x(q3) - x(q1)):.1f}" height="22" '
-        f'class="box"><title>25th–75th percentile: {escape(fmt_ms(q1))}–{escape(fmt_ms(q3))} ms</title></rect>'
+        f'class="box"><title>25th–75th percentile: {escape(fmt_ms(q1))}–{escape(fmt_ms(q3))} '
+        f"{escape(unit)}</title></rect>"
     )
     # dots, in trial order with a golden-ratio jitter so the picture is reproducible
     step = max(1, math.ceil(len(values) / MAX_DOTS))
@@ -168,12 +170,12 @@ def latency_strip(name: str, values: Sequence[float], width: int = 640) -> str:
     for i, v in enumerate(dots):
         jitter = ((i * 0.6180339887498949) % 1.0) * 2.0 - 1.0
         cy = mid + jitter * ((band_bottom - band_top) / 2 - 4)
-        tip = f"<title>{escape(fmt_ms(v))} ms</title>" if with_titles else ""
+        tip = f"<title>{escape(fmt_ms(v))} {escape(unit)}</title>" if with_titles else ""
         out.append(f'<circle cx="{x(v):.1f}" cy="{cy:.1f}" r="2.6" class="dot">{tip}</circle>')
     # median
     mx = x(median)
     out.append(f'<line x1="{mx:.1f}" y1="{band_top - 2}" x2="{mx:.1f}" y2="{band_bottom + 2}" class="median"/>')
-    label = f"median {fmt_ms(median)} ms"
+    label = f"median {fmt_ms(median)} {unit}"
     anchor = "start" if mx < left + 60 else "end" if mx > left + plot_w - 60 else "middle"
     out.append(f'<text x="{mx:.1f}" y="{top_label}" text-anchor="{anchor}" class="median-label">{escape(label)}</text>')
     out.append("</svg>")

@@ -24,7 +24,7 @@ import pytest
 from ..plan import parse_shard
 from .paths import ENV_REPORT_DIR
 from .record import pytest_runtest_makereport, resilience  # noqa: F401 (the plugin's hook and fixture)
-from .session import ReportSession
+from .session import SCENARIO_DIRS_INI, ReportSession
 
 _SESSION = pytest.StashKey[ReportSession]()
 
@@ -40,6 +40,13 @@ def pytest_addoption(parser):
         metavar="PATH",
         help=f"directory for this run's report.json, report.html and junit.xml "
         f"(env {ENV_REPORT_DIR}; default: <repo>/reports/<UTC time>-<random>)",
+    )
+    parser.addini(
+        SCENARIO_DIRS_INI,
+        "directories whose tests are scenarios, written in a report: names (any directory of that name) "
+        "or paths from the pytest root directory; default: scenarios",
+        type="linelist",
+        default=[],
     )
     group.addoption("--run-label", default=None, metavar="TEXT", help="a label for this run, shown in the report")
     group.addoption(

@@ -31,6 +31,7 @@ class LatencyDelta:
     series: str
     median_a: float | None
     median_b: float | None
+    unit: str = "ms"
 
     @property
     def ratio(self) -> float | None:
@@ -163,7 +164,10 @@ def compare_reports(a: Report, b: Report, method: str = "z", alpha: float = 0.05
         lat_a, lat_b = sa.latency_summaries(), sb.latency_summaries()
         latency = [
             LatencyDelta(
-                name, lat_a[name].median if name in lat_a else None, lat_b[name].median if name in lat_b else None
+                name,
+                lat_a[name].median if name in lat_a else None,
+                lat_b[name].median if name in lat_b else None,
+                sa.unit(name) if name in lat_a else sb.unit(name),
             )
             for name in list(lat_a) + [n for n in lat_b if n not in lat_a]
         ]
@@ -218,9 +222,10 @@ def format_comparison(c: Comparison) -> str:
         lines.append(f"  survived  {_prop(d.survival_a)}  ->  {_prop(d.survival_b)}{change_text}{p_text}  {verdict}")
         for lat in d.latency:
             ratio = f"  x{lat.ratio:.2f}" if lat.ratio is not None else ""
-            ma = fmt_ms(lat.median_a) + " ms" if lat.median_a is not None else "–"
-            mb = fmt_ms(lat.median_b) + " ms" if lat.median_b is not None else "–"
-            lines.append(f"  latency {lat.series}: median {ma} -> {mb}{ratio}")
+            ma = f"{fmt_ms(lat.median_a)} {lat.unit}" if lat.median_a is not None else "–"
+            mb = f"{fmt_ms(lat.median_b)} {lat.unit}" if lat.median_b is not None else "–"
+            what = "latency" if lat.unit == "ms" else "measured"
+            lines.append(f"  {what} {lat.series}: median {ma} -> {mb}{ratio}")
     if c.only_a:
         lines.append("")
         lines.append("only in A:")

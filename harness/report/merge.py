@@ -96,6 +96,7 @@ def _join(nodeid: str, seeded_parts: list[tuple[Any, Scenario]]) -> Scenario:
         fault=first.fault,
         profile=first.profile,
         mitigations=dict(first.mitigations),
+        units={k: v for p in parts for k, v in p.units.items()},
         claim=first.claim,
         started=min((p.started for _, p in ran if p.started), default=None),
         used_resilience=any(p.used_resilience for p in parts),

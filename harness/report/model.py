@@ -91,7 +91,8 @@ class Trial:
     index: int
     outcome: str
     seed: Any = None
-    #: series name -> one value or a list of values, in milliseconds
+    #: series name -> one value or a list of values, in the series' unit
+    #: (Scenario.unit: milliseconds unless the scenario says otherwise)
     latency_ms: dict[str, Any] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
     time: str | None = None
@@ -230,6 +231,8 @@ class Scenario:
     message: str | None = None
     longrepr: str | None = None
     used_resilience: bool = False
+    #: series name -> the unit of its values, for series not in ms
+    units: dict[str, str] = field(default_factory=dict)
     trials: list[Trial] = field(default_factory=list)
     hangs: list[Hang] = field(default_factory=list)
     expectations: list[Expectation] = field(default_factory=list)
@@ -264,6 +267,10 @@ class Scenario:
                 series.setdefault(name, []).extend(trial.latency_values(name))
         return series
 
+    def unit(self, series: str) -> str:
+        """The unit of a measured series' values."""
+        return self.units.get(series, "ms")
+
     def latency_summaries(self) -> dict[str, stats.LatencySummary]:
         out = {}
         for name, values in self.latency_series().items():
@@ -293,6 +300,7 @@ class Scenario:
             "fault": self.fault,
             "profile": self.profile,
             "mitigations": self.mitigations,
+            "units": self.units,
             "claim": self.claim,
             "outcome": self.outcome,
             "duration_s": self.duration_s,

@@ -65,11 +65,14 @@ class Resilience:
         mitigations: Mapping[str, Any] | None = None,
         claim: str | None = None,
         name: str | None = None,
+        units: Mapping[str, str] | None = None,
     ) -> None:
         """What the scenario is: the fault injected, the isolation profile, the
         mitigations switched on, and the claim it checks. Can be called again;
         arguments left out keep their value. ``name`` replaces the test name
-        shown in the report."""
+        shown in the report. ``units``: series name -> the unit its
+        ``trial(latency_ms=...)`` values are in, for series not in ms (added
+        to those given before; a series keeps its first unit)."""
         with self._lock:
             s = self._scenario
             if fault is not None:
@@ -84,6 +87,11 @@ class Resilience:
                 s.claim = str(claim)
             if name is not None:
                 s.name = str(name)
+            for series, unit in (units or {}).items():
+                known = s.units.get(series, unit)
+                if known != unit:
+                    raise ValueError(f"series {series!r} is in {known}, not {unit}")
+                s.units[str(series)] = str(unit)
 
     def trial(
         self,

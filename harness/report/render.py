@@ -398,11 +398,14 @@ def _latency(s: Scenario) -> str:
             charts.fmt_ms(getattr(summ, k)) for k in ("min", "median", "p90", "p99", "max", "mean")
         ]
         rows.append(
-            f"<tr><td><code>{e(name)}</code></td>" + "".join(f'<td class="num">{e(c)}</td>' for c in cells) + "</tr>"
+            f"<tr><td><code>{e(name)}</code></td><td>{e(s.unit(name))}</td>"
+            + "".join(f'<td class="num">{e(c)}</td>' for c in cells)
+            + "</tr>"
         )
-    plots = "".join(charts.latency_strip(name, values) for name, values in series.items() if values)
+    plots = "".join(charts.latency_strip(name, values, s.unit(name)) for name, values in series.items() if values)
+    title = "Latency (ms)" if not s.units else "Measurements"
     return (
-        f'<h4>Latency (ms)</h4><table class="grid"><thead><tr><th>series</th>{head}</tr></thead>'
+        f'<h4>{title}</h4><table class="grid"><thead><tr><th>series</th><th>unit</th>{head}</tr></thead>'
         f"<tbody>{''.join(rows)}</tbody></table>{plots}"
     )
 
@@ -446,7 +449,7 @@ def _trials_table(s: Scenario, anchor: str) -> str:
         return ""
     diagnosed = {h.trial for h in s.hangs if h.trial is not None}
     series = list(s.latency_series())
-    head = "".join(f'<th class="num">{e(n)} ms</th>' for n in series)
+    head = "".join(f'<th class="num">{e(n)} {e(s.unit(n))}</th>' for n in series)
     rows = []
     for t in s.trials:
         lat = []

@@ -26,31 +26,52 @@ from .model import JUNIT_XML, REPORT_HTML, TRIAL_OUTCOMES, Report, RunInfo, Scen
 from .record import RECORD_ATTR, _iso
 from .render import write_html
 
-SCENARIO_DIR = "scenarios"
+#: The ini option naming the directories whose tests are scenarios (a
+#: report each run), and its default.
+SCENARIO_DIRS_INI = "cloneguard_scenario_dirs"
+SCENARIO_DIRS = ["scenarios"]
 #: longest pytest failure text kept per test
 LONGREPR_LIMIT = 40_000
 
 
-def _under_scenarios(path: Path, root: Path) -> bool:
+def scenario_dirs(config) -> list[str]:
+    """The directory names (or paths from the root directory) whose tests
+    get a report."""
+    return [d.strip("/") for d in config.getini(SCENARIO_DIRS_INI) or SCENARIO_DIRS]
+
+
+def _under_scenarios(path: Path, root: Path, dirs: list[str]) -> bool:
+    """Whether ``path`` (a test file, or a directory) is inside a scenario
+    directory: one named as a ``dirs`` entry, or an entry's path from
+    ``root``."""
     try:
         parts = path.resolve().relative_to(root.resolve()).parts
     except ValueError:
         parts = path.resolve().parts
-    return SCENARIO_DIR in parts[:-1] if path.suffix else SCENARIO_DIR in parts
+    folders = parts[:-1] if path.suffix else parts
+    for d in dirs:
+        wanted = tuple(Path(d).parts)
+        if len(wanted) == 1 and wanted[0] in folders:
+            return True
+        if len(wanted) > 1 and folders[: len(wanted)] == wanted:
+            return True
+    return False
 
 
 def _args_run_scenarios(config) -> bool:
-    """Whether the command line names a scenarios/ directory, a file in one,
+    """Whether the command line names a scenario directory, a file in one,
     or a directory holding one."""
     base = Path(config.invocation_params.dir)
+    root = Path(config.rootpath)
+    dirs = scenario_dirs(config)
     for arg in config.args:
         text = str(arg).split("::", 1)[0]
         if not text or text.startswith("-"):
             continue
         path = base / text
-        if _under_scenarios(path, Path(config.rootpath)) or path.name == SCENARIO_DIR:
+        if _under_scenarios(path, root, dirs):
             return True
-        if path.is_dir() and (path / SCENARIO_DIR).is_dir():
+        if path.is_dir() and any((path / d).is_dir() for d in dirs):
             return True
     return False
 
@@ -114,7 +135,7 @@ class ReportSession:
         try:
             record = self._record(report.nodeid)
             path = Path(self.config.rootpath) / report.nodeid.split("::", 1)[0]
-            if _under_scenarios(path, Path(self.config.rootpath)):
+            if _under_scenarios(path, Path(self.config.rootpath), scenario_dirs(self.config)):
                 self.in_scope.add(report.nodeid)
             worker = getattr(getattr(getattr(report, "node", None), "gateway", None), "id", None)
             if worker:
@@ -171,7 +192,7 @@ class ReportSession:
             return
         try:
             path = Path(self.config.rootpath) / report.nodeid.split("::", 1)[0]
-            if not (report.nodeid and _under_scenarios(path, Path(self.config.rootpath))):
+            if not (report.nodeid and _under_scenarios(path, Path(self.config.rootpath), scenario_dirs(self.config))):
                 return
             record = self.records.setdefault(
                 report.nodeid,

@@ -181,6 +181,11 @@ def trial_facts(t: Trial) -> str:
     faults = d.pop("faults", None)
     if faults:
         parts.append("faults: " + e("; ".join(f"{f['what']} → {f['node']} at {f['from_ms']:.0f} ms" for f in faults)))
+    for ev in d.pop("events", None) or []:
+        said = ev.get("what") or ev.get("repaired", "")
+        parts.append(
+            e(f"{ev['event']} {ev['node']} (pid {ev['pid']}) at {ev['at_ms']:.0f} ms" + (f": {said}" if said else ""))
+        )
     topics = d.pop("topics", None) or {}
     for name, f in topics.items():
         parts.append(f"{e(name)} {f['rate_hz']:.1f} Hz, longest gap {f['longest_gap_s']:.3f} s")
