@@ -28,6 +28,8 @@ Options
                            container is kept running that long (inf: until Ctrl-C)
     --deep, --trials N, --seed S, --trial-seed S   how many trials scenarios make, from
                            which seeds (plan.py)
+    --fault KIND, --node NAME   only the scenarios whose fault/node markers name them
+                           (selection.py)
 
 Trial fixtures (plan.py): trial_plan, record_trial, run_trials.
 
@@ -43,8 +45,8 @@ import os
 
 import pytest
 
-from . import domains, plan, procfs, shm
-from .plan import pytest_collection_modifyitems, record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
+from . import domains, plan, procfs, selection, shm
+from .plan import record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
 from .process import DISCOVERY_RANGE_VARIABLES, loopback_variables
 from .system_trials import system_trials  # noqa: F401  (plugin)
 
@@ -89,15 +91,22 @@ def pytest_addoption(parser):
         "`reproduce NAME` runs",
     )
     plan.add_options(parser)
+    selection.add_options(parser)
 
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
+    selection.register_markers(config)
     # The ROS wheels' rosidl parsers import lark, which imports two modules
     # Python 3.11 deprecates: a warning in every run that is neither the
     # user's nor ours to act on.
     for module in ("sre_parse", "sre_constants"):
         config.addinivalue_line("filterwarnings", f"ignore:module '{module}' is deprecated:DeprecationWarning:lark")
+
+
+def pytest_collection_modifyitems(config, items):
+    selection.select(config, items)
+    plan.give_long_timeouts(config, items)
 
 
 @pytest.fixture

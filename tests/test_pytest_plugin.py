@@ -56,3 +56,42 @@ def test_the_container_fixtures_set_the_ros_environment_for_their_test_only(tmp_
     proc = _run(tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "3 passed" in proc.stdout
+
+
+MARKED = textwrap.dedent("""
+    import pytest
+
+    @pytest.mark.fault("SIGKILL")
+    @pytest.mark.node("/planner")
+    def test_planner_killed():
+        pass
+
+    @pytest.mark.fault("freeze", "SIGKILL")
+    @pytest.mark.node("/odometry")
+    def test_odometry_frozen_and_killed():
+        pass
+
+    def test_unmarked():
+        pass
+""")
+
+
+def _selected(tmp_path, *options) -> list[str]:
+    (tmp_path / "test_marked.py").write_text(MARKED)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "--collect-only", "-W", "error::pytest.PytestUnknownMarkWarning",
+         "-p", "no:cacheprovider", "test_marked.py", *options],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode in (0, 5), proc.stdout + proc.stderr  # 5: every test deselected
+    return sorted(line.split("::")[1] for line in proc.stdout.splitlines() if "::" in line)
+
+
+def test_fault_and_node_markers_pick_the_scenarios_a_ci_job_runs(tmp_path):
+    everything = ["test_odometry_frozen_and_killed", "test_planner_killed", "test_unmarked"]
+    assert _selected(tmp_path) == everything  # the markers are known: no warning, nothing dropped
+    assert _selected(tmp_path, "--fault", "SIGKILL") == everything[:2]
+    assert _selected(tmp_path, "--fault", "freeze") == ["test_odometry_frozen_and_killed"]
+    assert _selected(tmp_path, "--fault", "SIGKILL", "--node", "/planner") == ["test_planner_killed"]
+    assert _selected(tmp_path, "--node", "/planner", "--node", "/odometry") == everything[:2]
+    assert _selected(tmp_path, "--fault", "SIGSEGV") == []
