@@ -37,7 +37,7 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from . import processes, repairs
+from . import processes, repairs, seams
 
 
 @dataclass(frozen=True)
@@ -72,20 +72,46 @@ def _referrer_name(obj) -> str:
     Modules are searched first, by their dicts: after a death with the GIL
     held the young objects are moved where gc.get_referrers does not look
     (interp.c), a recently imported module's dict among them."""
+    modules = _modules()
+    named = next((name for name, value in _module_names(modules) if value is obj), None)
+    return named or _referrer_by_gc(obj, {id(m.__dict__): name for name, m in modules})
+
+
+def _modules() -> list[tuple[str, types.ModuleType]]:
     modules = [(name, m) for name, m in list(sys.modules.items()) if m is not None and name != "__main__"]
-    modules += [("__main__", sys.modules["__main__"])] if "__main__" in sys.modules else []  # a script's last
+    return modules + ([("__main__", sys.modules["__main__"])] if "__main__" in sys.modules else [])  # a script's last
+
+
+def _module_names(modules):
+    """(name, value) of every module's globals (``pkg.mod.NAME``), then of
+    the attributes of those that are neither modules nor plain values
+    (``pkg.mod.OBJ.attr``)."""
     for name, module in modules:
         for key, value in list(vars(module).items()):
-            if value is obj:
-                return f"{name}.{key}"
+            yield f"{name}.{key}", value
     for name, module in modules:
         for key, value in list(vars(module).items()):
             attrs = getattr(value, "__dict__", None)
             if isinstance(attrs, (dict, types.MappingProxyType)) and not isinstance(value, types.ModuleType):
-                attr = next((k for k, v in list(attrs.items()) if v is obj), None)
-                if attr is not None:
-                    return f"{name}.{key}.{attr}"
-    return _referrer_by_gc(obj, {id(m.__dict__): name for name, m in modules})
+                for attr, v in list(attrs.items()):
+                    yield f"{name}.{key}.{attr}", v
+
+
+#: A python-lock stop request's key -> (how many modules there were when it
+#: was looked for, the lock of that name or None).
+_asked_for: dict[int, tuple[int, object]] = {}
+
+
+def _is_asked_for(lock, key: int) -> bool:
+    """pylocks.c's name hook, while a python-lock stop request names a lock
+    (the test rig's, seams.py): is ``lock`` the one named so? Looked up once
+    per key, again only while not found and modules were imported since."""
+    seen = _asked_for.get(key)
+    if seen is None or (seen[1] is None and seen[0] != len(sys.modules)):
+        modules = _modules()
+        target = next((v for name, v in _module_names(modules) if seams.stop_lock_key(name) == key), None)
+        seen = _asked_for[key] = (len(sys.modules), target)
+    return seen[1] is lock
 
 
 def _referrer_by_gc(obj, modules: dict[int, str], depth: int = 3) -> str:
@@ -154,4 +180,4 @@ def activate() -> None:
     """The container: from now on, report takeovers and stuck waits."""
     from .isolated import _pylocks  # type: ignore[attr-defined]  # an extension module
 
-    _pylocks.set_hooks(_took_over, _stuck)
+    _pylocks.set_hooks(_took_over, _stuck, _is_asked_for)

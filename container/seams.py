@@ -7,7 +7,8 @@ a progress-board write left half-done, and stop points: a node process that
 stops itself, when asked, inside the allocator, inside CPython's object
 allocator or holding a Python lock, so that a kill from outside lands there
 (isolated/stops.c; the harness asks with a sigqueue of the signal named by
-``CLONEGUARD_STOP_SIGNAL`` in the container's environment). All are here,
+``CLONEGUARD_STOP_SIGNAL`` in the container's environment; a Python lock
+may be named, by ``stop_lock_key``). All are here,
 and all are off unless the test rig is installed: the cloneguard-testrig distribution
 declares itself in the entry-point group ``cloneguard.test_rig``. A
 production install has no test rig, so nothing can switch them on; the
@@ -19,6 +20,7 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import zlib
 from collections.abc import Callable
 from importlib.metadata import entry_points
 
@@ -53,6 +55,13 @@ def arm(name: str, hook: Callable[[object], None] | None) -> None:
     if hook is not None:
         require(name)
     globals()[name] = hook
+
+
+def stop_lock_key(name: str) -> int:
+    """The key a python-lock stop request names one lock by: of its name as
+    the container gives it (``pkg.mod.NAME``, ``pkg.mod.OBJ.attr``: locks.py),
+    32 bits, never 0 (0 asks for any lock)."""
+    return zlib.crc32(name.encode()) or 1
 
 
 def stop_signal() -> int:

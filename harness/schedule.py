@@ -44,15 +44,17 @@ class Kill:
 class KillAt:
     """SIGKILL to the node's process at a place in its own code
     (``allocation``, ``python-allocation``, ``python-lock``: stops.py), at
-    its ``after``-th pass from the fault's time."""
+    its ``after``-th pass from the fault's time; at ``python-lock``,
+    ``lock`` may name the one lock it dies holding."""
 
     node: str
     place: str
     after: int = 1
+    lock: str = ""
     lasts = False
 
     def apply(self, system) -> None:
-        system.kill_at(self.node, self.place, after=self.after)
+        system.kill_at(self.node, self.place, after=self.after, lock=self.lock)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,8 @@ The places (``PLACES``):
 - ``python-allocation``: inside CPython's object allocator, a block taken and
   its pool's count not yet updated, the GIL held;
 - ``python-lock``: a Python lock (``threading.Lock``/``RLock``, the
-  executor's own) just acquired, with the GIL.
+  executor's own) just acquired, with the GIL; or one lock named, its
+  key (the container's seams.stop_lock_key) in the request's high bits.
 
 How: the harness starts every container with ``CLONEGUARD_STOP_SIGNAL`` in
 its environment (``STOP_SIGNAL``, a real-time signal); a node process of an
@@ -32,6 +33,8 @@ import os
 import signal
 import time
 
+from cloneguard.container.seams import stop_lock_key
+
 from . import procfs
 from .errors import HarnessTimeout
 
@@ -43,6 +46,7 @@ STOP_SIGNAL_ENV = "CLONEGUARD_STOP_SIGNAL"
 PLACES = {"allocation": 1, "python-allocation": 2, "python-lock": 3}
 _PLACE_BITS = 4  # CGA_STOP_REQUEST(place, n) = place | n << 4
 MAX_PASSES = (1 << (31 - _PLACE_BITS)) - 1
+_KEY_SHIFT = 32  # CGA_STOP_KEY_SHIFT: a named lock's key above the request
 
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.sigqueue.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p)
@@ -73,19 +77,26 @@ def is_stopped(pid: int) -> bool:
     return st is not None and st.state == "T"
 
 
-def stop_at(pid: int, place: str, *, after: int = 1, timeout: float = 5.0) -> int:
+def stop_at(pid: int, place: str, *, after: int = 1, timeout: float = 5.0, lock: str = "") -> int:
     """Ask node process ``pid`` to stop at its ``after``-th pass of ``place``
     from now, and wait until it has; when (monotonic ns) it was seen
-    stopped. The caller ends it (SIGKILL) or lets it go (SIGCONT).
-    HarnessTimeout if it did not get there within ``timeout`` (the request
-    is taken back first); ProcessLookupError if there is no such process."""
+    stopped. With ``place`` python-lock, ``lock`` may name the one Python
+    lock whose acquires count, as the container names locks (a module's
+    global ``pkg.mod.NAME`` or an attribute of one ``pkg.mod.OBJ.attr``, as
+    in its REPAIRED events). The caller ends it (SIGKILL) or lets it go
+    (SIGCONT). HarnessTimeout if it did not get there within ``timeout``
+    (the request is taken back first); ProcessLookupError if there is no
+    such process."""
     if place not in PLACES:
         raise ValueError(f"no stop point {place!r}: the places are {', '.join(PLACES)}")
     if not 1 <= after <= MAX_PASSES:
         raise ValueError(f"after is 1 to {MAX_PASSES} passes, not {after!r}")
+    if lock and place != "python-lock":
+        raise ValueError(f"a lock is named only at python-lock, not at {place}")
     if is_stopped(pid):
         raise RuntimeError(f"process {pid} is stopped already (frozen?): it cannot pass {place}")
-    _request(pid, PLACES[place] | after << _PLACE_BITS)
+    key = stop_lock_key(lock) if lock else 0
+    _request(pid, PLACES[place] | after << _PLACE_BITS | key << _KEY_SHIFT)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if is_stopped(pid):
@@ -94,8 +105,9 @@ def stop_at(pid: int, place: str, *, after: int = 1, timeout: float = 5.0) -> in
     _request(pid, 0)  # taken back
     if is_stopped(pid):  # got there as it was taken back
         return time.monotonic_ns()
+    where = f"{place} ({lock})" if lock else place
     raise HarnessTimeout(
-        f"process {pid} did not stop at {place} within {timeout:g} s: it passed no such place "
+        f"process {pid} did not stop at {where} within {timeout:g} s: it passed no such place "
         f"{after} time(s), or its container takes no stop requests (only an isolated container with the "
         "allocator guard, the default, and the test rig installed does)"
     )

@@ -205,22 +205,32 @@ class System:
         return at
 
     def kill_at(
-        self, full_name: str, place: str, *, after: int = 1, timeout: float = 5.0, sig: int = signal.SIGKILL
+        self,
+        full_name: str,
+        place: str,
+        *,
+        after: int = 1,
+        timeout: float = 5.0,
+        sig: int = signal.SIGKILL,
+        lock: str = "",
     ) -> int:
         """Kill the node's process at a place in its own code (stops.py's
         ``PLACES``: ``allocation``, ``python-allocation``, ``python-lock``),
         at its ``after``-th pass from now: SIGKILL, or ``sig`` taken there by
         the task that got there (SIGSEGV: a crash, with its crash report and
         any core dump); when it was seen stopped there, just before the
-        signal. HarnessTimeout if it did not get there within ``timeout``
+        signal. At ``python-lock``, ``lock`` names the one lock to die
+        holding (``my_pkg.shared.CACHE_LOCK``, as REPAIRED events name
+        locks). HarnessTimeout if it did not get there within ``timeout``
         (it is left running)."""
         running = self._own_process(full_name)
-        at = stops.stop_at(running.pid, place, after=after, timeout=timeout)
+        at = stops.stop_at(running.pid, place, after=after, timeout=timeout, lock=lock)
         if sig == signal.SIGKILL:
             os.kill(running.pid, signal.SIGKILL)
         else:
             stops.signal_there(running.pid, sig)
-        self.faults.append(Fault(full_name, f"{signal.Signals(sig).name} at {place}", at, at, running.unique_id))
+        where = f"{place} {lock}" if lock else place
+        self.faults.append(Fault(full_name, f"{signal.Signals(sig).name} at {where}", at, at, running.unique_id))
         return at
 
     def freeze(self, full_name: str, seconds: float) -> tuple[int, int]:

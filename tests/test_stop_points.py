@@ -11,8 +11,9 @@ import subprocess
 import sys
 
 import pytest
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, UInt64
 
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import stops
 from cloneguard.harness.errors import HarnessTimeout
 from cloneguard.harness.schedule import KillAt
@@ -34,6 +35,7 @@ def test_the_harness_numbers_places_as_the_guard_does():
         "python-lock": lib.CGA_STOP_PY_LOCK,
     }
     assert stops._PLACE_BITS == lib.CGA_STOP_PLACE_BITS
+    assert stops._KEY_SHIFT == lib.CGA_STOP_KEY_SHIFT
 
 
 # What the container's CRASHED event says of a death at each place.
@@ -83,6 +85,40 @@ def test_a_schedule_kills_at_a_place(system_factory):
 LOCKS = 2000
 
 
+@pytest.mark.parametrize(
+    "kind, lock",
+    [("lock", "cloneguard.faults.shared_state.LOCK"), ("condition", "cloneguard.faults.shared_state.CONDITION._lock")],
+)
+def test_a_kill_at_a_named_lock_dies_holding_that_lock(system_factory, kind, lock):
+    """Its process takes rclpy's locks far more often than the shared one
+    (a kill at any python-lock lands in rclpy's); named, the kill lands in
+    that one, and the sibling that waits for it is repaired, the container
+    naming the lock."""
+    uses = {"kind": kind, "period": 0.01}
+    robot = system_factory(
+        [
+            NodeSpec(TESTRIG, "faults::WaitsForPythonLock", name="holder", parameters=uses),
+            NodeSpec(TESTRIG, "faults::WaitsForPythonLock", name="sibling", parameters=uses),
+        ]
+    )
+    progress = robot.topic(UInt64, "/sibling/progress")
+    progress.wait_count(5, timeout=10)
+    robot.kill_at("/holder", "python-lock", lock=lock)
+    assert "it held the GIL in" in robot.wait_crashed("/holder").error_message
+    repaired = robot.wait_repaired("/holder", what="python-lock")
+    assert lock in repaired.error_message and "/sibling" in repaired.error_message, repaired.error_message
+    progress.wait_count(len(progress) + 20, timeout=10)  # the sibling goes on with the lock
+    [fault] = robot.faults
+    assert fault.kind == f"SIGKILL at python-lock {lock}"
+
+
+def test_a_named_lock_no_code_takes_is_never_reached(system_factory):
+    robot = system_factory(ROBOT)
+    with pytest.raises(HarnessTimeout, match=r"did not stop at python-lock \(no_such\.module\.LOCK\) within 0.5 s"):
+        robot.kill_at("/planner", "python-lock", lock="no_such.module.LOCK", timeout=0.5)
+    assert robot.node("/planner").pid and not stops.is_stopped(robot.node("/planner").pid) and robot.faults == []
+
+
 def test_a_node_that_never_gets_there_is_left_running_and_the_wait_says_why(system_factory):
     robot = system_factory(ROBOT)
     odom = robot.topic(Float64, "/odom")
@@ -113,6 +149,8 @@ def test_bad_requests_are_refused_before_anything_is_sent():
         stops.stop_at(os.getpid(), "gil")
     with pytest.raises(ValueError, match="after is 1 to"):
         stops.stop_at(os.getpid(), "allocation", after=0)
+    with pytest.raises(ValueError, match="a lock is named only at python-lock, not at allocation"):
+        stops.stop_at(os.getpid(), "allocation", lock="pkg.mod.LOCK")
 
 
 def test_a_stop_signal_that_is_not_real_time_is_refused_at_start_up():

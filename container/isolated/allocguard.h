@@ -36,6 +36,10 @@ enum {
 #define CGA_STOP_REQUEST(place, n) ((place) | ((n) << CGA_STOP_PLACE_BITS))
 #define CGA_STOP_PLACE(v) ((v) & ((1 << CGA_STOP_PLACE_BITS) - 1))
 #define CGA_STOP_COUNT(v) ((v) >> CGA_STOP_PLACE_BITS)
+/* A PY_LOCK request's value may name one lock: its key (seams.py's
+   stop_lock_key of the lock's name, never 0) in the value's high 32 bits
+   (sigqueue's value is a pointer: 64 bits here). 0 there: any lock. */
+#define CGA_STOP_KEY_SHIFT 32
 
 /* What cga_slot_retire returns: the bits of what a dead process left. */
 #define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */

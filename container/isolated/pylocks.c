@@ -300,14 +300,39 @@ static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t
 
 /* The allocator guard's stop point for "a Python lock just acquired"
    (stops.c, the test rig's seam): its armed flag, one load an acquire, and
-   the call when armed.  NULL without the guard. */
+   the call when armed.  NULL without the guard.  A request may name one
+   lock by a key (stops.c): whether the lock just taken is that one is
+   Python's to say (locks.py's name hook, set_name_hook), called with the
+   GIL and the lock held; a hook that takes a lock itself meets this check
+   again and is not called again (g_in_name_hook, guarded by the GIL). */
 static _Atomic int *g_stops_armed;
 static void (*g_stop_here)(int place);
+static int64_t (*g_stop_lock_key)(void);
+static PyObject *g_name_hook;           /* hook(lock, key) -> bool */
+static int g_in_name_hook;
+
+static int is_the_lock_asked_for(PyObject *lock)
+{
+    int64_t key = g_stop_lock_key ? g_stop_lock_key() : 0;
+    if (key <= 0)
+        return key == 0;                /* any lock; -1: no such request here */
+    if (!g_name_hook || g_in_name_hook)
+        return 0;
+    g_in_name_hook = 1;
+    PyObject *res = PyObject_CallFunction(g_name_hook, "OL", lock, (long long)key);
+    g_in_name_hook = 0;
+    int yes = res != NULL && PyObject_IsTrue(res) == 1;
+    if (!res)
+        PyErr_WriteUnraisable(g_name_hook);
+    Py_XDECREF(res);
+    return yes;
+}
 
 static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t *dead)
 {
     int r = take_core(lock, c, timeout, dead);
-    if (r == 1 && g_stops_armed && atomic_load_explicit(g_stops_armed, memory_order_relaxed))
+    if (r == 1 && g_stops_armed && atomic_load_explicit(g_stops_armed, memory_order_relaxed) &&
+        is_the_lock_asked_for(lock))
         g_stop_here(CGA_STOP_PY_LOCK);
     return r;
 }
@@ -689,15 +714,18 @@ static PyObject *node_born(PyObject *module, PyObject *arg)
 static PyObject *set_hooks(PyObject *module, PyObject *args)
 {
     (void)module;
-    PyObject *repair, *stuck;
-    if (!PyArg_ParseTuple(args, "OO:set_hooks", &repair, &stuck))
+    PyObject *repair, *stuck, *named = Py_None;
+    if (!PyArg_ParseTuple(args, "OO|O:set_hooks", &repair, &stuck, &named))
         return NULL;
     repair = repair == Py_None ? NULL : repair;
     stuck = stuck == Py_None ? NULL : stuck;
+    named = named == Py_None ? NULL : named;
     Py_XINCREF(repair);
     Py_XINCREF(stuck);
+    Py_XINCREF(named);
     Py_XSETREF(g_repair_hook, repair);
     Py_XSETREF(g_stuck_hook, stuck);
+    Py_XSETREF(g_name_hook, named);
     Py_RETURN_NONE;
 }
 
@@ -706,8 +734,9 @@ static PyMethodDef module_methods[] = {
     {"node_died", node_died, METH_O, "node_died(pid): a node process died without being stopped"},
     {"node_born", node_born, METH_O, "node_born(pid): a new node process has that pid"},
     {"set_hooks", set_hooks, METH_VARARGS,
-     "set_hooks(repair, stuck): repair(lock, pid, tid) after a lock whose holder's process died is taken "
-     "over; stuck(lock, waited_s) once a waiter has waited STUCK_MS with no holder known after a death"},
+     "set_hooks(repair, stuck, named=None): repair(lock, pid, tid) after a lock whose holder's process died "
+     "is taken over; stuck(lock, waited_s) once a waiter has waited STUCK_MS with no holder known after a "
+     "death; named(lock, key) -> bool: is this the lock a stop request names by key"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -716,6 +745,7 @@ static int module_exec(PyObject *m)
     _Atomic int *(*armed_flag)(void) = (_Atomic int *(*)(void))dlsym(RTLD_DEFAULT, "cga_stops_armed_flag");
     g_stop_here = (void (*)(int))dlsym(RTLD_DEFAULT, "cga_stop_here");
     g_stops_armed = armed_flag && g_stop_here ? armed_flag() : NULL;
+    g_stop_lock_key = (int64_t (*)(void))dlsym(RTLD_DEFAULT, "cga_stop_lock_key");
     if (g_tid_offset < 0 && pthread_key_create(&g_me_key, forget_me) == 0)
         g_tid_offset = find_tid_offset();
     g_lock_type = (PyTypeObject *)PyType_FromModuleAndSpec(m, &lock_spec, NULL);

@@ -16,7 +16,10 @@
  *
  * The request is a sigqueue(2) of the stop signal to the node process, its
  * value CGA_STOP_REQUEST(place, n): stop at the n-th time any of its tasks
- * passes such a place from now (n = 0: forget an earlier request).  The
+ * passes such a place from now (n = 0: forget an earlier request); for
+ * PY_LOCK the high 32 bits may hold the key of one lock's name, and only
+ * that lock's acquires count (pylocks.c asks cga_stop_lock_key and its
+ * name hook whether the lock it took is that one).  The
  * handler runs on whichever task of the process takes the signal, and so
  * finds the slot by the process's pid, not by its TLS.  Each slot holds one
  * request; a new process in a slot starts with none (stops_clear).
@@ -24,6 +27,7 @@
 #define _GNU_SOURCE
 #include <signal.h>
 #include <stdatomic.h>
+#include <stdint.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
@@ -35,6 +39,7 @@
 static struct {
     _Atomic int place;                  /* CGA_STOP_*, 0: none */
     _Atomic int left;                   /* passes before the stop */
+    _Atomic uint32_t key;               /* PY_LOCK: the lock's key, 0: any */
 } g_stop[CGA_NSLOTS];
 
 /* Slots with a request: every place's check is one load of this while 0. */
@@ -58,11 +63,13 @@ EXPORT void cga_stop_request(int sig, siginfo_t *si, void *uc)
     int s = cga_slot_of_pid((int)syscall(SYS_getpid));
     if (s <= 0)
         return;
-    int v = si->si_value.sival_int;
+    uint64_t value = (uint64_t)(uintptr_t)si->si_value.sival_ptr;
+    int v = (int)(uint32_t)value;
     int place = CGA_STOP_PLACE(v), n = CGA_STOP_COUNT(v);
     stops_clear(s);
     if (n <= 0 || place < CGA_STOP_ALLOCATION || place > CGA_STOP_PY_LOCK)
         return;
+    atomic_store(&g_stop[s].key, (uint32_t)(value >> CGA_STOP_KEY_SHIFT));
     atomic_store(&g_stop[s].left, n);
     atomic_store(&g_stop[s].place, place);
     atomic_fetch_add(&cga_stops_armed, 1);
@@ -96,4 +103,14 @@ EXPORT _Atomic int *cga_stops_armed_flag(void)
 EXPORT void cga_stop_here(int place)
 {
     cga_stop_passed(cga_caller_slot(), place);
+}
+
+/* For pylocks.c: -1 when the caller's process has no PY_LOCK request, else
+   the key of the one lock it names (0: any lock). */
+EXPORT int64_t cga_stop_lock_key(void)
+{
+    int s = cga_caller_slot();
+    if (s <= 0 || atomic_load(&g_stop[s].place) != CGA_STOP_PY_LOCK)
+        return -1;
+    return atomic_load(&g_stop[s].key);
 }
