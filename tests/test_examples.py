@@ -21,7 +21,7 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "6 passed" in proc.stdout
+    assert "7 passed" in proc.stdout
     run = json.loads((report / "report.json").read_text())
     outcomes = {s["nodeid"].split("::", 1)[1]: s["outcome"] for s in run["scenarios"]}
     assert outcomes == {
@@ -31,6 +31,7 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         "test_the_map_server_answers_through_a_random_schedule_of_faults": "passed",
         "test_the_planner_is_back_under_a_restart_policy": "passed",
         "test_the_rest_outlives_the_planner_killed_holding_a_lock": "passed",
+        "test_the_navigator_serves_goals_only_while_active_and_outlives_the_planner": "passed",
     }
     # the seeded trials: each recorded with its seed, its fault and what
     # every watched topic did; the rate held
