@@ -173,7 +173,7 @@ class ComponentManager:
             args = options.from_request(request)
             cls = spec.load_class()
         except LoadError as exc:
-            return self._load_failed(request, response, str(exc))
+            return self._load_failed(request, response, str(exc), exc.log_detail)
         if args.forward_global_arguments:
             self._log.warning(options.FORWARD_GLOBAL_WARNING)
         unique_id = self._take_id()
@@ -372,9 +372,11 @@ class ComponentManager:
             self._starting.add(unique_id)
         return unique_id
 
-    def _load_failed(self, request, response, message: str):
+    def _load_failed(self, request, response, message: str, log_detail: str = ""):
         message = shown(message)
-        self._log.error(f"Failed to load component: {message}")
+        # The detail is for the log only: clients get upstream's answer as is.
+        detail = f" ({shown(log_detail, 1500)})" if log_detail else ""
+        self._log.error(f"Failed to load component: {message}{detail}")
         self._events.publish(
             events.LOAD_FAILED,
             package_name=shown(request.package_name, 256),

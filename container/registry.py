@@ -21,6 +21,7 @@ from importlib.metadata import EntryPoint, entry_points
 
 from rclpy.node import Node
 
+from . import spelling
 from .options import LoadError
 
 ENTRY_POINT_GROUP = "cloneguard.components"
@@ -81,14 +82,21 @@ def components_of(package_name: str) -> dict[str, EntryPoint]:
 
 
 def find(package_name: str, plugin_name: str) -> ComponentSpec:
+    """The component a LoadNode names; a LoadError with upstream's text if
+    there is none, and in its log detail the names there are, the closest to
+    the one asked for first."""
     global _index
-    if not package_name:
-        raise LoadError(UNKNOWN_PACKAGE)
     if _index is None or plugin_name not in components_of(package_name):
         _index = _scan()  # first use, or installed since the last scan?
     plugins = components_of(package_name)
     if not plugins:
-        raise LoadError(UNKNOWN_PACKAGE)
+        offered = spelling.closest_listed(package_name, _index) or "none"
+        raise LoadError(
+            UNKNOWN_PACKAGE, f"no package {package_name!r} has components; those that do, closest first: {offered}"
+        )
     if plugin_name not in plugins:
-        raise LoadError(UNKNOWN_PLUGIN)
+        offered = spelling.closest_listed(plugin_name, plugins)
+        raise LoadError(
+            UNKNOWN_PLUGIN, f"package {package_name!r} has no plugin {plugin_name!r}; it has, closest first: {offered}"
+        )
     return ComponentSpec(package_name, plugin_name, plugins[plugin_name])

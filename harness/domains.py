@@ -1,9 +1,16 @@
 """ROS_DOMAIN_IDs handed out one per test, never shared while in use.
 
-Each allocation holds an exclusive flock on ``<lock dir>/<id>.lock`` for as
+Each allocation holds an exclusive flock on ``LOCK_DIR/<id>.lock`` for as
 long as it lives, so two pytest sessions on one machine (or two tests of one
 session) never get the same domain and never see each other's nodes. A lock
 held by a process that died is released by the kernel with it.
+
+LOCK_DIR is ``cloneguard-domains`` in the system's temporary directory
+(``tempfile.gettempdir()``: $TMPDIR, else /tmp), outside any project on
+purpose: a ROS domain id is shared by every process on the machine, so
+every checkout and venv running tests here must take its ids from the same
+locks (runs given different $TMPDIRs do not see each other's). It holds
+only the empty lock files, which are left for the next run.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ from pathlib import Path
 # 0..101 is the range whose Fast DDS ports stay clear of Linux's ephemeral
 # port range (ROS 2's own guidance). 0 is left alone: it is everyone's default.
 DOMAIN_RANGE = range(1, 102)
-LOCK_DIR = Path(tempfile.gettempdir()) / "cloneguard-domains"
+LOCK_DIR = Path(tempfile.gettempdir()) / "cloneguard-domains"  # machine-wide: see above
 
 
 class NoFreeDomain(RuntimeError):

@@ -16,7 +16,9 @@ source files, the versions of the ROS wheels it is generated and compiled
 with, the Python version, or this script's RECIPE.  The digest of those is
 stored in <venv>/share/<pkg>/.cloneguard_build_stamp; a package is skipped
 when the stamp matches AND the package is still installed and its type
-support loads.
+support loads.  pip's and CMake's output for each package built goes to
+build/interfaces-logs/<pkg>.log in the repository (ignored by git), and the
+failing part of it to the terminal.
 
 Runs with the venv's Python (re-executes itself with <repo>/.venv/bin/python
 when started from another interpreter and that venv exists).  Installs the
@@ -43,7 +45,6 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-import tempfile
 import time
 from importlib import metadata
 from pathlib import Path
@@ -51,6 +52,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 INTERFACES_DIR = REPO / "interfaces"
 SHARED_CMAKE_DIR = INTERFACES_DIR / "cmake"
+LOG_DIR = REPO / "build" / "interfaces-logs"
 
 # Bump when the way the packages are built changes, to force one rebuild.
 RECIPE = "1"
@@ -308,16 +310,13 @@ def check_installed(pkgs: list[Package]) -> dict[str, str | None]:
     if to_import:
         # A fresh interpreter: it must find the package and its libraries the
         # way any user of the venv does (the ros_wheels_bootstrapper .pth sets
-        # LD_LIBRARY_PATH to <venv>/lib and re-executes).
+        # LD_LIBRARY_PATH to <venv>/lib and re-executes, keeping -P), and
+        # never in the working directory (-P: `python -c` would search it
+        # first, where a folder named like a package, as in interfaces/,
+        # must not stand in for what is installed).
         spec = json.dumps([[p.name, p.module, p.types] for p in to_import])
         env = {k: v for k, v in os.environ.items() if k != "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
-        proc = subprocess.run(
-            [sys.executable, "-c", _CHECK_CODE, spec],
-            capture_output=True,
-            text=True,
-            cwd=tempfile.gettempdir(),
-            env=env,
-        )
+        proc = subprocess.run([sys.executable, "-P", "-c", _CHECK_CODE, spec], capture_output=True, text=True, env=env)
         try:
             problems.update(json.loads(proc.stdout.strip().splitlines()[-1]))
         except (ValueError, IndexError):
@@ -432,10 +431,9 @@ def _run(selected: list[Package], args: argparse.Namespace, t_start: float) -> i
         ensure_build_tools()
         # Installing build requirements can change toolchain versions.
         toolchain = toolchain_versions()
-        log_dir = Path(tempfile.gettempdir()) / "cloneguard-build-interfaces"
-        log_dir.mkdir(parents=True, exist_ok=True)
+        LOG_DIR.mkdir(parents=True, exist_ok=True)
         for i, pkg in enumerate(todo, 1):
-            log = log_dir / f"{pkg.name}.log"
+            log = LOG_DIR / f"{pkg.name}.log"
             say(f"==> [{i}/{len(todo)}] {pkg.name}: building ({reasons[pkg.name]})")
             say(
                 f"    pip install --no-build-isolation {pkg.source.relative_to(REPO)}"

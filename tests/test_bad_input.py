@@ -1,11 +1,15 @@
 """Every malformed LoadNode gets success=false with a clear message, changes
 nothing, and the container goes on serving."""
 
+import re
 import time
+from importlib.metadata import entry_points
 
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterValue
+
+from cloneguard.container import spelling
 
 PKG = "cloneguard"
 TALKER = "cloneguard::Talker"
@@ -163,3 +167,46 @@ def test_log_level_applies_to_the_node(client, container):
     # Each node logs its debug line before its info line, so both are in.
     debug_lines = [ln for ln in container.log_text().splitlines() if "debug line from a timer" in ln]
     assert len(debug_lines) == 1 and "[chatty]" in debug_lines[0]
+
+
+def _plugins_of(distribution: str) -> set[str]:
+    """The component names a distribution installs, read here, not by the container."""
+    groups = ("cloneguard.components", "rclpy_components")
+    return {ep.name for g in groups for ep in entry_points(group=g) if ep.dist and ep.dist.name == distribution}
+
+
+# A misspelt name gets upstream's answer, word for word; only the container's
+# log says what there is, the closest first.
+MISSPELT = [
+    pytest.param(PKG, "cloneguard::Talkr", "Failed to find class with the requested plugin name.", TALKER, id="plugin"),
+    pytest.param("clonguard", TALKER, "Could not find requested resource in ament index", PKG, id="package"),
+]
+
+
+@pytest.mark.parametrize("package, plugin, answer, meant", MISSPELT)
+def test_misspelt_name_is_answered_as_upstream_and_logged_with_the_closest(
+    client, container, package, plugin, answer, meant
+):
+    resp = client.load(package, plugin)
+    assert (resp.success, resp.error_message) == (False, answer)
+    line = container.wait_for_log(rf"Failed to load component: {re.escape(answer)} \((.*)\)", timeout=10)
+    offered = line.group(1).split("closest first: ", 1)[1].split(", ")
+    assert offered[0] == meant, line.group(0)
+    if meant == TALKER:  # all the package's plugins, as there are fewer than the cap
+        assert sorted(offered) == sorted(_plugins_of(PKG)), line.group(0)
+    # The container goes on serving.
+    again = client.load_ok(PKG, TALKER, node_name="after")
+    assert client.list() == [(again.unique_id, "/after")]
+
+
+def test_names_offered_are_capped_and_say_how_many_more():
+    names = [f"pkg::Node{i}" for i in range(25)]
+    listed = spelling.closest_listed("pkg::Nodee12", names, shown=10)
+    first, more = listed.split(" (and ")
+    assert first.split(", ")[0] == "pkg::Node12"
+    assert len(first.split(", ")) == 10 and more == "15 more)"
+    assert spelling.closest_listed("x", ["b", "a"]) == "a, b"  # no "more" when all are shown; ties by name
+
+
+def test_closeness_ignores_case():
+    assert spelling.closest_first("CLONEGUARD", ["cloneguard-testrig", "demo-robot", "cloneguard"])[0] == "cloneguard"
