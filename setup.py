@@ -61,6 +61,7 @@ setup(
                 "container/isolated/pyalloc.c",
                 "container/isolated/heapkeys.c",
                 "container/isolated/stops.c",
+                "container/isolated/bigblocks.c",
             ],
             depends=["container/isolated/allocguard.h", "container/isolated/guard_internal.h"],
             extra_compile_args=["-std=gnu11", "-O2", *WARNINGS, "-fvisibility=hidden", "-fno-builtin"],

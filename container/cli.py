@@ -34,7 +34,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from . import allocator, seams
+from . import allocator, memory_budget, seams
 from .executors import NodesMultiThreadedExecutor
 from .hosting import ThreadHost
 from .isolated import profiles
@@ -95,6 +95,13 @@ def _watchdog_seconds(text: str) -> float:
     if not (0.0 <= value <= WATCHDOG_MAX_S):  # also refuses nan and inf
         raise argparse.ArgumentTypeError(f"must be 0 (off) to {WATCHDOG_MAX_S:g} seconds, got {text!r}")
     return value
+
+
+def _memory_size(text: str) -> int:
+    try:
+        return memory_budget.parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _restart_limit(text: str) -> int:
@@ -241,6 +248,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "memory) (default: %(default)s)",
     )
     isolated.add_argument(
+        "--node-memory-limit",
+        type=_memory_size,
+        default=0,
+        metavar="SIZE",
+        help="each node process's memory budget (512M, 2G): one that would go over it ends "
+        "itself just before, alone, its CRASHED saying so; LoadNode extra argument "
+        f"'{memory_budget.MEMORY_LIMIT}' gives one node its own (needs the allocator guard) (default: none)",
+    )
+    isolated.add_argument(
         "--node-watchdog",
         type=_watchdog_seconds,
         default=0.0,
@@ -294,6 +310,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         parser.error("--node-announcement needs the per-node profile (the participants of node processes)")
     if opts.node_announcement is None:
         opts.node_announcement = NODE_ANNOUNCEMENT_S if opts.isolated and opts.profile == "per-node" else 0.0
+    if opts.node_memory_limit and opts.no_alloc_guard:
+        parser.error(
+            "--node-memory-limit needs the allocator guard, which counts each node's memory: not --no-alloc-guard"
+        )
     if "--restart-limit" in given and opts.restart_policy != "on-crash":
         parser.error("--restart-limit needs --restart-policy on-crash")
     if "--jemalloc-arenas" in given and not (opts.jemalloc and opts.no_alloc_guard):
@@ -486,6 +506,7 @@ def _make_host(opts, argv, executor, context, logger):
             container_argv=argv,
             core_dumps=opts.core_dumps,
             stop_signal=opts.stop_signal,
+            node_memory_limit=opts.node_memory_limit,
         )
     except IsolationUnavailable as exc:
         if cgroups is not None:

@@ -38,6 +38,7 @@ from typing import Any
 from rclpy.node import Node
 
 from . import construction
+from .memory_budget import MEMORY_LIMIT
 from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
 
 
@@ -68,6 +69,11 @@ class ThreadHost:
     def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
+        if args.memory_limit:
+            raise LoadError(
+                f"a memory budget ({MEMORY_LIMIT}) needs an isolated container: in thread mode every node "
+                "is the container's one process, whose only budget is the whole container's (a memory cgroup)"
+            )
         if args.profile is not None:
             raise LoadError(f"a participant profile ({PROFILE}) needs an isolated container (--isolated)")
         start = time.time_ns()

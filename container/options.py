@@ -19,6 +19,7 @@ from rclpy.parameter import Parameter
 
 from . import seams
 from .isolated.profiles import PROFILES
+from .memory_budget import MEMORY_LIMIT, parse_size
 
 # rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
 # rclcpp_components, any other value is ignored.
@@ -41,6 +42,9 @@ KNOWN_EXTRA_ARGUMENTS = {
     "forward_global_arguments": Parameter.Type.BOOL,
     CPU_QUOTA: Parameter.Type.DOUBLE,
     PROFILE: Parameter.Type.STRING,
+    # MEMORY_LIMIT (memory_budget.py): this node's memory budget, bytes or
+    # a size text ("512M"); either type.
+    MEMORY_LIMIT: (Parameter.Type.INTEGER, Parameter.Type.STRING),
 }
 # rclcpp_components' warning when forward_global_arguments is true, word for word.
 FORWARD_GLOBAL_WARNING = (
@@ -49,11 +53,22 @@ FORWARD_GLOBAL_WARNING = (
     "not only those targeted at this node."
 )
 FAULT_EXTRA_ARGUMENTS = {seams.DROP_LOADED_EVENT: Parameter.Type.BOOL}
-_TYPE_NAMES = {Parameter.Type.BOOL: "a boolean", Parameter.Type.DOUBLE: "a double", Parameter.Type.STRING: "a string"}
+_TYPE_NAMES = {
+    Parameter.Type.BOOL: "a boolean",
+    Parameter.Type.DOUBLE: "a double",
+    Parameter.Type.STRING: "a string",
+    Parameter.Type.INTEGER: "an integer",
+}
 
 
 class LoadError(Exception):
-    """A LoadNode request that cannot be honoured; str() is the answer's text."""
+    """A LoadNode request that cannot be honoured; str() is the answer's text.
+    ``log_detail``, when there is one, goes to the container's log after it
+    and never to the client (say, what a misspelt name may have meant)."""
+
+    def __init__(self, message: str, log_detail: str = ""):
+        super().__init__(message)
+        self.log_detail = log_detail
 
 
 @dataclass(frozen=True)
@@ -66,6 +81,7 @@ class NodeArguments:
     forward_global_arguments: bool = False
     drop_loaded_event: bool = False
     cpu_quota: float | None = None
+    memory_limit: int | None = None  # MEMORY_LIMIT, bytes (0: none): None, the container's
     profile: str | None = None  # PROFILE: None, the container's
     requested_name: str = ""  # /namespace/name when the request names the node, else ""
     plugin: str = ""  # the request's plugin_name
@@ -103,8 +119,14 @@ def _extra_arguments(messages) -> dict[str, object]:
         wanted = KNOWN_EXTRA_ARGUMENTS.get(param.name)
         if wanted is None and seams.enabled():
             wanted = FAULT_EXTRA_ARGUMENTS.get(param.name)
-        if wanted is not None and param.type_ != wanted:
-            raise LoadError(f"Extra component argument '{param.name}' must be {_TYPE_NAMES[wanted]}")
+        if wanted is not None and param.type_ not in (wanted if isinstance(wanted, tuple) else (wanted,)):
+            kinds = " or ".join(_TYPE_NAMES[w] for w in (wanted if isinstance(wanted, tuple) else (wanted,)))
+            raise LoadError(f"Extra component argument '{param.name}' must be {kinds}")
+        if param.name == MEMORY_LIMIT:
+            try:
+                param = Parameter(param.name, value=parse_size(param.value))
+            except ValueError as exc:
+                raise LoadError(f"Extra component argument '{MEMORY_LIMIT}': {exc}") from None
         if param.name == CPU_QUOTA and not (
             math.isfinite(param.value) and CPU_QUOTA_RANGE[0] <= param.value <= CPU_QUOTA_RANGE[1]
         ):
@@ -148,6 +170,7 @@ def from_request(request) -> NodeArguments:
         forward_global_arguments=bool(extra.get("forward_global_arguments", False)),
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=float(extra[CPU_QUOTA]) if CPU_QUOTA in extra else None,  # type: ignore[arg-type]
+        memory_limit=int(extra[MEMORY_LIMIT]) if MEMORY_LIMIT in extra else None,  # type: ignore[call-overload]
         profile=str(extra[PROFILE]) if PROFILE in extra else None,
         requested_name=_requested_name(request.node_namespace, request.node_name),
         plugin=request.plugin_name,

@@ -442,6 +442,58 @@ class MallocDrain(Node):
         self._pub.publish(self._msg(data=self._freed))
 
 
+class MemoryLeak(Node):
+    """Keeps memory it never gives back, as a node whose cache or queue grows
+    without bound: ``step`` bytes every ``period`` s, of ``kind``
+
+    ``python``   many small Python objects (Python's object allocator)
+    ``bytes``    one ``bytearray`` (a big block: glibc mmaps it)
+    ``native``   ``malloc`` in C, every page touched
+    ``huge``     one allocation of ``step`` bytes, once
+
+    and publishes the bytes it holds on ``~/held`` each time. It leaks from
+    ``delay`` s after its construction on, ``steps`` times (0: for ever)."""
+
+    KINDS = ("python", "bytes", "native", "huge")
+
+    def __init__(self, **kwargs):
+        super().__init__("memory_leak", **kwargs)
+        from std_msgs.msg import UInt64
+
+        self.kind = self.declare_parameter("kind", "bytes").value
+        self.step = self.declare_parameter("step", 8 << 20).value
+        period = self.declare_parameter("period", 0.02).value
+        delay = self.declare_parameter("delay", 0.0).value
+        self._steps = self.declare_parameter("steps", 0).value
+        if self.kind not in self.KINDS or self.step <= 0 or period <= 0 or delay < 0 or self._steps < 0:
+            raise ValueError(f"kind must be one of {self.KINDS}; step, period > 0; delay, steps >= 0")
+        self._held: list = []
+        self._bytes = 0
+        self._msg = UInt64
+        self._pub = self.create_publisher(UInt64, "~/held", 10)
+        self._libc = ctypes.CDLL(None)
+        self._libc.malloc.restype = ctypes.c_void_p
+        self._start = time.monotonic() + delay
+        self._timer = self.create_timer(period, self._leak)
+
+    def _leak(self):
+        if time.monotonic() < self._start:
+            return
+        if self.kind == "python":
+            self._held.append([str(i) for i in range(self.step // 64)])  # ~64 B of objects an item
+        elif self.kind == "bytes":
+            self._held.append(bytearray(self.step))  # zeroed: every page touched
+        else:
+            block = self._libc.malloc(self.step)
+            if block:
+                ctypes.memset(block, 1, self.step)
+                self._held.append(block)
+        self._bytes += self.step
+        self._pub.publish(self._msg(data=self._bytes))
+        if self.kind == "huge" or (self._steps and self._bytes >= self._steps * self.step):
+            self._timer.cancel()
+
+
 # -- intra-process messaging (container.intra) ------------------------------
 
 

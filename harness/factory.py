@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .client import ContainerClient
+from .memory_cgroup import MemoryCgroup
 from .process import NO_SHM_PROFILE, ContainerProcess
 
 #: how long a started container may take to answer ListNodes; a slower
@@ -67,17 +68,28 @@ class ContainerFactory:
         fastdds_profile=NO_SHM_PROFILE,
         extra_env: dict[str, str] | None = None,
         exe: str | None = None,
+        memory_limit: int | None = None,
     ) -> ContainerProcess:
-        """``exe`` overrides the factory's container executable for this one."""
-        proc = ContainerProcess(
-            list(args),
-            domain_id=self.domain_id,
-            log_path=self._log_dir / f"container-{len(self.started)}.log",
-            exe=exe or self._exe,
-            node_name=node_name,
-            fastdds_profile=fastdds_profile,
-            extra_env=extra_env,
-        )
+        """``exe`` overrides the factory's container executable for this one;
+        with ``memory_limit`` (bytes) it runs in a memory cgroup of the
+        harness's own making with that limit (memory_cgroup.py; where none
+        can be made, MemoryCgroupUnavailable says why)."""
+        cgroup = MemoryCgroup(memory_limit) if memory_limit is not None else None
+        try:
+            proc = ContainerProcess(
+                list(args),
+                domain_id=self.domain_id,
+                log_path=self._log_dir / f"container-{len(self.started)}.log",
+                exe=exe or self._exe,
+                node_name=node_name,
+                fastdds_profile=fastdds_profile,
+                extra_env=extra_env,
+                memory_cgroup=cgroup,
+            )
+        except BaseException:
+            if cgroup is not None:
+                cgroup.close()
+            raise
         self.started.append(proc)
         return proc
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from . import procfs, shm, stops
 from .errors import HarnessTimeout
+from .memory_cgroup import MemoryCgroup
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NO_SHM_PROFILE = REPO_ROOT / "fixtures" / "fastdds_no_shm.xml"
@@ -134,8 +135,11 @@ class ContainerProcess:
         node_name: str = "ComponentManager",
         fastdds_profile: Path = NO_SHM_PROFILE,
         extra_env: dict[str, str] | None = None,
+        memory_cgroup: MemoryCgroup | None = None,
     ):
         self.exe = exe or default_container_exe()
+        # Born in it, when given (memory_cgroup.py); removed after its stop.
+        self.memory_cgroup = memory_cgroup
         self.node_name = node_name
         self.domain_id = domain_id
         self.log_path = Path(log_path)
@@ -151,8 +155,9 @@ class ContainerProcess:
         self.started_at = time.time()
         # setpriv sets PR_SET_PDEATHSIG in the child and execs the container,
         # so the pid below is the container's own.
+        born_in = [] if memory_cgroup is None else ["sh", "-c", 'echo $$ > "$0" && exec "$@"', str(memory_cgroup.procs)]
         self._popen = subprocess.Popen(
-            ["setpriv", "--pdeathsig", "KILL", "--", *self.argv],
+            [*born_in, "setpriv", "--pdeathsig", "KILL", "--", *self.argv],
             stdin=subprocess.DEVNULL,
             stdout=self._log,
             stderr=subprocess.STDOUT,
@@ -223,6 +228,8 @@ class ContainerProcess:
         code, forced = stop_group(self._popen, self.pgid, grace)
         self._log.close()
         self.exit_status = ExitStatus(code, forced, time.monotonic() - t0)
+        if self.memory_cgroup is not None:
+            self.memory_cgroup.close()
         return self.exit_status
 
     def __enter__(self):

@@ -11,9 +11,10 @@ Fixtures
     container_factory  start(args, ...) -> ContainerProcess; stops them after the test
     container          one started container (``container_args``), services up
     client             a ContainerClient connected to ``container``
-    system_factory     system_factory(nodes, container_args=None) -> System: your own
-                       composition (NodeSpecs, or a Composition read from a launch file:
-                       composition.py) loaded into a container (default: --isolated)
+    system_factory     system_factory(nodes, container_args=None, memory_limit=None) -> System:
+                       your own composition (NodeSpecs, or a Composition read from a launch
+                       file: composition.py) loaded into a container (default: --isolated),
+                       with memory_limit (bytes) in a memory cgroup of that limit
     system_trials      system_trials(system, trial, fault=, claim=, ...): seeded trials
                        of a System, recorded in the report (harness/system_trials.py)
     domain_id          this test's own ROS_DOMAIN_ID
@@ -162,12 +163,12 @@ def system_factory(request, container_factory):
 
     more = list(request.config.getoption("--container-arg"))
 
-    def make(nodes, container_args=None):
+    def make(nodes, container_args=None, memory_limit=None):
         if isinstance(nodes, Composition):  # read from a file: its arguments unless given
             container_args = container_args if container_args is not None else nodes.container_args
             nodes = nodes.nodes
         args = ("--isolated",) if container_args is None else container_args
-        return System(container_factory, nodes, [*args, *more])
+        return System(container_factory, nodes, [*args, *more], memory_limit=memory_limit)
 
     return make
 

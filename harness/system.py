@@ -92,17 +92,24 @@ _HARMLESS_SIGNALS = {"SIGCONT", "SIGCHLD", "SIGURG", "SIGWINCH", "SIGSTOP", "SIG
 
 class System:
     """A container (``container_args``: ``--isolated`` by default) with
-    ``nodes`` loaded in order. Made by the ``system_factory`` fixture,
-    which stops it after the test."""
+    ``nodes`` loaded in order; with ``memory_limit`` (bytes), in a memory
+    cgroup of the harness's own with that limit (memory_cgroup.py), each
+    time it is started. Made by the ``system_factory`` fixture, which stops
+    it after the test."""
 
     def __init__(
-        self, factory: ContainerFactory, nodes: Sequence[NodeSpec], container_args: Sequence[str] = ("--isolated",)
+        self,
+        factory: ContainerFactory,
+        nodes: Sequence[NodeSpec],
+        container_args: Sequence[str] = ("--isolated",),
+        memory_limit: int | None = None,
     ):
         if not nodes:
             raise ValueError("a System needs at least one node")
         self._factory = factory
         self.specs = tuple(nodes)
         self.container_args = list(container_args)
+        self.memory_limit = memory_limit
         self.faults: list[Fault] = []
         self.watched: dict[str, Recorder] = {}  # every topic() asked for, by name
         self.proc: ContainerProcess
@@ -111,7 +118,7 @@ class System:
         self._start()
 
     def _start(self) -> None:
-        self.proc = self._factory.start(self.container_args)
+        self.proc = self._factory.start(self.container_args, memory_limit=self.memory_limit)
         self.client = self._factory.connect(self.proc)
         self._talk = Talker(self.client)
         self.nodes = {}

@@ -109,6 +109,13 @@ struct cga_slot_stats {
     uint64_t main_arena_allocs;
 };
 
+struct cga_slot_memory {
+    uint64_t in_use;
+    uint64_t limit;
+    uint64_t over_used;
+    uint64_t over_asked;
+};
+
 struct cg_condwait_probe {
     uintptr_t routine;
     int found;
@@ -225,6 +232,8 @@ int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_pkeys_in_use(int *keys, int max);
 int cg_alloc_slot_of(const void *p);
 int cg_child_slot(const struct cg_child *c);
+int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
+int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_probe_timedwait(struct cg_timedwait_probe *out);
@@ -303,6 +312,7 @@ void cg_lastresort_stop(void);
 #define CG_ALLOC_QUARANTINED ...
 #define CG_ALLOC_PY_ABANDONED ...
 #define CG_ALLOC_FAULTED ...
+#define CG_ALLOC_OVER_BUDGET ...
 #define CGA_UNUSED ...
 #define CGA_IDLE ...
 #define CGA_BOUND ...

@@ -47,6 +47,7 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <pthread.h>
+#include <signal.h>
 #include <stdatomic.h>
 #include <stdbool.h>
 #include <stddef.h>
@@ -154,6 +155,9 @@ struct slot {
     _Atomic uint64_t main_allocs;       /* glibc: blocks it got from the main
                                            arena (should stay 0: see
                                            container/allocator.py) */
+    _Atomic uint64_t limit;             /* its memory budget in bytes, 0: none
+                                           (here, under the container's key:
+                                           no node can raise its own) */
 };
 
 /* An owner of blocks: who frees them into their arena.  jemalloc: owner i
@@ -177,6 +181,11 @@ struct slot_live {
     _Atomic int pid;                    /* the process bound to it */
     _Atomic long inside;                /* its tasks inside the allocator now */
     _Atomic uintptr_t bump, shared_bump;/* jemalloc: its ranges carved so far */
+    _Atomic long bytes;                 /* in use: its other threads' blocks and
+                                           its mmapped ones (memory in use) */
+    _Atomic(_Atomic long *) main_bytes; /* its main task's own count (t_bytes) */
+    _Atomic uint64_t over_used, over_asked;  /* it went over its budget: what
+                                           it had and what it asked for */
 };
 
 /* The guard's tables: written by container threads, and by node processes
@@ -207,6 +216,9 @@ static __thread int t_owner __attribute__((tls_model("initial-exec")));
 static __thread int t_bound __attribute__((tls_model("initial-exec")));
 static __thread int t_inside __attribute__((tls_model("initial-exec")));
 static __thread void *t_arena __attribute__((tls_model("initial-exec"))); /* glibc: its own */
+/* A bound main task's bytes in use (memory in use, below): it alone writes
+   it, the rest of its slot and the container read it. */
+static __thread _Atomic long t_bytes __attribute__((tls_model("initial-exec")));
 static long g_inside_off;               /* &t_inside - thread pointer */
 
 /* ---------------------------------------------------------------------- */
@@ -335,6 +347,105 @@ static void *be_aligned(int slot, size_t align, size_t n)
 }
 
 /* ---------------------------------------------------------------------- */
+/* Memory in use, per slot, and budgets (cga_slot_set_limit).              */
+/*
+ * A node process's memory in use: the sizes of the blocks its tasks got and
+ * that have not been freed into its arena yet (a block another slot frees
+ * counts until the owner drains it from its hand-over stack), plus its
+ * Python small objects (pyalloc.c).  Its main task counts in t_bytes (only
+ * it writes that word: no atomic add), its other threads in the slot's
+ * live[s].bytes, as do glibc's mmapped blocks, which anyone may free: the
+ * big-block table (bigblocks.c) says whose each is.  Sizes are the
+ * allocator's: glibc's chunk size (the block and its header), jemalloc's
+ * usable size.  Not counted: memory a node maps itself, its thread stacks,
+ * what was allocated before the guard was active.  A new process in a slot
+ * starts at 0; blocks of an earlier process it frees make it lower (the
+ * total is read as at least 0).
+ */
+
+static inline size_t block_bytes(void *p)
+{
+    return g_je ? sallocx(p, 0) : ((size_t *)p)[-1] & ~(size_t)7;
+}
+
+static inline bool glibc_mmapped(void *p)
+{
+    return !g_je && (((size_t *)p)[-1] & GLIBC_IS_MMAPPED);
+}
+
+static inline void count(int s, long n)
+{
+    if (t_bound)
+        atomic_store_explicit(&t_bytes, atomic_load_explicit(&t_bytes, memory_order_relaxed) + n,
+                              memory_order_relaxed);
+    else
+        atomic_fetch_add_explicit(&live[s].bytes, n, memory_order_relaxed);
+}
+
+/* Block p, just got by slot s (0: the container, not counted). */
+static inline void count_got(int s, void *p)
+{
+    if (!p || !s)
+        return;
+    if (unlikely(glibc_mmapped(p))) {
+        if (bb_put(p, s))
+            atomic_fetch_add_explicit(&live[s].bytes, (long)block_bytes(p), memory_order_relaxed);
+        return;
+    }
+    count(s, (long)block_bytes(p));
+}
+
+/* Block p, about to be freed into its arena by slot s, its owner's (or
+   unmapped by anyone: then the table says whose it was). */
+static inline void count_freed(int s, void *p)
+{
+    if (unlikely(glibc_mmapped(p))) {
+        int got = bb_take(p);
+        if (got > 0)
+            atomic_fetch_sub_explicit(&live[got].bytes, (long)block_bytes(p), memory_order_relaxed);
+        return;
+    }
+    if (s)
+        count(s, -(long)block_bytes(p));
+}
+
+static long slot_bytes(int s)
+{
+    _Atomic long *main = atomic_load_explicit(&live[s].main_bytes, memory_order_acquire);
+    long n = atomic_load_explicit(&live[s].bytes, memory_order_relaxed) +
+             (main ? atomic_load_explicit(main, memory_order_relaxed) : 0) + py_slot_bytes(s);
+    return n > 0 ? n : 0;
+}
+
+static __attribute__((noreturn, cold, noinline)) void over_budget(int s, long used, size_t n)
+{
+    /* The figures first, for the CRASHED event (cga_slot_memory), then the
+       end: SIGKILL to its own process, outside the allocator's bracket, so
+       its arena stays in use for the next process in the slot. */
+    atomic_store(&live[s].over_asked, (uint64_t)n ? (uint64_t)n : 1);
+    atomic_store(&live[s].over_used, (uint64_t)used);
+    syscall(SYS_kill, syscall(SYS_getpid), SIGKILL);
+    for (;;)
+        pause();
+}
+
+/* Before slot s gets n bytes more: one load while it has no budget. */
+static inline void within_budget(int s, size_t n)
+{
+    uint64_t limit = atomic_load_explicit(&slots[s].limit, memory_order_relaxed);
+    if (likely(!limit) || !s)
+        return;
+    long used = slot_bytes(s);
+    if ((uint64_t)used + n > limit)
+        over_budget(s, used, n);
+}
+
+HIDDEN void cga_within_budget(int s, size_t n)
+{
+    within_budget(s, n);
+}
+
+/* ---------------------------------------------------------------------- */
 /* Which slot the calling task is, and what it must do on each call.      */
 
 static int learn_glibc_arena(int slot)
@@ -451,7 +562,7 @@ static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o
     abort();
 }
 
-static void drain_stack(struct owner *o)
+static void drain_stack(struct owner *o, int s)
 {
     uint32_t pkru = hk_open();          /* the tables are the container's */
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
@@ -461,6 +572,7 @@ static void drain_stack(struct owner *o)
         uintptr_t *mark = mark_word(p);
         if (mark)
             *mark = 0;
+        count_freed(s, p);
         be_free(p);
         p = next;
     }
@@ -471,10 +583,10 @@ static inline void drain_mine(int slot)
 {
     struct owner *mine = &owners[t_owner];
     if (unlikely(atomic_load_explicit(&mine->stack, memory_order_relaxed)))
-        drain_stack(mine);
+        drain_stack(mine, slot);
     if (slot == 0 && t_owner != 0 &&
         unlikely(atomic_load_explicit(&owners[0].stack, memory_order_relaxed)))
-        drain_stack(&owners[0]);
+        drain_stack(&owners[0], 0);
 }
 
 static void hand_over(int o, void *p)
@@ -514,6 +626,7 @@ static inline bool shared_slot(int *s)
 
 static void *shared_in(int s, size_t n, size_t align, bool zero)
 {
+    within_budget(s, n);
     enter(s);
     drain_mine(s);
     /* With keys nearly all of a Python node's allocating comes this way. */
@@ -521,6 +634,7 @@ static void *shared_in(int s, size_t n, size_t align, bool zero)
     void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
                                  (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
     leave(s);
+    count_got(s, p);
     return p;
 }
 
@@ -557,10 +671,15 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n)
     if (!shared_slot(&s))
         return realloc(p, n);
     if (in_shared(p) && owner_of(p) == s) {
+        size_t have = block_bytes(p);
+        if (n > have)
+            within_budget(s, n - have);
         enter(s);
         drain_mine(s);
+        count_freed(s, p);
         void *q = rallocx(p, n ? n : 1, shared_flags(s));
         leave(s);
+        count_got(s, q ? q : p);
         return q;
     }
     /* Another slot's block, or one from before (the container's): moved
@@ -588,11 +707,13 @@ static void *malloc_from(size_t n, const void *ra)
             errno = ENOMEM;
         return p;
     }
+    within_budget(s, n);
     enter(s);
     drain_mine(s);
     cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = check_main(s, be_malloc(s, n));
     leave(s);
+    count_got(s, p);
     if (!p)
         errno = ENOMEM;
     return p;
@@ -616,6 +737,7 @@ EXPORT void free(void *p)
     if (o < 0 || owner_slot(o) == s) {
         enter(s);
         drain_mine(s);
+        count_freed(s, p);
         be_free(p);
         leave(s);
     } else {
@@ -637,6 +759,7 @@ EXPORT void *calloc(size_t n, size_t size)
             errno = ENOMEM;
         return p;
     }
+    within_budget(s, total);
     enter(s);
     if (s)
         drain_mine(s);
@@ -645,6 +768,7 @@ EXPORT void *calloc(size_t n, size_t size)
                             : je_fast(s) ? je_real.calloc(n, size)
                             : mallocx(total ? total : 1, JE_ZERO | je_flags(s)));
     leave(s);
+    count_got(s, p);
     if (!p)
         errno = ENOMEM;
     return p;
@@ -663,12 +787,21 @@ EXPORT void *realloc(void *p, size_t n)
     int o = active ? owner_of(p) : 0;
     void *q;
     if (o < 0 || owner_slot(o) == s) {
+        if (active) {
+            size_t have = block_bytes(p);
+            if (n > have)
+                within_budget(s, n - have);
+        }
         enter(s);
         drain_mine(s);
+        if (active)
+            count_freed(s, p);
         q = check_main(s, !g_je ? __libc_realloc(p, n)
                           : in_shared(p) ? rallocx(p, n, shared_flags(s))
                           : je_fast(s) ? je_real.realloc(p, n) : rallocx(p, n, je_flags(s)));
         leave(s);
+        if (active)
+            count_got(s, q ? q : p);    /* a failed realloc leaves p as it was */
     } else {
         /* Someone else's block: copy it into ours (shared if it was), hand
            theirs back. */
@@ -705,12 +838,14 @@ static void *aligned(size_t align, size_t n, const void *ra)
             errno = ENOMEM;
         return p;
     }
+    within_budget(s, n);
     enter(s);
     if (s)
         drain_mine(s);
     cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = check_main(s, be_aligned(s, align, n));
     leave(s);
+    count_got(s, p);
     if (!p)
         errno = ENOMEM;
     return p;
@@ -1150,6 +1285,12 @@ EXPORT void cga_child_start(void)
         if (g_split)
             hk_child_enter(s);
         stops_clear(s);                 /* no request of an earlier process */
+        atomic_store(&t_bytes, 0);      /* its memory in use, from nothing */
+        py_slot_begin(s);
+        atomic_store(&live[s].bytes, 0);
+        atomic_store(&live[s].over_used, 0);
+        atomic_store(&live[s].over_asked, 0);
+        atomic_store(&live[s].main_bytes, &t_bytes);
         atomic_store(&live[s].pid, (int)syscall(SYS_getpid));
     }
 }
@@ -1188,10 +1329,39 @@ EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
     int py = py_slot_retire(slot, tcb);
     int bits = (inside ? CGA_RETIRE_QUARANTINED : 0) |
                (!inside && faulted ? CGA_RETIRE_QUARANTINED | CGA_RETIRE_FAULTED : 0) |
-               (py ? CGA_RETIRE_PY_ABANDONED : 0);
+               (py ? CGA_RETIRE_PY_ABANDONED : 0) |
+               (atomic_load(&live[slot].over_asked) ? CGA_RETIRE_OVER_BUDGET : 0);
     atomic_store(&live[slot].pid, 0);
     atomic_store(&sl->state, bits & CGA_RETIRE_QUARANTINED ? CGA_QUARANTINED : CGA_IDLE);
     return bits;
+}
+
+/* Slot s's memory budget, in bytes (0: none), for its process from now on
+   (the host sets it before the node's construction runs). */
+EXPORT int cga_slot_set_limit(int slot, uint64_t bytes)
+{
+    if (slot <= 0 || slot >= g_nslots)
+        return -EINVAL;
+    uint32_t pkru = hk_open();          /* slots[] is under the container's key */
+    atomic_store(&slots[slot].limit, bytes);
+    hk_close(pkru);
+    return 0;
+}
+
+/* Slot s's memory in use and budget; over_*: its process went over it (and
+   was ended), what it had and what it asked for; kept until the next
+   process in the slot starts.  The main task's count is read from its TLS
+   word while the slot's process lives, and, after its death, until the
+   context's next process starts. */
+EXPORT int cga_slot_memory(int slot, struct cga_slot_memory *out)
+{
+    if (slot <= 0 || slot >= g_nslots)
+        return -EINVAL;
+    out->in_use = (uint64_t)slot_bytes(slot);
+    out->limit = atomic_load(&slots[slot].limit);
+    out->over_used = atomic_load(&live[slot].over_used);
+    out->over_asked = atomic_load(&live[slot].over_asked);
+    return 0;
 }
 
 static void count_stack(struct owner *o, struct cga_slot_stats *out)

@@ -47,6 +47,16 @@ enum {
                                        (pyalloc.c): its pools abandoned */
 #define CGA_RETIRE_FAULTED 4        /* died of a fault of its own: slot
                                        quarantined (with _QUARANTINED) */
+#define CGA_RETIRE_OVER_BUDGET 8    /* ended itself over its memory budget
+                                       (cga_slot_memory says how far) */
+
+/* A slot's memory in use (allocguard.c: what is counted) and budget. */
+struct cga_slot_memory {
+    uint64_t in_use;        /* bytes */
+    uint64_t limit;         /* its budget, 0: none */
+    uint64_t over_used;     /* it went over: what it had in use then ... */
+    uint64_t over_asked;    /* ... and what it asked for (0: it did not) */
+};
 
 /* CPython's object allocator of one slot (pyalloc.c). */
 struct cga_py_stats {
@@ -86,6 +96,8 @@ typedef int (*cga_py_abandoned_fn)(const void *p);
 typedef int (*cga_py_dump_tail_fn)(int exclude);
 typedef int (*cga_pkeys_fn)(int *keys, int max);
 typedef int (*cga_slot_of_fn)(const void *p);
+typedef int (*cga_slot_set_limit_fn)(int slot, uint64_t bytes);
+typedef int (*cga_slot_memory_fn)(int slot, struct cga_slot_memory *out);
 /* stops.c: the stop signal's handler, in a node process. */
 typedef void (*cga_stop_request_fn)(int sig, siginfo_t *si, void *uc);
 

@@ -16,6 +16,7 @@
 #include <errno.h>
 #include <pthread.h>
 #include <signal.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <sys/syscall.h>
@@ -39,6 +40,8 @@ static struct {
     cga_py_abandon_fn py_abandon;
     cga_py_abandoned_fn py_abandoned;
     cga_slot_of_fn slot_of;
+    cga_slot_set_limit_fn slot_set_limit;
+    cga_slot_memory_fn slot_memory;
     cga_stop_request_fn stop_request;   /* optional: the rig's stop points */
     cga_py_dump_tail_fn py_dump_tail;   /* optional: --core-dumps */
 } G;
@@ -142,12 +145,15 @@ int guard_start(void)
     FIND(py_abandon, "cga_py_abandon");
     FIND(py_abandoned, "cga_py_abandoned");
     FIND(slot_of, "cga_slot_of");
+    FIND(slot_set_limit, "cga_slot_set_limit");
+    FIND(slot_memory, "cga_slot_memory");
     FIND(stop_request, "cga_stop_request");
     FIND(py_dump_tail, "cga_py_dump_tail");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
         !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
-        !G.py_active || !G.py_abandon || !G.py_abandoned || !G.slot_of) {
+        !G.py_active || !G.py_abandon || !G.py_abandoned || !G.slot_of || !G.slot_set_limit ||
+        !G.slot_memory) {
         memset(&G, 0, sizeof G);
         return -ENOENT;                  /* not preloaded */
     }
@@ -258,6 +264,22 @@ int cg_child_slot(const struct cg_child *c)
     return c->ctx ? c->ctx->slot : 0;
 }
 
+/* Child c's memory budget from now on (0: none); -ENOENT without the guard. */
+int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes)
+{
+    if (!G.slot_set_limit || !c->ctx)
+        return -ENOENT;
+    return G.slot_set_limit(c->ctx->slot, bytes);
+}
+
+/* Child c's memory in use and budget (allocguard.c); -ENOENT without the guard. */
+int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out)
+{
+    if (!G.slot_memory || !c->ctx)
+        return -ENOENT;
+    return G.slot_memory(c->ctx->slot, out);
+}
+
 /* The slot whose native heap range holds p; -1 if none (or no guard). */
 int cg_alloc_slot_of(const void *p)
 {
@@ -302,4 +324,18 @@ void stop_requests_take(int sig)
 int guard_retire(struct cg_ctx *x, bool faulted)
 {
     return G.slot_retire(x->slot, x->tcb, faulted);
+}
+
+void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap)
+{
+    struct cga_slot_memory m;
+    size_t n = strlen(text);
+    if (n >= cap || G.slot_memory(x->slot, &m) != 0 || !m.over_asked)
+        return;
+    const double mib = 1024.0 * 1024.0;
+    bool small = m.over_asked < (1u << 20);
+    snprintf(text + n, cap - n,
+             "; out of memory: %.1f MiB in use, over its limit of %.1f MiB (it asked for %.*f %s more)",
+             (double)m.over_used / mib, (double)m.limit / mib, small ? 0 : 1,
+             (double)m.over_asked / (small ? 1024.0 : mib), small ? "KiB" : "MiB");
 }

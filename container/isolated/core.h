@@ -149,6 +149,7 @@ enum {
 #define CG_ALLOC_QUARANTINED (1u << 31)   /* died inside malloc */
 #define CG_ALLOC_PY_ABANDONED (1u << 30)  /* died inside CPython's object allocator */
 #define CG_ALLOC_FAULTED (1u << 29)       /* quarantined: it died of a fault of its own */
+#define CG_ALLOC_OVER_BUDGET (1u << 28)   /* it ended itself over its memory budget */
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
@@ -407,6 +408,8 @@ int cg_pkeys_probe(struct cg_pkeys_probe *out);
 int cg_pkeys_in_use(int *keys, int max);    /* contexts.c: the guard's keys */
 int cg_alloc_slot_of(const void *p);        /* contexts.c */
 int cg_child_slot(const struct cg_child *c);
+int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
+int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_probe_timedwait(struct cg_timedwait_probe *out);
@@ -468,6 +471,9 @@ void guard_bind(struct cg_ctx *x);
 void guard_child_start(void);             /* in the child */
 void stop_requests_take(int sig);         /* in the child: the rig's stop points */
 int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
+/* Child c went over its memory budget (CGA_RETIRE_OVER_BUDGET): its figures
+   said at the end of its death text (n: the text's length so far). */
+void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap);
 int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
 int guard_dump_exclude(int exclude);      /* dumps.c, while gdb writes */
 /* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */

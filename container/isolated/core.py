@@ -616,6 +616,27 @@ class CloneCore:
 
     allocator = staticmethod(allocator)
 
+    def set_memory_limit(self, child: Child, limit_bytes: int) -> bool:
+        """The child's memory budget from now on (0: none): a node process
+        whose memory in use (``memory``) would go over it ends itself before
+        the allocation, its death saying so. False without the guard."""
+        _, lib = _lib()
+        with self._lock:
+            self._entry(child)
+            return lib.cg_child_set_memory_limit(child._block, limit_bytes) == 0
+
+    def memory(self, child: Child) -> tuple[int, int] | None:
+        """(bytes in use, budget in bytes, 0: none) of the child's process,
+        as the allocator guard counts them (allocguard.c says what is
+        counted); None without the guard."""
+        ffi, lib = _lib()
+        out = ffi.new("struct cga_slot_memory *")
+        with self._lock:
+            self._entry(child)
+            if lib.cg_child_memory(child._block, out) != 0:
+                return None
+        return int(out.in_use), int(out.limit)
+
     def slot_stats(self, slot: int) -> dict | None:
         """What allocator-guard slot ``slot`` (a Death's ``alloc_slot``)
         holds: state ("idle", "bound", "quarantined"), pid, jemalloc arena,

@@ -87,6 +87,7 @@ class Death:
     alloc_faulted: bool = False  # for a fault of its own; else it died inside malloc
     py_abandoned: bool = False  # it died inside CPython's object
     # allocator: its pools are abandoned (pyalloc.c)
+    over_budget: bool = False  # it ended itself over its memory budget (allocguard.c)
     gil_frame: str = ""  # it held the GIL: "function (file:line)"
     # of its innermost Python frame
     pkey_fault: PkeyFault | None = None  # it died writing under a
@@ -176,6 +177,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             alloc_quarantined=bool(r.alloc & lib.CG_ALLOC_QUARANTINED),
             alloc_faulted=bool(r.alloc & lib.CG_ALLOC_FAULTED),
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),
+            over_budget=bool(r.alloc & lib.CG_ALLOC_OVER_BUDGET),
             announced=bool(r.flags & lib.CG_EVF_ANNOUNCED),
         )
     if kind == KIND_STOP:

@@ -44,6 +44,16 @@ static inline void cga_stop_point(int s, int place)
     if (__builtin_expect(atomic_load_explicit(&cga_stops_armed, memory_order_relaxed), 0))
         cga_stop_passed(s, place);
 }
+/* bigblocks.c: which slot got each of glibc's mmapped blocks. */
+HIDDEN bool bb_put(const void *p, int slot);    /* false: table full */
+HIDDEN int bb_take(const void *p);              /* its slot, -1: not known */
+/* pyalloc.c: bytes of Python's small objects slot s has in use. */
+HIDDEN long py_slot_bytes(int s);
+HIDDEN void py_slot_begin(int s);               /* a new process: from 0 */
+/* allocguard.c: slot s is over its memory budget if it gets n bytes more:
+   then its process is ended there (SIGKILL to itself), the figures left
+   for cga_slot_memory.  Called outside the allocator's bracket. */
+HIDDEN void cga_within_budget(int s, size_t n);
 /* heapkeys.c: protection keys over node processes' native heaps. */
 HIDDEN int hk_enabled(void);                     /* keys were allocated */
 HIDDEN int hk_key_of_slot(int slot);

@@ -56,6 +56,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from .. import construction, intra, processes, repairs
 from ..hosting import Hosted
+from ..memory_budget import MEMORY_LIMIT
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
 from . import listener_wait, mutex_reports
@@ -163,12 +164,14 @@ class IsolatedHost:
         core_dumps: Path | None = None,
         profile_rules: Sequence[ProfileRule] = (),
         stop_signal: int = 0,
+        node_memory_limit: int = 0,
     ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
         self.profile = profile
         self.profile_rules = list(profile_rules)  # --profile-for, before the default
+        self.node_memory_limit = node_memory_limit  # bytes, 0: none (memory_budget.py)
         self._on_death = None  # report_deaths_to
         self._herald_handle = None  # publish_crashed_with: the publisher, in use
         self._log = logger
@@ -257,6 +260,11 @@ class IsolatedHost:
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
+        if args.memory_limit and not self.mitigations.alloc_guard:
+            raise LoadError(
+                f"a memory budget ({MEMORY_LIMIT}) needs the allocator guard, which counts each node's "
+                "memory: this container runs with --no-alloc-guard"
+            )
         profile = args.profile or choose_profile(self.profile_rules, args.requested_name, args.plugin) or self.profile
         proc = _NodeProcess(unique_id, profile)
         try:
@@ -287,6 +295,7 @@ class IsolatedHost:
 
     def _start(self, proc: _NodeProcess, cls, args) -> None:
         unique_id = proc.unique_id
+        limit = self.node_memory_limit if args.memory_limit is None else args.memory_limit
         if args.use_intra_process_comms:
             # Its subscriptions are woken by a container thread, never by a
             # publisher's process (intra/waker.c); the manager's forget()
@@ -316,6 +325,8 @@ class IsolatedHost:
                 proc.child = self._core.spawn(target, cgroup_fd=proc.cgroup.fd if proc.cgroup else None)
             self._by_pid[proc.child.pid] = proc
             self._name_dump(proc.child, proc.full_name or args.requested_name or args.plugin)
+            if limit:
+                self._core.set_memory_limit(proc.child, limit)
             if spare is not None:
                 self._core.go(proc.child)
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built

@@ -91,7 +91,8 @@ static uint32_t alloc_word(const struct cg_child *c)
     return (uint32_t)c->ctx->slot |
            (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
            (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0) |
-           (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0);
+           (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0) |
+           (c->retired & CGA_RETIRE_OVER_BUDGET ? CG_ALLOC_OVER_BUDGET : 0);
 }
 
 static void emit(uint32_t kind, const struct cg_child *c, int status,
@@ -254,6 +255,8 @@ static void reap(struct cg_child *c, int64_t t)
     cg_describe_death(status, code, c->repairs, alloc,
                       asked == CG_STOP_SIGNAL ? __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE) : 0,
                       c->death_text, CG_DEATH_TEXT);
+    if (alloc & CG_ALLOC_OVER_BUDGET)
+        guard_say_over_budget(c->ctx, c->death_text, CG_DEATH_TEXT);
     uint32_t flags = herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
     /* Left a zombie (its pid still ours) for Python's release to reap
        (clonecore.c): the reaping waitid took ~0.9 ms of kernel time with 48

@@ -88,6 +88,8 @@ struct owner {
     _Atomic(void *) handed;             /* blocks others freed for us */
     _Atomic long inside;                /* its tasks in here (but a bound main task) */
     _Atomic uint64_t pools, dropped, handed_total, abandoned;
+    _Atomic long bytes;                 /* in use by its process (its blocks'
+                                           sizes; written holding the GIL) */
 };
 
 static struct owner owners[CGA_NSLOTS];
@@ -181,9 +183,16 @@ static struct pool *new_pool(int s, int cls)
 }
 
 /* Into its own pool: the caller is p's owner, inside. */
+static inline void count(struct owner *o, long n)
+{
+    atomic_store_explicit(&o->bytes, atomic_load_explicit(&o->bytes, memory_order_relaxed) + n,
+                          memory_order_relaxed);
+}
+
 static void put_back(struct owner *o, struct pool *p, void *b)
 {
     bool was_full = p->free == NULL && p->bump + p->size > p->end;
+    count(o, -(long)p->size);
     *(void **)b = p->free;
     p->free = b;
     p->used--;
@@ -216,6 +225,8 @@ static void *small_alloc(size_t n)
     int s = cga_caller_slot();
     struct owner *o = &owners[s];
     int cls = (int)((n - 1) / ALIGN);
+    if (unlikely(!o->usable[cls]))      /* a pool more: within its budget? */
+        cga_within_budget(s, POOL);
     enter(s);
     if (unlikely(atomic_load_explicit(&o->handed, memory_order_relaxed) != NULL))
         drain(o);
@@ -233,6 +244,7 @@ static void *small_alloc(size_t n)
     }
     cga_stop_point(s, CGA_STOP_PY_ALLOCATION);   /* the pool half-updated */
     p->used++;
+    count(o, p->size);
     if (p->free == NULL && p->bump + p->size > p->end)
         unlink_pool(&o->usable[cls], p);   /* full */
     leave(s);
@@ -475,4 +487,17 @@ EXPORT int cga_py_stats(int s, struct cga_py_stats *out)
     out->dropped = atomic_load(&o->dropped);
     out->abandoned = atomic_load(&o->abandoned);
     return 0;
+}
+
+/* Bytes of Python's small objects slot s's process has in use (the guard's
+   memory in use, allocguard.c). */
+HIDDEN long py_slot_bytes(int s)
+{
+    return atomic_load_explicit(&owners[s].bytes, memory_order_relaxed);
+}
+
+/* A new process in slot s: its count starts from nothing. */
+HIDDEN void py_slot_begin(int s)
+{
+    atomic_store(&owners[s].bytes, 0);
 }

@@ -1,0 +1,45 @@
+"""Memory budgets of node processes (isolated mode, with the allocator
+guard): the sizes users write, and the LoadNode extra argument that gives
+one node a budget of its own.
+
+A node process whose memory in use would go over its budget ends itself
+just before the allocation that would have done it (SIGKILL to itself,
+outside the allocator: its heap stays sound for the next process in its
+slot), and its CRASHED event says "out of memory: N MiB in use, over its
+limit of M MiB (it asked for K MiB more)". What is counted is the allocator
+guard's (container/isolated/allocguard.c): its malloc'd blocks, glibc's
+mmapped ones, its Python objects; not memory it maps itself, its thread
+stacks, nor what its libraries allocated before the guard was on.
+
+``--node-memory-limit SIZE`` gives every node process that budget; the extra
+argument ``MEMORY_LIMIT`` one node (it wins; 0: none for that node).
+"""
+
+from __future__ import annotations
+
+import re
+
+MEMORY_LIMIT = "cloneguard.memory_limit"
+
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+_SIZE = re.compile(r"\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(?:i?b)?\s*", re.IGNORECASE)
+
+
+def parse_size(value: object) -> int:
+    """Bytes, from a whole number of bytes or a text such as ``512M``,
+    ``1.5G``, ``800MiB`` (K, M, G, T: powers of 1024). ValueError saying
+    what is accepted otherwise."""
+    if isinstance(value, bool):
+        raise ValueError(f"a size is bytes or a text such as 512M, not {value!r}")
+    if isinstance(value, int):
+        if value < 0:
+            raise ValueError(f"a size is at least 0 bytes, not {value}")
+        return value
+    match = _SIZE.fullmatch(str(value))
+    if match is None:
+        raise ValueError(f"a size is bytes or a number with K, M, G or T (512M, 1.5G), not {value!r}")
+    return int(float(match.group(1)) * _UNITS[match.group(2).lower()])
+
+
+def describe(limit_bytes: int) -> str:
+    return f"{limit_bytes / (1 << 20):.1f} MiB" if limit_bytes else "none"
