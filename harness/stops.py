@@ -32,8 +32,7 @@ import ctypes
 import os
 import signal
 import time
-
-from cloneguard.container.seams import stop_lock_key
+import zlib
 
 from . import procfs
 from .errors import HarnessTimeout
@@ -47,6 +46,13 @@ PLACES = {"allocation": 1, "python-allocation": 2, "python-lock": 3}
 _PLACE_BITS = 4  # CGA_STOP_REQUEST(place, n) = place | n << 4
 MAX_PASSES = (1 << (31 - _PLACE_BITS)) - 1
 _KEY_SHIFT = 32  # CGA_STOP_KEY_SHIFT: a named lock's key above the request
+
+
+def lock_key(name: str) -> int:
+    """The key a request names a lock by: the container's
+    seams.stop_lock_key (tests/test_stop_points.py checks they agree; the
+    harness never imports the container)."""
+    return zlib.crc32(name.encode()) or 1
 
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.sigqueue.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p)
@@ -95,7 +101,7 @@ def stop_at(pid: int, place: str, *, after: int = 1, timeout: float = 5.0, lock:
         raise ValueError(f"a lock is named only at python-lock, not at {place}")
     if is_stopped(pid):
         raise RuntimeError(f"process {pid} is stopped already (frozen?): it cannot pass {place}")
-    key = stop_lock_key(lock) if lock else 0
+    key = lock_key(lock) if lock else 0
     _request(pid, PLACES[place] | after << _PLACE_BITS | key << _KEY_SHIFT)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

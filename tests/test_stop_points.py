@@ -36,6 +36,10 @@ def test_the_harness_numbers_places_as_the_guard_does():
     }
     assert stops._PLACE_BITS == lib.CGA_STOP_PLACE_BITS
     assert stops._KEY_SHIFT == lib.CGA_STOP_KEY_SHIFT
+    from cloneguard.container.seams import stop_lock_key
+
+    for name in ("pkg.mod.LOCK", "cloneguard.faults.shared_state.CONDITION._lock", ""):
+        assert stops.lock_key(name) == stop_lock_key(name)
 
 
 # What the container's CRASHED event says of a death at each place.
