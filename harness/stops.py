@@ -54,6 +54,7 @@ def lock_key(name: str) -> int:
     harness never imports the container)."""
     return zlib.crc32(name.encode()) or 1
 
+
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.sigqueue.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p)
 
