@@ -747,3 +747,31 @@ def test_a_trials_measurements_keep_their_units_through_the_report(tmp_path):
     assert load_report(tmp_path).scenarios[0].units == {"replans": "count"}
     text = format_comparison(compare_reports(original, original))
     assert "measured replans: median 2 count -> 2 count" in text and "latency get_map: median 2.5 ms" in text
+
+
+def test_units_reach_the_report_a_session_writes(pytester, tmp_path, report_root):
+    """The record rides on the teardown report to the session that writes
+    report.json: the units go with it, not only the values."""
+    out = tmp_path / "run"
+    result = run_session(
+        pytester,
+        "--report-dir",
+        str(out),
+        "scenarios",
+        files={
+            "test_units.py": """
+        from cloneguard.harness.system_trials import Measure, _measurements
+
+        def test_scans(resilience):
+            for i in range(3):
+                values = _measurements({"scans": Measure(19 * (i + 1), "count"), "status": 1.0}, resilience)
+                resilience.trial("survived", index=i, seed=i, latency_ms=values)
+    """
+        },
+    )
+    result.assert_outcomes(passed=1)
+    (scenario,) = json.loads((out / "report.json").read_text())["scenarios"]
+    assert scenario["units"] == {"scans": "count"}
+    html = (out / "report.html").read_text()
+    assert "<h4>Measurements</h4>" in html and "Latency (ms)" not in html
+    assert "scans count</th>" in html and "status ms</th>" in html and "median 38.0 count" in html

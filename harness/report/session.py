@@ -310,7 +310,7 @@ def _take_recorded(record: Scenario, recorded: Scenario) -> None:
             setattr(record, name, getattr(recorded, name))
     if recorded.name != record.name:
         record.name = recorded.name
-    record.mitigations = recorded.mitigations
+    record.mitigations, record.units = recorded.mitigations, recorded.units
     record.used_resilience = True
     record.started = recorded.started or record.started
     record.trials, record.hangs = recorded.trials, recorded.hangs
