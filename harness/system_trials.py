@@ -213,17 +213,27 @@ TRIAL_EVENTS = ("CRASHED", "REPAIRED", "LOAD_FAILED", "UNLOADED")
 def container_events(system, start_ns: int, end_ns: int) -> list[dict]:
     """The container's CRASHED, REPAIRED, LOAD_FAILED and UNLOADED events
     between the two times, in order: when (ms from ``start_ns``), which,
-    of which node and process, and what it says."""
+    of which node and process, and what it says. A REPAIRED's node and
+    process are those of the node whose death left what was repaired: the
+    container sends them only while that node is still loaded (after its
+    death it is not), so they are taken from that node's own LOADED or
+    CRASHED event, by its unique_id (a reloaded node gets a new one)."""
     from .client import EVENT_NAMES  # imports the interfaces: not at the plugin's import
 
+    items = system.client.events.items()
+    named = {
+        ev.unique_id: (ev.full_node_name, ev.pid)
+        for ev in (i.msg for i in items)
+        if EVENT_NAMES.get(ev.event_type) in ("LOADED", "CRASHED") and ev.unique_id and ev.full_node_name
+    }
     out = []
-    for item in system.client.events.items():
+    for item in items:
         ev = item.msg
         name = EVENT_NAMES.get(ev.event_type, str(ev.event_type))
         if name not in TRIAL_EVENTS or not start_ns <= item.at_ns <= end_ns:
             continue
-        record = {"at_ms": round((item.at_ns - start_ns) / 1e6, 1), "event": name, "node": ev.full_node_name}
-        record["pid"] = ev.pid
+        node, pid = (ev.full_node_name, ev.pid) if ev.full_node_name else named.get(ev.unique_id, ("", ev.pid))
+        record = {"at_ms": round((item.at_ns - start_ns) / 1e6, 1), "event": name, "node": node, "pid": pid}
         if ev.repaired_state:
             record["repaired"] = ev.repaired_state
         if ev.error_message:

@@ -256,3 +256,45 @@ def test_the_rate_has_the_fields_the_docs_name():
     said = docs.split("It returns")[1].split(")")[0]
     assert {f.name for f in fields(Proportion)} == {"successes", "trials", "rate", "low", "high"}
     assert all(f"`{f.name}`" in said for f in fields(Proportion)), said
+
+
+def _event(kind: str, uid: int, name: str = "", pid: int = 0, **fields):
+    from cloneguard_interfaces.msg import ComponentEvent
+
+    ev = ComponentEvent(event_type=getattr(ComponentEvent, kind), unique_id=uid, full_node_name=name, pid=pid)
+    for key, value in fields.items():
+        setattr(ev, key, value)
+    return ev
+
+
+def test_a_repaired_event_names_the_node_whose_death_left_it():
+    """The container's REPAIRED after a death comes without the dead node's
+    name and pid (it is no longer loaded): the trial's facts take them from
+    that node's own events, by its unique_id."""
+    from cloneguard.harness.report.model import Trial
+    from cloneguard.harness.report.system_view import trial_facts
+    from cloneguard.harness.system_trials import container_events
+
+    start = 10_000 * MS
+    said = "the Python Lock my_pkg.shared.LOCK, held by /filter (pid 41, thread 41) when its process died, ..."
+    events = Recorder("events")
+    for at_ms, ev in [
+        (-900, _event("LOADED", 2, "/filter", 41)),
+        (-800, _event("LOADED", 3, "/planner", 42)),
+        (100, _event("CRASHED", 2, "/filter", 41, error_message="killed by SIGKILL")),
+        (120, _event("REPAIRED", 2, repaired_state="python-lock", error_message=said)),
+        (130, _event("REPAIRED", 9, repaired_state="intra-queue", error_message="a queue")),  # a node never seen
+    ]:
+        events._items.append(Received(ev, start + at_ms * MS))
+    system = SimpleNamespace(client=SimpleNamespace(events=events))
+    crashed, repaired, unknown = container_events(system, start, start + 1000 * MS)
+    assert (crashed["node"], crashed["pid"]) == ("/filter", 41)
+    assert repaired == {
+        "at_ms": 120.0, "event": "REPAIRED", "node": "/filter", "pid": 41, "repaired": "python-lock", "what": said
+    }  # fmt: skip
+    assert (unknown["node"], unknown["pid"]) == ("", 0)
+
+    facts = trial_facts(Trial(index=0, outcome="survived", details={"events": [crashed, repaired, unknown]}))
+    assert "CRASHED /filter (pid 41) at 100 ms: killed by SIGKILL" in facts
+    assert "REPAIRED python-lock left by /filter (pid 41) at 120 ms: the Python Lock" in facts
+    assert "REPAIRED intra-queue at 130 ms: a queue" in facts and "pid 0" not in facts

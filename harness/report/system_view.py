@@ -169,6 +169,21 @@ def timeline(s: Scenario) -> str:
     )
 
 
+def _event_words(ev: dict) -> str:
+    """One of the container's events of a trial: what, of which node and
+    process (a REPAIRED's: the node whose death left what was repaired),
+    when, and what it says. A node or pid not known is left out."""
+    who = ev.get("node") or ""
+    if ev.get("pid"):
+        who = f"{who} (pid {ev['pid']})".strip()
+    if ev["event"] == "REPAIRED":
+        what = " ".join(filter(None, [ev.get("repaired"), who and f"left by {who}"]))
+    else:
+        what = who
+    said = ev.get("what", "")
+    return " ".join(filter(None, [ev["event"], what, f"at {ev['at_ms']:.0f} ms"])) + (f": {said}" if said else "")
+
+
 def trial_facts(t: Trial) -> str:
     """A trial's details as words (any trial's, the rig's too): its cause
     first, then its faults, what each topic did, and anything else
@@ -182,10 +197,7 @@ def trial_facts(t: Trial) -> str:
     if faults:
         parts.append("faults: " + e("; ".join(f"{f['what']} → {f['node']} at {f['from_ms']:.0f} ms" for f in faults)))
     for ev in d.pop("events", None) or []:
-        said = ev.get("what") or ev.get("repaired", "")
-        parts.append(
-            e(f"{ev['event']} {ev['node']} (pid {ev['pid']}) at {ev['at_ms']:.0f} ms" + (f": {said}" if said else ""))
-        )
+        parts.append(e(_event_words(ev)))
     topics = d.pop("topics", None) or {}
     for name, f in topics.items():
         parts.append(f"{e(name)} {f['rate_hz']:.1f} Hz, longest gap {f['longest_gap_s']:.3f} s")
