@@ -257,6 +257,22 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         f"'{memory_budget.MEMORY_LIMIT}' gives one node its own (needs the allocator guard) (default: none)",
     )
     isolated.add_argument(
+        "--memory-margin",
+        type=_memory_size,
+        default=None,
+        metavar="SIZE",
+        help="the memory watch ends the node process that uses the most once the container's "
+        "memory is within SIZE of what it may use (its memory cgroup's limit, else the machine's "
+        "memory), before the kernel's OOM killer would end the whole container; LoadNode extra "
+        f"argument '{memory_budget.OOM_SCORE_ADJ}' (-1000 to 1000) weighs one node as oom_score_adj does "
+        "(default: 2%% of the limit, at least 64M)",
+    )
+    isolated.add_argument(
+        "--no-memory-watch",
+        action="store_true",
+        help="no memory watch (see --memory-margin): the kernel's OOM killer ends the whole container",
+    )
+    isolated.add_argument(
         "--node-watchdog",
         type=_watchdog_seconds,
         default=0.0,
@@ -313,6 +329,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     if opts.node_memory_limit and opts.no_alloc_guard:
         parser.error(
             "--node-memory-limit needs the allocator guard, which counts each node's memory: not --no-alloc-guard"
+        )
+    if opts.memory_margin is not None and (opts.no_memory_watch or opts.no_alloc_guard):
+        parser.error(
+            "--memory-margin needs the memory watch, which weighs nodes by the allocator guard's "
+            "count: not --no-memory-watch, nor --no-alloc-guard"
         )
     if "--restart-limit" in given and opts.restart_policy != "on-crash":
         parser.error("--restart-limit needs --restart-policy on-crash")
@@ -507,11 +528,33 @@ def _make_host(opts, argv, executor, context, logger):
             core_dumps=opts.core_dumps,
             stop_signal=opts.stop_signal,
             node_memory_limit=opts.node_memory_limit,
+            memory_watch=_memory_watch(opts, logger),
         )
     except IsolationUnavailable as exc:
         if cgroups is not None:
             cgroups.close()
         raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
+
+
+def _memory_watch(opts, logger):
+    """(what the container may use, the margin) for the memory watch, or
+    None: off, or without the allocator guard to weigh nodes."""
+    if opts.no_memory_watch or opts.no_alloc_guard:
+        return None
+    from .isolated import memory_watch
+
+    limit = memory_watch.find()
+    margin = limit.margin(opts.memory_margin)
+    if margin >= limit.limit:
+        raise SystemExit(
+            f"component_container: --memory-margin {memory_budget.describe(margin)} leaves nothing of "
+            f"the {memory_budget.describe(limit.limit)} the container may use ({limit.where})"
+        )
+    logger.info(
+        f"memory watch: the container may use {memory_budget.describe(limit.limit)} ({limit.where}); "
+        f"from {memory_budget.describe(limit.limit - margin)} on it ends the node process that uses the most"
+    )
+    return limit, margin
 
 
 @dataclass

@@ -38,7 +38,7 @@ from typing import Any
 from rclpy.node import Node
 
 from . import construction
-from .memory_budget import MEMORY_LIMIT
+from .memory_budget import MEMORY_LIMIT, OOM_SCORE_ADJ
 from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
 
 
@@ -73,6 +73,11 @@ class ThreadHost:
             raise LoadError(
                 f"a memory budget ({MEMORY_LIMIT}) needs an isolated container: in thread mode every node "
                 "is the container's one process, whose only budget is the whole container's (a memory cgroup)"
+            )
+        if args.oom_score_adj is not None:
+            raise LoadError(
+                f"an out-of-memory score ({OOM_SCORE_ADJ}) needs an isolated container: in thread mode "
+                "no node can be ended alone"
             )
         if args.profile is not None:
             raise LoadError(f"a participant profile ({PROFILE}) needs an isolated container (--isolated)")

@@ -13,6 +13,12 @@ stacks, nor what its libraries allocated before the guard was on.
 
 ``--node-memory-limit SIZE`` gives every node process that budget; the extra
 argument ``MEMORY_LIMIT`` one node (it wins; 0: none for that node).
+
+Apart from budgets, the container's memory watch (isolated/memory_watch.py)
+ends the node process that uses the most when the container's own memory
+nears what it may use; the extra argument ``OOM_SCORE_ADJ`` weighs one node
+in that choice as the kernel's ``oom_score_adj`` does (-1000 to 1000: its
+thousandths of the limit added to its memory; -1000: never this one).
 """
 
 from __future__ import annotations
@@ -20,6 +26,8 @@ from __future__ import annotations
 import re
 
 MEMORY_LIMIT = "cloneguard.memory_limit"
+OOM_SCORE_ADJ = "cloneguard.oom_score_adj"
+OOM_SCORE_ADJ_RANGE = (-1000, 1000)
 
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 _SIZE = re.compile(r"\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(?:i?b)?\s*", re.IGNORECASE)

@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 
 from . import seams
 from .isolated.profiles import PROFILES
-from .memory_budget import MEMORY_LIMIT, parse_size
+from .memory_budget import MEMORY_LIMIT, OOM_SCORE_ADJ, OOM_SCORE_ADJ_RANGE, parse_size
 
 # rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
 # rclcpp_components, any other value is ignored.
@@ -45,6 +45,8 @@ KNOWN_EXTRA_ARGUMENTS = {
     # MEMORY_LIMIT (memory_budget.py): this node's memory budget, bytes or
     # a size text ("512M"); either type.
     MEMORY_LIMIT: (Parameter.Type.INTEGER, Parameter.Type.STRING),
+    # OOM_SCORE_ADJ: how the container's memory watch weighs this node.
+    OOM_SCORE_ADJ: Parameter.Type.INTEGER,
 }
 # rclcpp_components' warning when forward_global_arguments is true, word for word.
 FORWARD_GLOBAL_WARNING = (
@@ -82,6 +84,7 @@ class NodeArguments:
     drop_loaded_event: bool = False
     cpu_quota: float | None = None
     memory_limit: int | None = None  # MEMORY_LIMIT, bytes (0: none): None, the container's
+    oom_score_adj: int | None = None  # OOM_SCORE_ADJ: None, 0
     profile: str | None = None  # PROFILE: None, the container's
     requested_name: str = ""  # /namespace/name when the request names the node, else ""
     plugin: str = ""  # the request's plugin_name
@@ -135,6 +138,11 @@ def _extra_arguments(messages) -> dict[str, object]:
                 f"Extra component argument '{CPU_QUOTA}' must be between {low:g} and "
                 f"{high:g} (CPUs), got {param.value!r}"
             )
+        if param.name == OOM_SCORE_ADJ and not OOM_SCORE_ADJ_RANGE[0] <= param.value <= OOM_SCORE_ADJ_RANGE[1]:
+            raise LoadError(
+                f"Extra component argument '{OOM_SCORE_ADJ}' must be from {OOM_SCORE_ADJ_RANGE[0]} "
+                f"to {OOM_SCORE_ADJ_RANGE[1]}, got {param.value}"
+            )
         if param.name == PROFILE and param.value not in PROFILES:
             raise LoadError(
                 f"Extra component argument '{PROFILE}' must be one of {', '.join(PROFILES)}, got {param.value!r}"
@@ -171,6 +179,7 @@ def from_request(request) -> NodeArguments:
         drop_loaded_event=seams.enabled() and bool(extra.get(seams.DROP_LOADED_EVENT, False)),
         cpu_quota=float(extra[CPU_QUOTA]) if CPU_QUOTA in extra else None,  # type: ignore[arg-type]
         memory_limit=int(extra[MEMORY_LIMIT]) if MEMORY_LIMIT in extra else None,  # type: ignore[call-overload]
+        oom_score_adj=int(extra[OOM_SCORE_ADJ]) if OOM_SCORE_ADJ in extra else None,  # type: ignore[call-overload]
         profile=str(extra[PROFILE]) if PROFILE in extra else None,
         requested_name=_requested_name(request.node_namespace, request.node_name),
         plugin=request.plugin_name,

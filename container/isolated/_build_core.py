@@ -38,6 +38,7 @@ SOURCES = (
     "pkeys.c",
     "herald.c",
     "lastresort.c",
+    "memwatch.c",
 )
 
 CDEF = r"""
@@ -233,6 +234,9 @@ int cg_pkeys_in_use(int *keys, int max);
 int cg_alloc_slot_of(const void *p);
 int cg_child_slot(const struct cg_child *c);
 int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
+int cg_memwatch_set(int usage_fd, int stat_fd, const char *stat_key, int meminfo, uint64_t limit,
+                    uint64_t margin);
+int cg_child_set_oom_score_adj(struct cg_child *c, int adj);
 int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
@@ -288,6 +292,7 @@ void cg_lastresort_stop(void);
 #define CG_EV_CLOSED ...
 #define CG_EV_MUTEX ...
 #define CG_EVF_ANNOUNCED ...
+#define CG_EVF_OUT_OF_MEMORY ...
 #define CG_DEATH_TEXT ...
 #define CG_CORE_NONE ...
 #define CG_CORE_DONE ...

@@ -53,11 +53,28 @@ def cgroup2_mount() -> Path | None:
     return None
 
 
-def v1_cpu_mount() -> Path | None:
+def v1_mount(controller: str) -> Path | None:
+    """Where cgroup v1's hierarchy with that controller is mounted."""
     for point, fstype, opts in _mounts():
-        if fstype == "cgroup" and "cpu" in opts.split(","):
+        if fstype == "cgroup" and controller in opts.split(","):
             return Path(point)
     return None
+
+
+def v1_cpu_mount() -> Path | None:
+    return v1_mount("cpu")
+
+
+def own_cgroup(hierarchy: str) -> str:
+    """This process's cgroup path in a hierarchy: a v1 controller's name, or
+    "" for cgroup2 (/proc/self/cgroup); "/" when it is not listed."""
+    with open("/proc/self/cgroup") as f:
+        for line in f:
+            _id, controllers, path = line.rstrip("\n").split(":", 2)
+            names = controllers.split(",") if controllers else []
+            if (hierarchy in names) if hierarchy else not names:
+                return path
+    return "/"
 
 
 @dataclass

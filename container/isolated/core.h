@@ -136,6 +136,7 @@ struct cg_event {            /* one record on the event pipe: 64 bytes */
 };
 #define CG_RWLOCK_KIND (-2)   /* cg_event.code of a rwlock (mutexes.c) */
 #define CG_EVF_ANNOUNCED 1u  /* its CRASHED event is the herald's (herald.c) */
+#define CG_EVF_OUT_OF_MEMORY 2u  /* the memory watch ended it (memwatch.c) */
 #define CG_DEATH_TEXT 768    /* cg_child.death_text */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
 enum {
@@ -246,6 +247,10 @@ struct cg_child {            /* control block, lives in container memory */
     /* written by the monitor at its death (cg_describe_death), read by
        Python once reported */
     char death_text[CG_DEATH_TEXT];
+    /* memwatch.c: its oom_score_adj (atomic; set before it goes), and what
+       the watch saw when it ended it (monitor-only; oom_in_use 0: it did not) */
+    int oom_score_adj;
+    uint64_t oom_used, oom_in_use;
     /* the child's own resolver state, as start_thread gives each thread */
     struct __res_state res;
 };
@@ -410,6 +415,10 @@ int cg_alloc_slot_of(const void *p);        /* contexts.c */
 int cg_child_slot(const struct cg_child *c);
 int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
 int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
+/* memwatch.c */
+int cg_memwatch_set(int usage_fd, int stat_fd, const char *stat_key, int meminfo, uint64_t limit,
+                    uint64_t margin);             /* before cg_start */
+int cg_child_set_oom_score_adj(struct cg_child *c, int adj);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
 int cg_probe_timedwait(struct cg_timedwait_probe *out);
@@ -450,6 +459,10 @@ void mutexes_see(struct cg_child *c);     /* look at a child's tasks now */
 void mutexes_bury(const struct cg_child *c);   /* c is dead, not yet reaped */
 int mutexes_tick(struct cg_child *children, int64_t now);   /* sleep ms, -1 */
 int task_syscall(int tid, struct task_syscall *out);   /* probes.c too */
+
+/* memwatch.c: on the monitor thread */
+int memwatch_tick(struct cg_child *children, int sleep_ms);  /* sleep ms */
+void memwatch_say(const struct cg_child *c, char *text, size_t cap);
 
 /* child.c */
 long child_clone(struct cg_child *c);     /* on the monitor thread: pid or -errno */

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
 from cloneguard.container import locks
-from cloneguard.container.isolated import assumptions, pybind11_registry
+from cloneguard.container.isolated import assumptions, memory_watch, pybind11_registry
 from cloneguard.container.isolated.assumptions import IsolationUnavailable
 from cloneguard.container.isolated.collector import Collector
 from cloneguard.container.isolated.core_dumps import Tools as DumpTools
@@ -55,6 +55,7 @@ from cloneguard.container.isolated.core_events import (
     decode,
 )
 from cloneguard.container.isolated.crash_reports import CrashStacks
+from cloneguard.container.isolated.memory_watch import MemoryLimit
 
 SEGV_PKUERR = 4  # si_code of a SIGSEGV a protection key raised (Linux, x86)
 
@@ -346,6 +347,7 @@ class CloneCore:
         mitigations: Mitigations | None = None,
         stop_signal: int = 0,
         dump_tools: DumpTools | None = None,
+        memory_watch: tuple[MemoryLimit, int] | None = None,
         **overrides: Any,
     ) -> None:
         names = {f.name for f in fields(Mitigations)}
@@ -372,8 +374,12 @@ class CloneCore:
             if dump_tools is not None:
                 settings.update(core_dumps=1, gdb=dump_tools.gdb.encode(), fallocate=dump_tools.fallocate.encode())
             config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), **settings})
+            # memory_watch: (what the container may use, the margin below it
+            # where the monitor ends the node process using the most).
+            self._watch_fds = self._watch_memory(memory_watch)
             rc = lib.cg_start(layout, config, fd)
             if rc < 0:
+                self._unwatch_memory()
                 raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
             CloneCore._open = self
         self._event_fd = fd[0]
@@ -755,8 +761,40 @@ class CloneCore:
         rc = lib.cg_stop()
         if rc < 0:
             raise OSError(-rc, f"cannot stop the monitor: {os.strerror(-rc)}")
+        self._unwatch_memory()
         with CloneCore._instance_lock:
             CloneCore._open = None
+
+    @staticmethod
+    def _watch_memory(watch: tuple[MemoryLimit, int] | None) -> tuple[int, ...]:
+        if watch is None:
+            return ()
+        limit, margin = watch
+        usage, stat = memory_watch.open_files(limit)
+        _, lib = _lib()
+        rc = lib.cg_memwatch_set(usage, stat, limit.stat_key.encode(), int(limit.meminfo), limit.limit, margin)
+        if rc < 0:
+            for fd in (usage, stat):
+                if fd >= 0:
+                    os.close(fd)
+            raise ValueError(f"memory watch: a margin of {margin} bytes under a limit of {limit.limit}")
+        return tuple(fd for fd in (usage, stat) if fd >= 0)
+
+    def _unwatch_memory(self) -> None:
+        _, lib = _lib()
+        lib.cg_memwatch_set(-1, -1, b"", 0, 0, 0)
+        for fd in self._watch_fds:
+            os.close(fd)
+        self._watch_fds = ()
+
+    def set_oom_score_adj(self, child: Child, adj: int) -> None:
+        """How the memory watch scores the child (-1000 to 1000, as the
+        kernel's oom_score_adj: -1000 never ends it)."""
+        _, lib = _lib()
+        with self._lock:
+            self._entry(child)
+            if lib.cg_child_set_oom_score_adj(child._block, adj) < 0:
+                raise ValueError(f"an oom_score_adj is from -1000 to 1000, not {adj}")
 
     def _wait_entry(self, flag: Callable[[], bool], timeout: float | None) -> bool:
         with self._lock:

@@ -88,6 +88,8 @@ class Death:
     py_abandoned: bool = False  # it died inside CPython's object
     # allocator: its pools are abandoned (pyalloc.c)
     over_budget: bool = False  # it ended itself over its memory budget (allocguard.c)
+    out_of_memory: bool = False  # the memory watch ended it: the container's
+    # memory was near its limit, and it used the most (memwatch.c)
     gil_frame: str = ""  # it held the GIL: "function (file:line)"
     # of its innermost Python frame
     pkey_fault: PkeyFault | None = None  # it died writing under a
@@ -179,6 +181,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),
             over_budget=bool(r.alloc & lib.CG_ALLOC_OVER_BUDGET),
             announced=bool(r.flags & lib.CG_EVF_ANNOUNCED),
+            out_of_memory=bool(r.flags & lib.CG_EVF_OUT_OF_MEMORY),
         )
     if kind == KIND_STOP:
         by_signal = r.status == STOP_BY_SIGNAL

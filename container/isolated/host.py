@@ -66,6 +66,7 @@ from .core_dumps import path_for as core_dump_path
 from .core_dumps import size as core_dump_size
 from .core_dumps import tools as core_dump_tools
 from .core_events import MutexReport
+from .memory_watch import MemoryLimit
 from .placeholder import held_context, release_context
 from .profiles import DEFAULT, PROFILES, SHARED, ProfileRule
 from .profiles import choose as choose_profile
@@ -165,6 +166,7 @@ class IsolatedHost:
         profile_rules: Sequence[ProfileRule] = (),
         stop_signal: int = 0,
         node_memory_limit: int = 0,
+        memory_watch: tuple[MemoryLimit, int] | None = None,
     ):
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
@@ -193,6 +195,7 @@ class IsolatedHost:
             mitigations=self.mitigations,
             stop_signal=stop_signal,  # the test rig's stop points (seams.stop_signal), 0: none
             dump_tools=core_dump_tools() if core_dumps is not None else None,
+            memory_watch=memory_watch,  # (what the container may use, margin): memory_watch.py
         )
         listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
@@ -296,6 +299,7 @@ class IsolatedHost:
     def _start(self, proc: _NodeProcess, cls, args) -> None:
         unique_id = proc.unique_id
         limit = self.node_memory_limit if args.memory_limit is None else args.memory_limit
+        oom_score_adj = args.oom_score_adj or 0
         if args.use_intra_process_comms:
             # Its subscriptions are woken by a container thread, never by a
             # publisher's process (intra/waker.c); the manager's forget()
@@ -327,6 +331,8 @@ class IsolatedHost:
             self._name_dump(proc.child, proc.full_name or args.requested_name or args.plugin)
             if limit:
                 self._core.set_memory_limit(proc.child, limit)
+            if oom_score_adj:
+                self._core.set_oom_score_adj(proc.child, oom_score_adj)
             if spare is not None:
                 self._core.go(proc.child)
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built

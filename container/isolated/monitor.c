@@ -7,8 +7,8 @@
  * words the death and hands its CRASHED event to the herald thread if the
  * node is armed (herald.c), reports to Python through a pipe of fixed-size
  * records (struct cg_event) and leaves the zombie for cg_release to reap.  Between events, and after
- * each, it runs the lock doctor (mutexes.c), which says how long it may
- * sleep.  With --core-dumps it also has crashing children dumped
+ * each, it runs the lock doctor (mutexes.c) and the memory watch
+ * (memwatch.c), which say how long it may sleep.  With --core-dumps it also has crashing children dumped
  * (dumps.c).  It never takes the GIL.  It alone touches the child list
  * (g_children) and cg_child.stop_reported.
  *
@@ -257,7 +257,10 @@ static void reap(struct cg_child *c, int64_t t)
                       c->death_text, CG_DEATH_TEXT);
     if (alloc & CG_ALLOC_OVER_BUDGET)
         guard_say_over_budget(c->ctx, c->death_text, CG_DEATH_TEXT);
+    memwatch_say(c, c->death_text, CG_DEATH_TEXT);
     uint32_t flags = herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
+    if (c->oom_in_use)
+        flags |= CG_EVF_OUT_OF_MEMORY;
     /* Left a zombie (its pid still ours) for Python's release to reap
        (clonecore.c): the reaping waitid took ~0.9 ms of kernel time with 48
        node processes (median, bench.crash_latency --others 47), on the CPU
@@ -276,6 +279,13 @@ static void reap(struct cg_child *c, int64_t t)
     emit(CG_EV_DEATH, c, status, code, t, c->repairs, flags);
 }
 
+/* How long the monitor may sleep now: the lock doctor, dumps and the
+   memory watch each say. */
+static int next_look(int64_t t)
+{
+    return memwatch_tick(g_children, dumps_tick(t, mutexes_tick(g_children, t)));
+}
+
 static void *monitor_main(void *unused)
 {
     (void)unused;
@@ -286,7 +296,7 @@ static void *monitor_main(void *unused)
         int64_t t = cg_mono_ns();
         if (n <= 0) {                    /* EINTR (all signals are blocked),
                                             or time for the lock doctor */
-            sleep_ms = dumps_tick(t, mutexes_tick(g_children, t));
+            sleep_ms = next_look(t);
             continue;
         }
         /* Commands, stop notices and dumps first, deaths second: a stop
@@ -319,8 +329,7 @@ static void *monitor_main(void *unused)
         for (int i = 0; i < n; i++)
             if (evs[i].data.ptr && evs[i].data.ptr != &TAG_WAKE && evs[i].data.ptr != &TAG_CMD)
                 reap(evs[i].data.ptr, t);
-        t = cg_mono_ns();
-        sleep_ms = dumps_tick(t, mutexes_tick(g_children, t));
+        sleep_ms = next_look(cg_mono_ns());
     }
 }
 
