@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import threading
 import traceback
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +40,10 @@ from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
 from .restart import Lineage, RestartPolicy, uptime
+
+#: How many dead nodes the manager remembers, for the REPAIRED events that
+#: name them (a repair comes within seconds of its death).
+DIED_KEPT = 256
 
 
 class _Unanswered:
@@ -122,6 +127,9 @@ class ComponentManager:
         self._stopping = False
         self._next_id = 1
         self._loaded: dict[int, _Entry] = {}
+        # The last DIED_KEPT nodes whose process died, for the REPAIRED
+        # events that name them after their death.
+        self._died: OrderedDict[int, _Entry] = OrderedDict()
         self._starting: set[int] = set()  # ids whose host.start() is running
         self._early_deaths: dict[int, object] = {}  # deaths seen while starting
         self._unanswered = _Unanswered()
@@ -269,6 +277,10 @@ class ComponentManager:
                 self._early_deaths[unique_id] = death
                 return
             entry = self._loaded.pop(unique_id, None)
+            if entry is not None:
+                self._died[unique_id] = entry
+                while len(self._died) > DIED_KEPT:
+                    self._died.popitem(last=False)
         if entry is not None:  # None: an unload got there first
             self._report_crash(entry, death)
 
@@ -391,8 +403,8 @@ class ComponentManager:
 
     def publish_repairs(self) -> None:
         for repair in repairs.drain():
-            with self._lock:
-                entry = self._loaded.get(repair.unique_id)
+            with self._lock:  # most are repairs of what a dead node left
+                entry = self._loaded.get(repair.unique_id) or self._died.get(repair.unique_id)
             names: dict[str, Any] = {}
             if entry is not None:
                 names = {

@@ -274,6 +274,8 @@ def test_with_them_the_sibling_takes_the_lock_over_at_once(client, container):
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=holder.unique_id)
     repaired = client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder.unique_id, timeout=5)
     assert repaired.repaired_state == "python-lock"
+    # It names the dead node, as its CRASHED did (after its death).
+    assert (repaired.full_node_name, repaired.pid) == ("/python_lock_holder", crashed.pid)
     assert (
         "the Python RLock cloneguard.faults.shared_state.RLOCK, held by /python_lock_holder" in repaired.error_message
     )
