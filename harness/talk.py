@@ -32,6 +32,10 @@ STATE_LABELS = {
     State.PRIMARY_STATE_FINALIZED: "finalized",
 }
 
+#: GetState changes nothing: sent again after this long unanswered (a request
+#: sent before the harness matched a reloaded node's new server is lost).
+GET_STATE_RESEND_S = 1.0
+
 
 @dataclass
 class GoalOutcome:
@@ -62,12 +66,13 @@ class Talker:
         self._services: dict[tuple[str, type], object] = {}
         self._actions: dict[tuple[str, type], ActionClient] = {}
 
-    def call(self, srv_type, name: str, request, timeout: float):
-        """``request`` to service ``name``; its answer."""
+    def call(self, srv_type, name: str, request, timeout: float, *, resend_after: float | None = None):
+        """``request`` to service ``name``; its answer. ``resend_after``:
+        as ContainerClient.call's, for a request that changes nothing."""
         key = (name, srv_type)
         if key not in self._services:
             self._services[key] = self._client.service_client(srv_type, name)
-        return self._client.call(self._services[key], request, timeout)
+        return self._client.call(self._services[key], request, timeout, resend_after=resend_after)
 
     def send_goal(self, action_type, name: str, goal, timeout: float) -> GoalOutcome:
         """Send ``goal`` to action server ``name``; wait for its acceptance
@@ -107,7 +112,9 @@ class Talker:
     def get_state(self, node: str, timeout: float) -> str:
         """Lifecycle node ``node``'s current state's label (``unconfigured``,
         ``inactive``, ``active``, ``finalized``, or a transition state's)."""
-        state = self.call(GetState, f"{node}/get_state", GetState.Request(), timeout).current_state
+        state = self.call(
+            GetState, f"{node}/get_state", GetState.Request(), timeout, resend_after=GET_STATE_RESEND_S
+        ).current_state
         return state.label or STATE_LABELS.get(state.id, str(state.id))
 
 

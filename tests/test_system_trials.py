@@ -8,12 +8,13 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from types import SimpleNamespace
 
 import pytest
 
 from cloneguard.harness.client import Received, Recorder
-from cloneguard.harness.system import Fault
+from cloneguard.harness.system import Fault, NodeSpec
 from cloneguard.harness.system_trials import fault_record, profile_of, timeline, topic_facts
 
 MS = 1_000_000
@@ -298,3 +299,24 @@ def test_a_repaired_event_names_the_node_whose_death_left_it():
     assert "CRASHED /filter (pid 41) at 100 ms: killed by SIGKILL" in facts
     assert "REPAIRED python-lock left by /filter (pid 41) at 120 ms: the Python Lock" in facts
     assert "REPAIRED intra-queue at 130 ms: a queue" in facts and "pid 0" not in facts
+
+
+def test_a_lifecycle_node_reloaded_again_and_again_answers_get_state(system_factory):
+    """A reloaded node is a new instance: back unconfigured, under a new
+    unique_id and pid. Its dead predecessors' servers stand in the graph a
+    while longer (their participants' lease), so the service looks offered
+    before the harness has matched the new one: a request sent then is lost.
+    get_state, which changes nothing, sends it again until answered (lost
+    in 3 runs of 3 before it did)."""
+    robot = system_factory([NodeSpec("demo_robot", "demo_robot::Navigator")])
+    seen = set()
+    for _ in range(4):
+        running = robot.node("/navigator")
+        assert (running.unique_id, running.pid) not in seen
+        seen.add((running.unique_id, running.pid))
+        assert robot.get_state("/navigator", timeout=5) == "unconfigured"
+        assert robot.change_state("/navigator", "configure") and robot.change_state("/navigator", "activate")
+        assert robot.get_state("/navigator") == "active"
+        since = time.monotonic_ns()
+        robot.kill("/navigator", signal.SIGKILL)
+        robot.recover(since)
