@@ -183,6 +183,11 @@ class ContainerClient:
             if time.monotonic() >= deadline:
                 raise HarnessTimeout(f"no answer from {client.srv_name} within {timeout:.1f} s")
 
+    def run_on_spin_thread(self, fn):
+        """A future of ``fn()``, called on the spin thread (between two of
+        its callbacks, never during one)."""
+        return self._executor.create_task(fn)
+
     def service_client(self, srv_type, name: str):
         return self.node.create_client(srv_type, name, qos_profile=SERVICE_QOS)
 

@@ -92,14 +92,29 @@ class Talker:
                 )
             time.sleep(0.01)
         outcome = GoalOutcome(accepted=False, feedback=Recorder(f"feedback of a goal sent to {name}"))
-        sent = action.send_goal_async(goal, feedback_callback=lambda msg: outcome.feedback._add(msg.feedback))
+        sent = self._on_client_thread(
+            lambda: action.send_goal_async(goal, feedback_callback=lambda msg: outcome.feedback._add(msg.feedback)),
+            timeout,
+        )
         handle = _wait(sent, timeout, f"no answer to a goal sent to {name}")
         if not handle.accepted:
             return outcome
         outcome.accepted = True
-        done = _wait(handle.get_result_async(), timeout, f"no result of an accepted goal of {name}")
+        asked = self._on_client_thread(handle.get_result_async, timeout)
+        done = _wait(asked, timeout, f"no result of an accepted goal of {name}")
         outcome.status, outcome.result = done.status, done.result
         return outcome
+
+    def _on_client_thread(self, send, timeout: float):
+        """``send()`` run on the harness client's spin thread, its future.
+        rclpy 7.1's ActionClient sends a request before it records the
+        future that waits for the answer, without a lock (rclpy issue
+        1123): sent from another thread, an answer the spin thread takes
+        in between is dropped ("Ignoring unexpected goal response") and the
+        future never completes (seen 1 run in 4 against a thread-mode
+        server, which answers at once). On the spin thread nothing runs in
+        between."""
+        return _wait(self._client.run_on_spin_thread(send), timeout, "the harness client's thread to send")
 
     def change_state(self, node: str, transition: str, timeout: float) -> bool:
         """Ask lifecycle node ``node`` (its full name) for ``transition``

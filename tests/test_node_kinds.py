@@ -6,9 +6,8 @@ multi-threaded executor (fixtures/node_kinds.py).
 
 Cleanly: in isolated mode the node's process ends by itself at its unload
 (no "did not stop within 500 ms: SIGKILL", no node, executor and
-participant "left in memory") and the node leaves the ROS graph (at once
-when its participant's goodbye arrives, at its lease's end when that one
-datagram is lost: seen once under load); a container of them all
+participant "left in memory") and the node leaves the ROS graph (_wait_gone
+says how that is seen); a container of them all
 ends on SIGTERM by itself, with status 0. Found: a lifecycle node or one
 with an action server or client kept its rcl node alive after its unload
 (rclpy's destroy_node leaves both to the garbage collector), so its
@@ -23,6 +22,7 @@ import time
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy._rclpy_pybind11 import NodeNameNonExistentError
 from std_msgs.msg import String
 from test_msgs.action import Fibonacci
 from test_msgs.srv import BasicTypes
@@ -36,11 +36,6 @@ MODES = {
     "shared": ["--isolated", "--profile", "shared"],
 }
 WAIT_S = 15.0
-# A node leaves the graph when its participant's goodbye arrives (per-node:
-# the node process's own participant, one best-effort UDP datagram at its
-# end) or, if that datagram is lost, when its lease expires: Fast DDS's
-# default lease, 20 s, which fixtures/fastdds_no_shm.xml keeps.
-LEASE_S = 20.0
 LIFECYCLE_STATES = {  # the state each lifecycle node is unloaded in: the transitions there
     "unconfigured": [],
     "inactive": ["configure"],
@@ -111,18 +106,44 @@ def _graph(system: System) -> set[str]:
     return {ns.rstrip("/") + "/" + name for name, ns in system.client.node.get_node_names_and_namespaces()}
 
 
+def _endpoints(system: System, full_name: str) -> list:
+    """The node's publishers, subscriptions, services and clients in the graph."""
+    namespace, _, name = full_name.rpartition("/")
+    node = system.client.node
+    try:
+        return [
+            *node.get_publisher_names_and_types_by_node(name, namespace or "/"),
+            *node.get_subscriber_names_and_types_by_node(name, namespace or "/"),
+            *node.get_service_names_and_types_by_node(name, namespace or "/"),
+            *node.get_client_names_and_types_by_node(name, namespace or "/"),
+        ]
+    except NodeNameNonExistentError:
+        return []
+
+
 def _wait_gone(system: System, running) -> float:
-    """The node's own process ends at once (isolated per-node), and the node
-    leaves the graph within its participant's lease: seconds it took."""
+    """Seconds until the unloaded node is gone: in a node process of its own,
+    that process ends, and with it its participant, whose every endpoint
+    leaves the graph. Its name may stay: the harness's graph cache can take
+    the participant's last list of nodes after the participant's removal,
+    and keeps it (rmw_dds_common's GraphCache; seen once in 40 runs under
+    -n 2, for as long as the harness ran). Where the node shares a
+    participant, its name leaves the graph."""
     start = time.monotonic()
+
+    def waiting(what: str) -> bool:
+        assert time.monotonic() < start + WAIT_S, f"{running.full_name}: {what} {WAIT_S:g} s after its unload"
+        time.sleep(0.01)
+        return True
+
     if running.pid != system.proc.pid and [r.pid for r in system.nodes.values()].count(running.pid) == 1:
-        while os.path.exists(f"/proc/{running.pid}"):
-            assert time.monotonic() < start + WAIT_S, f"{running.full_name} (pid {running.pid}) still runs"
-            time.sleep(0.01)
-    while running.full_name in _graph(system):
-        took = time.monotonic() - start
-        assert took < LEASE_S + WAIT_S, f"{running.full_name} is still in the ROS graph {took:.0f} s after its unload"
-        time.sleep(0.05)
+        while os.path.exists(f"/proc/{running.pid}") and waiting(f"its process {running.pid} still runs"):
+            pass
+        while (left := _endpoints(system, running.full_name)) and waiting(f"still in the ROS graph: {left}"):
+            pass
+    else:
+        while running.full_name in _graph(system) and waiting("still in the ROS graph"):
+            pass
     return time.monotonic() - start
 
 
