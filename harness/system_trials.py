@@ -214,10 +214,10 @@ def container_events(system, start_ns: int, end_ns: int) -> list[dict]:
     """The container's CRASHED, REPAIRED, LOAD_FAILED and UNLOADED events
     between the two times, in order: when (ms from ``start_ns``), which,
     of which node and process, and what it says. A REPAIRED's node and
-    process are those of the node whose death left what was repaired: the
-    container sends them only while that node is still loaded (after its
-    death it is not), so they are taken from that node's own LOADED or
-    CRASHED event, by its unique_id (a reloaded node gets a new one)."""
+    process are those of the node whose death left what was repaired; an
+    event that leaves them out ('' and 0: the container's did, before its
+    manager kept the names of its dead nodes) gets them from that node's
+    own LOADED or CRASHED event, by its unique_id (a reload gets a new one)."""
     from .client import EVENT_NAMES  # imports the interfaces: not at the plugin's import
 
     items = system.client.events.items()

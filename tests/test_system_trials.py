@@ -269,9 +269,9 @@ def _event(kind: str, uid: int, name: str = "", pid: int = 0, **fields):
 
 
 def test_a_repaired_event_names_the_node_whose_death_left_it():
-    """The container's REPAIRED after a death comes without the dead node's
-    name and pid (it is no longer loaded): the trial's facts take them from
-    that node's own events, by its unique_id."""
+    """A REPAIRED that leaves out the dead node's name and pid (as the
+    container's did before its manager kept its dead nodes' names) gets
+    them in the trial's facts from that node's own events, by unique_id."""
     from cloneguard.harness.report.model import Trial
     from cloneguard.harness.report.system_view import trial_facts
     from cloneguard.harness.system_trials import container_events
