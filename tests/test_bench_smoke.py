@@ -343,3 +343,24 @@ def test_a_discovery_server_profile_is_the_no_shm_one_made_a_server():
     # the profile's announcement period and library settings stay
     assert rtps.find("f:builtin/f:discovery_config/f:leaseAnnouncement", ns) is not None
     assert root.find("f:library_settings/f:intraprocess_delivery", ns).text == "OFF"
+
+
+def test_the_memory_watch_benchmark_leaks_only_in_a_memory_cgroup_of_its_own(tmp_path):
+    """One trial: a leak in a fresh container in a 512 MiB cgroup, its end
+    recorded against the trigger the container logged; where no memory
+    cgroup can be made, nothing leaks and the report says why."""
+    from cloneguard.bench import memory_watch
+
+    result = memory_watch.run(rates=[1.0], trials=1, limit="512M", delay=1.0, out=tmp_path, quiet=True)
+    assert result.cleanup == []
+    data = json.loads((tmp_path / "memory_watch.json").read_text())
+    assert data["command"].startswith("python -m cloneguard.bench.memory_watch ")
+    if data["raw"]["unavailable"]:
+        assert [t["rows"] for t in data["tables"]] == [[], []]
+        assert data["notes"][0].startswith("Not measured on this machine: no memory cgroup can be made")
+        return
+    assert [len(t["rows"]) for t in data["tables"]] == [1, 1]
+    [trial] = data["raw"]["trials"]["1.0"]
+    assert (trial["limit_seen"], trial["trigger"]) == (512 << 20, (512 - 64) << 20)
+    assert trial["ended_by_watch"] or trial["oom_kills"] > 0
+    assert "| leak asked (GiB/s) | achieved (GiB/s) |" in (tmp_path / "memory_watch.md").read_text()
