@@ -39,6 +39,10 @@ def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(containe
         assert "memory protection keys over node heaps: off (the CPU has no memory protection keys" in log
         return
     assert re.search(r"memory protection keys over node heaps: \d+ keys \(", log), log
+    # The victim makes its buffer at its first check: the writer, which
+    # looks it up as it is built, comes after one (issue 35: loaded 15 ms
+    # after the victim, it found none, on a CPU with keys).
+    client.subscribe(UInt64, "/heap_victim/checks").wait_count(1, timeout=10)
     writer = client.load_ok(TESTRIG, "faults::WildWriter", parameters={"delay": 0.05})
     crashed = client.wait_for_event(ComponentEvent.CRASHED, unique_id=writer.unique_id, timeout=30)
     assert "protection-key violation: wrote into /heap_victim (pid " in crashed.error_message
