@@ -135,6 +135,10 @@ class ThreadHost:
     def crash_announced(self, hosted: Hosted) -> bool:
         return False
 
+    def memory(self, hosted: Hosted) -> tuple[int, int] | None:
+        """Nothing counts a node's memory in the container's one process."""
+        return None
+
     def close(self, hosted_nodes) -> None:
         for hosted in hosted_nodes:
             self.stop(hosted)

@@ -35,7 +35,7 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.qos import QoSProfile, qos_profile_services_default
 
-from . import events, intra, options, registry, repairs, seams
+from . import diagnostics, events, intra, options, registry, repairs, seams
 from .events import EventPublisher
 from .hosting import Hosted
 from .options import LoadError
@@ -155,6 +155,7 @@ class ComponentManager:
             srv.send_response = self._unanswered.answering(srv.send_response)
         # Repairs recorded by whichever task did them (repairs.py), published here.
         self._repair_timer = node.create_timer(self.REPAIR_POLL_S, self.publish_repairs)
+        self._diagnostics_timer = diagnostics.publish_every_second(node, self._figures)
 
     # -- services -------------------------------------------------------------
 
@@ -400,6 +401,12 @@ class ComponentManager:
         response.full_node_name = ""
         response.unique_id = 0
         return response
+
+    def _figures(self) -> list[tuple[str, int, int, tuple[int, int] | None]]:
+        """Each loaded node's name, unique_id, pid and memory, for /diagnostics."""
+        with self._lock:
+            running = [entry.hosted for entry in self._loaded.values()]
+        return [(h.full_node_name, h.unique_id, h.pid, self._host.memory(h)) for h in running]
 
     def publish_repairs(self) -> None:
         for repair in repairs.drain():

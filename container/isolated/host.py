@@ -260,6 +260,15 @@ class IsolatedHost:
         been called yet."""
         return self._core.crashed_announced(hosted.detail.child)
 
+    def memory(self, hosted: Hosted) -> tuple[int, int] | None:
+        """(bytes in use, budget in bytes, 0: none) of the node's process as
+        the allocator guard counts them; None without the guard, or once
+        its process is gone."""
+        try:
+            return self._core.memory(hosted.detail.child)
+        except ValueError:  # released meanwhile
+            return None
+
     def start(self, unique_id: int, cls, args) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")

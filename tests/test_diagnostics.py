@@ -1,0 +1,66 @@
+"""Each node's figures on /diagnostics (container/diagnostics.py): its
+unique_id and pid, and in isolated mode its memory in use and budget as the
+allocator guard counts them, a WARN once it nears its budget."""
+
+from __future__ import annotations
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from std_msgs.msg import UInt64
+
+from cloneguard.faults import PACKAGE as TESTRIG
+from cloneguard.harness.system import NodeSpec
+
+MiB = 1 << 20
+ODOMETRY = NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 20.0})
+# Holds 7 x 8 MiB = 56 MiB, then stops: 90% of a 64 MiB budget is 57.6 MiB,
+# so its process (its participant and modules too) is near it, not over.
+HOLDER = NodeSpec(TESTRIG, "faults::MemoryLeak", name="holder",
+                  parameters={"kind": "bytes", "step": 8 * MiB, "steps": 7, "period": 0.05})  # fmt: skip
+
+
+def _latest(array_recorder, names: set[str], timeout: float = 15.0) -> dict[str, DiagnosticStatus]:
+    """The statuses, by node, of the first array that has all ``names``."""
+    got = array_recorder.wait_for(
+        lambda a: names <= {s.name.split(": ", 1)[1] for s in a.status}, timeout, f"statuses of {sorted(names)}"
+    )
+    return {s.name.split(": ", 1)[1]: s for s in got.status}
+
+
+def _values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_isolated_nodes_show_their_memory_and_budget(system_factory):
+    robot = system_factory([ODOMETRY, HOLDER], ["--isolated", "--node-memory-limit", "64M"])
+    diagnostics = robot.topic(DiagnosticArray, "/diagnostics")
+    robot.topic(UInt64, "/holder/held").wait_for(lambda m: m.data == 56 * MiB, 15, "56 MiB held")
+    diagnostics.wait_count(len(diagnostics) + 2, timeout=5)  # an array made after it held them
+    statuses = _latest(diagnostics, {"/odometry", "/holder"})
+    for name, status in statuses.items():
+        values = _values(status)
+        running = robot.node(name)
+        assert status.name == f"/ComponentManager: {name}" and status.hardware_id == "/ComponentManager"
+        assert (values["unique_id"], values["pid"]) == (str(running.unique_id), str(running.pid))
+        assert int(values["memory_limit_bytes"]) == 64 * MiB
+    holder, odometry = _values(statuses["/holder"]), _values(statuses["/odometry"])
+    assert 56 * MiB <= int(holder["memory_in_use_bytes"]) < 64 * MiB
+    assert statuses["/holder"].level == DiagnosticStatus.WARN
+    assert statuses["/holder"].message.startswith("near its memory budget: ")
+    assert 0 < int(odometry["memory_in_use_bytes"]) < 32 * MiB
+    assert statuses["/odometry"].level == DiagnosticStatus.OK
+
+
+@pytest.mark.parametrize("args", [[], ["--isolated", "--no-alloc-guard"]], ids=["threads", "no-alloc-guard"])
+def test_where_nothing_counts_memory_a_node_shows_its_ids_only(system_factory, args):
+    robot = system_factory([ODOMETRY], args)
+    status = _latest(robot.topic(DiagnosticArray, "/diagnostics"), {"/odometry"})["/odometry"]
+    assert set(_values(status)) == {"unique_id", "pid"} and status.level == DiagnosticStatus.OK
+
+
+def test_a_node_leaves_the_diagnostics_at_its_unload(system_factory):
+    robot = system_factory([ODOMETRY], ["--isolated"])
+    diagnostics = robot.topic(DiagnosticArray, "/diagnostics")
+    _latest(diagnostics, {"/odometry"})
+    assert robot.client.unload(robot.node("/odometry").unique_id).success
+    diagnostics.wait_for(lambda a: not a.status, 5, "an array without the unloaded node")
