@@ -98,6 +98,9 @@ WAITS = [
     ("adaptive", "clocklock", {}),
     ("normal", "cond-timedwait", {"in_cond_wait": True}),
     ("normal", "cond-clockwait", {"in_cond_wait": True}),
+    ("recursive", "cond-timedwait", {"in_cond_wait": True}),
+    ("errorcheck", "cond-clockwait", {"in_cond_wait": True}),
+    ("adaptive", "cond-timedwait", {"in_cond_wait": True}),
     ("rwlock", "lock", {}),
     ("rwlock", "read", {}),
 ]

@@ -52,7 +52,7 @@ struct cg_layout {
     long cond_cleanup;
     long mutex_wait_pc;
     long mutex_ret_slot;
-    long mutex_ret[5];
+    long mutex_ret[8];
     long private_wait_pc;
     long timed_wait_pc;
     long timed_ret_slot;
@@ -130,14 +130,14 @@ struct cg_condwait_probe {
 
 struct cg_mutexwait_probe {
     int self_tid;
-    int seen[5];
-    int op[5], val[5];
-    uintptr_t pc[5];
-    int ret_slot[5];
-    uintptr_t ret[5];
-    int ret_in_libc[5];
-    int kind[5];
-    int owner_is_self[5];
+    int seen[8];
+    int op[8], val[8];
+    uintptr_t pc[8];
+    int ret_slot[8];
+    uintptr_t ret[8];
+    int ret_in_libc[8];
+    int kind[8];
+    int owner_is_self[8];
     int private_seen, private_op, private_val;
     uintptr_t private_pc;
 };

@@ -88,7 +88,7 @@ Where each value comes from and how it is checked:
   glibc 2.36 plain mutexes (nptl/pthread_mutex_lock.c, lowlevellock.c; what
   the lock doctor, mutexes.c, rests on), probed on live pthreads blocked on
   a NORMAL, RECURSIVE, ERRORCHECK and ADAPTIVE mutex and in the relock after
-  pthread_cond_wait (cg_probe_mutexwait), each read from outside through
+  pthread_cond_wait of each (cg_probe_mutexwait), each read from outside through
   /proc/<tid>/syscall:
     mutex_wait_pc    every one waits in futex(&mutex.__lock, FUTEX_WAIT, 2)
                      at this one pc (__lll_lock_wait's call);
@@ -182,7 +182,7 @@ class Layout:
     cond_cleanup: int
     mutex_wait_pc: int = 0
     mutex_ret_slot: int = 0
-    mutex_ret: tuple[int, ...] = (0, 0, 0, 0, 0)
+    mutex_ret: tuple[int, ...] = (0,) * 8
     private_wait_pc: int = 0
     timed_wait_pc: int = 0
     timed_ret_slot: int = 0
@@ -404,7 +404,9 @@ def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layou
     return Layout(**{**L.as_dict(), "cond_cleanup": routine})
 
 
-MUTEX_TYPES = ("NORMAL", "RECURSIVE", "ERRORCHECK", "ADAPTIVE", "NORMAL (relock after pthread_cond_wait)")
+MUTEX_TYPES = ("NORMAL", "RECURSIVE", "ERRORCHECK", "ADAPTIVE")
+#: each type's plain lock, then its relock after pthread_cond_wait (probes.c)
+MUTEX_WAITS = (*MUTEX_TYPES, *(f"{t} (relock after pthread_cond_wait)" for t in MUTEX_TYPES))
 FUTEX_WAIT = 0
 FUTEX_CMD_MASK = ~(128 | 256)  # FUTEX_PRIVATE_FLAG, FUTEX_CLOCK_REALTIME
 PID_CURSOR = "/proc/sys/kernel/ns_last_pid"
@@ -432,7 +434,7 @@ def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
     if rc < 0:
         failed.append(f"mutex waiter probe failed: {os.strerror(-rc)}")
     else:
-        for k, name in enumerate(MUTEX_TYPES):
+        for k, name in enumerate(MUTEX_WAITS):
             where = f"a waiter on a {name} mutex"
             check(bool(p.seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&mutex) within 2 s")
             if not p.seen[k]:
@@ -452,7 +454,7 @@ def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
                 f"{where}: returns to {p.ret[k]:#x} (stack word {p.ret_slot[k]})",
                 f"{where}: no return address into libc's lock function at stack word {p.ret_slot[0]}",
             )
-            want = k if k < 4 else 0  # glibc adds NO_ELISION (512) to a NORMAL set by attribute
+            want = k % len(MUTEX_TYPES)  # glibc adds NO_ELISION (512) to a NORMAL set by attribute
             check(
                 p.kind[k] & ~MUTEX_NO_ELISION == want and bool(p.owner_is_self[k]),
                 f"{where}: __kind {p.kind[k]}, __owner = holder",
@@ -466,7 +468,7 @@ def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
     values: dict[str, Any] = {
         "mutex_wait_pc": int(p.pc[0]) if not failed else 0,
         "mutex_ret_slot": int(p.ret_slot[0]) if not failed else 0,
-        "mutex_ret": tuple(int(p.ret[k]) for k in range(len(MUTEX_TYPES))) if not failed else (0,) * len(MUTEX_TYPES),
+        "mutex_ret": tuple(int(p.ret[k]) for k in range(len(MUTEX_WAITS))) if not failed else (0,) * len(MUTEX_WAITS),
         "private_wait_pc": int(p.private_pc) if not failed else 0,
     }
     values.update({k: v for k, v in overrides.items() if k in values})
@@ -540,7 +542,7 @@ def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
                 "calling pthread_rwlock_unlock did not let the waiter in",
             )
         plain = set(L.mutex_ret)
-        for k in range(2 * len(MUTEX_TYPES[:4])):
+        for k in range(2 * len(MUTEX_TYPES)):
             call, name = TIMED_CALLS[k % 2], MUTEX_TYPES[k // 2]
             where = f"a waiter in {call} on a {name} mutex"
             check(bool(p.seen[k]), f"{where} seen in futex()", f"{where} was not seen in futex(&mutex) within 2 s")

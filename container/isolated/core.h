@@ -51,7 +51,9 @@
 /* ---------------------------------------------------------------------- */
 /* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
 
-#define CG_MUTEX_CALLERS 5   /* mutex_ret: 4 mutex types + the condvar relock */
+#define CG_MUTEX_TYPES 4     /* NORMAL, RECURSIVE, ERRORCHECK, ADAPTIVE */
+#define CG_MUTEX_CALLERS 8   /* mutex_ret: 4 mutex types, then the condvar
+                                relock of each */
 #define CG_TIMED_TYPES 4     /* mutex_timed_ret: the 4 mutex types */
 #define CG_RWLOCK_CALLERS 9  /* rwlock_ret: {wr,rd} x {plain, timed, clock}
                                 on a writer, + wr x ... on readers */

@@ -233,8 +233,9 @@ static int wait_in_futex(int tid, const void *uaddr, struct task_syscall *sc)
 static uintptr_t stack_word(uintptr_t sp, int i) { return ((uintptr_t *)sp)[i]; }
 
 /* Block a pthread on a mutex of each kind glibc waits for in __lll_lock_wait
-   (PTHREAD_MUTEX_{NORMAL,RECURSIVE,ERRORCHECK,ADAPTIVE}_NP, and the relock
-   after pthread_cond_wait), and on a glibc-internal lock
+   (PTHREAD_MUTEX_{NORMAL,RECURSIVE,ERRORCHECK,ADAPTIVE}_NP, k = 0..3, and the
+   relock of each after pthread_cond_wait, k = 4..7: __pthread_mutex_cond_lock
+   returns from a place of its own for each type), and on a glibc-internal lock
    (__lll_lock_wait_private), and read where each waits, from outside, the
    way mutexes.c will: /proc/<tid>/syscall gives the futex call, its pc and
    sp, and the waiter's stack, above sp, the return address into its caller.
@@ -254,10 +255,11 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
         pthread_mutexattr_t at;
         pthread_cond_t cv = PTHREAD_COND_INITIALIZER;
         pthread_mutexattr_init(&at);
-        pthread_mutexattr_settype(&at, k == CG_MUTEX_CALLERS - 1 ? PTHREAD_MUTEX_NORMAL : k);
+        bool relock = k >= CG_MUTEX_TYPES;
+        pthread_mutexattr_settype(&at, k % CG_MUTEX_TYPES);
         pthread_mutex_init(&m, &at);
         pthread_mutexattr_destroy(&at);
-        struct mutex_waiter w = {&m, k == CG_MUTEX_CALLERS - 1 ? &cv : NULL, 0, 0, NULL};
+        struct mutex_waiter w = {&m, relock ? &cv : NULL, 0, 0, NULL};
         struct task_syscall sc;
         pthread_t t;
         if (w.cv == NULL)
@@ -282,7 +284,7 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
             /* The return address: the first word above sp that lies in
                pthread_mutex_lock (by dladdr) for a plain lock; for the
                relock, the word at the same place. */
-            for (int i = 0; i < 32 && k < CG_MUTEX_CALLERS - 1; i++) {
+            for (int i = 0; i < 32 && !relock; i++) {
                 Dl_info info;
                 uintptr_t v = stack_word(sc.sp, i);
                 if (dladdr((void *)v, &info) && info.dli_saddr == lock_fn) {
@@ -291,7 +293,7 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
                     break;
                 }
             }
-            if (k == CG_MUTEX_CALLERS - 1 && out->ret[0]) {
+            if (relock && out->ret[0]) {
                 out->ret_slot[k] = out->ret_slot[0];
                 out->ret[k] = stack_word(sc.sp, out->ret_slot[0]);
             }
