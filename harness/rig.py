@@ -13,7 +13,9 @@ injects a fault into a *victim* node, then judges the outcome:
 ``failed``    something else went wrong (e.g. no CRASHED for a death).
 
 The rig restarts the container after a trial that did not survive, and
-after every ``DEATHS_PER_CONTAINER`` node deaths.
+after every ``DEATHS_PER_CONTAINER`` node deaths. With ``memory_limit``
+each of its containers is born in a memory cgroup of the harness's own
+with that limit, a fresh one per container (memory_cgroup.py).
 """
 
 from __future__ import annotations
@@ -105,19 +107,32 @@ class Outcome:
 
 
 class Rig:
-    def __init__(self, factory, profile: str, *, extra_args=(), extra_env=None, fastdds_profile=None):
+    def __init__(
+        self,
+        factory,
+        profile: str,
+        *,
+        extra_args=(),
+        extra_env=None,
+        fastdds_profile=None,
+        memory_limit: int | None = None,
+    ):
         self._factory = factory
         self.profile = profile
         self._args = [*PROFILES[profile], *extra_args]
         self._env = extra_env
         self._fastdds = fastdds_profile
+        #: bytes: each container (each restart's too) runs in a memory
+        #: cgroup of its own with this limit (MemoryCgroupUnavailable where
+        #: none can be made); set it and restart() to move a rig into one
+        self.memory_limit = memory_limit
         self.restarts = 0
         self._start()
 
     # -- life cycle ---------------------------------------------------------------
 
     def _start(self) -> None:
-        kwargs = {"extra_env": self._env}
+        kwargs: dict = {"extra_env": self._env, "memory_limit": self.memory_limit}
         if self._fastdds is not None:
             kwargs["fastdds_profile"] = self._fastdds
         self.proc: ContainerProcess = self._factory.start(self._args, **kwargs)
