@@ -12,6 +12,7 @@ harness, never the reverse). Every random choice of a trial comes from its
 from __future__ import annotations
 
 import random
+import re
 import signal
 import time
 from collections.abc import Callable
@@ -21,9 +22,11 @@ from typing import Protocol
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
+from cloneguard.container.memory_budget import MEMORY_LIMIT
 from cloneguard.harness import procfs
 from cloneguard.harness.client import HarnessTimeout
 from cloneguard.harness.rig import DEATHS_PER_CONTAINER, Outcome, Rig, TrialOutcome
+from cloneguard.harness.system import longest_gap
 
 from . import PACKAGE as TESTRIG
 from .outside import kill_at
@@ -627,6 +630,191 @@ class OwnHeapOverflow(_VictimTrials):
         return self._victim_goes_on(out) if out.survived else out
 
 
+# -- out of memory ------------------------------------------------------------------
+
+MiB = 1 << 20
+#: What the container of every out-of-memory trial may use: the limit of the
+#: memory cgroup of the harness's own it is born in (a fresh one per
+#: container); never a leak against the machine's memory.
+OOM_CGROUP_LIMIT = 512 * MiB
+#: The leaking node's own budget (cloneguard.memory_limit), where it has one.
+OOM_BUDGET = 64 * MiB
+#: The watch's margin at OOM_CGROUP_LIMIT (memory_watch.py: 2%, at least
+#: 64 MiB): it acts once the container's use is within it of the limit.
+OOM_WATCH_MARGIN = 64 * MiB
+#: faults::MemoryLeak's kinds, and their parameters here: a leak is fast (the
+#: quick runs fill a 512 MiB container in about a second) and for ever
+#: (steps 0); "huge" is one allocation of 1.5 times what the container may
+#: use. Not more: under --jemalloc with the allocator guard a node's malloc of
+#: more than 896 MiB returns NULL (its slot's range is made into extents of
+#: at most 1 GiB when the slot is made: allocguard.c, make_address_map), so a
+#: bigger one would leak nothing.
+OOM_LEAKS = {
+    "python": {"kind": "python", "step": 4 * MiB, "period": 0.005},
+    "malloc": {"kind": "native", "step": 8 * MiB, "period": 0.005},
+    "huge": {"kind": "huge", "step": 3 * OOM_CGROUP_LIMIT // 2},
+    "bytearray": {"kind": "bytes", "step": 8 * MiB, "period": 0.005},
+}
+#: How long a leak may take to be ended (a Python-object leak fills the
+#: container slowest, in a few seconds under load).
+OOM_JUDGE_S = 30.0
+#: The longest the survivor's heartbeat (50 Hz) may pause in a trial.
+OOM_MAX_GAP_S = 1.0
+#: What the CRASHED of a node ended for its memory says, by cause.
+OUT_OF_MEMORY = {
+    "budget": re.compile(
+        r"out of memory: (?P<used>[\d.]+) MiB in use, over its limit of (?P<limit>[\d.]+) MiB "
+        r"\(it asked for (?P<asked>[\d.]+) (?P<unit>[KM])iB more\)"
+    ),
+    "watch": re.compile(
+        r"out of memory: the container used (?P<used>[\d.]+) MiB of the (?P<limit>[\d.]+) MiB it may use, "
+        r"and this node process the most: (?P<node>[\d.]+) MiB"
+    ),
+}
+
+
+class OutOfMemory:
+    """Each trial loads a faults::MemoryLeak that leaks for ever (its kind,
+    one of ``OOM_LEAKS``, drawn from the seed) into a container that runs
+    in a memory cgroup of OOM_CGROUP_LIMIT. ``cause`` "budget": the leak has
+    a budget of its own (OOM_BUDGET, the LoadNode extra argument
+    cloneguard.memory_limit), which it reaches while the container has room;
+    "watch": it has none, and grows until the container's memory watch ends
+    it near the cgroup's limit.
+
+    Survived: the leak alone was ended (CRASHED, SIGKILL, its text saying
+    out of memory for the cause's reason: over its budget, or the container
+    near its limit and this node the one using the most), the container
+    goes on (answers, loads a node), the survivor's heartbeat never paused
+    over OOM_MAX_GAP_S, and the kernel's OOM killer never acted in the
+    cgroup. Failed: another reason, another node ended, a longer pause, an
+    OOM kill. In thread mode (the baseline) a budget is refused (recorded)
+    and the leak loaded without one; nothing but the kernel's OOM killer
+    can end it, and it ends the container: crashed.
+
+    A dead node's memory is not given back yet: it stays charged to the
+    container. So after a watch trial (the container at its limit) the
+    container is replaced, in a fresh cgroup; after a budget trial, once
+    the container has no longer room for another budget's worth above the
+    watch's margin."""
+
+    def __init__(self, rig: Rig, cause: str):
+        if cause not in OUT_OF_MEMORY:
+            raise ValueError(f"cause is one of {sorted(OUT_OF_MEMORY)}, not {cause!r}")
+        self.rig, self.cause = rig, cause
+        if rig.memory_limit != OOM_CGROUP_LIMIT:
+            # A rig made without one (reproduce's): replaced by one whose
+            # containers each run in a memory cgroup of that limit.
+            rig.memory_limit = OOM_CGROUP_LIMIT
+            rig.restart()
+
+    def _load(self, index: int, kind: str, details: dict):
+        """The leak's LoadNode response, or None (details["why"] says why)."""
+        client = self.rig.client
+        name, params = f"leak{index}", {**OOM_LEAKS[kind], "delay": 0.1}
+        budget = {MEMORY_LIMIT: f"{OOM_BUDGET // MiB}M"} if self.cause == "budget" else {}
+        resp = client.load(TESTRIG, "faults::MemoryLeak", node_name=name, parameters=params, extra_arguments=budget)
+        if resp.success:
+            return resp
+        if budget and self.rig.profile == "threads" and "needs an isolated container" in resp.error_message:
+            details["budget"] = f"refused: {resp.error_message}"
+            resp = client.load(TESTRIG, "faults::MemoryLeak", node_name=name, parameters=params)
+            if resp.success:
+                return resp
+        details["why"] = f"the leak's load was refused: {resp.error_message}"
+        return None
+
+    def trial(self, seed: int, index: int) -> Outcome:
+        rig = self.rig
+        kind = random.Random(seed).choice(sorted(OOM_LEAKS))
+        details: dict = {"leak": kind}
+        started, started_mono = time.time_ns(), time.monotonic_ns()  # events' clock, the recorders'
+        resp = self._load(index, kind, details)
+        if resp is None:
+            return Outcome(TrialOutcome.FAILED, details=details)
+        loaded_ns = time.time_ns()
+        cgroup = rig.proc.memory_cgroup
+        assert cgroup is not None  # __init__ made sure
+        if rig.profile == "threads":
+            return self._thread_mode(details, cgroup)
+        pid = rig.loaded_pid(resp.unique_id)
+        out = rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=None, timeout=OOM_JUDGE_S)
+        out.details = {**details, **out.details}
+        ev = next(
+            (
+                e
+                for e in rig.client.events.messages()
+                if e.event_type == ComponentEvent.CRASHED and e.unique_id == resp.unique_id
+            ),
+            None,
+        )
+        if ev is not None:
+            out.latency_ms["load_to_crashed"] = (ev.stamp.sec * 1_000_000_000 + ev.stamp.nanosec - loaded_ns) / 1e6
+            out.details["reason"] = ev.error_message
+        out.details["oom_kills"] = kills = cgroup.oom_kills()
+        others = [
+            f"{e.full_node_name} ({e.error_message})"
+            for e in rig.client.events.messages()
+            if e.event_type == ComponentEvent.CRASHED
+            and e.unique_id != resp.unique_id
+            and e.stamp.sec * 1_000_000_000 + e.stamp.nanosec >= started
+        ]
+        if others:
+            out.details["also_ended"] = others
+        if not out.survived:
+            return out
+        gap = longest_gap(rig.beats, started_mono)
+        out.latency_ms["survivor_longest_gap"] = gap * 1e3
+        out.details["cgroup_use_after_mib"] = round(cgroup.usage() / MiB, 1)
+        said = OUT_OF_MEMORY[self.cause].search(out.details.get("reason", ""))
+        why = ""
+        if said is None:
+            why = f"CRASHED does not say out of memory for its {self.cause}: {out.details.get('reason', '')!r}"
+        elif self.cause == "budget" and float(said["limit"]) != OOM_BUDGET / MiB:
+            why = f"ended at a limit of {said['limit']} MiB, not its budget of {OOM_BUDGET // MiB} MiB"
+        elif self.cause == "watch" and float(said["limit"]) != OOM_CGROUP_LIMIT / MiB:
+            why = f"the watch's limit was {said['limit']} MiB, not the cgroup's {OOM_CGROUP_LIMIT // MiB} MiB"
+        elif others:
+            why = f"another node was ended too: {others[0]}"
+        elif kills:
+            why = f"the kernel's OOM killer acted {kills} time(s) in the container's cgroup"
+        elif gap > OOM_MAX_GAP_S:
+            why = f"the survivor's heartbeat paused {gap:.2f} s"
+        if said is not None:  # in MiB
+            found = said.groupdict()
+            unit = found.pop("unit", "M")
+            out.details.update(
+                {f"{k}_mib": float(v) / (1024 if k == "asked" and unit == "K" else 1) for k, v in found.items()}
+            )
+        if why:
+            out.outcome, out.details["why"] = TrialOutcome.FAILED, why
+        return out
+
+    def _thread_mode(self, details: dict, cgroup) -> Outcome:
+        """The baseline: nothing ends a leak but the kernel's OOM killer,
+        which ends the whole container (crashed); hung if it stays alive."""
+        rig = self.rig
+        code = rig.proc.wait(OOM_JUDGE_S)
+        details["oom_kills"] = cgroup.oom_kills()
+        if code is None:
+            return rig.not_survived(
+                f"the leak was not ended within {OOM_JUDGE_S:g} s", Outcome(TrialOutcome.HUNG, details=details)
+            )
+        return rig.not_survived(
+            f"the container died (exit {code}): the kernel's OOM killer acted {details['oom_kills']} time(s)",
+            Outcome(TrialOutcome.CRASHED, details=details),
+        )
+
+    def settle(self, out: Outcome) -> None:
+        rig = self.rig
+        if rig.settle(out):
+            return
+        cgroup = rig.proc.memory_cgroup
+        room = OOM_CGROUP_LIMIT - OOM_WATCH_MARGIN - (cgroup.usage() if cgroup is not None else 0)
+        if self.cause == "watch" or room < 2 * OOM_BUDGET:
+            rig.restart()
+
+
 # -- the registry ------------------------------------------------------------------
 
 
@@ -676,6 +864,8 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "double-free-of-another-nodes-block": DoubleFree,
     "use-after-free-of-another-nodes-block": UseAfterFree,
     "heap-overflow-in-own-heap": OwnHeapOverflow,
+    "out-of-memory/over-its-budget": lambda rig: OutOfMemory(rig, "budget"),
+    "out-of-memory/container-full": lambda rig: OutOfMemory(rig, "watch"),
     **{
         f"die-holding-{prefix}-{kind}/{how}": (
             lambda rig, family=family, kind=kind, how=how: LockDeath(rig, family, kind, how)

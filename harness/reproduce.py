@@ -37,6 +37,7 @@ from pathlib import Path
 
 from cloneguard.harness import domains, named_faults
 from cloneguard.harness.factory import ContainerFactory
+from cloneguard.harness.memory_cgroup import MemoryCgroupUnavailable
 from cloneguard.harness.plan import trial_count_arg
 from cloneguard.harness.process import use_loopback_ros
 from cloneguard.harness.rig import PROFILES, Rig
@@ -138,8 +139,11 @@ def run(args) -> int:
     with domains.lease() as lease:
         factory = ContainerFactory(lease.domain_id, log_dir, exe=args.container_exe)
         try:
-            rig = Rig(factory, args.profile, extra_args=allocators[args.allocator])
-            fault = faults[args.fault](rig)
+            try:
+                rig = Rig(factory, args.profile, extra_args=allocators[args.allocator])
+                fault = faults[args.fault](rig)
+            except MemoryCgroupUnavailable as why:  # an out-of-memory fault's rig: never without a limit
+                raise SystemExit(f"{args.fault} needs a memory cgroup, and none can be made here: {why}") from None
             for i in range(args.trials):
                 seed = args.trial_seed if args.trial_seed is not None else rng.getrandbits(31)
                 out = fault.trial(seed, i)
