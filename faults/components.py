@@ -282,6 +282,7 @@ NATIVE_WAITS = {
     "clocklock": nativelock.NL_CLOCKLOCK,
     "cond-timedwait": nativelock.NL_COND_TIMEDWAIT,
     "cond-clockwait": nativelock.NL_COND_CLOCKWAIT,
+    "trylock": nativelock.NL_TRYLOCK,
     "read": -1,
 }
 

@@ -163,7 +163,9 @@ static struct timespec in_ms(clockid_t clock, long ms)
 
 /* Take g_locks[kind] as `way` says, and give it back: as nativelock_use.
    A timed try that times out is tried again (0.2 s each); a condvar wait
-   (20 ms, never signalled) ends in the relock. */
+   (20 ms, never signalled) ends in the relock; a trylock that finds it
+   held is tried again after 1 ms (std::mutex::try_lock in a loop: it never
+   blocks). */
 int nativelock_use_by(int kind, int way)
 {
     if (bad(kind) || way < 0 || way >= NL_WAYS)
@@ -172,7 +174,11 @@ int nativelock_use_by(int kind, int way)
     if (way == NL_LOCK)
         return nativelock_use(kind);
     int r, repaired = 0;
-    if (way == NL_TIMEDLOCK || way == NL_CLOCKLOCK) {
+    if (way == NL_TRYLOCK) {
+        struct timespec ms = {0, 1000000L};
+        while ((r = pthread_mutex_trylock(m)) == EBUSY)
+            nanosleep(&ms, NULL);
+    } else if (way == NL_TIMEDLOCK || way == NL_CLOCKLOCK) {
         do {
             clockid_t clock = way == NL_TIMEDLOCK ? CLOCK_REALTIME : CLOCK_MONOTONIC;
             struct timespec until = in_ms(clock, 200);

@@ -48,6 +48,12 @@ def _stalls(progress, for_s: float = 2.0) -> bool:
     return len(progress) == seen
 
 
+def _repaired_lock(event) -> str:
+    """What a REPAIRED event says it released: "NORMAL mutex", "rwlock", ..."""
+    found = re.search(r"native (\w+ mutex|rwlock) 0x", event.error_message)
+    return found[1] if found else event.error_message
+
+
 def _native_repairs(client, unique_id: int | None = None) -> list:
     return [
         e
@@ -133,8 +139,29 @@ def test_a_dead_owners_lock_is_released_whichever_way_its_waiter_waits(client, c
     progress.wait_count(len(progress) + 20, timeout=5)
 
 
+@pytest.mark.parametrize("container_args", ISOLATED)
+@pytest.mark.parametrize("kind", ["normal", "recursive", "adaptive"])
+def test_a_dead_owners_mutex_polled_with_trylock_is_found_and_released(client, container, kind):
+    """A waiter that polls with trylock never blocks: the doctor finds the
+    mutex by sweeping memory a second after the death (heldscan.c), still
+    held by a dead task with nobody blocked on it, and releases it."""
+    progress = _waiting(client, kind, "trylock")
+    holder, crashed = _die(client, kind)
+    repaired = client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder.unique_id, timeout=5)
+    offset = NATIVE_LOCKS[kind] * SIZEOF_MUTEX
+    assert re.search(
+        rf"native {kind.upper()} mutex 0x[0-9a-f]+ in _nativelock\S*\.so's data \(g_locks\+{offset}\), still held "
+        rf"by /native_mutex_holder \(pid {crashed.pid}\) thread \d+ a second after its process died, with no task "
+        r"blocked on it",
+        repaired.error_message,
+    ), repaired.error_message
+    assert 1_000_000_000 <= _ns(repaired.stamp) - _ns(crashed.stamp) < 2_000_000_000
+    progress.wait_count(len(progress) + 20, timeout=5)
+    assert len(_native_repairs(client, holder.unique_id)) == 1  # the one mutex, nothing else
+
+
 @pytest.mark.parametrize("container_args", [["--isolated", "--no-mutex-repair"]])
-@pytest.mark.parametrize("wait", ["lock", "timedlock"])
+@pytest.mark.parametrize("wait", ["lock", "timedlock", "trylock"])
 def test_without_the_doctor_the_waiter_waits_for_ever(client, container, wait):
     """The control: the same death, nothing released (a timed waiter times
     out and tries again for ever)."""
@@ -162,7 +189,9 @@ def test_a_live_owners_mutex_is_left_alone_after_another_death(client, container
     assert len(progress) == 0, "the waiter got a live owner's mutex"
     progress.wait_count(5, timeout=10)  # given back by its owner
     assert "native_mutex_waiter is blocked" not in container.log_text()
-    assert not _native_repairs(client)
+    # What was repaired is the dead node's own mutex (found held by the
+    # sweep, nobody waiting on it), never the live owner's.
+    assert [_repaired_lock(e) for e in _native_repairs(client)] == ["ERRORCHECK mutex"]
 
 
 @pytest.mark.parametrize("container_args", ISOLATED)

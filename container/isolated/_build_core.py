@@ -39,6 +39,7 @@ SOURCES = (
     "herald.c",
     "lastresort.c",
     "memwatch.c",
+    "heldscan.c",
 )
 
 CDEF = r"""

@@ -14,6 +14,9 @@
  *                guard's contexts that keep one bound to a slot across children
  *   mutexes.c    native mutexes a dead child held, found through their
  *                waiters, proven, released or reported (the monitor runs it)
+ *   heldscan.c   the same, held with no waiter: found by sweeping memory
+ *   memwatch.c   the container's memory watch: before its memory reaches
+ *                its limit, the node process that uses the most is ended
  *   listenerwait.c  Fast DDS's infinite participant-listener wait, which
  *                spins (eProsima/Fast-DDS#6513), made finite waits that sleep
  *   probes.c     small helpers assumptions.py uses to discover and check the
@@ -461,6 +464,15 @@ void mutexes_see(struct cg_child *c);     /* look at a child's tasks now */
 void mutexes_bury(const struct cg_child *c);   /* c is dead, not yet reaped */
 int mutexes_tick(struct cg_child *children, int64_t now);   /* sleep ms, -1 */
 int task_syscall(int tid, struct task_syscall *out);   /* probes.c too */
+
+/* heldscan.c: on the monitor thread, for mutexes.c */
+struct held_owners {
+    int min, max;                 /* every tid dead() may accept is in here */
+    bool (*dead)(int tid);        /* a task proven dead */
+};
+bool held_sweep_start(void);      /* false: no mapping could be read */
+bool held_sweep_step(struct held_owners *owners,
+                     void (*found)(uintptr_t addr, int owner, int kind));   /* false: done */
 
 /* memwatch.c: on the monitor thread */
 int memwatch_tick(struct cg_child *children, int sleep_ms);  /* sleep ms */

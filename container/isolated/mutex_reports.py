@@ -77,6 +77,12 @@ def text(r: MutexReport) -> str:
             f"writer recorded (glibc records no reader: a dead reader cannot be told from a live one; the last node "
             f"process to die was {dead}): not released"
         )
+    if r.verdict == MutexVerdict.RELEASED and not r.waiter_tid:
+        return (
+            f"native {lock} in {where}, still held by {dead} thread {r.owner_tid} a second after its process died, "
+            "with no task blocked on it (a waiter that polls with trylock never blocks), was released; what it "
+            "guards may be half-updated"
+        )
     if r.verdict == MutexVerdict.RELEASED:
         return (
             f"native {lock} in {where}, held by {dead} thread {r.owner_tid} when its process died, was released "

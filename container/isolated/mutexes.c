@@ -34,6 +34,12 @@
  *            task with tid O exists now, and the pid cursor has not come
  *            round to O since (Linux hands pids out in cyclic order, so O
  *            was not given to another task meanwhile);
+ *   sweeps   HELD_AFTER_NS after a death, the container's memory for plain
+ *            mutexes a dead set's task still holds with no task blocked
+ *            on them (a waiter that polls with pthread_mutex_trylock never
+ *            blocks): heldscan.c, in steps between the monitor's events;
+ *            each found is proven and released as below, reported with no
+ *            waiter (tid 0);
  *   releases it as its owner's last unlock would: __owner to 0 (only if it
  *            still is O), a recursive count to 0, __nusers one less, the
  *            lock word to 0, one waiter woken; reported CG_MUTEX_RELEASED.
@@ -88,6 +94,9 @@
                                         every task; on 2 cores it held the
                                         core's listener off ~0.3 ms) */
 #define STUCK_NS (1000 * 1000000LL)
+#define HELD_AFTER_NS (1000 * 1000000LL)   /* this long after a death, sweep
+                                    memory for mutexes its tasks still hold
+                                    that no task blocks on (heldscan.c) */
 #define RESERVED_PIDS 300   /* where the pid cursor wraps to (kernel/pid.c) */
 #define NDEAD 32            /* dead sets kept; the oldest is dropped first */
 #define NREPORTED 128       /* (waiter, lock, verdict) already reported */
@@ -115,6 +124,8 @@ static int64_t g_next_look, g_died_at;
 static int g_last_dead_pid;
 static uint64_t g_last_dead_serial;
 static int g_scans;               /* generation of the current scan */
+static int64_t g_sweep_due;       /* when the next held-mutex sweep starts, 0: none */
+static bool g_sweeping;           /* one is under way */
 
 static struct { int tid; uintptr_t addr; int verdict; } g_reported[NREPORTED];
 static int g_reported_next;
@@ -329,6 +340,7 @@ void mutexes_bury(const struct cg_child *c)
     g_last_dead_pid = c->pid;
     g_last_dead_serial = c->serial;
     g_next_look = cg_mono_ns() + FIRST_LOOK_NS;   /* look for its waiters soon */
+    g_sweep_due = cg_mono_ns() + HELD_AFTER_NS;   /* and later for what it holds */
     g_died_at = -1;                  /* and often for a while (mutexes_tick) */
 }
 
@@ -564,6 +576,52 @@ static void look_at(int tid, void *arg)
     }
 }
 
+/* ---- mutexes held with no waiter (heldscan.c) --------------------------- */
+
+static bool proven_dead(int tid)
+{
+    return dead_owner(tid) && !task_exists(tid);
+}
+
+/* The range of the tids the dead sets prove dead; false if none. */
+static bool dead_range(struct held_owners *o)
+{
+    o->min = 0x7fffffff, o->max = 0, o->dead = proven_dead;
+    for (int i = 0; i < NDEAD; i++)
+        for (int k = 0; g_dead[i].pid && k < g_dead[i].seen.n; k++) {
+            int tid = g_dead[i].seen.t[k].tid;
+            o->min = tid < o->min ? tid : o->min;
+            o->max = tid > o->max ? tid : o->max;
+        }
+    return o->max > 0;
+}
+
+/* A place the sweep found: released, as for a waiter, if it still is a
+   plain mutex that dead task holds; reported with no waiter (tid 0). */
+static void held_found(uintptr_t addr, int owner, int kind)
+{
+    pthread_mutex_t m;
+    if (read_mem(addr, &m, sizeof m) < 0 || m.__data.__owner != owner || m.__data.__lock == 0)
+        return;
+    const struct dead_set *d = dead_owner(owner);
+    if (d && !task_exists(owner) && release((pthread_mutex_t *)addr, owner))
+        report(CG_MUTEX_RELEASED, d, 0, owner, kind, addr);
+}
+
+/* Start or go on with a sweep when it is time; true while one is under way
+   (the monitor comes back at once, between its events). */
+static bool sweep(int64_t now)
+{
+    if (g_sweep_due && now >= g_sweep_due && !g_sweeping) {
+        g_sweep_due = 0;
+        g_sweeping = held_sweep_start();
+    }
+    struct held_owners owners;
+    if (g_sweeping)
+        g_sweeping = dead_range(&owners) && held_sweep_step(&owners, held_found);
+    return g_sweeping;
+}
+
 static void scan(struct cg_child *children, int64_t now)
 {
     g_scans++;
@@ -606,6 +664,10 @@ int mutexes_tick(struct cg_child *children, int64_t now)
         for (int i = 0; i < NDEAD && !dead; i++)
             dead = g_dead[i].pid != 0;
     }
+    if (sweep(now))
+        return 0;
+    if (g_sweep_due && (dead || children))
+        return (int)(((g_sweep_due < g_next_look ? g_sweep_due : g_next_look) - now + 999999) / 1000000);
     if (!children && !dead)
         return -1;
     return (int)((g_next_look - now + 999999) / 1000000);
