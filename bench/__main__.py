@@ -65,7 +65,7 @@ PRESETS = {
         "shutdown": {"reps": 1, "counts": [1, 2], "settle": 0.1, "modes": ["isolated-per-node", "thread"]},
         "intra": {"sizes": ["1KiB", "1MiB"], "count": 2, "warmup": 1, "burst": 5, "burst_seconds": 0.5, "settle": 0.2},
         "python_locks": {"rounds": 3, "ops": 2000},
-        "lock_doctor": {"nodes": [1, 2], "threads": 1, "seconds": 0.5},
+        "lock_doctor": {"nodes": [1, 2], "threads": 1, "seconds": 0.5, "resident": [0, 64]},
         "scale": {
             "counts": [1, 2],
             "idle": 0.3,

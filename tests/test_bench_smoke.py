@@ -119,7 +119,8 @@ EXPECTED_TABLES = {
     ],
     "python_locks": [["case", "CPython", "ours", "ours ÷ CPython", "ours p90"]],
     "lock_doctor": [
-        ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"]
+        ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"],
+        ["resident memory made", "container RSS", "monitor CPU", "more than with none, per MiB"],
     ],
     "scale": [
         [
