@@ -9,7 +9,6 @@ import pytest
 
 from cloneguard.bench import __main__ as bench_all
 from cloneguard.bench import pkeys_cost
-from cloneguard.bench.modes import MODES
 from cloneguard.bench.results import SUMMARY_COLUMNS
 from cloneguard.harness.process import REPO_ROOT
 
@@ -252,12 +251,18 @@ def test_the_discovery_benchmark_probes_from_fresh_processes(tmp_path):
 def test_the_cost_of_protection_keys_is_measured_where_the_cpu_has_them_and_said_why_not_elsewhere(tiny_run):
     out, _, _, _ = tiny_run
     data = json.loads((out / "pkeys_cost.json").read_text())
-    assert [t["columns"] for t in data["tables"]] == [
-        ["measure", MODES["isolated-jemalloc"][0], MODES["isolated-pkeys"][0], "with keys", "verdict"]
+    assert data["tables"][0]["columns"] == [
+        "measure",
+        "pairs",
+        "A: median",
+        "B: median",
+        "A ÷ B: median of the pairs' ratios",
+        "95% interval",
+        "verdict (≤ +5%)",
     ]
     why = pkeys_cost.keys_missing()
     if why is not None:
-        assert data["tables"][0]["rows"] == [] and data["goals"] == []
+        assert len(data["tables"]) == 1 and data["tables"][0]["rows"] == [] and data["goals"] == []
         assert [r["verdict"] for r in data["summary"]] == [f"not measured: {why}"]
         assert f"Not measured on this machine: {why}." in (out / "pkeys_cost.md").read_text()
         return
@@ -269,7 +274,15 @@ def test_the_cost_of_protection_keys_is_measured_where_the_cpu_has_them_and_said
         "malloc/free 64 B, node process",
         "malloc/free 4096 B, node process",
     ]
-    assert all(r["with keys"].endswith("%") and r["verdict"] for r in rows)
+    # the tiny preset's 2 pairs: ratios, but too few for a 95% interval
+    assert all(r["pairs"] == "2" and r["A ÷ B: median of the pairs' ratios"].endswith("%") for r in rows)
+    assert all(r["verdict (≤ +5%)"].startswith("undecided: 2 pairs give no 95% interval") for r in rows)
+    # instructions, single-stepped: A's workers held keys, B's none
+    steps = data["tables"][1]["rows"]
+    assert [r["measure"] for r in steps] == [f"malloc/free {s} B, node process (instructions)" for s in (64, 4096)]
+    assert all(float(r["A: keys on"]) > 0 and float(r["B: keys off"]) > 0 for r in steps)
+    instr = data["raw"]["instructions"]
+    assert instr["A"]["keys"] and not instr["B"]["keys"]
 
 
 @pytest.mark.parametrize("endpoints", ["all", "minimal"])
