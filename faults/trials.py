@@ -347,9 +347,15 @@ NATIVE_MUTEXES = LockFamily(
     "faults::WaitsForNativeMutex",
     "/native_mutex_waiter",
     "native-mutex",
-    {"normal": "NORMAL mutex", "recursive": "RECURSIVE mutex"},
+    {"normal": "NORMAL mutex", "recursive": "RECURSIVE mutex", "rwlock": "rwlock"},
     waiter_callback=False,
 )
+# Other ways a waiter waits on a dead node's NORMAL mutex (the lock doctor
+# sees each differently: mutexes.c, heldscan.c), besides pthread_mutex_lock:
+# a timed lock retried every 0.2 s, a trylock polled every 1 ms, and the
+# relock after a condvar wait (the holder dies holding the mutex while the
+# waiter is inside its 20 ms timed wait).
+NATIVE_WAITS = ("timedlock", "clocklock", "trylock", "cond-timedwait")
 LOCK_DEATH_SIGNALS = {"segfault": signal.SIGSEGV, "sigkill": signal.SIGKILL}
 
 
@@ -361,12 +367,13 @@ class LockDeath:
     of the family's ``repaired_state`` names the lock and the dead holder,
     and where the waiter has a repair callback, it ran."""
 
-    def __init__(self, rig: Rig, family: LockFamily, kind: str, how: str):
-        self.rig, self.family, self.kind, self.how = rig, family, kind, how
+    def __init__(self, rig: Rig, family: LockFamily, kind: str, how: str, wait: str = "lock"):
+        self.rig, self.family, self.kind, self.how, self.wait = rig, family, kind, how, wait
         self._start_waiter()
 
     def _start_waiter(self) -> None:
-        self.rig.client.load_ok(TESTRIG, self.family.waiter, parameters={"kind": self.kind})
+        waits = {"wait": self.wait} if self.wait != "lock" else {}
+        self.rig.client.load_ok(TESTRIG, self.family.waiter, parameters={"kind": self.kind, **waits})
         self.progress = self.rig.client.subscribe(UInt64, f"{self.family.topic}/progress")
         self.repaired = self.rig.client.subscribe(UInt64, f"{self.family.topic}/repaired")
         self.progress.wait_count(5, timeout=10)
@@ -379,7 +386,14 @@ class LockDeath:
             TESTRIG,
             family.holder,
             node_name=f"lock_holder{index}",
-            parameters={"kind": self.kind, "how": self.how, "delay": 0.05, "jitter": 0.1, "seed": seed},
+            parameters={
+                "kind": self.kind,
+                "how": self.how,
+                "delay": 0.05,
+                "jitter": 0.1,
+                "seed": seed,
+                **({"in_cond_wait": True} if self.wait.startswith("cond-") else {}),
+            },
         )
         pid = rig.loaded_pid(resp.unique_id)
         out = rig.judge_death(resp.unique_id, pid, signal_expected=LOCK_DEATH_SIGNALS[self.how], fault_ns=None)
@@ -873,5 +887,11 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
         for prefix, family in (("python", PYTHON_LOCKS), ("native", NATIVE_MUTEXES))
         for kind in family.names
         for how in LOCK_DEATH_SIGNALS
+    },
+    **{
+        f"die-holding-native-normal-{wait}/sigkill": (
+            lambda rig, wait=wait: LockDeath(rig, NATIVE_MUTEXES, "normal", "sigkill", wait)
+        )
+        for wait in NATIVE_WAITS
     },
 }
