@@ -35,6 +35,16 @@ STATE_LABELS = {
 #: GetState changes nothing: sent again after this long unanswered (a request
 #: sent before the harness matched a reloaded node's new server is lost).
 GET_STATE_RESEND_S = 1.0
+#: A ChangeState unanswered this long: get_state says whether it was made.
+CHANGE_STATE_ASK_S = 1.0
+#: The primary state each transition ends in (lifecycle_msgs/Transition).
+TRANSITION_ENDS = {
+    "configure": "inactive",
+    "activate": "active",
+    "deactivate": "inactive",
+    "cleanup": "unconfigured",
+    "shutdown": "finalized",
+}
 
 
 @dataclass
@@ -119,10 +129,31 @@ class Talker:
     def change_state(self, node: str, transition: str, timeout: float) -> bool:
         """Ask lifecycle node ``node`` (its full name) for ``transition``
         by its label (``configure``, ``activate``, ``deactivate``,
-        ``cleanup``, ``shutdown``); whether the node made it."""
+        ``cleanup``, ``shutdown``); whether the node made it.
+
+        A request can be lost on its way (a reloaded node's new server not
+        yet matched while its dead predecessor's still shows in the graph).
+        A transition must not be asked for twice, so one unanswered for
+        CHANGE_STATE_ASK_S is followed by get_state (which is resent until
+        answered): in the transition's end state, it was made; in a
+        transition state, it is under way (its answer went with the
+        abandoned request: get_state again until a primary state); in the
+        state it started from, the request was lost and is sent again."""
         request = ChangeState.Request()
         request.transition.label = transition
-        return bool(self.call(ChangeState, f"{node}/change_state", request, timeout).success)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                asked = min(CHANGE_STATE_ASK_S, max(0.0, deadline - time.monotonic()))
+                return bool(self.call(ChangeState, f"{node}/change_state", request, asked).success)
+            except HarnessTimeout:
+                if time.monotonic() >= deadline:
+                    raise
+            state = self.get_state(node, max(0.0, deadline - time.monotonic()))
+            while state not in STATE_LABELS.values():  # "configuring", ...: under way
+                state = self.get_state(node, max(0.0, deadline - time.monotonic()))
+            if state == TRANSITION_ENDS.get(transition):
+                return True
 
     def get_state(self, node: str, timeout: float) -> str:
         """Lifecycle node ``node``'s current state's label (``unconfigured``,

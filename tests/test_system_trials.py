@@ -301,6 +301,20 @@ def test_a_repaired_event_names_the_node_whose_death_left_it():
     assert "REPAIRED intra-queue at 130 ms: a queue" in facts and "pid 0" not in facts
 
 
+def test_a_lifecycle_node_reloaded_again_and_again_takes_a_transition_first(system_factory):
+    """change_state as the first call after each reload: a lost request
+    is sent again only once get_state says the transition was not made
+    (talk.Talker.change_state), so it is never made twice."""
+    robot = system_factory([NodeSpec("demo_robot", "demo_robot::Navigator")])
+    for _ in range(4):
+        assert robot.change_state("/navigator", "configure", timeout=10)
+        assert robot.get_state("/navigator") == "inactive"
+        assert not robot.change_state("/navigator", "configure")  # made once: a second is refused
+        since = time.monotonic_ns()
+        robot.kill("/navigator", signal.SIGKILL)
+        robot.recover(since)
+
+
 def test_a_lifecycle_node_reloaded_again_and_again_answers_get_state(system_factory):
     """A reloaded node is a new instance: back unconfigured, under a new
     unique_id and pid. Its dead predecessors' servers stand in the graph a
