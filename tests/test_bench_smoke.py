@@ -378,3 +378,28 @@ def test_the_memory_watch_benchmark_leaks_only_in_a_memory_cgroup_of_its_own(tmp
     assert (trial["limit_seen"], trial["trigger"]) == (512 << 20, (512 - 64) << 20)
     assert trial["ended_by_watch"] or trial["oom_kills"] > 0
     assert "| leak asked (GiB/s) | achieved (GiB/s) |" in (tmp_path / "memory_watch.md").read_text()
+
+
+def test_the_accounting_benchmark_steps_and_times_each_tree_in_its_own_workers(tmp_path):
+    """This checkout as both A and B (a real A is a second tree built in
+    place): each worker imports its tree's container and preloads its
+    guard, the stepper counts instructions per size and allocator and puts
+    B's to the guard's lines, the pairs give ratios (1 pair: no interval)."""
+    from cloneguard.bench import accounting_cost
+
+    result = accounting_cost.run(
+        a=REPO_ROOT, b=REPO_ROOT, n=1, repeat=1, steps=10, pairs_scale=0.01, out=tmp_path, quiet=True
+    )
+    assert result.cleanup == []
+    data = json.loads((tmp_path / "accounting_cost.json").read_text())
+    assert data["command"].startswith("python -m cloneguard.bench.accounting_cost --a ")
+    assert all(t["counts_memory"] for t in data["raw"]["trees"].values())  # this checkout's guard counts
+    measures = [f"{a}, malloc/free {s}" for a in ("glibc", "jemalloc") for s in ("64 B", "4 KiB", "256 KiB")]
+    instr, timed, where = data["tables"]
+    assert [r["measure"] for r in instr["rows"]] == measures
+    assert all(float(r["A"]) > 0 and float(r["B"]) > 0 for r in instr["rows"])
+    # B's instructions put to the guard's accounting functions through its debug information
+    assert [r["measure"] for r in where["rows"]] == measures
+    assert all(float(r["within_budget"]) > 0 and float(r["count_got"]) > 0 for r in where["rows"])
+    assert [r["measure"] for r in timed["rows"]] == measures
+    assert all(r["pairs"] == "1" and r["verdict (≤ +2%)"].startswith("undecided") for r in timed["rows"])
