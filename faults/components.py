@@ -452,7 +452,8 @@ class MemoryLeak(Node):
     ``native``   ``malloc`` in C, every page touched
     ``huge``     one allocation of ``step`` bytes, once
 
-    and publishes the bytes it holds on ``~/held`` each time. It leaks from
+    and publishes the bytes it holds on ``~/held`` each time (a malloc that
+    returns NULL leaks nothing: logged, not counted). It leaks from
     ``delay`` s after its construction on, ``steps`` times (0: for ever)."""
 
     KINDS = ("python", "bytes", "native", "huge")
@@ -474,6 +475,7 @@ class MemoryLeak(Node):
         self._pub = self.create_publisher(UInt64, "~/held", 10)
         self._libc = ctypes.CDLL(None)
         self._libc.malloc.restype = ctypes.c_void_p
+        self._libc.malloc.argtypes = [ctypes.c_size_t]  # not C's int: a step of 4 GiB or more would wrap
         self._start = time.monotonic() + delay
         self._timer = self.create_timer(period, self._leak)
 
@@ -486,9 +488,13 @@ class MemoryLeak(Node):
             self._held.append(bytearray(self.step))  # zeroed: every page touched
         else:
             block = self._libc.malloc(self.step)
-            if block:
-                ctypes.memset(block, 1, self.step)
-                self._held.append(block)
+            if not block:  # nothing leaked: say so, count nothing
+                self.get_logger().warning(f"malloc({self.step}) returned NULL: this step leaked nothing")
+                if self.kind == "huge":
+                    self._timer.cancel()
+                return
+            ctypes.memset(block, 1, self.step)
+            self._held.append(block)
         self._bytes += self.step
         self._pub.publish(self._msg(data=self._bytes))
         if self.kind == "huge" or (self._steps and self._bytes >= self._steps * self.step):

@@ -99,6 +99,15 @@ def test_a_nodes_own_budget_wins_over_the_containers(limited):
     assert robot.alive()
 
 
+@pytest.mark.parametrize("args", [["--isolated"], ["--isolated", "--jemalloc"]], ids=["glibc", "jemalloc"])
+def test_a_leak_whose_malloc_fails_counts_nothing(system_factory, args):
+    # 2**60 bytes: no allocator can give them; no memory is used.
+    robot = system_factory([ODOMETRY, _leak("huge", 1 << 60)], args)
+    held = robot.topic(UInt64, f"{LEAK}/held")
+    robot.proc.wait_for_log(rf"\[memory_leak\]: malloc\({1 << 60}\) returned NULL: this step leaked nothing", 10)
+    assert len(held) == 0 and robot.alive()
+
+
 def test_without_a_budget_a_node_holds_what_it_needs(limited):
     # The container's default is none: 12 steps of 8 MiB, held, and alive.
     robot = limited([ODOMETRY, _leak("bytes", 8 * MiB, steps=12)], ["--isolated"])
