@@ -70,8 +70,9 @@ from cloneguard.harness.process import REPO_ROOT, stop_group
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .goals import Goal
-from .pkeys_cost import _Tracer, median_interval, pct
+from .pkeys_cost import median_interval, pct
 from .results import Result, Table, summary_row
+from .stepping import step_calls
 
 NAME = "accounting_cost"
 TITLE = "Allocator guard: what its memory accounting costs (A without, B with)"
@@ -285,61 +286,16 @@ def step_worker(tree: Path, alloc: str, steps: int, max_steps: int = 50_000_000)
     n1, n2 = STEP_BASE, STEP_BASE + steps
     what = f"step worker ({alloc}, {tree})"
     proc = _start(tree, alloc, {"kind": "step", "n": [n1, n2]}, stdin=subprocess.PIPE)
-    assert proc.stdin is not None and proc.stdout is not None
+    maps: list[tuple[int, int, int, str]] = []
     try:
-        hello = json.loads(proc.stdout.readline() or b"null")
-        if not hello:
-            err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-            raise RuntimeError(f"{what} said nothing:\n{err[-3000:]}")
-        pt, entry = _Tracer(hello["pid"]), hello["entry"]
-        maps = _maps(hello["pid"])
-        pt(pt.SEIZE)
-        pt(pt.INTERRUPT)
-        pt.wait()
-        word = pt(pt.PEEKTEXT, entry)
-        trap = (word & ~0xFF) | 0xCC  # int3 on hammer_pairs' first byte
-        pt(pt.POKETEXT, entry, trap)
-        pt(pt.CONT)
-        proc.stdin.write(b"g")
-        proc.stdin.flush()
-        counts: list[int] = []
-        hists: list[collections.Counter] = []
-        calls = 2 * len(SIZES)
-        for call in range(calls):
-            while True:  # to the breakpoint; other stops pass their signal on
-                status = pt.wait()
-                sig = os.WSTOPSIG(status)
-                if sig == 5 and pt(pt.PEEKUSER, pt.RIP) == entry + 1:
-                    break
-                pt(pt.CONT, 0, sig if sig != 5 and status >> 16 == 0 else 0)
-            pt(pt.POKETEXT, entry, word)
-            pt(pt.POKEUSER, pt.RIP, entry)
-            sp = pt(pt.PEEKUSER, pt.RSP)
-            ret = pt(pt.PEEKTEXT, sp)
-            hist: collections.Counter = collections.Counter({entry: 1})
-            n, sig = 0, 0
-            while n < max_steps:
-                pt(pt.STEP, 0, sig)
-                status = pt.wait()
-                sig = os.WSTOPSIG(status)
-                if sig != 5 or status >> 16:  # a signal to deliver, or an event stop: not a step
-                    sig = sig if sig != 5 and status >> 16 == 0 else 0
-                    continue
-                sig = 0
-                n += 1
-                rip = pt(pt.PEEKUSER, pt.RIP)
-                if rip == ret and pt(pt.PEEKUSER, pt.RSP) == sp + 8:
-                    break
-                hist[rip] += 1  # the next instruction's address: n counts the one before it
-            else:
-                raise RuntimeError(f"hammer_pairs did not return within {max_steps} steps")
-            counts.append(n)
-            hists.append(hist)
-            if call < calls - 1:
-                pt(pt.POKETEXT, entry, trap)
-                pt(pt.CONT)
-            else:
-                pt(pt.DETACH)
+        counts, hists = step_calls(
+            proc,
+            what,
+            2 * len(SIZES),
+            max_steps=max_steps,
+            histogram=True,
+            on_hello=lambda hello: maps.extend(_maps(hello["pid"])),
+        )
         done = _finish(proc, what, 120)
     except BaseException:
         stop_group(proc, proc.pid, 1.0)
@@ -619,7 +575,7 @@ def run(
         "side's cloneguard.container (clone core and guard built together); a CloneCore with the guard on "
         "spawns one node process, which runs faults/hammer.c's hammer_pairs(size, n) (n × free(malloc(size)), "
         f"in C) after {WARM} warm-up pairs of each size. Protection keys off on both sides.",
-        f"Instructions: pkeys_cost's ptrace stepper, per pair (count for {STEP_BASE + steps} pairs − count for "
+        f"Instructions: bench.stepping's ptrace stepper, per pair (count for {STEP_BASE + steps} pairs − count for "
         f"{STEP_BASE}: the call itself) / {steps}, jemalloc's occasional work (thread-cache GC, decay) at its "
         "average over them; user mode only (not the kernel's mmap, munmap, page faults); a rep-prefixed instruction "
         "counts once per iteration. 'B: on accounting lines': "

@@ -72,7 +72,6 @@ why and judges nothing (the container refuses ``--pkeys`` there)."""
 
 from __future__ import annotations
 
-import ctypes
 import json
 import math
 import os
@@ -88,6 +87,7 @@ from .figures import fmt_ms
 from .goals import Goal
 from .modes import MODES
 from .results import Result, Table, summary_row
+from .stepping import step_calls
 
 NAME = "pkeys_cost"
 TITLE = "Protection keys over node heaps: what they cost (interleaved pairs)"
@@ -255,92 +255,14 @@ def time_alloc(side: str, pairs: int, repeat: int) -> dict:
     return _finish_worker(_start_worker(side, ["time", str(pairs), str(repeat)]), f"malloc/free worker {side}", 1800)
 
 
-class _Tracer:
-    """ptrace, through libc, from the one thread that attached."""
-
-    SEIZE, INTERRUPT, CONT, STEP, PEEKTEXT, POKETEXT, PEEKUSER, POKEUSER, DETACH = (
-        0x4206, 0x4207, 7, 9, 1, 4, 3, 6, 17,
-    )  # fmt: skip
-    RIP, RSP = 16 * 8, 19 * 8  # offsets in struct user_regs_struct (x86-64)
-    WALL = 0x40000000
-    MASK = (1 << 64) - 1
-
-    def __init__(self, pid: int):
-        self.libc = ctypes.CDLL(None, use_errno=True)
-        self.libc.ptrace.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
-        self.libc.ptrace.restype = ctypes.c_long
-        self.pid = pid
-
-    def __call__(self, req: int, addr: int = 0, data: int = 0) -> int:
-        ctypes.set_errno(0)
-        r = self.libc.ptrace(req, self.pid, addr, data)
-        if r == -1 and ctypes.get_errno():
-            e = ctypes.get_errno()
-            raise OSError(e, f"ptrace({req}) of {self.pid}: {os.strerror(e)}")
-        return r & self.MASK
-
-    def wait(self) -> int:
-        _, status = os.waitpid(self.pid, self.WALL)
-        if not os.WIFSTOPPED(status):
-            raise RuntimeError(f"the traced node process {self.pid} ended (status {status:#x})")
-        return status
-
-
 def count_steps(side: str, steps: int, max_steps: int = 50_000_000) -> dict:
     """Instructions per malloc/free pair by size, counted by single-stepping
     the node process through hammer_pairs(size, N) from its first
     instruction to its return: (count(N2) - count(N1)) / (N2 - N1)."""
     n1, n2 = STEP_BASE, STEP_BASE + steps
     proc = _start_worker(side, ["step", str(n1), str(n2)], stdin=subprocess.PIPE)
-    assert proc.stdin is not None and proc.stdout is not None
     try:
-        hello = json.loads(proc.stdout.readline() or b"null")
-        if not hello:
-            err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-            raise RuntimeError(f"step worker {side} said nothing:\n{err[-3000:]}")
-        pt, entry = _Tracer(hello["pid"]), hello["entry"]
-        pt(pt.SEIZE)
-        pt(pt.INTERRUPT)
-        pt.wait()
-        word = pt(pt.PEEKTEXT, entry)
-        trap = (word & ~0xFF) | 0xCC  # int3 on hammer_pairs' first byte
-        pt(pt.POKETEXT, entry, trap)
-        pt(pt.CONT)
-        proc.stdin.write(b"g")
-        proc.stdin.flush()
-        counts: list[int] = []
-        calls = 2 * len(SIZES)
-        for call in range(calls):
-            while True:  # to the breakpoint; other stops pass their signal on
-                status = pt.wait()
-                sig = os.WSTOPSIG(status)
-                if sig == 5 and pt(pt.PEEKUSER, pt.RIP) == entry + 1:
-                    break
-                pt(pt.CONT, 0, sig if sig != 5 and status >> 16 == 0 else 0)
-            pt(pt.POKETEXT, entry, word)
-            pt(pt.POKEUSER, pt.RIP, entry)
-            sp = pt(pt.PEEKUSER, pt.RSP)
-            ret = pt(pt.PEEKTEXT, sp)
-            n, sig = 0, 0
-            while n < max_steps:
-                pt(pt.STEP, 0, sig)
-                status = pt.wait()
-                sig = os.WSTOPSIG(status)
-                if sig != 5 or status >> 16:  # a signal to deliver, or an event stop: not a step
-                    sig = sig if sig != 5 and status >> 16 == 0 else 0
-                    continue
-                sig = 0
-                n += 1
-                if pt(pt.PEEKUSER, pt.RIP) == ret and pt(pt.PEEKUSER, pt.RSP) == sp + 8:
-                    break
-            else:
-                raise RuntimeError(f"hammer_pairs did not return within {max_steps} steps")
-            counts.append(n)
-            if call < calls - 1:
-                pt(pt.POKETEXT, entry, trap)
-                pt(pt.CONT)
-            else:
-                pt(pt.DETACH)
+        counts, _ = step_calls(proc, f"step worker {side}", 2 * len(SIZES), max_steps=max_steps)
         done = _finish_worker(proc, f"step worker {side}", 120)
     except BaseException:
         stop_group(proc, proc.pid, 1.0)
