@@ -19,8 +19,9 @@ from __future__ import annotations
 import errno
 import itertools
 import os
-import time
 from pathlib import Path
+
+from .cgroup_fs import cgroup_of, mounts, remove
 
 #: how long a cgroup that its last task has just left may stay busy
 RMDIR_BUSY_S = 1.0
@@ -31,17 +32,12 @@ class CpuStarveUnavailable(RuntimeError):
     """No cpu controller this harness can use here: the message says why."""
 
 
-def _mounts() -> list[tuple[str, str, list[str]]]:
-    with open("/proc/self/mounts") as f:
-        return [(p[1], p[2], p[3].split(",")) for p in (line.split() for line in f) if len(p) >= 4]
-
-
 def _hierarchy() -> tuple[str, Path]:
     """("v1", cpu mount) or ("v2", cgroup2 mount with cpu for children)."""
-    for point, fstype, opts in _mounts():
+    for point, fstype, opts in mounts():
         if fstype == "cgroup" and "cpu" in opts:
             return "v1", Path(point)
-    for point, fstype, _ in _mounts():
+    for point, fstype, _ in mounts():
         if fstype == "cgroup2":
             try:
                 enabled = (Path(point) / "cgroup.subtree_control").read_text().split()
@@ -58,12 +54,9 @@ def _hierarchy() -> tuple[str, Path]:
 
 def _current(pid: int, kind: str) -> str:
     """The process's cgroup path in that hierarchy ("/" for the root)."""
-    with open(f"/proc/{pid}/cgroup") as f:
-        for line in f:
-            _, controllers, path = line.rstrip("\n").split(":", 2)
-            names = controllers.split(",")
-            if (kind == "v1" and "cpu" in names) or (kind == "v2" and controllers == ""):
-                return path
+    path = cgroup_of(pid, kind, "cpu")
+    if path is not None:
+        return path
     raise CpuStarveUnavailable(f"pid {pid} is in no {kind} cpu cgroup (/proc/{pid}/cgroup)")
 
 
@@ -116,16 +109,4 @@ class CpuStarve:
             self._remove()
 
     def _remove(self) -> None:
-        deadline = time.monotonic() + RMDIR_BUSY_S
-        while True:
-            try:
-                self.dir.rmdir()
-                return
-            except FileNotFoundError:
-                return
-            except OSError as err:
-                # EBUSY: the kernel is still letting a task that left (or
-                # died) go; bounded, then said.
-                if err.errno != errno.EBUSY or time.monotonic() > deadline:
-                    raise
-                time.sleep(0.01)
+        remove(self.dir, RMDIR_BUSY_S, 0.01)

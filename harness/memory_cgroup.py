@@ -14,11 +14,11 @@ gone. Where neither can be made, ``MemoryCgroupUnavailable`` says why.
 
 from __future__ import annotations
 
-import errno
 import itertools
 import os
-import time
 from pathlib import Path
+
+from .cgroup_fs import cgroup_of, mounts, remove
 
 #: how long a cgroup whose last task has just gone may stay busy
 RMDIR_BUSY_S = 5.0
@@ -29,27 +29,20 @@ class MemoryCgroupUnavailable(RuntimeError):
     """No memory controller this harness can use here: the message says why."""
 
 
-def _mounts() -> list[tuple[str, str, list[str]]]:
-    with open("/proc/self/mounts") as f:
-        return [(p[1], p[2], p[3].split(",")) for p in (line.split() for line in f) if len(p) >= 4]
-
-
 def _own(kind: str) -> str:
     """This process's cgroup path in that hierarchy ("/" for the root)."""
-    with open("/proc/self/cgroup") as f:
-        for line in f:
-            _, controllers, path = line.rstrip("\n").split(":", 2)
-            if (kind == "v1" and "memory" in controllers.split(",")) or (kind == "v2" and controllers == ""):
-                return path
-    raise MemoryCgroupUnavailable(f"this process is in no {kind} memory cgroup (/proc/self/cgroup)")
+    path = cgroup_of("self", kind, "memory")
+    if path is None:
+        raise MemoryCgroupUnavailable(f"this process is in no {kind} memory cgroup (/proc/self/cgroup)")
+    return path
 
 
 def _parent() -> tuple[str, Path]:
     """("v1" or "v2", the directory the new cgroup goes in)."""
-    for point, fstype, opts in _mounts():
+    for point, fstype, opts in mounts():
         if fstype == "cgroup" and "memory" in opts:
             return "v1", Path(point) / _own("v1").lstrip("/")
-    for point, fstype, _ in _mounts():
+    for point, fstype, _ in mounts():
         if fstype == "cgroup2":
             parent = Path(point) / _own("v2").lstrip("/")
             try:
@@ -112,15 +105,4 @@ class MemoryCgroup:
 
     def close(self) -> None:
         """Removed, once the processes that were in it are gone."""
-        deadline = time.monotonic() + RMDIR_BUSY_S
-        while True:
-            try:
-                self.dir.rmdir()
-                return
-            except FileNotFoundError:
-                return
-            except OSError as err:
-                # EBUSY: the kernel is still letting a task that died go.
-                if err.errno != errno.EBUSY or time.monotonic() > deadline:
-                    raise
-                time.sleep(0.05)
+        remove(self.dir, RMDIR_BUSY_S, 0.05)
