@@ -89,3 +89,19 @@ def node_kinds_site(tmp_path_factory) -> Path:
 @pytest.fixture
 def misfit_env(misfit_site):
     return {"PYTHONPATH": str(misfit_site)}
+
+
+@pytest.fixture
+def limited_system(system_factory):
+    """system_factory(nodes, container_args, limit): the container in a
+    memory cgroup of the harness's own with that limit; the test is skipped,
+    saying why, where no memory cgroup can be made."""
+    from cloneguard.harness.memory_cgroup import MemoryCgroupUnavailable
+
+    def make(nodes, container_args, limit: int):
+        try:
+            return system_factory(nodes, container_args, memory_limit=limit)
+        except MemoryCgroupUnavailable as why:
+            pytest.skip(f"no memory cgroup can be made here: {why}")
+
+    return make

@@ -42,16 +42,9 @@ LEAK = "/memory_leak"
 
 
 @pytest.fixture
-def limited(system_factory):
+def limited(limited_system):
     """system_factory, each container in a memory cgroup of CGROUP_LIMIT."""
-
-    def make(nodes, container_args):
-        try:
-            return system_factory(nodes, container_args, memory_limit=CGROUP_LIMIT)
-        except MemoryCgroupUnavailable as why:
-            pytest.skip(f"no memory cgroup can be made here: {why}")
-
-    return make
+    return lambda nodes, container_args: limited_system(nodes, container_args, CGROUP_LIMIT)
 
 
 OVER = re.compile(

@@ -43,14 +43,9 @@ def _memory_node(name: str, kind: str, step: int, steps: int = 0, adj: int | Non
 
 
 @pytest.fixture
-def limited(system_factory):
-    def make(nodes, container_args):
-        try:
-            return system_factory(nodes, container_args, memory_limit=CGROUP_LIMIT)
-        except MemoryCgroupUnavailable as why:
-            pytest.skip(f"no memory cgroup can be made here: {why}")
-
-    return make
+def limited(limited_system):
+    """system_factory, each container in a memory cgroup of CGROUP_LIMIT."""
+    return lambda nodes, container_args: limited_system(nodes, container_args, CGROUP_LIMIT)
 
 
 def _ended_by_the_watch(robot, name: str) -> re.Match:
