@@ -15,7 +15,8 @@ from setuptools import Extension, find_packages, setup
 from setuptools.command.build_ext import build_ext
 
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(Path(__file__).resolve().parent / "scripts" / "cflags.py"))["WARNINGS"]
+_CFLAGS = runpy.run_path(str(Path(__file__).resolve().parent / "scripts" / "cflags.py"))
+WARNINGS, CXX_WARNINGS = _CFLAGS["WARNINGS"], _CFLAGS["CXX_WARNINGS"]
 
 # Isolated mode's C (the clone core, the allocator guard) rests on glibc and
 # x86_64 layouts: where it does not build, the rest of the container (thread
@@ -83,7 +84,7 @@ setup(
             library_dirs=[str(Path(sys.prefix) / "lib")],
             libraries=["fastrtps"],
             language="c++",
-            extra_compile_args=["-std=c++17", "-O2", *WARNINGS, "-fvisibility=hidden"],
+            extra_compile_args=["-std=c++17", "-O2", *CXX_WARNINGS, "-fvisibility=hidden"],
         ),
         # pybind11's instance registry kept ahead of the node processes
         # (pybind11_registry.cpp): built against the pybind11 ABI rclpy uses.
@@ -92,7 +93,7 @@ setup(
             sources=["container/isolated/pybind11_registry.cpp"],
             include_dirs=[pybind11.get_include()],
             language="c++",
-            extra_compile_args=["-std=c++17", "-O2", *WARNINGS, "-fvisibility=hidden"],
+            extra_compile_args=["-std=c++17", "-O2", *CXX_WARNINGS, "-fvisibility=hidden"],
         ),
     ],
 )

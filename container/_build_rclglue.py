@@ -35,7 +35,8 @@ from pathlib import Path
 from cffi import FFI
 
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))["WARNINGS"]
+CFLAGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))
+WARNINGS = CFLAGS["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 
@@ -125,7 +126,7 @@ ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "cloneguard.container._rclglue",
-    '#include "rclglue.c"\n#include "waker.h"\n',
+    '#include "rclglue.c"\n#include "waker.h"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.container._rclglue"),
     sources=["container/intra/waker.c"],
     include_dirs=[str(HERE), str(HERE / "intra"), *_include_dirs()],
     # setuptools wants paths relative to the repo root (where setup.py runs).

@@ -48,8 +48,7 @@ static void take_error(const char *what, rcl_ret_t ret, char *err, size_t err_si
 }
 
 /* msg must be zeroed memory (ffi.new gives that) or a finalized message. */
-int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity,
-                     char *err, size_t err_size)
+int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity, char *err, size_t err_size)
 {
     rcutils_allocator_t allocator = rcutils_get_default_allocator();
     *msg = rmw_get_zero_initialized_serialized_message();
@@ -72,8 +71,8 @@ void cgr_message_fini(rcl_serialized_message_t *msg)
     *msg = rmw_get_zero_initialized_serialized_message();
 }
 
-int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
-                      char *err, size_t err_size)
+int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out, char *err,
+                      size_t err_size)
 {
     /* NULL with an error set if the publisher is not valid (finalized, or
      * its context shut down). */
@@ -92,9 +91,8 @@ int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
     return 0;
 }
 
-int cgr_take_serialized(const rcl_subscription_t *subscription,
-                        rcl_serialized_message_t *msg, uint8_t *gid_out,
-                        char *err, size_t err_size)
+int cgr_take_serialized(const rcl_subscription_t *subscription, rcl_serialized_message_t *msg,
+                        uint8_t *gid_out, char *err, size_t err_size)
 {
     rmw_message_info_t info = rmw_get_zero_initialized_message_info();
     /* The rmw grows msg->buffer (with msg's own allocator) when a message
@@ -115,8 +113,8 @@ int cgr_take_serialized(const rcl_subscription_t *subscription,
     return CGR_TAKEN;
 }
 
-int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
-                  char *err, size_t err_size)
+int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context, char *err,
+                  size_t err_size)
 {
     /* A node process's placeholder (container/isolated/spare.py): its
      * context's first node, so rmw makes the participant here, with no
@@ -167,14 +165,14 @@ int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t
 /* Publish cdr (len bytes, serialized with its CDR header) on publisher.
  * Called by the clone core's herald thread (isolated/herald.c), never with
  * the GIL; the publisher outlives it (the herald stops first). */
-int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
-                    char *err, size_t err_size)
+int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len, char *err,
+                    size_t err_size)
 {
     rcl_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
     msg.buffer = cdr;
     msg.buffer_length = len;
     msg.buffer_capacity = len;
-    msg.allocator = rcutils_get_default_allocator();   /* never used: not resized */
+    msg.allocator = rcutils_get_default_allocator(); /* never used: not resized */
     rcl_ret_t ret = rcl_publish_serialized_message(publisher, &msg, NULL);
     if (ret != RCL_RET_OK) {
         take_error("rcl_publish_serialized_message", ret, err, err_size);

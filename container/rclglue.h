@@ -24,16 +24,14 @@
 /* Room callers give for an error text: longer texts are cut. */
 #define CGR_ERR_SIZE 512
 
-int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity,
-                     char *err, size_t err_size);
+int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity, char *err, size_t err_size);
 void cgr_message_fini(rcl_serialized_message_t *msg);
 
-int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
-                      char *err, size_t err_size);
+int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out, char *err,
+                      size_t err_size);
 
-int cgr_take_serialized(const rcl_subscription_t *subscription,
-                        rcl_serialized_message_t *msg, uint8_t *gid_out,
-                        char *err, size_t err_size);
+int cgr_take_serialized(const rcl_subscription_t *subscription, rcl_serialized_message_t *msg,
+                        uint8_t *gid_out, char *err, size_t err_size);
 
 /* rcl_service_fini(service, node): 0, or CGR_ERROR with the text in err. */
 int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
@@ -41,13 +39,13 @@ int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t
 /* A bare rcl node (no rosout, no client library around it) on context, in
    *out (heap); 0, or CGR_ERROR with the text in err.  cgr_node_fini
    finalizes and frees it.  Called without the GIL (cffi releases it). */
-int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
-                  char *err, size_t err_size);
+int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context, char *err,
+                  size_t err_size);
 int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
 
 /* Publish serialized bytes (CDR header included): 0, or CGR_ERROR with the
    text in err.  For a thread without the GIL (isolated/herald.c). */
-int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
-                    char *err, size_t err_size);
+int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len, char *err,
+                    size_t err_size);
 
 #endif

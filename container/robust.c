@@ -14,6 +14,8 @@
 #include <stdlib.h>
 #include <time.h>
 
+#include "robust.h"
+
 pthread_mutex_t *rm_new(void)
 {
     pthread_mutex_t *m = calloc(1, sizeof *m);
@@ -53,6 +55,15 @@ int rm_lock(pthread_mutex_t *m, int64_t timeout_ns)
     return pthread_mutex_clocklock(m, CLOCK_MONOTONIC, &ts);
 }
 
-int rm_trylock(pthread_mutex_t *m) { return pthread_mutex_trylock(m); }
-int rm_consistent(pthread_mutex_t *m) { return pthread_mutex_consistent(m); }
-int rm_unlock(pthread_mutex_t *m) { return pthread_mutex_unlock(m); }
+int rm_trylock(pthread_mutex_t *m)
+{
+    return pthread_mutex_trylock(m);
+}
+int rm_consistent(pthread_mutex_t *m)
+{
+    return pthread_mutex_consistent(m);
+}
+int rm_unlock(pthread_mutex_t *m)
+{
+    return pthread_mutex_unlock(m);
+}

@@ -6,24 +6,18 @@ from pathlib import Path
 from cffi import FFI
 
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))["WARNINGS"]
+CFLAGS = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "cflags.py"))
+WARNINGS = CFLAGS["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
+header_cdef = runpy.run_path(str(HERE / "_cffi_fault.py"))["header_cdef"]
 
 ffibuilder = FFI()
-ffibuilder.cdef("""
-    int hammer_run(int ring, uint64_t seed);
-    long drain_some(int ring);
-    uint64_t hammer_ops_done(int ring);
-    void hammer_burst(uint64_t seed, long pairs);
-    int64_t hammer_pairs(size_t size, long n);
-    int64_t hammer_alloc_many(void **out, size_t size, long n);
-    int64_t hammer_free_many(void **blocks, long n);
-""")
+ffibuilder.cdef(header_cdef("hammer"))
 ffibuilder.set_source(
     "cloneguard.faults._hammer",
-    '#include "hammer.c"\n',
+    '#include "hammer.c"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.faults._hammer"),
     include_dirs=[str(HERE)],
-    depends=[str(HERE / "hammer.c")],
+    depends=[str(HERE / "hammer.c"), str(HERE / "hammer.h")],
     extra_compile_args=["-O2", "-std=gnu11", *WARNINGS],
 )

@@ -11,7 +11,8 @@ from cffi import FFI
 
 HERE = Path(__file__).resolve().parent
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(HERE.parent / "scripts" / "cflags.py"))["WARNINGS"]
+CFLAGS = runpy.run_path(str(HERE.parent / "scripts" / "cflags.py"))
+WARNINGS = CFLAGS["WARNINGS"]
 
 
 def header_cdef(name: str) -> str:
@@ -27,7 +28,7 @@ def fault_builder(name: str, cdef: str, *, cpython_internals: bool = False, libr
     internals = {"define_macros": [("_CFFI_NO_LIMITED_API", None)], "py_limited_api": False}
     ffibuilder.set_source(
         f"cloneguard.faults._{name}",
-        f'#include "{name}.h"\n',
+        f'#include "{name}.h"\n' + CFLAGS["cffi_init_prototype"](f"cloneguard.faults._{name}"),
         sources=[f"../faults/{name}.c"],  # relative to rig/, where setup.py runs
         include_dirs=[str(HERE)],
         depends=[str(HERE / f"{name}.{ext}") for ext in ("c", "h")],

@@ -9,9 +9,9 @@
  * vouches for that layout. */
 #define Py_BUILD_CORE 1
 #include <Python.h>
-#include "internal/pycore_runtime.h"   /* _PyRuntime, _gil_runtime_state */
-#include "internal/pycore_pystate.h"   /* _PyThreadState_Swap */
-#include "internal/pycore_interp.h"    /* struct _ceval_state */
+#include "internal/pycore_runtime.h" /* _PyRuntime, _gil_runtime_state */
+#include "internal/pycore_pystate.h" /* _PyThreadState_Swap */
+#include "internal/pycore_interp.h"  /* struct _ceval_state */
 
 #include <errno.h>
 #include <pthread.h>
@@ -37,11 +37,11 @@ int gilfault_die_in_gil(int where)
     PyGILState_STATE g = PyGILState_Ensure();
     (void)g;
     switch (where) {
-    case GILFAULT_DROP_GIL_LOCKED:      /* drop_gil: mutex taken, GIL ours */
+    case GILFAULT_DROP_GIL_LOCKED: /* drop_gil: mutex taken, GIL ours */
         pthread_mutex_lock(&gil->mutex);
         break;
-    case GILFAULT_TAKE_GIL_HANDOVER:    /* take_gil's hand-over: both mutexes,
-                                           locked = 1, last_holder not yet us */
+    case GILFAULT_TAKE_GIL_HANDOVER: /* take_gil's hand-over: both mutexes,
+                                        locked = 1, last_holder not yet us */
         PyEval_SaveThread();
         for (;;) {
             pthread_mutex_lock(&gil->mutex);
@@ -61,7 +61,7 @@ int gilfault_die_in_gil(int where)
         pthread_mutex_lock(&gil->switch_mutex);
         _Py_atomic_store_relaxed(&gil->locked, 1);
         break;
-    case GILFAULT_TAKE_GIL_CHECKING:    /* take_gil: mutex taken, GIL not ours */
+    case GILFAULT_TAKE_GIL_CHECKING: /* take_gil: mutex taken, GIL not ours */
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->mutex);
         break;
@@ -83,15 +83,14 @@ int gilfault_die_in_gil(int where)
         unsigned *w = &gil->cond.__data.__g1_orig_size;
         unsigned s = __atomic_load_n(w, __ATOMIC_RELAXED);
         while ((s & 3) != 0 ||
-               !__atomic_compare_exchange_n(w, &s, s | 1, true,
-                                            __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
+               !__atomic_compare_exchange_n(w, &s, s | 1, true, __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
             if ((s & 3) != 0) {
                 sleep_us(10);
                 s = __atomic_load_n(w, __ATOMIC_RELAXED);
             }
         break;
     }
-    case GILFAULT_SWITCH_MUTEX:         /* drop_gil: switch_mutex taken */
+    case GILFAULT_SWITCH_MUTEX: /* drop_gil: switch_mutex taken */
         PyEval_SaveThread();
         pthread_mutex_lock(&gil->switch_mutex);
         break;

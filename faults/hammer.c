@@ -18,29 +18,33 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "hammer.h"
+
 #define RINGS 8
-#define RING_SIZE 4096              /* power of two */
+#define RING_SIZE 4096 /* power of two */
 
 struct ring {
-    _Atomic uint64_t head;          /* next slot the producer writes */
-    _Atomic uint64_t tail;          /* next slot the consumer reads */
+    _Atomic uint64_t head; /* next slot the producer writes */
+    _Atomic uint64_t tail; /* next slot the consumer reads */
     void *slot[RING_SIZE];
 };
 
 static struct ring rings[RINGS];
-static _Atomic uint64_t hammer_ops[RINGS];   /* malloc+free pairs, per ring */
+static _Atomic uint64_t hammer_ops[RINGS]; /* malloc+free pairs, per ring */
 
 static uint64_t xorshift(uint64_t *s)
 {
     uint64_t x = *s;
-    x ^= x << 13; x ^= x >> 7; x ^= x << 17;
+    x ^= x << 13;
+    x ^= x >> 7;
+    x ^= x << 17;
     return *s = x;
 }
 
 /* 16 B .. 1 MiB, log-uniform: many small blocks, some large ones. */
 static size_t random_size(uint64_t *s)
 {
-    unsigned shift = 4 + (unsigned)(xorshift(s) % 17);    /* 2^4 .. 2^20 */
+    unsigned shift = 4 + (unsigned)(xorshift(s) % 17); /* 2^4 .. 2^20 */
     size_t base = (size_t)1 << shift;
     return base + (size_t)(xorshift(s) % base);
 }
@@ -67,10 +71,10 @@ int hammer_run(int ring, uint64_t seed)
         unsigned char *p = malloc(n);
         if (!p)
             continue;
-        p[0] = (unsigned char)n;            /* touch both ends */
+        p[0] = (unsigned char)n; /* touch both ends */
         p[n - 1] = (unsigned char)(n >> 8);
         if (xorshift(&s) % 8 == 0 && push(r, p))
-            ;                               /* handed over: the drain frees it */
+            ; /* handed over: the drain frees it */
         else
             free(p);
         atomic_fetch_add_explicit(&hammer_ops[ring], 1, memory_order_relaxed);

@@ -10,8 +10,8 @@
  * (assumptions.py) vouches for. */
 #define Py_BUILD_CORE 1
 #include <Python.h>
-#include "internal/pycore_interp.h"    /* the collector's generations */
-#include "internal/pycore_frame.h"     /* _PyInterpreterFrame.localsplus */
+#include "internal/pycore_interp.h" /* the collector's generations */
+#include "internal/pycore_frame.h"  /* _PyInterpreterFrame.localsplus */
 
 #include <dlfcn.h>
 #include <signal.h>
@@ -23,7 +23,7 @@
 
 #include "interpfault.h"
 
-#define AS_GC(o) ((PyGC_Head *)(o) - 1)
+#define AS_GC(o) ((PyGC_Head *)(o)-1)
 
 static _Noreturn void die(void)
 {
@@ -84,7 +84,7 @@ int interpfault_die_mid_list_append(void *list)
 {
     PyGILState_Ensure();
     PyListObject *l = (PyListObject *)list;
-    if (PyList_Append((PyObject *)l, Py_None) < 0)   /* room for one more, then undo */
+    if (PyList_Append((PyObject *)l, Py_None) < 0) /* room for one more, then undo */
         return -1;
     Py_SET_SIZE(l, Py_SIZE(l) - 1);
     l->ob_item[Py_SIZE(l)] = (PyObject *)(uintptr_t)0x13;

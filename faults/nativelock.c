@@ -28,8 +28,8 @@
 static pthread_mutex_t g_locks[NL_KINDS];
 static FILE *g_file;
 static pthread_rwlock_t g_rwlock = PTHREAD_RWLOCK_INITIALIZER;
-static pthread_cond_t g_cond = PTHREAD_COND_INITIALIZER;   /* never signalled */
-static int g_in_cond_wait[NL_KINDS];   /* written holding g_locks[kind] */
+static pthread_cond_t g_cond = PTHREAD_COND_INITIALIZER; /* never signalled */
+static int g_in_cond_wait[NL_KINDS];                     /* written holding g_locks[kind] */
 
 __attribute__((constructor)) static void nativelock_init(void)
 {
@@ -39,7 +39,7 @@ __attribute__((constructor)) static void nativelock_init(void)
     for (int k = 0; k < NL_KINDS; k++) {
         pthread_mutexattr_t at;
         pthread_mutexattr_init(&at);
-        if (k != NL_NORMAL)          /* NORMAL as PTHREAD_MUTEX_INITIALIZER makes it */
+        if (k != NL_NORMAL) /* NORMAL as PTHREAD_MUTEX_INITIALIZER makes it */
             pthread_mutexattr_settype(&at, types[k]);
         if (k == NL_ROBUST)
             pthread_mutexattr_setrobust(&at, PTHREAD_MUTEX_ROBUST);
@@ -49,7 +49,10 @@ __attribute__((constructor)) static void nativelock_init(void)
     g_file = fopen("/dev/null", "w");
 }
 
-static int bad(int kind) { return kind < 0 || kind >= NL_KINDS; }
+static int bad(int kind)
+{
+    return kind < 0 || kind >= NL_KINDS;
+}
 
 static _Noreturn void die(int how)
 {
@@ -114,7 +117,7 @@ int nativelock_release(int kind)
 static void *exit_holding(void *p)
 {
     pthread_mutex_lock(p);
-    return NULL;                     /* a thread that ends holding it */
+    return NULL; /* a thread that ends holding it */
 }
 
 /* A thread of the caller's process takes it and ends: its owner is gone,
@@ -240,20 +243,29 @@ int nativelock_rw_use(int write)
     return r ? -r : -pthread_rwlock_unlock(&g_rwlock);
 }
 
-int nativelock_rw_hold_and_die(int how)   /* write-lock it and die */
+int nativelock_rw_hold_and_die(int how) /* write-lock it and die */
 {
     pthread_rwlock_wrlock(&g_rwlock);
     die(how);
 }
 
-int nativelock_rw_read_and_die(int how)   /* read-lock it and die */
+int nativelock_rw_read_and_die(int how) /* read-lock it and die */
 {
     pthread_rwlock_rdlock(&g_rwlock);
     die(how);
 }
 
-int nativelock_rw_hold(void) { return -pthread_rwlock_wrlock(&g_rwlock); }
+int nativelock_rw_hold(void)
+{
+    return -pthread_rwlock_wrlock(&g_rwlock);
+}
 
-int nativelock_rw_release(void) { return -pthread_rwlock_unlock(&g_rwlock); }
+int nativelock_rw_release(void)
+{
+    return -pthread_rwlock_unlock(&g_rwlock);
+}
 
-long nativelock_rw_address(void) { return (long)&g_rwlock; }
+long nativelock_rw_address(void)
+{
+    return (long)&g_rwlock;
+}

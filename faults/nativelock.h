@@ -5,7 +5,15 @@
 enum { NL_NORMAL, NL_RECURSIVE, NL_ERRORCHECK, NL_ADAPTIVE, NL_ROBUST, NL_KINDS };
 enum { NL_SIGKILL, NL_SEGFAULT };
 /* How a waiter waits for a mutex (nativelock_use_by). */
-enum { NL_LOCK, NL_TIMEDLOCK, NL_CLOCKLOCK, NL_COND_TIMEDWAIT, NL_COND_CLOCKWAIT, NL_TRYLOCK, NL_WAYS };
+enum {
+    NL_LOCK,
+    NL_TIMEDLOCK,
+    NL_CLOCKLOCK,
+    NL_COND_TIMEDWAIT,
+    NL_COND_CLOCKWAIT,
+    NL_TRYLOCK,
+    NL_WAYS
+};
 
 int nativelock_use(int kind);
 int nativelock_hold_and_die(int kind, int how);

@@ -16,6 +16,7 @@ APT_PACKAGES=(
     libjemalloc2 libjemalloc-dev       # the allocator isolated mode binds arenas in
     util-linux                         # setpriv (PR_SET_PDEATHSIG for launched containers)
     gdb                                # stacks of hung processes in reports
+    clang-format                       # the lint stage's C format check (scripts/lint.sh)
 )
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do

@@ -51,14 +51,14 @@
 #define WAKER_RESCAN_MS 50
 
 struct cgw_waker {
-    _Atomic uint32_t seq;                       /* futex word: bumped by posts */
-    _Atomic uint64_t pending[CGW_TOKENS / 64];  /* tokens posted, not yet triggered */
+    _Atomic uint32_t seq;                      /* futex word: bumped by posts */
+    _Atomic uint64_t pending[CGW_TOKENS / 64]; /* tokens posted, not yet triggered */
     _Atomic int stop;
     _Atomic int finished;
-    pthread_mutex_t lock;                       /* robust; guards gc[] */
+    pthread_mutex_t lock; /* robust; guards gc[] */
     rcl_guard_condition_t *gc[CGW_TOKENS];
     pthread_t thread;
-    struct cgw_waker *next_free;                /* on the free list once closed */
+    struct cgw_waker *next_free; /* on the free list once closed */
 };
 
 /* Closed wakers, for reuse; only container threads open and close wakers. */
@@ -113,7 +113,7 @@ static void trigger_pending(struct cgw_waker *w)
                 continue;
             rcl_guard_condition_t *gc = w->gc[token];
             if (gc && rcl_trigger_guard_condition(gc) != RCL_RET_OK)
-                rcl_reset_error();          /* destroyed under us: nothing to wake */
+                rcl_reset_error(); /* destroyed under us: nothing to wake */
             pthread_mutex_unlock(&w->lock);
         }
     }

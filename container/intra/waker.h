@@ -5,7 +5,7 @@
 
 #include <stdint.h>
 
-#define CGW_TOKENS 256   /* guard conditions one waker can wake */
+#define CGW_TOKENS 256 /* guard conditions one waker can wake */
 
 struct cgw_waker;
 

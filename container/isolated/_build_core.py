@@ -20,7 +20,8 @@ from pathlib import Path
 from cffi import FFI
 
 # The project's C warning flags: one list for every build (scripts/cflags.py).
-WARNINGS = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "cflags.py"))["WARNINGS"]
+CFLAGS = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "cflags.py"))
+WARNINGS = CFLAGS["WARNINGS"]
 
 HERE = Path(__file__).resolve().parent
 SOURCES = (
@@ -345,7 +346,7 @@ ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "cloneguard.container.isolated._clonecore",
-    '#include "core.h"\n',
+    '#include "core.h"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.container.isolated._clonecore"),
     # setuptools wants sources relative to the repo root (where setup.py runs).
     sources=[f"container/isolated/{n}" for n in SOURCES],
     include_dirs=[str(HERE)],

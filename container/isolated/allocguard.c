@@ -46,6 +46,7 @@
 #include <dlfcn.h>
 #include <errno.h>
 #include <fcntl.h>
+#include <malloc.h> /* memalign, pvalloc, malloc_usable_size */
 #include <pthread.h>
 #include <signal.h>
 #include <stdatomic.h>
@@ -102,7 +103,7 @@ static struct {
 #define JE_ZERO 0x40
 #define JE_LG_ALIGN(la) ((int)(la))
 #define JE_ARENA(a) ((((int)(a)) + 1) << 20)
-#define JE_TCACHE_NONE (((int)(-1 + 2)) << 8)     /* MALLOCX_TCACHE_NONE: MALLOCX_TCACHE(-1) */
+#define JE_TCACHE_NONE (((int)(-1 + 2)) << 8) /* MALLOCX_TCACHE_NONE: MALLOCX_TCACHE(-1) */
 
 /* jemalloc's extent hook table (public ABI: man jemalloc, "arena.<i>.extent_hooks"). */
 typedef struct je_hooks je_hooks;
@@ -125,21 +126,21 @@ struct je_hooks {
 #define GLIBC_IS_MMAPPED 0x2u
 #define GLIBC_NON_MAIN_ARENA 0x4u
 #define GLIBC_HEAP_MAX ((uintptr_t)64 << 20)
-#define GLIBC_PROBE_SIZE 2048   /* above the tcache sizes: from the arena */
+#define GLIBC_PROBE_SIZE 2048 /* above the tcache sizes: from the arena */
 
 /* ---------------------------------------------------------------------- */
 /* State.                                                                  */
 
-#define NSLOTS CGA_NSLOTS               /* 0: the container; 1..: node processes */
-#define SLOT_SHIFT 34                   /* jemalloc: 16 GiB of address space a slot */
-#define NOWNERS 8192                    /* glibc: arenas (M_ARENA_MAX is 4096) */
+#define NSLOTS CGA_NSLOTS /* 0: the container; 1..: node processes */
+#define SLOT_SHIFT 34     /* jemalloc: 16 GiB of address space a slot */
+#define NOWNERS 8192      /* glibc: arenas (M_ARENA_MAX is 4096) */
 
 /* An arena's hooks and the address range they carve from (jemalloc hands
    &h back to each hook). */
 struct slot_hooks {
     je_hooks h;
     uintptr_t base, limit;
-    _Atomic uintptr_t *bump;            /* carved up to here (in live[]) */
+    _Atomic uintptr_t *bump; /* carved up to here (in live[]) */
 };
 
 /* With protection keys (heapkeys.c) a slot's range is two halves: its
@@ -147,17 +148,17 @@ struct slot_hooks {
 #define HALF_SHIFT (SLOT_SHIFT - 1)
 
 struct slot {
-    _Atomic int state;                  /* CGA_* */
-    unsigned arena;                     /* jemalloc: the arena made for it */
-    struct slot_hooks hooks;            /* ... and its range */
-    unsigned shared_arena;              /* with keys: for Python's blocks */
+    _Atomic int state;       /* CGA_* */
+    unsigned arena;          /* jemalloc: the arena made for it */
+    struct slot_hooks hooks; /* ... and its range */
+    unsigned shared_arena;   /* with keys: for Python's blocks */
     struct slot_hooks shared_hooks;
-    _Atomic uint64_t main_allocs;       /* glibc: blocks it got from the main
-                                           arena (should stay 0: see
-                                           container/allocator.py) */
-    _Atomic uint64_t limit;             /* its memory budget in bytes, 0: none
-                                           (here, under the container's key:
-                                           no node can raise its own) */
+    _Atomic uint64_t main_allocs; /* glibc: blocks it got from the main
+                                     arena (should stay 0: see
+                                     container/allocator.py) */
+    _Atomic uint64_t limit;       /* its memory budget in bytes, 0: none
+                                     (here, under the container's key:
+                                     no node can raise its own) */
 };
 
 /* An owner of blocks: who frees them into their arena.  jemalloc: owner i
@@ -165,11 +166,11 @@ struct slot {
    slot whose thread last attached to it; owner 0 is the container's main
    arena and every arena of slot 0. */
 struct owner {
-    _Atomic(void *) key;                /* glibc: the arena */
+    _Atomic(void *) key; /* glibc: the arena */
     _Atomic int slot;
-    _Atomic(void *) stack;              /* blocks handed over, linked through
-                                           their first word */
-    _Atomic uint64_t handed;            /* blocks pushed so far */
+    _Atomic(void *) stack;   /* blocks handed over, linked through
+                                their first word */
+    _Atomic uint64_t handed; /* blocks pushed so far */
 };
 
 /* What a slot's own tasks write as they allocate, apart from struct slot so
@@ -178,14 +179,14 @@ struct owner {
    malloc.  A wild write here can mislead the guard about one slot (its
    count inside, its pid, how far its ranges are carved), not redirect it. */
 struct slot_live {
-    _Atomic int pid;                    /* the process bound to it */
-    _Atomic long inside;                /* its tasks inside the allocator now */
-    _Atomic uintptr_t bump, shared_bump;/* jemalloc: its ranges carved so far */
-    _Atomic long bytes;                 /* in use: its other threads' blocks and
-                                           its mmapped ones (memory in use) */
-    _Atomic(_Atomic long *) main_bytes; /* its main task's own count (t_bytes) */
-    _Atomic uint64_t over_used, over_asked;  /* it went over its budget: what
-                                           it had and what it asked for */
+    _Atomic int pid;                        /* the process bound to it */
+    _Atomic long inside;                    /* its tasks inside the allocator now */
+    _Atomic uintptr_t bump, shared_bump;    /* jemalloc: its ranges carved so far */
+    _Atomic long bytes;                     /* in use: its other threads' blocks and
+                                               its mmapped ones (memory in use) */
+    _Atomic(_Atomic long *) main_bytes;     /* its main task's own count (t_bytes) */
+    _Atomic uint64_t over_used, over_asked; /* it went over its budget: what
+                                          it had and what it asked for */
 };
 
 /* The guard's tables: written by container threads, and by node processes
@@ -201,9 +202,9 @@ static struct __attribute__((aligned(4096))) tables {
 static struct slot_live live[NSLOTS];
 static _Atomic int g_active;
 static int g_container_pid;
-static uintptr_t g_region, g_region_len;/* jemalloc: slots 1.. carve from here */
+static uintptr_t g_region, g_region_len; /* jemalloc: slots 1.. carve from here */
 static int g_nslots = NSLOTS;
-static bool g_split;                    /* protection keys on (heapkeys.c) */
+static bool g_split; /* protection keys on (heapkeys.c) */
 static size_t g_page = 4096;
 static size_t (*glibc_usable_size)(void *);
 
@@ -219,12 +220,12 @@ static __thread void *t_arena __attribute__((tls_model("initial-exec"))); /* gli
 /* A bound main task's bytes in use (memory in use, below): it alone writes
    it, the rest of its slot and the container read it. */
 static __thread _Atomic long t_bytes __attribute__((tls_model("initial-exec")));
-static long g_inside_off;               /* &t_inside - thread pointer */
+static long g_inside_off; /* &t_inside - thread pointer */
 
 /* ---------------------------------------------------------------------- */
 /* Owners.                                                                 */
 
-static int glibc_arena_owner(void *arena)   /* 0 if not known */
+static int glibc_arena_owner(void *arena) /* 0 if not known */
 {
     uintptr_t h = ((uintptr_t)arena >> 12) * 0x9e3779b97f4a7c15ull;
     for (int n = 0; n < NOWNERS - 1; n++) {
@@ -251,10 +252,10 @@ static int glibc_arena_claim(void *arena, int slot)
             return i;
         }
     }
-    return 0;   /* table full: counted as the container's */
+    return 0; /* table full: counted as the container's */
 }
 
-static void *glibc_arena_of(void *p)        /* NULL: main arena or mmapped */
+static void *glibc_arena_of(void *p) /* NULL: main arena or mmapped */
 {
     size_t head = ((size_t *)p)[-1];
     if ((head & GLIBC_IS_MMAPPED) || !(head & GLIBC_NON_MAIN_ARENA))
@@ -274,7 +275,7 @@ static inline int owner_of(void *p)
         return -1;
     void *arena = glibc_arena_of(p);
     if (arena && arena == t_arena)
-        return t_owner;                 /* its own arena: no table lookup */
+        return t_owner; /* its own arena: no table lookup */
     return arena ? glibc_arena_owner(arena) : 0;
 }
 
@@ -323,9 +324,9 @@ static inline void be_free(void *p)
     if (!g_je)
         __libc_free(p);
     else if (unlikely(in_shared(p)))
-        dallocx(p, JE_TCACHE_NONE);     /* never into a thread cache */
+        dallocx(p, JE_TCACHE_NONE); /* never into a thread cache */
     else if (je_real.free)
-        je_real.free(p);                /* into this thread's own cache */
+        je_real.free(p); /* into this thread's own cache */
     else
         dallocx(p, 0);
 }
@@ -544,7 +545,7 @@ int cga_caller_bound(void)
    (it would free the block twice, or follow a stack linked to itself in
    drain_stack forever, holding whatever it held: the GIL).  A free after the
    owner took it back is not caught. */
-#define HANDED_MARK ((uintptr_t)0x68616e6465642121ull)   /* "handed!!" */
+#define HANDED_MARK ((uintptr_t)0x68616e6465642121ull) /* "handed!!" */
 
 static inline uintptr_t *mark_word(void *p)
 {
@@ -556,7 +557,8 @@ static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o
     char msg[160];
     int n = snprintf(msg, sizeof msg,
                      "cloneguard: double free: block %p of allocator slot %d was freed again "
-                     "before its owner took it back; aborting the freer\n", p, owner_slot(o));
+                     "before its owner took it back; aborting the freer\n",
+                     p, owner_slot(o));
     if (n > 0 && write(2, msg, (size_t)n) < 0)
         n = 0;
     abort();
@@ -564,7 +566,7 @@ static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o
 
 static void drain_stack(struct owner *o, int s)
 {
-    uint32_t pkru = hk_open();          /* the tables are the container's */
+    uint32_t pkru = hk_open(); /* the tables are the container's */
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
     hk_close(pkru);
     while (p) {
@@ -592,20 +594,19 @@ static inline void drain_mine(int slot)
 static void hand_over(int o, void *p)
 {
     if (owner_slot(o) == 0)
-        o = 0;                      /* any container thread frees it */
+        o = 0; /* any container thread frees it */
     struct owner *to = &owners[o];
     void *head = atomic_load_explicit(&to->stack, memory_order_relaxed);
     uintptr_t *mark = mark_word(p);
     if (mark && *mark == (HANDED_MARK ^ (uintptr_t)p))
         freed_twice(p, o);
-    uint32_t pkru = hk_open();          /* p is under the owner's key, the
-                                           stack under the container's */
+    uint32_t pkru = hk_open(); /* p is under the owner's key, the
+                                  stack under the container's */
     if (mark)
         *mark = HANDED_MARK ^ (uintptr_t)p;
     do
         *(void **)p = head;
-    while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p,
-                                                  memory_order_release,
+    while (!atomic_compare_exchange_weak_explicit(&to->stack, &head, p, memory_order_release,
                                                   memory_order_relaxed));
     atomic_fetch_add_explicit(&to->handed, 1, memory_order_relaxed);
     hk_close(pkru);
@@ -632,7 +633,7 @@ static void *shared_in(int s, size_t n, size_t align, bool zero)
     /* With keys nearly all of a Python node's allocating comes this way. */
     cga_stop_point(s, CGA_STOP_ALLOCATION);
     void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
-                                 (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
+                                     (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
     leave(s);
     count_got(s, p);
     return p;
@@ -764,9 +765,9 @@ EXPORT void *calloc(size_t n, size_t size)
     if (s)
         drain_mine(s);
     cga_stop_point(s, CGA_STOP_ALLOCATION);
-    void *p = check_main(s, !g_je ? __libc_calloc(n, size)
+    void *p = check_main(s, !g_je        ? __libc_calloc(n, size)
                             : je_fast(s) ? je_real.calloc(n, size)
-                            : mallocx(total ? total : 1, JE_ZERO | je_flags(s)));
+                                         : mallocx(total ? total : 1, JE_ZERO | je_flags(s)));
     leave(s);
     count_got(s, p);
     if (!p)
@@ -778,7 +779,7 @@ EXPORT void *realloc(void *p, size_t n)
 {
     if (!p)
         return malloc_from(n, __builtin_return_address(0));
-    if (n == 0) {                   /* glibc's semantics: free, return NULL */
+    if (n == 0) { /* glibc's semantics: free, return NULL */
         free(p);
         return NULL;
     }
@@ -796,12 +797,13 @@ EXPORT void *realloc(void *p, size_t n)
         drain_mine(s);
         if (active)
             count_freed(s, p);
-        q = check_main(s, !g_je ? __libc_realloc(p, n)
+        q = check_main(s, !g_je          ? __libc_realloc(p, n)
                           : in_shared(p) ? rallocx(p, n, shared_flags(s))
-                          : je_fast(s) ? je_real.realloc(p, n) : rallocx(p, n, je_flags(s)));
+                          : je_fast(s)   ? je_real.realloc(p, n)
+                                         : rallocx(p, n, je_flags(s)));
         leave(s);
         if (active)
-            count_got(s, q ? q : p);    /* a failed realloc leaves p as it was */
+            count_got(s, q ? q : p); /* a failed realloc leaves p as it was */
     } else {
         /* Someone else's block: copy it into ours (shared if it was), hand
            theirs back. */
@@ -829,7 +831,7 @@ EXPORT void *reallocarray(void *p, size_t n, size_t size)
 
 static void *aligned(size_t align, size_t n, const void *ra)
 {
-    if (align & (align - 1))        /* glibc rounds up to a power of two */
+    if (align & (align - 1)) /* glibc rounds up to a power of two */
         align = (size_t)1 << (64 - __builtin_clzl(align));
     int s = atomic_load_explicit(&g_active, memory_order_relaxed) ? my_slot() : 0;
     if (unlikely(wants_shared(s, ra))) {
@@ -852,9 +854,18 @@ static void *aligned(size_t align, size_t n, const void *ra)
 }
 
 #define RA __builtin_return_address(0)
-EXPORT void *memalign(size_t align, size_t n) { return aligned(align, n, RA); }
-EXPORT void *aligned_alloc(size_t align, size_t n) { return aligned(align, n, RA); }
-EXPORT void *valloc(size_t n) { return aligned(g_page, n, RA); }
+EXPORT void *memalign(size_t align, size_t n)
+{
+    return aligned(align, n, RA);
+}
+EXPORT void *aligned_alloc(size_t align, size_t n)
+{
+    return aligned(align, n, RA);
+}
+EXPORT void *valloc(size_t n)
+{
+    return aligned(g_page, n, RA);
+}
 
 EXPORT void *pvalloc(size_t n)
 {
@@ -880,7 +891,7 @@ EXPORT size_t malloc_usable_size(void *p)
     if (!p)
         return 0;
     if (!g_je && !glibc_usable_size)
-        glibc_usable_size = (size_t (*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
+        glibc_usable_size = (size_t(*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
     return be_usable(p);
 }
 
@@ -890,13 +901,13 @@ EXPORT size_t malloc_usable_size(void *p)
    calls our malloc and keeps its new_handler and bad_alloc semantics),
    delete is free.                                                         */
 
-#define NEW_OPS(X)                                                          \
-    X(_Znwm, (size_t n), (n), n, 0, 0)                                      \
-    X(_Znam, (size_t n), (n), n, 0, 0)                                      \
-    X(_ZnwmRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)      \
-    X(_ZnamRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)      \
-    X(_ZnwmSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)          \
-    X(_ZnamSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)          \
+#define NEW_OPS(X)                                                                                 \
+    X(_Znwm, (size_t n), (n), n, 0, 0)                                                             \
+    X(_Znam, (size_t n), (n), n, 0, 0)                                                             \
+    X(_ZnwmRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)                             \
+    X(_ZnamRKSt9nothrow_t, (size_t n, const void *t), (n, t), n, 0, 1)                             \
+    X(_ZnwmSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)                                 \
+    X(_ZnamSt11align_val_t, (size_t n, size_t a), (n, a), n, a, 0)                                 \
     X(_ZnwmSt11align_val_tRKSt9nothrow_t, (size_t n, size_t a, const void *t), (n, a, t), n, a, 1) \
     X(_ZnamSt11align_val_tRKSt9nothrow_t, (size_t n, size_t a, const void *t), (n, a, t), n, a, 1)
 
@@ -918,44 +929,56 @@ static void *new_fallback(size_t n, size_t align, int nothrow)
     return p;
 }
 
-#define DEFINE_NEW(name, params, args, n_, align_, nothrow_)                \
-    static void *(*_Atomic real_##name) params;                             \
-    EXPORT void *name params                                                \
-    {                                                                       \
-        void *(*f) params = real_##name;                                    \
-        if (unlikely(!f))                                                   \
-            f = real_##name = (void *(*) params)libstdcxx(#name);           \
-        if (unlikely(g_split))                                              \
-            t_new_caller = RA;                                              \
-        void *p = f ? f args : new_fallback(n_, align_, nothrow_);          \
-        t_new_caller = NULL;                                                \
-        return p;                                                           \
+#define DECLARE_NEW(name, params, args, n_, align_, nothrow_) EXPORT void *name params;
+NEW_OPS(DECLARE_NEW)
+
+#define DEFINE_NEW(name, params, args, n_, align_, nothrow_)                                       \
+    static void *(*_Atomic real_##name)params;                                                     \
+    EXPORT void *name params                                                                       \
+    {                                                                                              \
+        void *(*f)params = real_##name;                                                            \
+        if (unlikely(!f))                                                                          \
+            f = real_##name = (void *(*)params)libstdcxx(#name);                                   \
+        if (unlikely(g_split))                                                                     \
+            t_new_caller = RA;                                                                     \
+        void *p = f ? f args : new_fallback(n_, align_, nothrow_);                                 \
+        t_new_caller = NULL;                                                                       \
+        return p;                                                                                  \
     }
 NEW_OPS(DEFINE_NEW)
 
 static void resolve_new_ops(void)
 {
-#define RESOLVE_NEW(name, params, args, n_, align_, nothrow_) \
-    if (!real_##name) real_##name = (void *(*) params)libstdcxx(#name);
+#define RESOLVE_NEW(name, params, args, n_, align_, nothrow_)                                      \
+    if (!real_##name)                                                                              \
+        real_##name = (void *(*)params)libstdcxx(#name);
     NEW_OPS(RESOLVE_NEW)
 }
 
 /* The sizes, alignments and nothrow tags delete takes are not needed to
    free: unnamed parameters. */
-#define DELETE_OPS(X)                                                       \
-    X(_ZdlPv, (void *p)) X(_ZdaPv, (void *p))                               \
-    X(_ZdlPvm, (void *p, size_t)) X(_ZdaPvm, (void *p, size_t))             \
-    X(_ZdlPvRKSt9nothrow_t, (void *p, const void *))                        \
-    X(_ZdaPvRKSt9nothrow_t, (void *p, const void *))                        \
-    X(_ZdlPvSt11align_val_t, (void *p, size_t))                             \
-    X(_ZdaPvSt11align_val_t, (void *p, size_t))                             \
-    X(_ZdlPvmSt11align_val_t, (void *p, size_t, size_t))                    \
-    X(_ZdaPvmSt11align_val_t, (void *p, size_t, size_t))                    \
-    X(_ZdlPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t, const void *)) \
+#define DELETE_OPS(X)                                                                              \
+    X(_ZdlPv, (void *p))                                                                           \
+    X(_ZdaPv, (void *p))                                                                           \
+    X(_ZdlPvm, (void *p, size_t))                                                                  \
+    X(_ZdaPvm, (void *p, size_t))                                                                  \
+    X(_ZdlPvRKSt9nothrow_t, (void *p, const void *))                                               \
+    X(_ZdaPvRKSt9nothrow_t, (void *p, const void *))                                               \
+    X(_ZdlPvSt11align_val_t, (void *p, size_t))                                                    \
+    X(_ZdaPvSt11align_val_t, (void *p, size_t))                                                    \
+    X(_ZdlPvmSt11align_val_t, (void *p, size_t, size_t))                                           \
+    X(_ZdaPvmSt11align_val_t, (void *p, size_t, size_t))                                           \
+    X(_ZdlPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t, const void *))                        \
     X(_ZdaPvSt11align_val_tRKSt9nothrow_t, (void *p, size_t, const void *))
 
-#define DEFINE_DELETE(name, params) \
-    EXPORT void name params { free(p); }
+#define DECLARE_DELETE(name, params) EXPORT void name params;
+DELETE_OPS(DECLARE_DELETE)
+
+#define DEFINE_DELETE(name, params)                                                                \
+    EXPORT void name params                                                                        \
+    {                                                                                              \
+        free(p);                                                                                   \
+    }
 DELETE_OPS(DEFINE_DELETE)
 
 /* ---------------------------------------------------------------------- */
@@ -964,8 +987,8 @@ DELETE_OPS(DEFINE_DELETE)
    and purges instead).  The bump is one CAS: a task killed in here leaves
    at worst a little address space unused.                                */
 
-static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
-                        bool *zero, bool *commit, unsigned arena_ind)
+static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align, bool *zero,
+                        bool *commit, unsigned arena_ind)
 {
     (void)arena_ind;
     struct slot_hooks *sl = (struct slot_hooks *)h;
@@ -979,7 +1002,7 @@ static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
     } while (!atomic_compare_exchange_weak(sl->bump, &cur, start + size));
     if (mprotect((void *)start, size, PROT_READ | PROT_WRITE) != 0)
         return NULL;
-    *zero = true;                   /* never handed out before: zero pages */
+    *zero = true; /* never handed out before: zero pages */
     *commit = true;
     return (void *)start;
 }
@@ -987,7 +1010,7 @@ static void *hook_alloc(je_hooks *h, void *new_addr, size_t size, size_t align,
 static bool hook_dalloc(je_hooks *h, void *a, size_t n, bool c, unsigned i)
 {
     (void)h, (void)a, (void)n, (void)c, (void)i;
-    return true;                    /* opt out: jemalloc keeps it */
+    return true; /* opt out: jemalloc keeps it */
 }
 
 static void hook_destroy(je_hooks *h, void *a, size_t n, bool c, unsigned i)
@@ -1005,7 +1028,7 @@ static bool hook_commit(je_hooks *h, void *a, size_t n, size_t off, size_t len, 
 static bool hook_decommit(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
 {
     (void)h, (void)a, (void)n, (void)off, (void)len, (void)i;
-    return true;                    /* opt out: purged instead */
+    return true; /* opt out: purged instead */
 }
 
 static bool hook_purge_lazy(je_hooks *h, void *a, size_t n, size_t off, size_t len, unsigned i)
@@ -1023,13 +1046,13 @@ static bool hook_purge_forced(je_hooks *h, void *a, size_t n, size_t off, size_t
 static bool hook_split(je_hooks *h, void *a, size_t n, size_t x, size_t y, bool c, unsigned i)
 {
     (void)h, (void)a, (void)n, (void)x, (void)y, (void)c, (void)i;
-    return false;                   /* within one slot's range: fine */
+    return false; /* within one slot's range: fine */
 }
 
 static bool hook_merge(je_hooks *h, void *a, size_t n, void *b, size_t m, bool c, unsigned i)
 {
     (void)h, (void)a, (void)n, (void)b, (void)m, (void)c, (void)i;
-    return false;                   /* jemalloc merges only within an arena */
+    return false; /* jemalloc merges only within an arena */
 }
 
 /* ---------------------------------------------------------------------- */
@@ -1115,7 +1138,7 @@ EXPORT int cga_activate(int container_pid)
     if (g_je && !(rallocx && dallocx && sallocx && mallctl))
         return -ENOSYS;
     g_page = (size_t)sysconf(_SC_PAGESIZE);
-    glibc_usable_size = (size_t (*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
+    glibc_usable_size = (size_t(*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
     if (!g_je && !glibc_usable_size)
         return -ENOSYS;
     if (g_je) {
@@ -1123,8 +1146,8 @@ EXPORT int cga_activate(int container_pid)
            charge); halved until the kernel agrees. */
         for (int n = NSLOTS; n >= 16; n /= 2) {
             size_t len = (size_t)(n - 1) << SLOT_SHIFT;
-            void *r = mmap(NULL, len, PROT_NONE,
-                           MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
+            void *r =
+                mmap(NULL, len, PROT_NONE, MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
             if (r != MAP_FAILED) {
                 g_region = (uintptr_t)r;
                 g_region_len = len;
@@ -1138,10 +1161,13 @@ EXPORT int cga_activate(int container_pid)
     resolve_new_ops();
     if (g_je) {
 #define REAL(name) je_real.name = (__typeof__(je_real.name))dlsym(RTLD_NEXT, #name)
-        REAL(malloc); REAL(free); REAL(calloc); REAL(realloc);
+        REAL(malloc);
+        REAL(free);
+        REAL(calloc);
+        REAL(realloc);
 #undef REAL
         if (!je_real.malloc || !je_real.free || !je_real.calloc || !je_real.realloc)
-            memset(&je_real, 0, sizeof je_real);   /* the *x API serves */
+            memset(&je_real, 0, sizeof je_real); /* the *x API serves */
     }
     uintptr_t tp;
     __asm__("mov %%fs:0, %0" : "=r"(tp));
@@ -1169,8 +1195,8 @@ static int arena_new(struct slot_hooks *sh, _Atomic uintptr_t *bump, uintptr_t b
     sh->limit = base + len;
     sh->bump = bump;
     atomic_store(bump, base);
-    sh->h = (je_hooks){hook_alloc, hook_dalloc, hook_destroy, hook_commit, hook_decommit,
-                       hook_purge_lazy, hook_purge_forced, hook_split, hook_merge};
+    sh->h = (je_hooks){hook_alloc,      hook_dalloc,       hook_destroy, hook_commit, hook_decommit,
+                       hook_purge_lazy, hook_purge_forced, hook_split,   hook_merge};
     je_hooks *hp = &sh->h;
     size_t sz = sizeof *out;
     int r = mallctl("arenas.create", out, &sz, &hp, sizeof hp);
@@ -1190,7 +1216,7 @@ static int arena_new(struct slot_hooks *sh, _Atomic uintptr_t *bump, uintptr_t b
    the first unused one.  0: none left. */
 static int pick_unused_slot(void)
 {
-    int held[16] = {0}, best = 0;       /* live slots by key (0: none) */
+    int held[16] = {0}, best = 0; /* live slots by key (0: none) */
     for (int s = 1; s < g_nslots; s++) {
         int st = atomic_load_explicit(&slots[s].state, memory_order_relaxed);
         if (st == CGA_IDLE || st == CGA_BOUND)
@@ -1202,7 +1228,7 @@ static int pick_unused_slot(void)
         if (!best || held[hk_key_of_slot(s)] < held[hk_key_of_slot(best)])
             best = s;
         if (held[hk_key_of_slot(best)] == 0)
-            break;                      /* nothing is less held */
+            break; /* nothing is less held */
     }
     return best;
 }
@@ -1216,18 +1242,19 @@ EXPORT int cga_slot_new(void)
     for (int s; (s = pick_unused_slot()) > 0;) {
         int unused = CGA_UNUSED;
         if (!atomic_compare_exchange_strong(&slots[s].state, &unused, CGA_IDLE))
-            continue;                   /* another thread took it: pick again */
+            continue; /* another thread took it: pick again */
         struct slot *sl = &slots[s];
         if (g_je) {
             uintptr_t base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);
             uintptr_t half = (uintptr_t)1 << HALF_SHIFT;
             int r = g_split ? hk_tag(base, half, s) : 0;
             if (!r)
-                r = arena_new(&sl->hooks, &live[s].bump, base, g_split ? half : 2 * half, &sl->arena);
+                r = arena_new(&sl->hooks, &live[s].bump, base, g_split ? half : 2 * half,
+                              &sl->arena);
             if (!r && g_split)
                 r = arena_new(&sl->shared_hooks, &live[s].shared_bump, base + half, half,
                               &sl->shared_arena);
-            if (r) {                    /* its range stays reserved, unused */
+            if (r) { /* its range stays reserved, unused */
                 atomic_store(&sl->state, CGA_UNUSED);
                 return r;
             }
@@ -1251,11 +1278,11 @@ EXPORT int cga_warm(int slot)
     t_bound = 0;
     if (g_je) {
         t_owner = slot;
-        void *p = mallocx(1, je_flags(slot));      /* thread data, cache */
+        void *p = mallocx(1, je_flags(slot)); /* thread data, cache */
         if (!p)
             return -ENOMEM;
         dallocx(p, 0);
-        unsigned arena = slots[slot].arena;         /* its thread arena */
+        unsigned arena = slots[slot].arena; /* its thread arena */
         if (mallctl("thread.arena", NULL, NULL, &arena, sizeof arena) != 0)
             return -EINVAL;
     } else {
@@ -1284,8 +1311,8 @@ EXPORT void cga_child_start(void)
     if (s > 0) {
         if (g_split)
             hk_child_enter(s);
-        stops_clear(s);                 /* no request of an earlier process */
-        atomic_store(&t_bytes, 0);      /* its memory in use, from nothing */
+        stops_clear(s);            /* no request of an earlier process */
+        atomic_store(&t_bytes, 0); /* its memory in use, from nothing */
         py_slot_begin(s);
         atomic_store(&live[s].bytes, 0);
         atomic_store(&live[s].over_used, 0);
@@ -1324,8 +1351,8 @@ EXPORT int cga_slot_of(const void *p)
 EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
 {
     struct slot *sl = &slots[slot];
-    int inside = atomic_load(&live[slot].inside) != 0 ||
-                 (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
+    int inside =
+        atomic_load(&live[slot].inside) != 0 || (tcb && *(volatile int *)(tcb + g_inside_off) != 0);
     int py = py_slot_retire(slot, tcb);
     int bits = (inside ? CGA_RETIRE_QUARANTINED : 0) |
                (!inside && faulted ? CGA_RETIRE_QUARANTINED | CGA_RETIRE_FAULTED : 0) |
@@ -1342,7 +1369,7 @@ EXPORT int cga_slot_set_limit(int slot, uint64_t bytes)
 {
     if (slot <= 0 || slot >= g_nslots)
         return -EINVAL;
-    uint32_t pkru = hk_open();          /* slots[] is under the container's key */
+    uint32_t pkru = hk_open(); /* slots[] is under the container's key */
     atomic_store(&slots[slot].limit, bytes);
     hk_close(pkru);
     return 0;
@@ -1409,7 +1436,9 @@ EXPORT int cga_slot_stats(int slot, struct cga_slot_stats *out)
    same for both, lying just past the heap header of its first heap.  The
    calling thread must be the main thread.  0 if all hold, else which
    failed (1..4). */
-struct probe_arg { void *a, *b; };
+struct probe_arg {
+    void *a, *b;
+};
 
 static void *probe_thread(void *p)
 {

@@ -11,17 +11,18 @@
 #define CLONEGUARD_ALLOCGUARD_H
 
 #include <signal.h>
+#include <stddef.h>
 #include <stdint.h>
 
 /* A slot is one node process's allocator identity: its arena(s) and the
    stack of blocks others freed for it.  Slot 0 is the container. */
 enum {
-    CGA_UNUSED = 0,         /* never handed out */
-    CGA_IDLE = 1,           /* set up, no process in it (pooled) */
-    CGA_BOUND = 2,          /* a node process allocates from it */
-    CGA_QUARANTINED = 3,    /* its process died inside the allocator (its
-                               arena(s) may be locked or torn) or of a
-                               fault of its own (may be torn): for good */
+    CGA_UNUSED = 0,      /* never handed out */
+    CGA_IDLE = 1,        /* set up, no process in it (pooled) */
+    CGA_BOUND = 2,       /* a node process allocates from it */
+    CGA_QUARANTINED = 3, /* its process died inside the allocator (its
+                            arena(s) may be locked or torn) or of a
+                            fault of its own (may be torn): for good */
 };
 
 /* Slots a container has: slot 0 and up to CGA_NSLOTS - 1 node processes. */
@@ -29,10 +30,10 @@ enum {
 
 /* Stop points (stops.c; the test rig's seam): the places a node process
    can be asked to stop itself at, and the request's sigqueue value. */
-#define CGA_STOP_ALLOCATION 1       /* the guard's malloc, inside its bracket */
-#define CGA_STOP_PY_ALLOCATION 2    /* CPython's object allocator, GIL held */
-#define CGA_STOP_PY_LOCK 3          /* a Python lock just acquired, GIL held */
-#define CGA_STOP_PLACE_BITS 4       /* the request's low bits: the place */
+#define CGA_STOP_ALLOCATION 1    /* the guard's malloc, inside its bracket */
+#define CGA_STOP_PY_ALLOCATION 2 /* CPython's object allocator, GIL held */
+#define CGA_STOP_PY_LOCK 3       /* a Python lock just acquired, GIL held */
+#define CGA_STOP_PLACE_BITS 4    /* the request's low bits: the place */
 #define CGA_STOP_REQUEST(place, n) ((place) | ((n) << CGA_STOP_PLACE_BITS))
 #define CGA_STOP_PLACE(v) ((v) & ((1 << CGA_STOP_PLACE_BITS) - 1))
 #define CGA_STOP_COUNT(v) ((v) >> CGA_STOP_PLACE_BITS)
@@ -42,42 +43,72 @@ enum {
 #define CGA_STOP_KEY_SHIFT 32
 
 /* What cga_slot_retire returns: the bits of what a dead process left. */
-#define CGA_RETIRE_QUARANTINED 1    /* died inside malloc: slot quarantined */
-#define CGA_RETIRE_PY_ABANDONED 2   /* died inside CPython's object allocator
-                                       (pyalloc.c): its pools abandoned */
-#define CGA_RETIRE_FAULTED 4        /* died of a fault of its own: slot
-                                       quarantined (with _QUARANTINED) */
-#define CGA_RETIRE_OVER_BUDGET 8    /* ended itself over its memory budget
-                                       (cga_slot_memory says how far) */
+#define CGA_RETIRE_QUARANTINED 1 /* died inside malloc: slot quarantined */
+/* died inside CPython's object allocator (pyalloc.c): its pools abandoned */
+#define CGA_RETIRE_PY_ABANDONED 2
+/* died of a fault of its own: slot quarantined (with _QUARANTINED) */
+#define CGA_RETIRE_FAULTED 4
+/* ended itself over its memory budget (cga_slot_memory says how far) */
+#define CGA_RETIRE_OVER_BUDGET 8
 
 /* A slot's memory in use (allocguard.c: what is counted) and budget. */
 struct cga_slot_memory {
-    uint64_t in_use;        /* bytes */
-    uint64_t limit;         /* its budget, 0: none */
-    uint64_t over_used;     /* it went over: what it had in use then ... */
-    uint64_t over_asked;    /* ... and what it asked for (0: it did not) */
+    uint64_t in_use;     /* bytes */
+    uint64_t limit;      /* its budget, 0: none */
+    uint64_t over_used;  /* it went over: what it had in use then ... */
+    uint64_t over_asked; /* ... and what it asked for (0: it did not) */
 };
 
 /* CPython's object allocator of one slot (pyalloc.c). */
 struct cga_py_stats {
-    unsigned generation;    /* bumped each time its pools were abandoned */
-    uint64_t pools;         /* pools it ever took from the region */
-    uint64_t handed;        /* blocks others freed and handed to it */
-    uint64_t dropped;       /* frees into abandoned pools, left undone */
-    uint64_t abandoned;     /* times its process died inside */
+    unsigned generation; /* bumped each time its pools were abandoned */
+    uint64_t pools;      /* pools it ever took from the region */
+    uint64_t handed;     /* blocks others freed and handed to it */
+    uint64_t dropped;    /* frees into abandoned pools, left undone */
+    uint64_t abandoned;  /* times its process died inside */
 };
 
 struct cga_slot_stats {
-    int state;              /* CGA_* */
-    int pid;                /* the process bound to it, 0 if none */
-    unsigned arena;         /* jemalloc arena index (jemalloc backend) */
-    int glibc_arenas;       /* glibc arenas attributed to it */
-    uint64_t handed_blocks; /* blocks others freed and handed to it */
-    uint64_t pending_blocks;/* ... not freed into its arena yet */
+    int state;               /* CGA_* */
+    int pid;                 /* the process bound to it, 0 if none */
+    unsigned arena;          /* jemalloc arena index (jemalloc backend) */
+    int glibc_arenas;        /* glibc arenas attributed to it */
+    uint64_t handed_blocks;  /* blocks others freed and handed to it */
+    uint64_t pending_blocks; /* ... not freed into its arena yet */
     uint64_t pending_bytes;
-    uint64_t main_arena_allocs;   /* glibc: blocks it got from the container's
-                                     main arena (a fallback glibc makes) */
+    uint64_t main_arena_allocs; /* glibc: blocks it got from the container's
+                                   main arena (a fallback glibc makes) */
 };
+
+/* The functions the guard exports (allocguard.c, pyalloc.c, heapkeys.c,
+   stops.c define them; nothing links against them: the container and the
+   test rig find them with dlsym or ctypes). */
+const char *cga_backend(void);
+int cga_activate(int container_pid);
+int cga_slot_new(void);
+int cga_warm(int slot);
+void cga_slot_bind(int slot);
+void cga_child_start(void);
+const void *cga_tables(size_t *len);
+int cga_slot_of(const void *p);
+int cga_slot_retire(int slot, char *tcb, int faulted);
+int cga_slot_set_limit(int slot, uint64_t bytes);
+int cga_slot_memory(int slot, struct cga_slot_memory *out);
+int cga_slot_stats(int slot, struct cga_slot_stats *out);
+int cga_probe_glibc(void);
+int cga_py_abandon(int s);
+int cga_py_abandoned(const void *p);
+int cga_py_owner(const void *p);
+int cga_py_active(void);
+int cga_py_dump_tail(int exclude);
+int cga_py_stats(int s, struct cga_py_stats *out);
+int cga_pkeys(int *keys, int max);
+int cga_tables_key(void);
+int cga_slot_key(int slot);
+void cga_stop_request(int sig, siginfo_t *si, void *uc);
+_Atomic int *cga_stops_armed_flag(void);
+void cga_stop_here(int place);
+int64_t cga_stop_lock_key(void);
 
 /* The functions, as clonecore.c calls them (through dlsym). */
 typedef int (*cga_activate_fn)(int container_pid);

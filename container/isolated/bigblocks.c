@@ -28,13 +28,13 @@
 
 #include "guard_internal.h"
 
-#define BB_SIZE (1u << 20)              /* entries: 16 MiB of address space,
-                                           paged in as used */
+/* entries: 16 MiB of address space, paged in as used */
+#define BB_SIZE (1u << 20)
 #define BB_EMPTY ((uintptr_t)0)
-#define BB_TOMB ((uintptr_t)1)          /* no block is at address 1 */
+#define BB_TOMB ((uintptr_t)1) /* no block is at address 1 */
 
 static struct {
-    _Atomic uintptr_t key;              /* the block's address */
+    _Atomic uintptr_t key; /* the block's address */
     _Atomic int slot;
 } g_bb[BB_SIZE];
 

@@ -43,28 +43,28 @@ static __thread struct cg_child *cg_self __attribute__((tls_model("initial-exec"
  * no atexit handler and no stdio flush in the shared address space.
  */
 long cg_clone3(struct clone_args *args, size_t size, int (*fn)(void *), void *arg);
-__asm__(
-    ".text\n"
-    ".p2align 4\n"
-    ".type cg_clone3, @function\n"
-    "cg_clone3:\n"
-    "    mov %rdx, %r8\n"            /* fn  */
-    "    mov %rcx, %r9\n"            /* arg */
-    "    mov $" "435" ", %eax\n"     /* SYS_clone3 (x86_64) */
-    "    syscall\n"
-    "    test %rax, %rax\n"
-    "    jnz 1f\n"                   /* parent (pid) or error (-errno) */
-    "    xor %ebp, %ebp\n"           /* child: outermost frame */
-    "    mov %r9, %rdi\n"
-    "    call *%r8\n"
-    "    mov %eax, %edi\n"
-    "    mov $60, %eax\n"            /* SYS_exit */
-    "    syscall\n"
-    "    hlt\n"
-    "1:  ret\n"
-    ".size cg_clone3, .-cg_clone3\n");
+__asm__(".text\n"
+        ".p2align 4\n"
+        ".type cg_clone3, @function\n"
+        "cg_clone3:\n"
+        "    mov %rdx, %r8\n" /* fn  */
+        "    mov %rcx, %r9\n" /* arg */
+        "    mov $"
+        "435"
+        ", %eax\n" /* SYS_clone3 (x86_64) */
+        "    syscall\n"
+        "    test %rax, %rax\n"
+        "    jnz 1f\n"         /* parent (pid) or error (-errno) */
+        "    xor %ebp, %ebp\n" /* child: outermost frame */
+        "    mov %r9, %rdi\n"
+        "    call *%r8\n"
+        "    mov %eax, %edi\n"
+        "    mov $60, %eax\n" /* SYS_exit */
+        "    syscall\n"
+        "    hlt\n"
+        "1:  ret\n"
+        ".size cg_clone3, .-cg_clone3\n");
 _Static_assert(SYS_clone3 == 435, "SYS_clone3 number used in the trampoline");
-
 
 /* ---------------------------------------------------------------------- */
 /* The child.                                                              */
@@ -82,18 +82,16 @@ static void on_stop_signal(int sig)
         syscall(SYS_tgkill, getpid(), getpid(), sig);
     } else {
         int zero = 0, none = CG_STOP_NONE;
-        __atomic_compare_exchange_n(&c->stop_signal, &zero, sig, false,
-                                    __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
-        if (__atomic_compare_exchange_n(&c->stop_requested, &none,
-                                        CG_STOP_SIGNAL, false,
+        __atomic_compare_exchange_n(&c->stop_signal, &zero, sig, false, __ATOMIC_SEQ_CST,
+                                    __ATOMIC_SEQ_CST);
+        if (__atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_SIGNAL, false,
                                         __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST)) {
             monitor_wake();
         }
-        child_gate_post(c, 1);   /* we may be waiting at the gate */
+        child_gate_post(c, 1); /* we may be waiting at the gate */
     }
     errno = saved;
 }
-
 
 /* jemalloc: an arena of its own for this child (a lock it dies holding in
    malloc then stops only those who free its blocks, not everyone who
@@ -117,7 +115,7 @@ static void jemalloc_setup(struct cg_child *c)
     }
 }
 
-static int exit_code_of_current_exception(void)   /* GIL held */
+static int exit_code_of_current_exception(void) /* GIL held */
 {
     if (!PyErr_ExceptionMatches(PyExc_SystemExit)) {
         /* Never PyErr_Print: it sets sys.last_* in the shared interpreter
@@ -161,8 +159,7 @@ static int child_main(void *arg)
     }
     /* 2. The kernel marks robust mutexes we hold as owner-died on our exit
        only if it knows our list.  Must be done by this task itself. */
-    syscall(SYS_set_robust_list, c->tcb + g_layout.robust_head,
-            sizeof(struct robust_list_head));
+    syscall(SYS_set_robust_list, c->tcb + g_layout.robust_head, sizeof(struct robust_list_head));
     /* 2b. With the allocator guard: threads we create find our slot by pid. */
     if (c->ctx)
         guard_child_start();
@@ -214,10 +211,10 @@ static int child_main(void *arg)
     PyThreadState_Clear(c->tstate);
     PyEval_SaveThread();
     __atomic_store_n(&c->py_phase, CG_PY_LEFT, __ATOMIC_RELEASE);
-    return code;                         /* trampoline: SYS_exit(code) */
+    return code; /* trampoline: SYS_exit(code) */
 }
 
-int cg_self_stop_requested(void)   /* -1 when not called from a child */
+int cg_self_stop_requested(void) /* -1 when not called from a child */
 {
     struct cg_child *c = cg_self;
     return c ? __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) : -1;
@@ -261,7 +258,6 @@ void child_gate_post(struct cg_child *c, unsigned stop)
     syscall(SYS_futex, &c->go, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
 }
 
-
 /* On the monitor thread (PR_SET_PDEATHSIG follows the spawning thread):
    clone3 the child onto its stack and TLS, into its cgroup if it has one.
    Its pid, or -errno. */
@@ -269,8 +265,8 @@ long child_clone(struct cg_child *c)
 {
     struct clone_args a;
     memset(&a, 0, sizeof a);
-    a.flags = CLONE_VM | CLONE_FS | CLONE_FILES | CLONE_PIDFD | CLONE_SETTLS |
-              CLONE_CLEAR_SIGHAND | CLONE_CHILD_SETTID | CLONE_PARENT_SETTID;
+    a.flags = CLONE_VM | CLONE_FS | CLONE_FILES | CLONE_PIDFD | CLONE_SETTLS | CLONE_CLEAR_SIGHAND |
+              CLONE_CHILD_SETTID | CLONE_PARENT_SETTID;
     a.pidfd = (uintptr_t)&c->pidfd;
     a.child_tid = a.parent_tid = (uintptr_t)(c->tcb + g_layout.tid);
     a.exit_signal = SIGCHLD;

@@ -45,8 +45,7 @@ static int g_started;
 /* Start the core: its configuration, glibc's TLS allocator, the allocator
    guard when it is on, then the monitor thread.  *event_fd receives the read
    end of the event pipe, which Python owns (and closes after cg_stop). */
-int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
-             int *event_fd)
+int cg_start(const struct cg_layout *layout, const struct cg_config *cfg, int *event_fd)
 {
     if (g_started)
         return -EALREADY;
@@ -91,7 +90,7 @@ static void forget_thread_state(PyThreadState *t);
    and its PyThreadState.  cg_spawn takes the one made ahead for it (g_ahead)
    and makes the next after the clone, off the spawn's critical path: mmap,
    mprotect and the thread state's allocation are ~25 us of a cold spawn. */
-static struct cg_child *g_ahead;     /* atomic exchange; NULL: none */
+static struct cg_child *g_ahead; /* atomic exchange; NULL: none */
 
 static void block_free(struct cg_child *c)
 {
@@ -137,9 +136,9 @@ static void ahead_refill(size_t stack_size)
     if (__atomic_load_n(&g_ahead, __ATOMIC_ACQUIRE))
         return;
     struct cg_child *b = block_new(stack_size), *none = NULL;
-    if (b && !__atomic_compare_exchange_n(&g_ahead, &none, b, false,
-                                          __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE))
-        block_free(b);                   /* another spawn refilled it first */
+    if (b &&
+        !__atomic_compare_exchange_n(&g_ahead, &none, b, false, __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE))
+        block_free(b); /* another spawn refilled it first */
 }
 
 static void ahead_drop(void)
@@ -149,12 +148,12 @@ static void ahead_drop(void)
         block_free(b);
 }
 
-int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
-             int flags, struct cg_child **out)
+int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd, int flags,
+             struct cg_child **out)
 {
     if (!g_started)
         return -ESRCH;
-    if (cg_self_stop_requested() >= 0)   /* called from a child */
+    if (cg_self_stop_requested() >= 0) /* called from a child */
         return -EPERM;
     size_t page = (size_t)sysconf(_SC_PAGESIZE);
     stack_size = (stack_size + page - 1) & ~(page - 1);
@@ -200,8 +199,8 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
 int cg_request_stop(struct cg_child *c)
 {
     int none = CG_STOP_NONE;
-    int set = __atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_PARENT,
-                                          false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
+    int set = __atomic_compare_exchange_n(&c->stop_requested, &none, CG_STOP_PARENT, false,
+                                          __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
     child_gate_post(c, 1);
     if (set)
         monitor_wake();

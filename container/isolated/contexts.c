@@ -42,12 +42,12 @@ static struct {
     cga_slot_of_fn slot_of;
     cga_slot_set_limit_fn slot_set_limit;
     cga_slot_memory_fn slot_memory;
-    cga_stop_request_fn stop_request;   /* optional: the rig's stop points */
-    cga_py_dump_tail_fn py_dump_tail;   /* optional: --core-dumps */
+    cga_stop_request_fn stop_request; /* optional: the rig's stop points */
+    cga_py_dump_tail_fn py_dump_tail; /* optional: --core-dumps */
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
-static struct cg_ctx *g_pool;          /* idle contexts, most recent first */
+static struct cg_ctx *g_pool; /* idle contexts, most recent first */
 static void ctx_put(struct cg_ctx *x);
 
 /* ---------------------------------------------------------------------- */
@@ -55,10 +55,9 @@ static void ctx_put(struct cg_ctx *x);
 
 int tls_init(void)
 {
-    dl_allocate_tls = (void *(*)(void *))dlvsym(RTLD_DEFAULT,
-                                 "_dl_allocate_tls", "GLIBC_PRIVATE");
-    dl_deallocate_tls = (void (*)(void *, bool))dlvsym(RTLD_DEFAULT,
-                                 "_dl_deallocate_tls", "GLIBC_PRIVATE");
+    dl_allocate_tls = (void *(*)(void *))dlvsym(RTLD_DEFAULT, "_dl_allocate_tls", "GLIBC_PRIVATE");
+    dl_deallocate_tls =
+        (void (*)(void *, bool))dlvsym(RTLD_DEFAULT, "_dl_deallocate_tls", "GLIBC_PRIVATE");
     return dl_allocate_tls && dl_deallocate_tls ? 0 : -ENOSYS;
 }
 
@@ -77,12 +76,12 @@ void tls_reset(char *tcb)
 
 char *tls_new(void)
 {
-    char *tcb = dl_allocate_tls(NULL);   /* struct pthread zeroed, dtv set */
+    char *tcb = dl_allocate_tls(NULL); /* struct pthread zeroed, dtv set */
     if (!tcb)
         return NULL;
     char *me = (char *)cg_thread_pointer();
 
-    AT(tcb, g_layout.tcb, void *) = tcb;        /* THREAD_SELF reads these */
+    AT(tcb, g_layout.tcb, void *) = tcb; /* THREAD_SELF reads these */
     AT(tcb, g_layout.self, void *) = tcb;
     /* x86 catomic_* skip the lock prefix when this is 0: must be 1. */
     AT(tcb, g_layout.multiple_threads, int) = 1;
@@ -112,7 +111,7 @@ void tls_give_back(struct cg_child *c)
 {
     if (c->ctx) {
         if (c->retired & CGA_RETIRE_QUARANTINED) {
-            free(c->ctx);                /* the TLS block itself stays */
+            free(c->ctx); /* the TLS block itself stays */
         } else {
             G.slot_retire(c->ctx->slot, c->ctx->tcb, 0); /* idle (again, if reaped) */
             ctx_put(c->ctx);
@@ -130,7 +129,7 @@ void tls_give_back(struct cg_child *c)
 int guard_start(void)
 {
     if (G.activate)
-        return 0;                        /* one activation per process */
+        return 0; /* one activation per process */
 #define FIND(field, name) G.field = (void *)dlsym(RTLD_DEFAULT, name)
     FIND(activate, "cga_activate");
     FIND(slot_new, "cga_slot_new");
@@ -150,12 +149,11 @@ int guard_start(void)
     FIND(stop_request, "cga_stop_request");
     FIND(py_dump_tail, "cga_py_dump_tail");
 #undef FIND
-    if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind ||
-        !G.child_start || !G.slot_retire || !G.slot_stats || !G.py_stats || !G.py_owner ||
-        !G.py_active || !G.py_abandon || !G.py_abandoned || !G.slot_of || !G.slot_set_limit ||
-        !G.slot_memory) {
+    if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind || !G.child_start || !G.slot_retire ||
+        !G.slot_stats || !G.py_stats || !G.py_owner || !G.py_active || !G.py_abandon ||
+        !G.py_abandoned || !G.slot_of || !G.slot_set_limit || !G.slot_memory) {
         memset(&G, 0, sizeof G);
-        return -ENOENT;                  /* not preloaded */
+        return -ENOENT; /* not preloaded */
     }
     int r = G.activate(getpid());
     if (r < 0 && r != -EALREADY) {
@@ -248,7 +246,6 @@ int guard_py_abandoned(const void *p)
     return G.py_abandoned ? G.py_abandoned(p) : 0;
 }
 
-
 /* Protection keys over node heaps (heapkeys.c): how many are in use, or
    -errno why not (-ENOENT: not asked for, or no guard).  Before
    guard_start too: the guard allocates them in its constructor. */
@@ -286,13 +283,22 @@ int cg_alloc_slot_of(const void *p)
     return G.slot_of ? G.slot_of(p) : -1;
 }
 
-bool guard_active(void) { return G.activate != NULL; }
+bool guard_active(void)
+{
+    return G.activate != NULL;
+}
 
 /* The calling container thread hands the slot to the child it spawns. */
-void guard_bind(struct cg_ctx *x) { G.slot_bind(x->slot); }
+void guard_bind(struct cg_ctx *x)
+{
+    G.slot_bind(x->slot);
+}
 
 /* In the child: threads it creates find its slot by its pid. */
-void guard_child_start(void) { G.child_start(); }
+void guard_child_start(void)
+{
+    G.child_start();
+}
 
 /* --core-dumps: leave the guard's untouched reserved memory out of the
    dumps written meanwhile (exclude 1), or put it back (0); 0 or -errno. */
@@ -334,8 +340,9 @@ void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap)
         return;
     const double mib = 1024.0 * 1024.0;
     bool small = m.over_asked < (1u << 20);
-    snprintf(text + n, cap - n,
-             "; out of memory: %.1f MiB in use, over its limit of %.1f MiB (it asked for %.*f %s more)",
-             (double)m.over_used / mib, (double)m.limit / mib, small ? 0 : 1,
-             (double)m.over_asked / (small ? 1024.0 : mib), small ? "KiB" : "MiB");
+    snprintf(
+        text + n, cap - n,
+        "; out of memory: %.1f MiB in use, over its limit of %.1f MiB (it asked for %.*f %s more)",
+        (double)m.over_used / mib, (double)m.limit / mib, small ? 0 : 1,
+        (double)m.over_asked / (small ? 1024.0 : mib), small ? "KiB" : "MiB");
 }

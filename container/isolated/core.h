@@ -54,115 +54,116 @@
 /* ---------------------------------------------------------------------- */
 /* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
 
-#define CG_MUTEX_TYPES 4     /* NORMAL, RECURSIVE, ERRORCHECK, ADAPTIVE */
-#define CG_MUTEX_CALLERS 8   /* mutex_ret: 4 mutex types, then the condvar
-                                relock of each */
-#define CG_TIMED_TYPES 4     /* mutex_timed_ret: the 4 mutex types */
-#define CG_RWLOCK_CALLERS 9  /* rwlock_ret: {wr,rd} x {plain, timed, clock}
-                                on a writer, + wr x ... on readers */
-struct cg_layout {           /* byte offsets from the thread pointer (= TCB) */
+#define CG_MUTEX_TYPES 4 /* NORMAL, RECURSIVE, ERRORCHECK, ADAPTIVE */
+/* mutex_ret: 4 mutex types, then the condvar relock of each */
+#define CG_MUTEX_CALLERS 8
+#define CG_TIMED_TYPES 4 /* mutex_timed_ret: the 4 mutex types */
+/* rwlock_ret: {wr,rd} x {plain, timed, clock} on a writer, + wr x ... on
+   readers */
+#define CG_RWLOCK_CALLERS 9
+struct cg_layout { /* byte offsets from the thread pointer (= TCB) */
     long tcb, self, multiple_threads, stack_guard, pointer_guard; /* tcbhead */
-    long list, tid, robust_head, specific, specific_1stblock;    /* pthread */
-    long rseq_cpu_id;        /* __rseq_offset + offsetof(struct rseq, cpu_id) */
-    long resp_tls;           /* &__resp (initial-exec TLS in libc) - tp */
-    long robust_futex_offset;/* robust_list_head.futex_offset glibc uses */
-    long cleanup;            /* struct pthread.cleanup (pthread_cleanup_push) */
-    long cond_cleanup;       /* address of glibc's condvar-wait cleanup
-                                routine (cg_probe_condwait), 0: unknown */
+    long list, tid, robust_head, specific, specific_1stblock;     /* pthread */
+    long rseq_cpu_id;         /* __rseq_offset + offsetof(struct rseq, cpu_id) */
+    long resp_tls;            /* &__resp (initial-exec TLS in libc) - tp */
+    long robust_futex_offset; /* robust_list_head.futex_offset glibc uses */
+    long cleanup;             /* struct pthread.cleanup (pthread_cleanup_push) */
+    long cond_cleanup;        /* address of glibc's condvar-wait cleanup
+                                 routine (cg_probe_condwait), 0: unknown */
     /* Where a task blocked on a plain mutex waits (cg_probe_mutexwait): */
-    long mutex_wait_pc;      /* its pc, in __lll_lock_wait's futex call */
-    long mutex_ret_slot;     /* the word above its sp holding the return
-                                address into the caller, */
-    long mutex_ret[CG_MUTEX_CALLERS];       /* which is one of these: pthread_mutex_lock's
-                                call for each type (0-3), pthread_cond_wait's
-                                relock (CG_MUTEX_CALLERS of them) */
-    long private_wait_pc;    /* pc of a task in __lll_lock_wait_private */
+    long mutex_wait_pc;               /* its pc, in __lll_lock_wait's futex call */
+    long mutex_ret_slot;              /* the word above its sp holding the return
+                                         address into the caller, */
+    long mutex_ret[CG_MUTEX_CALLERS]; /* which is one of these: pthread_mutex_lock's
+                          call for each type (0-3), pthread_cond_wait's
+                          relock (CG_MUTEX_CALLERS of them) */
+    long private_wait_pc;             /* pc of a task in __lll_lock_wait_private */
     /* Where a task blocked in a timed mutex lock or in a rwlock waits
        (cg_probe_timedwait); all 0: such waits are not recognized. */
-    long timed_wait_pc;      /* its pc, in __futex_abstimed_wait64's call */
-    long timed_ret_slot;     /* the word above its sp holding the return
-                                address into the caller, */
-    long mutex_timed_ret[CG_TIMED_TYPES];   /* pthread_mutex_timedlock's and
-                                _clocklock's (one shared function) for each
-                                type (0-3), */
-    long rwlock_ret[CG_RWLOCK_CALLERS];     /* or pthread_rwlock_wrlock,
-                                _timedwrlock, _clockwrlock, _rdlock,
-                                _timedrdlock, _clockrdlock's, blocked on a
-                                writer, then the three writers' blocked on
-                                readers (no writer recorded), */
-    long rwlock_futex_off[CG_RWLOCK_CALLERS];   /* at this offset of the
-                                rwlock (its futex word minus the rwlock) */
+    long timed_wait_pc;                       /* its pc, in __futex_abstimed_wait64's call */
+    long timed_ret_slot;                      /* the word above its sp holding the return
+                                                 address into the caller, */
+    long mutex_timed_ret[CG_TIMED_TYPES];     /* pthread_mutex_timedlock's and
+                                  _clocklock's (one shared function) for each
+                                  type (0-3), */
+    long rwlock_ret[CG_RWLOCK_CALLERS];       /* or pthread_rwlock_wrlock,
+                                  _timedwrlock, _clockwrlock, _rdlock,
+                                  _timedrdlock, _clockrdlock's, blocked on a
+                                  writer, then the three writers' blocked on
+                                  readers (no writer recorded), */
+    long rwlock_futex_off[CG_RWLOCK_CALLERS]; /* at this offset of the
+                              rwlock (its futex word minus the rwlock) */
 };
 
-#define CG_TOOL_PATH 256     /* a helper program's path (cg_config) */
-#define CG_CORE_PATH 1024    /* a core dump's path (cg_child.core_path) */
-#define CG_CORE_WHY 160      /* why it has none (cg_child.core_why) */
-struct cg_config {           /* per CloneCore; see core.Mitigations */
+#define CG_TOOL_PATH 256  /* a helper program's path (cg_config) */
+#define CG_CORE_PATH 1024 /* a core dump's path (cg_child.core_path) */
+#define CG_CORE_WHY 160   /* why it has none (cg_child.core_why) */
+struct cg_config {        /* per CloneCore; see core.Mitigations */
     int gil_repair;
     int condvar_repair;
     int interp_repair;
     int crash_report;
-    int jemalloc_own_arena;  /* without alloc_guard: arenas.create in the child */
+    int jemalloc_own_arena; /* without alloc_guard: arenas.create in the child */
     int jemalloc_tcache;
-    int alloc_guard;         /* allocguard.c is preloaded: use it (see there) */
-    int mutex_repair;        /* mutexes.c: release dead children's mutexes */
-    int stop_signal;         /* the test rig's stop points (stops.c): children
-                                take requests on it; 0: off */
-    int core_dumps;          /* a crashing child's main task asks the monitor
-                                for a dump and waits for it (dumps.c) */
-    char gdb[CG_TOOL_PATH];  /* core_dumps: gdb's absolute path, */
-    char fallocate[CG_TOOL_PATH];  /* and fallocate's ("": none, the dump
-                                      keeps its runs of zeros) */
+    int alloc_guard;              /* allocguard.c is preloaded: use it (see there) */
+    int mutex_repair;             /* mutexes.c: release dead children's mutexes */
+    int stop_signal;              /* the test rig's stop points (stops.c): children
+                                     take requests on it; 0: off */
+    int core_dumps;               /* a crashing child's main task asks the monitor
+                                     for a dump and waits for it (dumps.c) */
+    char gdb[CG_TOOL_PATH];       /* core_dumps: gdb's absolute path, */
+    char fallocate[CG_TOOL_PATH]; /* and fallocate's ("": none, the dump
+                                     keeps its runs of zeros) */
 };
 
 enum { CG_EV_DEATH = 1, CG_EV_STOP = 2, CG_EV_CLOSED = 3, CG_EV_MUTEX = 4 };
-struct cg_event {            /* one record on the event pipe: 64 bytes */
+struct cg_event { /* one record on the event pipe: 64 bytes */
     uint32_t kind;
-    int32_t pid;             /* death, stop: the child; mutex: the dead child
-                                that held it (the last one to die if none
-                                is proven) */
-    int32_t status;          /* death: si_status; stop: CG_STOP_*;
-                                mutex: CG_MUTEX_* (what was done) */
-    int32_t code;            /* death: si_code (CLD_EXITED/KILLED/DUMPED),
-                                0 if someone else reaped the child;
-                                stop: the signal (0: asked by the parent);
-                                mutex: its __data.__kind, -1: not a
-                                pthread mutex (a glibc-internal lock),
-                                CG_RWLOCK_KIND: a pthread_rwlock_t */
+    int32_t pid;    /* death, stop: the child; mutex: the dead child
+                       that held it (the last one to die if none
+                       is proven) */
+    int32_t status; /* death: si_status; stop: CG_STOP_*;
+                       mutex: CG_MUTEX_* (what was done) */
+    int32_t code;   /* death: si_code (CLD_EXITED/KILLED/DUMPED),
+                       0 if someone else reaped the child;
+                       stop: the signal (0: asked by the parent);
+                       mutex: its __data.__kind, -1: not a
+                       pthread mutex (a glibc-internal lock),
+                       CG_RWLOCK_KIND: a pthread_rwlock_t */
     uint64_t serial;
-    int64_t t_ns;            /* CLOCK_MONOTONIC when the monitor noticed */
-    uint32_t repairs;        /* death: CG_REPAIR_* (repair.h) */
-    uint32_t alloc;          /* death: its allocator slot (low 16 bits, 0:
-                                none) | CG_ALLOC_* */
-    uint64_t addr;           /* mutex: its address (the lock word's) */
-    int32_t tid;             /* mutex: the task blocked on it */
-    int32_t owner;           /* mutex: its owner's tid, 0: none recorded */
-    uint32_t flags;          /* death: CG_EVF_* */
+    int64_t t_ns;     /* CLOCK_MONOTONIC when the monitor noticed */
+    uint32_t repairs; /* death: CG_REPAIR_* (repair.h) */
+    uint32_t alloc;   /* death: its allocator slot (low 16 bits, 0:
+                         none) | CG_ALLOC_* */
+    uint64_t addr;    /* mutex: its address (the lock word's) */
+    int32_t tid;      /* mutex: the task blocked on it */
+    int32_t owner;    /* mutex: its owner's tid, 0: none recorded */
+    uint32_t flags;   /* death: CG_EVF_* */
 };
-#define CG_RWLOCK_KIND (-2)   /* cg_event.code of a rwlock (mutexes.c) */
-#define CG_EVF_ANNOUNCED 1u  /* its CRASHED event is the herald's (herald.c) */
-#define CG_EVF_OUT_OF_MEMORY 2u  /* the memory watch ended it (memwatch.c) */
-#define CG_DEATH_TEXT 768    /* cg_child.death_text */
+#define CG_RWLOCK_KIND (-2)     /* cg_event.code of a rwlock (mutexes.c) */
+#define CG_EVF_ANNOUNCED 1u     /* its CRASHED event is the herald's (herald.c) */
+#define CG_EVF_OUT_OF_MEMORY 2u /* the memory watch ended it (memwatch.c) */
+#define CG_DEATH_TEXT 768       /* cg_child.death_text */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
 enum {
-    CG_MUTEX_RELEASED = 1,   /* plain mutex of a proven-dead owner: released */
-    CG_MUTEX_UNPROVEN = 2,   /* its owner is gone, not proven a dead child's */
-    CG_MUTEX_NO_OWNER = 3,   /* held, no owner recorded, for over a second */
-    CG_MUTEX_EXCLUDED = 4,   /* a dead owner's robust/PI/shared/elided mutex */
-    CG_MUTEX_LIBC_LOCK = 5,  /* a glibc-internal lock waited on for over a
-                                second after a death (no owner recorded) */
+    CG_MUTEX_RELEASED = 1,  /* plain mutex of a proven-dead owner: released */
+    CG_MUTEX_UNPROVEN = 2,  /* its owner is gone, not proven a dead child's */
+    CG_MUTEX_NO_OWNER = 3,  /* held, no owner recorded, for over a second */
+    CG_MUTEX_EXCLUDED = 4,  /* a dead owner's robust/PI/shared/elided mutex */
+    CG_MUTEX_LIBC_LOCK = 5, /* a glibc-internal lock waited on for over a
+                               second after a death (no owner recorded) */
 };
-#define CG_ALLOC_QUARANTINED (1u << 31)   /* died inside malloc */
-#define CG_ALLOC_PY_ABANDONED (1u << 30)  /* died inside CPython's object allocator */
-#define CG_ALLOC_FAULTED (1u << 29)       /* quarantined: it died of a fault of its own */
-#define CG_ALLOC_OVER_BUDGET (1u << 28)   /* it ended itself over its memory budget */
+#define CG_ALLOC_QUARANTINED (1u << 31)  /* died inside malloc */
+#define CG_ALLOC_PY_ABANDONED (1u << 30) /* died inside CPython's object allocator */
+#define CG_ALLOC_FAULTED (1u << 29)      /* quarantined: it died of a fault of its own */
+#define CG_ALLOC_OVER_BUDGET (1u << 28)  /* it ended itself over its memory budget */
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
 enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CRASH_FRAMES 64     /* native frames a crash report keeps */
 #define CG_CRASH_PY_FRAMES 100 /* Python frames (faulthandler's depth too) */
-#define CG_FLAG_ALLOW_CORE 1  /* experiments only: leave RLIMIT_CORE alone */
+#define CG_FLAG_ALLOW_CORE 1   /* experiments only: leave RLIMIT_CORE alone */
 /* cg_child.core_dump (dumps.c): asked, then written or not (core_why) */
 #define CG_CORE_NONE 0
 #define CG_CORE_ASKED 1
@@ -176,66 +177,66 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_SEEN_TASKS 256
 struct cg_seen_task {
     int tid;
-    int cursor;              /* ns_last_pid then */
-    uint64_t advanced;       /* how far the cursor had moved in all, then */
+    int cursor;        /* ns_last_pid then */
+    uint64_t advanced; /* how far the cursor had moved in all, then */
 };
 struct cg_seen_tasks {
     int n;
-    int overflow;            /* more tasks than CG_SEEN_TASKS were alive */
+    int overflow; /* more tasks than CG_SEEN_TASKS were alive */
     struct cg_seen_task t[CG_SEEN_TASKS];
 };
 
-struct cg_child {            /* control block, lives in container memory */
+struct cg_child { /* control block, lives in container memory */
     /* read by Python */
     int pid;
     int pidfd;
-    uint64_t serial;         /* Python's name for the child */
+    uint64_t serial; /* Python's name for the child */
     int64_t start_ns;
-    int state;               /* CG_RUNNING / CG_REAPED (atomic): reported dead,
-                                forgotten by the monitor; a zombie until
-                                cg_release or cg_abandon reaps it */
-    int stop_requested;      /* CG_STOP_* (atomic; child, parent, monitor) */
-    int py_phase;            /* CG_PY_* (atomic; written by the child) */
-    int stop_signal;         /* the signal that asked (atomic), 0: parent */
-    int arena;               /* jemalloc arena the child bound to, -1: none */
-    unsigned go;             /* futex word: how many times the parent said
-                                go (cg_go), | CG_GO_STOP once asked to stop */
-    unsigned go_taken;       /* how many of those the child has waited for */
+    int state;          /* CG_RUNNING / CG_REAPED (atomic): reported dead,
+                           forgotten by the monitor; a zombie until
+                           cg_release or cg_abandon reaps it */
+    int stop_requested; /* CG_STOP_* (atomic; child, parent, monitor) */
+    int py_phase;       /* CG_PY_* (atomic; written by the child) */
+    int stop_signal;    /* the signal that asked (atomic), 0: parent */
+    int arena;          /* jemalloc arena the child bound to, -1: none */
+    unsigned go;        /* futex word: how many times the parent said
+                           go (cg_go), | CG_GO_STOP once asked to stop */
+    unsigned go_taken;  /* how many of those the child has waited for */
     /* set up before the clone */
-    PyObject *target;        /* borrowed: Python keeps it alive until reaped */
-    PyThreadState *tstate;   /* made by cg_spawn, deleted by cg_release */
+    PyObject *target;      /* borrowed: Python keeps it alive until reaped */
+    PyThreadState *tstate; /* made by cg_spawn, deleted by cg_release */
     int flags;
-    int cgroup_fd;           /* -1: stay in the container's cgroup */
+    int cgroup_fd; /* -1: stay in the container's cgroup */
     int parent_tgid;
-    char *map;               /* guard page + stack */
+    char *map; /* guard page + stack */
     size_t map_len, stack_size;
-    char *alt;               /* guard page + signal stack (crash reports) */
+    char *alt; /* guard page + signal stack (crash reports) */
     size_t alt_len;
-    char *tcb;               /* from _dl_allocate_tls (or ctx->tcb) */
-    struct cg_ctx *ctx;      /* with the allocator guard: its context */
+    char *tcb;          /* from _dl_allocate_tls (or ctx->tcb) */
+    struct cg_ctx *ctx; /* with the allocator guard: its context */
     /* monitor-only */
     int stop_reported;
-    int repair_done;         /* gilrepair has looked at this dead child */
-    int gil_ref_dropped;     /* its crashing main task, waiting for its
-                                dump, no longer holds up the GIL's condvar
-                                (repair_step_aside) */
-    uint32_t repairs;        /* what it repaired for it */
-    int retired;             /* CGA_RETIRE_* (allocguard.h): what it left in
-                                the allocator guard, once reaped */
+    int repair_done;     /* gilrepair has looked at this dead child */
+    int gil_ref_dropped; /* its crashing main task, waiting for its
+                            dump, no longer holds up the GIL's condvar
+                            (repair_step_aside) */
+    uint32_t repairs;    /* what it repaired for it */
+    int retired;         /* CGA_RETIRE_* (allocguard.h): what it left in
+                            the allocator guard, once reaped */
     struct cg_child *next;
-    struct cg_seen_tasks seen;   /* its tasks, as the monitor saw them */
+    struct cg_seen_tasks seen; /* its tasks, as the monitor saw them */
     /* written by its crash report (crash.c), read by Python once reaped */
-    int crash_tid;           /* the task that caught it, */
-    int crash_si_code;       /* the fault's si_code (SEGV_PKUERR: 4), */
-    int crash_sender;        /* who sent it (si_code <= 0), else 0, */
-    int crash_pkey;          /* its key (SEGV_PKUERR), */
-    void *crash_addr;        /* and its address */
-    int crash_nframes;       /* 0: none; -1: being written; else how many */
-    void *crash_frames[CG_CRASH_FRAMES];   /* the crashing task's native stack */
-    int crash_py_nframes;    /* its Python stack: how many frames, */
-    int crash_py_more;       /* 1: it went on past CG_CRASH_PY_FRAMES */
-    void *crash_py_code[CG_CRASH_PY_FRAMES];   /* each frame's code object */
-    int crash_py_lasti[CG_CRASH_PY_FRAMES];    /* and instruction offset */
+    int crash_tid;                           /* the task that caught it, */
+    int crash_si_code;                       /* the fault's si_code (SEGV_PKUERR: 4), */
+    int crash_sender;                        /* who sent it (si_code <= 0), else 0, */
+    int crash_pkey;                          /* its key (SEGV_PKUERR), */
+    void *crash_addr;                        /* and its address */
+    int crash_nframes;                       /* 0: none; -1: being written; else how many */
+    void *crash_frames[CG_CRASH_FRAMES];     /* the crashing task's native stack */
+    int crash_py_nframes;                    /* its Python stack: how many frames, */
+    int crash_py_more;                       /* 1: it went on past CG_CRASH_PY_FRAMES */
+    void *crash_py_code[CG_CRASH_PY_FRAMES]; /* each frame's code object */
+    int crash_py_lasti[CG_CRASH_PY_FRAMES];  /* and instruction offset */
     /* written by the repair (monitor) if it died holding the GIL: its
        innermost Python frame, read by Python once reaped */
     void *gil_code;
@@ -243,9 +244,9 @@ struct cg_child {            /* control block, lives in container memory */
     /* --core-dumps (dumps.c): CG_CORE_*; the crashing main task waits in
        its crash handler while the monitor has its dump written */
     int core_dump;
-    char core_path[CG_CORE_PATH];  /* where (Python names it; "": nowhere) */
-    char core_why[CG_CORE_WHY];    /* CG_CORE_FAILED: why */
-    struct cg_child *dump_next;    /* the monitor's queue of dumps */
+    char core_path[CG_CORE_PATH]; /* where (Python names it; "": nowhere) */
+    char core_why[CG_CORE_WHY];   /* CG_CORE_FAILED: why */
+    struct cg_child *dump_next;   /* the monitor's queue of dumps */
     /* herald.c: its CRASHED event, and who owns it (atomic) */
     struct cg_herald *herald;
     int herald_state;
@@ -266,30 +267,30 @@ struct cg_child {            /* control block, lives in container memory */
    reference on its condvar group meanwhile.  gilrepair.c relies on all of
    that for dead waiters; cg_probe_condwait (probes.c) checks it on a live pthread at start-up. */
 struct cg_condwait_probe {
-    uintptr_t routine;       /* the cleanup routine the waiter pushed */
-    int found;               /* TCB+cleanup became non-NULL while it waited */
-    int buf_on_stack;        /* the record lies on the waiter's stack */
-    int cbuf_matches;        /* its argument names our cond and mutex */
-    int wseq_matches;        /* argument.wseq + 2 == cond.__wseq (1 waiter) */
-    int holds_ref;           /* cond.__g_refs[group] == 2 while it waits */
+    uintptr_t routine; /* the cleanup routine the waiter pushed */
+    int found;         /* TCB+cleanup became non-NULL while it waited */
+    int buf_on_stack;  /* the record lies on the waiter's stack */
+    int cbuf_matches;  /* its argument names our cond and mutex */
+    int wseq_matches;  /* argument.wseq + 2 == cond.__wseq (1 waiter) */
+    int holds_ref;     /* cond.__g_refs[group] == 2 while it waits */
     int routine_in_libc;
-    int cleared_after;       /* TCB+cleanup is back to what it was before */
+    int cleared_after; /* TCB+cleanup is back to what it was before */
 };
 
 /* A glibc mutex waiter as the monitor sees it from outside
    (cg_probe_mutexwait checks all of it on live pthreads). */
 struct cg_mutexwait_probe {
     int self_tid;
-    int seen[CG_MUTEX_CALLERS];      /* the waiter was found in futex(&m) */
-    int op[CG_MUTEX_CALLERS], val[CG_MUTEX_CALLERS];   /* its futex op, value */
+    int seen[CG_MUTEX_CALLERS];                      /* the waiter was found in futex(&m) */
+    int op[CG_MUTEX_CALLERS], val[CG_MUTEX_CALLERS]; /* its futex op, value */
     uintptr_t pc[CG_MUTEX_CALLERS];
-    int ret_slot[CG_MUTEX_CALLERS];  /* where its return address was found */
+    int ret_slot[CG_MUTEX_CALLERS]; /* where its return address was found */
     uintptr_t ret[CG_MUTEX_CALLERS];
     int ret_in_libc[CG_MUTEX_CALLERS];
-    int kind[CG_MUTEX_CALLERS];      /* the mutex's __kind while held */
-    int owner_is_self[CG_MUTEX_CALLERS];   /* its __owner was the holder */
+    int kind[CG_MUTEX_CALLERS];          /* the mutex's __kind while held */
+    int owner_is_self[CG_MUTEX_CALLERS]; /* its __owner was the holder */
     int private_seen, private_op, private_val;
-    uintptr_t private_pc;            /* ... in __lll_lock_wait_private */
+    uintptr_t private_pc; /* ... in __lll_lock_wait_private */
 };
 
 /* Timed mutex waiters and rwlock waiters blocked on a writer, as the monitor
@@ -303,30 +304,30 @@ struct cg_timedwait_probe {
     int seen[CG_TIMED_PROBES];
     int op[CG_TIMED_PROBES], val[CG_TIMED_PROBES];
     uintptr_t pc[CG_TIMED_PROBES];
-    int ret_slot[CG_TIMED_PROBES];   /* = rw_ret_slot[0] */
-    uintptr_t ret[CG_TIMED_PROBES];  /* the word there, */
-    int ret_in_libc[CG_TIMED_PROBES];   /* which lies in libc */
-    int kind[CG_TIMED_PROBES];       /* the mutex's __kind while held */
+    int ret_slot[CG_TIMED_PROBES];    /* = rw_ret_slot[0] */
+    uintptr_t ret[CG_TIMED_PROBES];   /* the word there, */
+    int ret_in_libc[CG_TIMED_PROBES]; /* which lies in libc */
+    int kind[CG_TIMED_PROBES];        /* the mutex's __kind while held */
     int owner_is_self[CG_TIMED_PROBES];
     int rw_seen[CG_RWLOCK_CALLERS];
     int rw_op[CG_RWLOCK_CALLERS], rw_val[CG_RWLOCK_CALLERS];
     uintptr_t rw_pc[CG_RWLOCK_CALLERS];
-    long rw_futex_off[CG_RWLOCK_CALLERS];   /* futex word - rwlock */
-    int rw_ret_slot[CG_RWLOCK_CALLERS];     /* the word into the function
-                                               (by dladdr), */
+    long rw_futex_off[CG_RWLOCK_CALLERS]; /* futex word - rwlock */
+    int rw_ret_slot[CG_RWLOCK_CALLERS];   /* the word into the function
+                                             (by dladdr), */
     uintptr_t rw_ret[CG_RWLOCK_CALLERS];
-    int rw_writer_recorded[CG_RWLOCK_CALLERS];  /* __cur_writer = the writer
-                                (0 while readers hold it: k >= 6) */
-    int rw_released[CG_RWLOCK_CALLERS];     /* a thread that made itself
-                                __cur_writer and called pthread_rwlock_unlock
-                                after the writer ended let the waiter in */
-    long off_wrphase_futex, off_writers_futex;  /* offsetof in the rwlock */
+    int rw_writer_recorded[CG_RWLOCK_CALLERS]; /* __cur_writer = the writer
+                               (0 while readers hold it: k >= 6) */
+    int rw_released[CG_RWLOCK_CALLERS];        /* a thread that made itself
+                                   __cur_writer and called pthread_rwlock_unlock
+                                   after the writer ended let the waiter in */
+    long off_wrphase_futex, off_writers_futex; /* offsetof in the rwlock */
 };
 
 /* A task's system call as /proc/<tid>/syscall shows it. */
 struct task_syscall {
-    long nr;                 /* -1: blocked outside a syscall, -2: running
-                                or unreadable */
+    long nr; /* -1: blocked outside a syscall, -2: running
+                or unreadable */
     uintptr_t args[6];
     uintptr_t sp, pc;
 };
@@ -349,11 +350,10 @@ struct cg_ctx {
 /* ---- Called from Python (the cdef in _build_core.py mirrors these) ---- */
 
 /* clonecore.c */
-int cg_start(const struct cg_layout *layout, const struct cg_config *cfg,
-             int *event_fd);
+int cg_start(const struct cg_layout *layout, const struct cg_config *cfg, int *event_fd);
 int cg_stop(void);
-int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd,
-             int flags, struct cg_child **out);
+int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd, int flags,
+             struct cg_child **out);
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
@@ -376,8 +376,8 @@ static inline int64_t cg_mono_ns(void)
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
 /* herald.c */
-int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
-                      int stop_signal, char *out, int size);
+int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
+                      char *out, int size);
 int cg_herald_start(void *publish, const void *publisher);
 int cg_herald_stop(int timeout_ms);
 long cg_herald_failures(void);
@@ -393,9 +393,7 @@ void cg_lastresort_stop(void);
 /* listenerwait.c */
 int cg_bound_listener_wait(char *why_out, int why_size);
 long cg_listener_waits_bounded(void);
-/* interp.c */
-int cg_gc_wait_due(int interval_us, int *wake);
-long cg_gc_collect(void *collect, int generation);
+/* interp.c: cg_gc_wait_due, cg_gc_collect (repair.h, which interp.c sees) */
 /* probes.c */
 uintptr_t cg_thread_pointer(void);
 uintptr_t cg_robust_list_head(void);
@@ -406,23 +404,23 @@ int cg_probe_clone3(void);
 
 /* pkeys.c */
 struct cg_pkeys_probe {
-    int cpu_pku, os_pke;     /* CPUID.7.0:ECX bits 3 and 4 */
-    int keys;                /* pkey_alloc gave this many (all freed) */
-    int alloc_errno;         /* why the last pkey_alloc failed, 0: none did */
-    uint32_t pkru;           /* the calling thread's PKRU (os_pke only) */
-    int mprotect_keeps;      /* 1 yes, 0 no, -1 not probed */
-    int thread_inherits;     /* 1 yes, 0 no, -1 not probed */
-    int write_faults;        /* 1 yes, 0 no, -1 not probed */
+    int cpu_pku, os_pke; /* CPUID.7.0:ECX bits 3 and 4 */
+    int keys;            /* pkey_alloc gave this many (all freed) */
+    int alloc_errno;     /* why the last pkey_alloc failed, 0: none did */
+    uint32_t pkru;       /* the calling thread's PKRU (os_pke only) */
+    int mprotect_keeps;  /* 1 yes, 0 no, -1 not probed */
+    int thread_inherits; /* 1 yes, 0 no, -1 not probed */
+    int write_faults;    /* 1 yes, 0 no, -1 not probed */
 };
 int cg_pkeys_probe(struct cg_pkeys_probe *out);
-int cg_pkeys_in_use(int *keys, int max);    /* contexts.c: the guard's keys */
-int cg_alloc_slot_of(const void *p);        /* contexts.c */
+int cg_pkeys_in_use(int *keys, int max); /* contexts.c: the guard's keys */
+int cg_alloc_slot_of(const void *p);     /* contexts.c */
 int cg_child_slot(const struct cg_child *c);
 int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
 int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
 /* memwatch.c */
 int cg_memwatch_set(int usage_fd, int stat_fd, const char *stat_key, int meminfo, uint64_t limit,
-                    uint64_t margin);             /* before cg_start */
+                    uint64_t margin); /* before cg_start */
 int cg_child_set_oom_score_adj(struct cg_child *c, int adj);
 int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
 int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
@@ -442,67 +440,67 @@ extern mallctl_fn g_mallctl;
 
 /* monitor.c */
 int monitor_start(int *event_fd);
-int monitor_stop(void);                   /* -EBUSY while a child is unreaped */
-int monitor_spawn(struct cg_child *c);    /* from any thread; blocks */
-void monitor_wake(void);                  /* async-signal-safe */
-void monitor_emit(const struct cg_event *ev);   /* on the monitor thread */
-void repair_step_aside(struct cg_child *c);     /* on the monitor thread:
-                                   c's main task waits for its dump */
+int monitor_stop(void);                       /* -EBUSY while a child is unreaped */
+int monitor_spawn(struct cg_child *c);        /* from any thread; blocks */
+void monitor_wake(void);                      /* async-signal-safe */
+void monitor_emit(const struct cg_event *ev); /* on the monitor thread */
+void repair_step_aside(struct cg_child *c);   /* on the monitor thread:
+                                 c's main task waits for its dump */
 
 /* dumps.c: on the monitor thread, but dumps_ask */
-int dumps_start(int epfd);                /* with cg_config.core_dumps only */
-bool dumps_ask(struct cg_child *c);       /* a crashing child; async-signal-safe */
-bool dumps_event(void *tag, int64_t now); /* true: an epoll tag of dumps.c's */
-int dumps_tick(int64_t now, int sleep_ms);/* sleep ms, -1 */
-void dumps_forget(struct cg_child *c);    /* c is dead, about to be reported */
+int dumps_start(int epfd);                 /* with cg_config.core_dumps only */
+bool dumps_ask(struct cg_child *c);        /* a crashing child; async-signal-safe */
+bool dumps_event(void *tag, int64_t now);  /* true: an epoll tag of dumps.c's */
+int dumps_tick(int64_t now, int sleep_ms); /* sleep ms, -1 */
+void dumps_forget(struct cg_child *c);     /* c is dead, about to be reported */
 void dumps_stop(void);
-int64_t cg_watch_clock_ns(void);          /* any thread: CLOCK_MONOTONIC less dumps' time */
+int64_t cg_watch_clock_ns(void); /* any thread: CLOCK_MONOTONIC less dumps' time */
 
 /* mutexes.c: all on the monitor thread */
-int mutexes_start(void);                  /* -ENOENT: no pid cursor to read */
-void mutexes_see(struct cg_child *c);     /* look at a child's tasks now */
-void mutexes_bury(const struct cg_child *c);   /* c is dead, not yet reaped */
-int mutexes_tick(struct cg_child *children, int64_t now);   /* sleep ms, -1 */
-int task_syscall(int tid, struct task_syscall *out);   /* probes.c too */
+int mutexes_start(void);                                  /* -ENOENT: no pid cursor to read */
+void mutexes_see(struct cg_child *c);                     /* look at a child's tasks now */
+void mutexes_bury(const struct cg_child *c);              /* c is dead, not yet reaped */
+int mutexes_tick(struct cg_child *children, int64_t now); /* sleep ms, -1 */
+int task_syscall(int tid, struct task_syscall *out);      /* probes.c too */
 
 /* heldscan.c: on the monitor thread, for mutexes.c */
 struct held_owners {
-    int min, max;                 /* every tid dead() may accept is in here */
-    bool (*dead)(int tid);        /* a task proven dead */
+    int min, max;          /* every tid dead() may accept is in here */
+    bool (*dead)(int tid); /* a task proven dead */
 };
-bool held_sweep_start(void);      /* false: no mapping could be read */
+bool held_sweep_start(void); /* false: no mapping could be read */
 bool held_sweep_step(struct held_owners *owners,
-                     void (*found)(uintptr_t addr, int owner, int kind));   /* false: done */
+                     void (*found)(uintptr_t addr, int owner, int kind)); /* false: done */
 
 /* memwatch.c: on the monitor thread */
-int memwatch_tick(struct cg_child *children, int sleep_ms);  /* sleep ms */
+int memwatch_tick(struct cg_child *children, int sleep_ms); /* sleep ms */
 void memwatch_say(const struct cg_child *c, char *text, size_t cap);
 
 /* child.c */
-long child_clone(struct cg_child *c);     /* on the monitor thread: pid or -errno */
+long child_clone(struct cg_child *c);                    /* on the monitor thread: pid or -errno */
 void child_gate_post(struct cg_child *c, unsigned stop); /* async-signal-safe */
 
 /* crash.c */
-void crash_report_prepare(void);          /* in cg_start, never in a handler */
-void crash_handlers_install(struct cg_child *c);   /* in the child */
+void crash_report_prepare(void);                 /* in cg_start, never in a handler */
+void crash_handlers_install(struct cg_child *c); /* in the child */
 
 /* contexts.c */
-int tls_init(void);                       /* find glibc's TLS allocator */
+int tls_init(void); /* find glibc's TLS allocator */
 char *tls_new(void);
 void tls_reset(char *tcb);
 void tls_give_back(struct cg_child *c);
-int guard_start(void);                    /* -ENOENT: the guard is not preloaded */
+int guard_start(void); /* -ENOENT: the guard is not preloaded */
 bool guard_active(void);
 struct cg_ctx *ctx_take(void);
 void guard_bind(struct cg_ctx *x);
-void guard_child_start(void);             /* in the child */
-void stop_requests_take(int sig);         /* in the child: the rig's stop points */
+void guard_child_start(void);                     /* in the child */
+void stop_requests_take(int sig);                 /* in the child: the rig's stop points */
 int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
 /* Child c went over its memory budget (CGA_RETIRE_OVER_BUDGET): its figures
    said at the end of its death text (n: the text's length so far). */
 void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap);
-int guard_py_owner(const void *p);        /* slot of a Python block, -1: unknown */
-int guard_dump_exclude(int exclude);      /* dumps.c, while gdb writes */
+int guard_py_owner(const void *p);   /* slot of a Python block, -1: unknown */
+int guard_dump_exclude(int exclude); /* dumps.c, while gdb writes */
 /* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */
 
 /* probes.c */

@@ -56,7 +56,10 @@ static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
 static struct sigaction g_container_prev[NCRASH];
 static int g_container_installed;
 
-struct out { char b[256]; size_t n; };
+struct out {
+    char b[256];
+    size_t n;
+};
 
 static void out_s(struct out *o, const char *s)
 {
@@ -98,7 +101,7 @@ static void on_crash_timeout(int unused)
     (void)unused;
     int sig = cg_crash_sig;
     if (g_container_installed && getpid() == g_container_pid)
-        for (int i = 0; i < NCRASH; i++)   /* no SA_RESETHAND there: the old one */
+        for (int i = 0; i < NCRASH; i++) /* no SA_RESETHAND there: the old one */
             if (crash_signals[i] == sig)
                 sigaction(sig, &g_container_prev[i], NULL);
     sigset_t s;
@@ -125,7 +128,8 @@ static void wait_for_dump(struct cg_child *c, bool timer_ok, int timer)
     }
     struct timespec slice = {1, 0};
     for (int waited = 0; waited < CG_CORE_WAIT_S &&
-                         __atomic_load_n(&c->core_dump, __ATOMIC_ACQUIRE) == CG_CORE_ASKED; waited++)
+                         __atomic_load_n(&c->core_dump, __ATOMIC_ACQUIRE) == CG_CORE_ASKED;
+         waited++)
         syscall(SYS_futex, &c->core_dump, FUTEX_WAIT_PRIVATE, CG_CORE_ASKED, &slice, NULL, 0);
 }
 
@@ -153,7 +157,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
     memset(&sev, 0, sizeof sev);
     sev.sigev_notify = SIGEV_THREAD_ID;
     sev.sigev_signo = SIGALRM;
-    sev._sigev_un._tid = tid;   /* sigev_notify_thread_id */
+    sev._sigev_un._tid = tid; /* sigev_notify_thread_id */
     int timer;
     bool timer_ok = syscall(SYS_timer_create, CLOCK_MONOTONIC, &sev, &timer) == 0;
     if (timer_ok) {
@@ -169,9 +173,9 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
     out_s(&o, " caught SIG");
     out_s(&o, abbrev ? abbrev : "?");
     out_s(&o, " at ");
-    if (si->si_code > 0)                 /* raised by a fault */
+    if (si->si_code > 0) /* raised by a fault */
         out_u(&o, (uintptr_t)si->si_addr, 16);
-    else                                 /* sent: there is no address */
+    else /* sent: there is no address */
         out_s(&o, "-");
     out_s(&o, " (pc ");
     out_u(&o, (unsigned long)uc->uc_mcontext.gregs[REG_RIP], 16);
@@ -224,7 +228,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         backtrace_symbols_fd(frames, n, 2);
         out_s(&o, "cloneguard: Python ");
         out_flush(&o);
-        cg_dump_py_stack(2);   /* "Stack (most recent call first): ..." */
+        cg_dump_py_stack(2); /* "Stack (most recent call first): ..." */
     }
 
     if (claimed && g_cfg.core_dumps)

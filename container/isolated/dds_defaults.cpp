@@ -35,36 +35,43 @@ extern "C" {
 
 // The default participant QoS's lease-announcement period and lease
 // duration, in ns, as they are now: 0 on success, -1 if there is no factory.
-__attribute__((visibility("default"))) int cg_dds_announcement(int64_t* period_ns, int64_t* lease_ns)
+__attribute__((visibility("default"))) int cg_dds_announcement(int64_t *period_ns,
+                                                               int64_t *lease_ns)
 {
-    DomainParticipantFactory* factory = DomainParticipantFactory::get_instance();
+    DomainParticipantFactory *factory = DomainParticipantFactory::get_instance();
     if (factory == nullptr) {
         return -1;
     }
-    const auto& d = factory->get_default_participant_qos().wire_protocol().builtin.discovery_config;
+    const auto &d = factory->get_default_participant_qos().wire_protocol().builtin.discovery_config;
     *period_ns = static_cast<int64_t>(d.leaseDuration_announcementperiod.seconds) * 1000000000 +
                  d.leaseDuration_announcementperiod.nanosec;
-    *lease_ns = static_cast<int64_t>(d.leaseDuration.seconds) * 1000000000 + d.leaseDuration.nanosec;
+    *lease_ns =
+        static_cast<int64_t>(d.leaseDuration.seconds) * 1000000000 + d.leaseDuration.nanosec;
     return 0;
 }
 
 // Participants made from now on re-announce every period_ns (and keep a
 // lease of lease_ns, which must be longer). 0 on success, -1 if Fast DDS
 // refused the QoS (its log says why).
-__attribute__((visibility("default"))) int cg_dds_set_announcement(int64_t period_ns, int64_t lease_ns)
+__attribute__((visibility("default"))) int cg_dds_set_announcement(int64_t period_ns,
+                                                                   int64_t lease_ns)
 {
-    DomainParticipantFactory* factory = DomainParticipantFactory::get_instance();
+    DomainParticipantFactory *factory = DomainParticipantFactory::get_instance();
     if (factory == nullptr || period_ns <= 0 || lease_ns <= period_ns) {
         return -1;
     }
-    factory->load_profiles();  // the XML default first, so that it cannot replace ours later
+    factory->load_profiles(); // the XML default first, so that it cannot replace ours later
     DomainParticipantQos qos = factory->get_default_participant_qos();
-    auto& d = qos.wire_protocol().builtin.discovery_config;
-    d.leaseDuration_announcementperiod = eprosima::fastrtps::Duration_t(
-        static_cast<int32_t>(period_ns / 1000000000), static_cast<uint32_t>(period_ns % 1000000000));
+    auto &d = qos.wire_protocol().builtin.discovery_config;
+    d.leaseDuration_announcementperiod =
+        eprosima::fastrtps::Duration_t(static_cast<int32_t>(period_ns / 1000000000),
+                                       static_cast<uint32_t>(period_ns % 1000000000));
     d.leaseDuration = eprosima::fastrtps::Duration_t(static_cast<int32_t>(lease_ns / 1000000000),
                                                      static_cast<uint32_t>(lease_ns % 1000000000));
-    return factory->set_default_participant_qos(qos) == eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK ? 0 : -1;
+    return factory->set_default_participant_qos(qos) ==
+                   eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK
+               ? 0
+               : -1;
 }
 
 // Fast DDS's intraprocess delivery off for every match made from now on;
@@ -73,7 +80,7 @@ __attribute__((visibility("default"))) int cg_dds_set_announcement(int64_t perio
 // of the same process (RTPSDomainImpl::should_intraprocess_between), so
 // this holds for every node participant made after it, whatever the XML
 // profile said (the profile was loaded with the container's participant).
-__attribute__((visibility("default"))) int cg_dds_intraprocess_off(int* was)
+__attribute__((visibility("default"))) int cg_dds_intraprocess_off(int *was)
 {
     LibrarySettingsAttributes settings = XMLProfileManager::library_settings();
     *was = static_cast<int>(settings.intraprocess_delivery);

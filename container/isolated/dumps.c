@@ -44,14 +44,14 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#define HELPER_S 300         /* gdb, or fallocate, may take this long */
+#define HELPER_S 300 /* gdb, or fallocate, may take this long */
 #define STR(x) STR_(x)
 #define STR_(x) #x
 
 enum { IDLE, GCORE, HOLES };
 
-static int g_req[2] = {-1, -1};   /* requests: cg_child pointers */
-static int g_log = -1;            /* memfd: the helpers' output */
+static int g_req[2] = {-1, -1}; /* requests: cg_child pointers */
+static int g_log = -1;          /* memfd: the helpers' output */
 static int g_epfd = -1;
 static posix_spawn_file_actions_t g_actions;
 static posix_spawnattr_t g_attr;
@@ -60,9 +60,9 @@ static char TAG_REQ, TAG_HELPER;
 
 /* The dump under way (monitor-only). */
 static int g_stage = IDLE;
-static struct cg_child *g_child;  /* NULL once it died meanwhile */
-static struct cg_child *g_queue;  /* waiting, oldest first (dump_next) */
-static int g_helper_fd = -1;      /* the helper's pidfd */
+static struct cg_child *g_child; /* NULL once it died meanwhile */
+static struct cg_child *g_queue; /* waiting, oldest first (dump_next) */
+static int g_helper_fd = -1;     /* the helper's pidfd */
 static int64_t g_deadline;
 static bool g_timed_out;
 static char g_path[CG_CORE_PATH];
@@ -75,8 +75,8 @@ static char g_path[CG_CORE_PATH];
    thread; read from any thread: the sequence count (odd while the two
    words change) makes them one reading. */
 static unsigned g_pause_seq;
-static int64_t g_paused_ns;       /* in dumps that are over */
-static int64_t g_pause_since;     /* 0: no dump asked for or under way */
+static int64_t g_paused_ns;   /* in dumps that are over */
+static int64_t g_pause_since; /* 0: no dump asked for or under way */
 
 static void note_busy(int64_t now)
 {
@@ -126,7 +126,7 @@ int dumps_start(int epfd)
         posix_spawn_file_actions_destroy(&g_actions);
         return -r;
     }
-    g_ready = true;              /* dumps_stop destroys them */
+    g_ready = true; /* dumps_stop destroys them */
     /* stdin from /dev/null; stdout and stderr into the log. */
     r = posix_spawn_file_actions_addopen(&g_actions, 0, "/dev/null", O_RDONLY, 0);
     if (!r)
@@ -215,7 +215,7 @@ static int spawn_helper(char *const argv[], int64_t now)
     g_helper_fd = (int)syscall(SYS_pidfd_open, pid, 0);
     struct epoll_event ev = {.events = EPOLLIN, .data.ptr = &TAG_HELPER};
     if (g_helper_fd < 0 || epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_helper_fd, &ev) < 0) {
-        int err = errno;   /* cannot watch it: end it now */
+        int err = errno; /* cannot watch it: end it now */
         kill(pid, SIGKILL);
         waitpid(pid, NULL, __WALL);
         if (g_helper_fd >= 0)
@@ -265,8 +265,8 @@ static void start_next(int64_t now)
             finish(CG_CORE_FAILED);
             continue;
         }
-        if (lstat(g_path, &st) == 0) {   /* not ours: never written over, */
-            say(c, "something is in the way: ", g_path);   /* taken or removed */
+        if (lstat(g_path, &st) == 0) {                   /* not ours: never written over, */
+            say(c, "something is in the way: ", g_path); /* taken or removed */
             finish(CG_CORE_FAILED);
             continue;
         }
@@ -312,13 +312,13 @@ static void helper_ended(int64_t now)
             char *const argv[] = {g_cfg.fallocate, "--dig-holes", g_path, NULL};
             if (spawn_helper(argv, now) == 0)
                 g_stage = HOLES;
-            else                 /* the file stays whole */
+            else /* the file stays whole */
                 finish(CG_CORE_DONE);
         } else {
             finish(CG_CORE_DONE);
         }
     } else {
-        finish(CG_CORE_DONE);    /* holes or none, the dump is whole */
+        finish(CG_CORE_DONE); /* holes or none, the dump is whole */
     }
     start_next(now);
 }
@@ -359,8 +359,8 @@ bool dumps_event(void *tag, int64_t now)
    wish; a helper past its time is ended (its end comes through epoll). */
 int dumps_tick(int64_t now, int sleep_ms)
 {
-    start_next(now);             /* requests dumps_forget took off the pipe */
-    note_busy(now);              /* every round ends here (monitor.c) */
+    start_next(now); /* requests dumps_forget took off the pipe */
+    note_busy(now);  /* every round ends here (monitor.c) */
     if (g_helper_fd < 0)
         return sleep_ms;
     if (now >= g_deadline) {
@@ -385,7 +385,7 @@ static void forget(struct cg_child *c)
         }
     if (c != g_child)
         return;
-    if (g_stage == HOLES) {      /* the dump is written; only holes were left */
+    if (g_stage == HOLES) { /* the dump is written; only holes were left */
         __atomic_store_n(&c->core_dump, CG_CORE_DONE, __ATOMIC_RELEASE);
     } else {
         say(c, "it died while gdb was writing its dump", NULL);
@@ -398,7 +398,7 @@ void dumps_forget(struct cg_child *c)
 {
     /* Its request may still be in the pipe (epoll need not have said so
        yet): take every one now, or c's would be read after c is freed. */
-    take_requests();             /* the next dumps_tick starts them */
+    take_requests(); /* the next dumps_tick starts them */
     forget(c);
 }
 

@@ -64,18 +64,18 @@
 #include "repair.h"
 
 #define GIL (&_PyRuntime.ceval.gil)
-#define ANON ((struct cg_dead *)-1)   /* a dead owner we cannot name */
+#define ANON ((struct cg_dead *)-1) /* a dead owner we cannot name */
 
 static void sleep_us(long us)
 {
     struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
-    while (nanosleep(&ts, &ts) < 0 && errno == EINTR) {}
+    while (nanosleep(&ts, &ts) < 0 && errno == EINTR) {
+    }
 }
 
 static void futex_wake(void *addr, int n, int private_)
 {
-    syscall(SYS_futex, addr, FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0),
-            n, NULL, NULL, 0);
+    syscall(SYS_futex, addr, FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0), n, NULL, NULL, 0);
 }
 
 /* Is task `tid` dead?  One of the dead we were given, gone altogether, or
@@ -130,18 +130,17 @@ static struct cg_dead *take_over(pthread_mutex_t *m, struct cg_dead *d, int n)
             sleep_us(1000);
             continue;
         } else {
-            who = ANON;   /* died between lock word and owner store */
+            who = ANON; /* died between lock word and owner store */
         }
-        __atomic_store_n(&m->__data.__owner, (int)syscall(SYS_gettid),
-                         __ATOMIC_RELEASE);
+        __atomic_store_n(&m->__data.__owner, (int)syscall(SYS_gettid), __ATOMIC_RELEASE);
         return who;
     }
 }
 
 /* Lock m for the repair, taking it over if a dead task turns out to own it
    (a death after step 1 looked).  false after ~2 s of a live holder. */
-static bool lock_for_repair(pthread_mutex_t *m, uint32_t bit,
-                            struct cg_dead *d, int n, uint32_t *misc)
+static bool lock_for_repair(pthread_mutex_t *m, uint32_t bit, struct cg_dead *d, int n,
+                            uint32_t *misc)
 {
     for (int i = 0; i < 40; i++) {
         struct timespec ts;
@@ -191,7 +190,7 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, int interp, uint32
     PyTypeObject *code_type;
     if (who && PEEK(&h->cframe, cframe) && cframe && PEEK(&cframe->current_frame, frame) && frame &&
         PEEK(frame, top) && top.f_code && PEEK(&top.f_code->ob_base.ob_base.ob_type, code_type) &&
-        code_type == &PyCode_Type) {   /* a frame being pushed or popped can be torn */
+        code_type == &PyCode_Type) { /* a frame being pushed or popped can be torn */
         who->gil_code = top.f_code;
         who->gil_lasti = _PyInterpreterFrame_LASTI(&top);
     }
@@ -203,9 +202,8 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, int interp, uint32
         }
     /* It may have swapped itself out already (drop_gil's first step). */
     uintptr_t expected = (uintptr_t)h;
-    __atomic_compare_exchange_n(&_PyRuntime.gilstate.tstate_current._value,
-                                &expected, 0, false, __ATOMIC_SEQ_CST,
-                                __ATOMIC_SEQ_CST);
+    __atomic_compare_exchange_n(&_PyRuntime.gilstate.tstate_current._value, &expected, 0, false,
+                                __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
     _Py_atomic_store(&gil->locked, 0);
     credit(who, CG_REPAIR_GIL_RELEASED, misc);
 }
@@ -244,11 +242,11 @@ static void release_if_held_by_dead(struct cg_dead *d, int n, int interp, uint32
    take it before we clear it).  false: still taken by a holder not proven
    dead, left as it is (a hang at worst, never a broken lock); anything
    that takes it now may wait forever. */
-static bool unstick_cond_lock(pthread_cond_t *c, bool timed,
-                              unsigned dead_registered, uint32_t *misc)
+static bool unstick_cond_lock(pthread_cond_t *c, bool timed, unsigned dead_registered,
+                              uint32_t *misc)
 {
     unsigned *w = &c->__data.__g1_orig_size;
-    int private_ = (c->__data.__wrefs & 1) == 0;   /* bit 0: process-shared */
+    int private_ = (c->__data.__wrefs & 1) == 0; /* bit 0: process-shared */
     /* Each count wakes the waiters it counts; they must run to block again
        before the next one.  On a loaded machine that took more than the
        1 ms this once slept (deep run under -n 2: 3 hangs in 600 payload
@@ -260,13 +258,10 @@ static bool unstick_cond_lock(pthread_cond_t *c, bool timed,
             return true;
         bool dead_holder = !timed;
         if (timed) {
-            unsigned registered =
-                __atomic_load_n(&c->__data.__wrefs, __ATOMIC_ACQUIRE) >> 3;
-            long blocked = syscall(SYS_futex, w,
-                                   FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0),
+            unsigned registered = __atomic_load_n(&c->__data.__wrefs, __ATOMIC_ACQUIRE) >> 3;
+            long blocked = syscall(SYS_futex, w, FUTEX_WAKE | (private_ ? FUTEX_PRIVATE_FLAG : 0),
                                    INT_MAX, NULL, NULL, 0);
-            dead_holder = blocked >= 0 &&
-                          registered <= (unsigned long)blocked + dead_registered;
+            dead_holder = blocked >= 0 && registered <= (unsigned long)blocked + dead_registered;
         }
         if (dead_holder) {
             unsigned old = __atomic_fetch_and(w, ~3u, __ATOMIC_RELEASE);
@@ -297,14 +292,12 @@ static bool inside(const void *p, size_t len, const struct cg_dead *d)
     return (const char *)p >= d->stack_lo && (const char *)p + len <= d->stack_hi;
 }
 
-static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
-                        struct waiter *w)
+static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg, struct waiter *w)
 {
     struct _gil_runtime_state *gil = GIL;
     struct _pthread_cleanup_buffer *buf =
         *(struct _pthread_cleanup_buffer **)(d->tcb + cfg->cleanup_off);
-    if (!buf || !inside(buf, sizeof *buf, d) ||
-        (uintptr_t)buf->__routine != cfg->cond_cleanup)
+    if (!buf || !inside(buf, sizeof *buf, d) || (uintptr_t)buf->__routine != cfg->cond_cleanup)
         return false;
     struct cg_cond_cbuf *cb = buf->__arg;
     if (!inside(cb, sizeof *cb, d))
@@ -314,7 +307,7 @@ static bool find_waiter(struct cg_dead *d, const struct cg_repair_cfg *cfg,
     else if (cb->cond == &gil->switch_cond && cb->mutex == &gil->switch_mutex)
         w->bit = CG_REPAIR_SWITCH_WAITER;
     else
-        return false;   /* some other condvar: not ours to touch */
+        return false; /* some other condvar: not ours to touch */
     w->who = d, w->buf = buf, w->cb = cb;
     w->cond = cb->cond, w->mutex = cb->mutex;
     return true;
@@ -334,13 +327,11 @@ static void drop_group_ref(struct waiter *w)
 
 static void take_group_ref(struct waiter *w)
 {
-    __atomic_fetch_add(&w->cond->__data.__g_refs[w->cb->wseq & 1], 2,
-                       __ATOMIC_ACQUIRE);
+    __atomic_fetch_add(&w->cond->__data.__g_refs[w->cb->wseq & 1], 2, __ATOMIC_ACQUIRE);
 }
 
 /* How many of w[from..nw) wait on c: dead, registered, not cancelled yet. */
-static unsigned pending_on(const struct waiter *w, int nw, int from,
-                           const pthread_cond_t *c)
+static unsigned pending_on(const struct waiter *w, int nw, int from, const pthread_cond_t *c)
 {
     unsigned k = 0;
     for (int i = from; i < nw; i++)
@@ -380,7 +371,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
             if (find_waiter(&d[i], cfg, &w[nw]))
                 nw++;
         for (int i = 0; i < nw; i++)
-            if (!w[i].who->ref_dropped)   /* else cg_gil_step_aside did */
+            if (!w[i].who->ref_dropped) /* else cg_gil_step_aside did */
                 drop_group_ref(&w[i]);
     }
 
@@ -409,8 +400,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
                 release_if_held_by_dead(d, n, cfg->interp, &misc);
             }
             if (cfg->condvar)
-                unstick_cond_lock(&gil->cond, true,
-                                  pending_on(w, nw, 0, &gil->cond), &misc);
+                unstick_cond_lock(&gil->cond, true, pending_on(w, nw, 0, &gil->cond), &misc);
             checked = true;
             pthread_mutex_unlock(&gil->mutex);
         }
@@ -429,8 +419,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
        sure no dead task holds it (else the cleanup would wait forever; if
        that cannot be proven, the waiter is left as it is). */
     for (int i = 0; i < nw; i++) {
-        uint32_t mbit = w[i].mutex == &gil->mutex ? CG_REPAIR_GIL_MUTEX
-                                                   : CG_REPAIR_SWITCH_MUTEX;
+        uint32_t mbit = w[i].mutex == &gil->mutex ? CG_REPAIR_GIL_MUTEX : CG_REPAIR_SWITCH_MUTEX;
         if (!lock_for_repair(w[i].mutex, mbit, d, n, &misc))
             continue;
         bool free_ = unstick_cond_lock(w[i].cond, w[i].cond == &gil->cond,
@@ -439,7 +428,7 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
         if (!free_)
             continue;
         take_group_ref(&w[i]);
-        w[i].buf->__routine(w[i].cb);        /* returns holding mutex */
+        w[i].buf->__routine(w[i].cb); /* returns holding mutex */
         *(void **)(w[i].who->tcb + cfg->cleanup_off) = w[i].buf->__prev;
         if (w[i].mutex == &gil->mutex && cfg->gil && !checked) {
             release_if_held_by_dead(d, n, cfg->interp, &misc);
@@ -467,10 +456,8 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
     if (cfg->gil && (wake_switch || released)) {
         bool free_ = true;
         if (cfg->condvar &&
-            (__atomic_load_n(&gil->switch_cond.__data.__g1_orig_size,
-                             __ATOMIC_ACQUIRE) & 3) != 0) {
-            free_ = lock_for_repair(&gil->switch_mutex, CG_REPAIR_SWITCH_MUTEX,
-                                    d, n, &misc);
+            (__atomic_load_n(&gil->switch_cond.__data.__g1_orig_size, __ATOMIC_ACQUIRE) & 3) != 0) {
+            free_ = lock_for_repair(&gil->switch_mutex, CG_REPAIR_SWITCH_MUTEX, d, n, &misc);
             if (free_) {
                 free_ = unstick_cond_lock(&gil->switch_cond, false, 0, &misc);
                 pthread_mutex_unlock(&gil->switch_mutex);
@@ -488,14 +475,14 @@ uint32_t cg_gil_repair(struct cg_dead *d, int n, const struct cg_repair_cfg *cfg
    child does neither: the parent creates it before the clone, the child
    binds it to itself, and release() deletes it after the child is reaped. */
 
-PyThreadState *cg_tstate_new(void)            /* parent; any thread, no GIL */
+PyThreadState *cg_tstate_new(void) /* parent; any thread, no GIL */
 {
     return _PyThreadState_Prealloc(PyInterpreterState_Main());
 }
 
-void cg_tstate_bind(PyThreadState *ts)        /* child, before it runs Python */
+void cg_tstate_bind(PyThreadState *ts) /* child, before it runs Python */
 {
-    ts->thread_id = PyThread_get_thread_ident();          /* pthread_self() */
+    ts->thread_id = PyThread_get_thread_ident(); /* pthread_self() */
     ts->native_thread_id = (unsigned long)syscall(SYS_gettid);
     /* PyGILState's TSS slot lives in our TLS block, which an earlier child
        may have used (the allocator guard's contexts are reused), and
@@ -644,6 +631,7 @@ void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, in
         if (write(fd, line, len) < 0)
             break;
     }
-    if (more && write(fd, "  ...\n", 6) < 0) { /* stderr is gone */ }
+    if (more && write(fd, "  ...\n", 6) < 0) { /* stderr is gone */
+    }
     PyGILState_Release(g);
 }

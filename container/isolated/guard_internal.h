@@ -45,24 +45,24 @@ static inline void cga_stop_point(int s, int place)
         cga_stop_passed(s, place);
 }
 /* bigblocks.c: which slot got each of glibc's mmapped blocks. */
-HIDDEN bool bb_put(const void *p, int slot);    /* false: table full */
-HIDDEN int bb_take(const void *p);              /* its slot, -1: not known */
+HIDDEN bool bb_put(const void *p, int slot); /* false: table full */
+HIDDEN int bb_take(const void *p);           /* its slot, -1: not known */
 /* pyalloc.c: bytes of Python's small objects slot s has in use. */
 HIDDEN long py_slot_bytes(int s);
-HIDDEN void py_slot_begin(int s);               /* a new process: from 0 */
+HIDDEN void py_slot_begin(int s); /* a new process: from 0 */
 /* allocguard.c: slot s is over its memory budget if it gets n bytes more:
    then its process is ended there (SIGKILL to itself), the figures left
    for cga_slot_memory.  Called outside the allocator's bracket. */
 HIDDEN void cga_within_budget(int s, size_t n);
 /* heapkeys.c: protection keys over node processes' native heaps. */
-HIDDEN int hk_enabled(void);                     /* keys were allocated */
+HIDDEN int hk_enabled(void); /* keys were allocated */
 HIDDEN int hk_key_of_slot(int slot);
-HIDDEN int hk_tag(uintptr_t base, size_t len, int slot);   /* 0, or -errno */
-HIDDEN int hk_tag_tables(void *addr, size_t len);         /* 0, or -errno */
-HIDDEN void hk_child_enter(int slot);            /* the node process's PKRU */
-HIDDEN uint32_t hk_open(void);                   /* every key writable ... */
-HIDDEN void hk_close(uint32_t was);              /* ... and back */
-HIDDEN void hk_refresh_shared(void);             /* which callers get shared blocks */
+HIDDEN int hk_tag(uintptr_t base, size_t len, int slot); /* 0, or -errno */
+HIDDEN int hk_tag_tables(void *addr, size_t len);        /* 0, or -errno */
+HIDDEN void hk_child_enter(int slot);                    /* the node process's PKRU */
+HIDDEN uint32_t hk_open(void);                           /* every key writable ... */
+HIDDEN void hk_close(uint32_t was);                      /* ... and back */
+HIDDEN void hk_refresh_shared(void);                     /* which callers get shared blocks */
 HIDDEN int hk_shared_caller(const void *pc);
 
 #endif

@@ -65,8 +65,8 @@
  * the key the fewest live slots hold (allocguard.c, pick_unused_slot), so up
  * to 14 live node processes
  * (pooled contexts count) have a key each; past that, nodes that share a key
- * are not protected from each other, only from the rest.  Turned on by CLONEGUARD_PKEYS=1 in the environment (the
- * container's --pkeys sets it when it re-executes itself with the guard).
+ * are not protected from each other, only from the rest.  Turned on by CLONEGUARD_PKEYS=1 in the
+ * environment (the container's --pkeys sets it when it re-executes itself with the guard).
  */
 #define _GNU_SOURCE
 #include <cpuid.h>
@@ -85,9 +85,9 @@
 #define MAX_KEYS 15
 
 static int g_keys[MAX_KEYS];
-static int g_nkeys;                     /* node heaps' keys */
-static int g_tables_key;                /* the guard's tables' (0: none) */
-static int g_errno;                     /* why there are none, if asked for */
+static int g_nkeys;      /* node heaps' keys */
+static int g_tables_key; /* the guard's tables' (0: none) */
+static int g_errno;      /* why there are none, if asked for */
 static int g_wanted;
 
 static inline uint32_t rdpkru(void)
@@ -111,11 +111,11 @@ __attribute__((constructor(101))) static void hk_init(void)
     g_wanted = 1;
     unsigned a, b, c, d;
     if (!__get_cpuid_count(7, 0, &a, &b, &c, &d) || !((c >> 4) & 1)) {
-        g_errno = ENOSYS;               /* no PKU, or not enabled (OSPKE) */
+        g_errno = ENOSYS; /* no PKU, or not enabled (OSPKE) */
         return;
     }
     while (g_nkeys < MAX_KEYS) {
-        int k = pkey_alloc(0, 0);       /* open in this thread's PKRU */
+        int k = pkey_alloc(0, 0); /* open in this thread's PKRU */
         if (k < 0) {
             g_errno = errno;
             break;
@@ -224,23 +224,54 @@ EXPORT int cga_slot_key(int slot)
    support).  The main program (the interpreter) is one of them. */
 
 static const char *const SHARED_LIBS[] = {
-    "libc.so", "ld-linux", "libstdc++", "libgcc_s", "libm.so", "libpython", "libjemalloc",
-    "libfastrtps", "libfastcdr", "libfoonathan", "libtinyxml2", "libssl", "libcrypto",
-    "librcl", "librmw", "librcutils", "librcpputils", "librosidl", "libtracetools",
-    "libspdlog", "libyaml", "libament_index", "libclass_loader", "libconsole_bridge",
-    "_rclpy", "_clonecore", "_rclglue", "_allocguard", "_robust", "_pylocks", "_pybind11_registry",
+    "libc.so",
+    "ld-linux",
+    "libstdc++",
+    "libgcc_s",
+    "libm.so",
+    "libpython",
+    "libjemalloc",
+    "libfastrtps",
+    "libfastcdr",
+    "libfoonathan",
+    "libtinyxml2",
+    "libssl",
+    "libcrypto",
+    "librcl",
+    "librmw",
+    "librcutils",
+    "librcpputils",
+    "librosidl",
+    "libtracetools",
+    "libspdlog",
+    "libyaml",
+    "libament_index",
+    "libclass_loader",
+    "libconsole_bridge",
+    "_rclpy",
+    "_clonecore",
+    "_rclglue",
+    "_allocguard",
+    "_robust",
+    "_pylocks",
+    "_pybind11_registry",
 };
 
-struct range { uintptr_t lo, hi; };
-struct table { int n; struct range r[]; };
+struct range {
+    uintptr_t lo, hi;
+};
+struct table {
+    int n;
+    struct range r[];
+};
 #define MAX_RANGES 4096
 
-static _Atomic(struct table *) g_shared;    /* published whole, never freed */
+static _Atomic(struct table *) g_shared; /* published whole, never freed */
 
 static int shared_name(const char *path)
 {
     if (!*path)
-        return 1;                           /* the main program */
+        return 1; /* the main program */
     const char *base = strrchr(path, '/');
     base = base ? base + 1 : path;
     if (strstr(base, "rosidl"))
@@ -273,22 +304,22 @@ static int by_lo(const void *a, const void *b)
 }
 
 /* On a container thread, before each node process starts: the libraries
-   loaded now (rebuilt only when one was loaded since).  One a node process loads itself is not in the table until
-   the next node process starts (its allocations are keyed meanwhile). */
+   loaded now (rebuilt only when one was loaded since).  One a node process loads itself is not in
+   the table until the next node process starts (its allocations are keyed meanwhile). */
 static int read_adds(struct dl_phdr_info *info, size_t size, void *arg)
 {
     (void)size;
     *(unsigned long long *)arg = info->dlpi_adds;
-    return 1;                               /* the first object tells */
+    return 1; /* the first object tells */
 }
 
 HIDDEN void hk_refresh_shared(void)
 {
-    static unsigned long long seen;         /* container threads: one at a time */
+    static unsigned long long seen; /* container threads: one at a time */
     unsigned long long adds = 0;
     dl_iterate_phdr(read_adds, &adds);
     if (adds == seen && atomic_load(&g_shared))
-        return;                             /* nothing loaded since */
+        return; /* nothing loaded since */
     seen = adds;
     size_t len = sizeof(struct table) + MAX_RANGES * sizeof(struct range);
     struct table *t = mmap(NULL, len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
@@ -298,7 +329,7 @@ HIDDEN void hk_refresh_shared(void)
     dl_iterate_phdr(add_object, t);
     qsort(t->r, (size_t)t->n, sizeof t->r[0], by_lo);
     struct table *old = atomic_exchange(&g_shared, t);
-    (void)old;                              /* a node process may still read it */
+    (void)old; /* a node process may still read it */
 }
 
 /* Per thread, the answers for the last few callers, each with the table it

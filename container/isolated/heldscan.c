@@ -37,23 +37,27 @@
 #include <unistd.h>
 
 #define MAX_RANGES 8192
-#define STEP_BYTES (8u << 20)       /* resident bytes read per step */
-#define STEP_PAGES (64u << 10)      /* pages looked at per step (mincore) */
+#define STEP_BYTES (8u << 20)  /* resident bytes read per step */
+#define STEP_PAGES (64u << 10) /* pages looked at per step (mincore) */
 #define PAGE 4096u
 #define MUTEX_BYTES 40u
-#define MUTEX_PLAIN_KIND (3 | 512)  /* the type bits, PTHREAD_MUTEX_NO_ELISION_NP */
+#define MUTEX_PLAIN_KIND (3 | 512) /* the type bits, PTHREAD_MUTEX_NO_ELISION_NP */
 
-static struct { uintptr_t lo, hi; } g_ranges[MAX_RANGES];
-static int g_nranges, g_range;      /* the sweep's ranges; the one it is in */
-static uintptr_t g_at;              /* where in it the next step starts */
-static unsigned char g_resident[STEP_PAGES / 16];   /* mincore's answers */
+static struct {
+    uintptr_t lo, hi;
+} g_ranges[MAX_RANGES];
+static int g_nranges, g_range;                    /* the sweep's ranges; the one it is in */
+static uintptr_t g_at;                            /* where in it the next step starts */
+static unsigned char g_resident[STEP_PAGES / 16]; /* mincore's answers */
 static char g_buf[1u << 20] __attribute__((aligned(8)));
 static char g_maps[64u << 10];
 
 static uintptr_t hex(const char **p)
 {
     uintptr_t v = 0;
-    for (int d; (d = **p >= '0' && **p <= '9' ? **p - '0' : **p >= 'a' && **p <= 'f' ? **p - 'a' + 10 : -1) >= 0;
+    for (int d; (d = **p >= '0' && **p <= '9'   ? **p - '0'
+                     : **p >= 'a' && **p <= 'f' ? **p - 'a' + 10
+                                                : -1) >= 0;
          (*p)++)
         v = v * 16 + (uintptr_t)d;
     return v;
@@ -90,7 +94,7 @@ bool held_sweep_start(void)
     int fd = open("/proc/self/maps", O_RDONLY | O_CLOEXEC);
     if (fd < 0)
         return false;
-    size_t kept = 0;             /* a line cut at the buffer's end, moved up */
+    size_t kept = 0; /* a line cut at the buffer's end, moved up */
     ssize_t n;
     while ((n = read(fd, g_maps + kept, sizeof g_maps - 1 - kept)) > 0) {
         size_t len = kept + (size_t)n, start = 0;
@@ -104,7 +108,7 @@ bool held_sweep_start(void)
         kept = len - start;
         memmove(g_maps, g_maps + start, kept);
         if (kept == sizeof g_maps - 1)
-            kept = 0;            /* no line is that long: drop it */
+            kept = 0; /* no line is that long: drop it */
     }
     close(fd);
     g_at = g_nranges ? g_ranges[0].lo : 0;
@@ -125,7 +129,8 @@ static void look(const char *buf, size_t len, uintptr_t addr, struct held_owners
             m->__data.__spins < 0 || m->__data.__elision != 0 || m->__data.__list.__prev ||
             m->__data.__list.__next)
             continue;
-        if ((kind & 3) == PTHREAD_MUTEX_RECURSIVE_NP ? m->__data.__count == 0 : m->__data.__count != 0)
+        if ((kind & 3) == PTHREAD_MUTEX_RECURSIVE_NP ? m->__data.__count == 0
+                                                     : m->__data.__count != 0)
             continue;
         if (owners->dead(owner))
             found(addr + off, owner, kind);
@@ -143,7 +148,7 @@ static size_t read_run(uintptr_t lo, uintptr_t hi, struct held_owners *owners,
         struct iovec local = {g_buf, len}, remote = {(void *)lo, len};
         ssize_t got = process_vm_readv(getpid(), &local, 1, &remote, 1, 0);
         if (got <= 0)
-            return total;        /* unmapped meanwhile */
+            return total; /* unmapped meanwhile */
         look(g_buf, (size_t)got, lo, owners, found);
         total += (size_t)got;
         if (lo + (size_t)got >= hi || (size_t)got <= MUTEX_BYTES)
@@ -168,7 +173,7 @@ bool held_sweep_step(struct held_owners *owners, void (*found)(uintptr_t addr, i
         if (n > sizeof g_resident)
             n = sizeof g_resident;
         if (mincore((void *)g_at, n * PAGE, g_resident) < 0) {
-            g_at = hi;           /* gone meanwhile */
+            g_at = hi; /* gone meanwhile */
             continue;
         }
         for (size_t i = 0; i < n;) {

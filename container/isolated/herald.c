@@ -57,46 +57,46 @@
 
 enum { OFF = 0, ARMED = 1, CLAIMED = 2 };
 #define CDR_HEADER 4
-#define EVENT_CRASHED 3      /* ComponentEvent.CRASHED */
-#define SEGV_PKUERR_CODE 4   /* si_code of a protection-key fault */
-#define STAMP_AT CDR_HEADER  /* the stamp (sec, nanosec) is the first field */
+#define EVENT_CRASHED 3     /* ComponentEvent.CRASHED */
+#define SEGV_PKUERR_CODE 4  /* si_code of a protection-key fault */
+#define STAMP_AT CDR_HEADER /* the stamp (sec, nanosec) is the first field */
 
-struct cg_herald {           /* one armed node's event, one allocation */
+struct cg_herald { /* one armed node's event, one allocation */
     uint64_t unique_id, start_time_ns;
     int32_t pid;
-    const char *full_node_name, *package_name, *plugin_name;  /* in text[] */
-    size_t len;              /* of cdr[] in use */
-    uint8_t *cdr;            /* after text[] */
+    const char *full_node_name, *package_name, *plugin_name; /* in text[] */
+    size_t len;                                              /* of cdr[] in use */
+    uint8_t *cdr;                                            /* after text[] */
     char text[];
 };
 
-typedef int (*publish_fn)(const void *publisher, uint8_t *cdr, size_t len,
-                          char *err, size_t err_size);
+typedef int (*publish_fn)(const void *publisher, uint8_t *cdr, size_t len, char *err,
+                          size_t err_size);
 
-struct herald_thread {       /* what one herald thread works with: its own,
-                                so that a stuck one (cg_herald_stop) never
-                                touches what a later one uses */
-    int fd;                  /* the pipe's read end */
+struct herald_thread { /* what one herald thread works with: its own,
+                          so that a stuck one (cg_herald_stop) never
+                          touches what a later one uses */
+    int fd;            /* the pipe's read end */
     publish_fn publish;
     const void *publisher;
-    long in_flight;          /* handed to it, not yet published (atomic) */
+    long in_flight; /* handed to it, not yet published (atomic) */
 };
 
-#define MAX_IN_FLIGHT 32     /* events handed to the herald, not yet published */
+#define MAX_IN_FLIGHT 32 /* events handed to the herald, not yet published */
 
-static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER;  /* the four below */
-static int g_on;             /* the herald runs: the monitor may claim */
-static int g_pipe_w = -1;    /* the pipe's write end */
+static pthread_mutex_t g_lock = PTHREAD_MUTEX_INITIALIZER; /* the four below */
+static int g_on;          /* the herald runs: the monitor may claim */
+static int g_pipe_w = -1; /* the pipe's write end */
 static pthread_t g_thread;
-static struct herald_thread *g_self;   /* the running herald's */
-static long g_failed;        /* publishes that failed, ever (atomic) */
+static struct herald_thread *g_self; /* the running herald's */
+static long g_failed;                /* publishes that failed, ever (atomic) */
 
 /* ---- the words ---------------------------------------------------------- */
 
 /* Names of the CG_REPAIR_* bits, in bit order: core_events.Repair's names. */
 static const char *const REPAIR_NAMES[] = {
-    "GIL_RELEASED", "GIL_MUTEX", "SWITCH_MUTEX", "COND_WAITER", "SWITCH_WAITER",
-    "COND_LOCK", "GIL_TIMEOUT", "PY_POOLS", "GC_LINKS", "FREELISTS", "PY_OBJECTS",
+    "GIL_RELEASED", "GIL_MUTEX", "SWITCH_MUTEX", "COND_WAITER", "SWITCH_WAITER", "COND_LOCK",
+    "GIL_TIMEOUT",  "PY_POOLS",  "GC_LINKS",     "FREELISTS",   "PY_OBJECTS",
 };
 
 static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
@@ -118,8 +118,8 @@ static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
    monitor repaired, what the allocator guard did with its arena (CG_ALLOC_*
    bits of the record's alloc word), and the outside signal that asked it
    to stop (0: none).  Python adds what it alone knows. */
-int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
-                      int stop_signal, char *out, int size)
+int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
+                      char *out, int size)
 {
     size_t n = 0, cap = (size_t)size;
     if (size < 1)
@@ -188,15 +188,14 @@ static void put_string(struct cdr *w, const char *s)
 #define CDR_ROOM 128
 
 /* Serialize h's event, dead of (status, code), with error_message text. */
-static void serialize(struct cg_herald *h, int status, int code, bool quarantined,
-                      const char *text)
+static void serialize(struct cg_herald *h, int status, int code, bool quarantined, const char *text)
 {
     struct cdr w = {h->cdr, 0};
     static const uint8_t CDR_LE[CDR_HEADER] = {0x00, 0x01, 0x00, 0x00};
     memcpy(w.p, CDR_LE, CDR_HEADER);
     w.n = CDR_HEADER;
     int32_t sec = 0;
-    uint32_t nanosec = 0;    /* stamped by the herald, just before the publish */
+    uint32_t nanosec = 0; /* stamped by the herald, just before the publish */
     uint8_t type = EVENT_CRASHED, q = quarantined;
     bool killed = code == CLD_KILLED || code == CLD_DUMPED;
     int32_t exit_signal = killed ? status : 0, exit_code = code == CLD_EXITED ? status : 0;
@@ -213,7 +212,7 @@ static void serialize(struct cg_herald *h, int status, int code, bool quarantine
     put(&w, &exit_code, 4);
     put(&w, &h->start_time_ns, 8);
     put(&w, &q, 1);
-    put_string(&w, "");      /* repaired_state */
+    put_string(&w, ""); /* repaired_state */
     h->len = w.n;
 }
 
@@ -241,7 +240,7 @@ static void *herald_main(void *arg)
         ssize_t n = read(self->fd, &h, sizeof h);
         if (n < 0 && errno == EINTR)
             continue;
-        if (n != (ssize_t)sizeof h) {    /* closed: cg_herald_stop */
+        if (n != (ssize_t)sizeof h) { /* closed: cg_herald_stop */
             close(self->fd);
             free(self);
             return NULL;
@@ -281,7 +280,7 @@ int cg_herald_start(void *publish, const void *publisher)
         free(self);
         return -err;
     }
-    fcntl(fds[1], F_SETFL, O_NONBLOCK);   /* the monitor never waits */
+    fcntl(fds[1], F_SETFL, O_NONBLOCK); /* the monitor never waits */
     *self = (struct herald_thread){fds[0], (publish_fn)publish, publisher, 0};
     /* Signals go to the container's other threads (as for the monitor),
        but the ones a fault raises: the container's crash report names it. */
@@ -308,7 +307,7 @@ int cg_herald_start(void *publish, const void *publisher)
         __atomic_store_n(&g_on, 1, __ATOMIC_RELEASE);
     }
     pthread_mutex_unlock(&g_lock);
-    if (running) {           /* another start came first: this one ends */
+    if (running) { /* another start came first: this one ends */
         close(fds[1]);
         pthread_join(thread, NULL);
         return -EALREADY;
@@ -328,8 +327,8 @@ int cg_herald_stop(int timeout_ms)
     pthread_t thread = g_thread;
     if (was) {
         __atomic_store_n(&g_on, 0, __ATOMIC_RELEASE);
-        close(g_pipe_w);     /* the thread drains the pipe, reads EOF, ends
-                                (and frees g_self: not touched after this) */
+        close(g_pipe_w); /* the thread drains the pipe, reads EOF, ends
+                            (and frees g_self: not touched after this) */
         g_pipe_w = -1;
         g_self = NULL;
     }
@@ -390,8 +389,8 @@ int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_
 int cg_herald_disarm(struct cg_child *c)
 {
     int armed = ARMED;
-    if (__atomic_compare_exchange_n(&c->herald_state, &armed, OFF, false,
-                                    __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
+    if (__atomic_compare_exchange_n(&c->herald_state, &armed, OFF, false, __ATOMIC_ACQ_REL,
+                                    __ATOMIC_ACQUIRE)) {
         free(c->herald);
         c->herald = NULL;
         return 1;
@@ -432,17 +431,17 @@ bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
     bool sent = false;
     int armed = ARMED;
     if (g_on && __atomic_load_n(&g_self->in_flight, __ATOMIC_ACQUIRE) < MAX_IN_FLIGHT &&
-        __atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false,
-                                    __ATOMIC_ACQ_REL, __ATOMIC_ACQUIRE)) {
+        __atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false, __ATOMIC_ACQ_REL,
+                                    __ATOMIC_ACQUIRE)) {
         struct cg_herald *h = c->herald;
         serialize(h, status, code, quarantined, c->death_text);
         __atomic_add_fetch(&g_self->in_flight, 1, __ATOMIC_ACQ_REL);
         sent = write(g_pipe_w, &h, sizeof h) == (ssize_t)sizeof h;
         if (sent) {
-            c->herald = NULL;    /* the herald frees it */
-        } else {                 /* cannot fail with room for MAX_IN_FLIGHT */
+            c->herald = NULL; /* the herald frees it */
+        } else {              /* cannot fail with room for MAX_IN_FLIGHT */
             __atomic_sub_fetch(&g_self->in_flight, 1, __ATOMIC_RELEASE);
-            __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);   /* Python's */
+            __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE); /* Python's */
         }
     }
     pthread_mutex_unlock(&g_lock);

@@ -19,9 +19,9 @@
  */
 #define Py_BUILD_CORE 1
 #include <Python.h>
-#include "internal/pycore_interp.h"    /* PyInterpreterState.gc, free lists */
-#include "internal/pycore_frame.h"     /* _PyInterpreterFrame (a dead task's locals) */
-#include "internal/pycore_object.h"    /* _PyObject_GC_IS_TRACKED */
+#include "internal/pycore_interp.h" /* PyInterpreterState.gc, free lists */
+#include "internal/pycore_frame.h"  /* _PyInterpreterFrame (a dead task's locals) */
+#include "internal/pycore_object.h" /* _PyObject_GC_IS_TRACKED */
 
 #include <errno.h>
 #include <stdbool.h>
@@ -34,7 +34,7 @@
 
 #define NEXT(g) ((PyGC_Head *)(g)->_gc_next)
 #define PREV(g) ((PyGC_Head *)((g)->_gc_prev & _PyGC_PREV_MASK))
-#define WALK_LIMIT (1L << 30)          /* more than any heap holds: a cycle guard */
+#define WALK_LIMIT (1L << 30) /* more than any heap holds: a cycle guard */
 
 static PyInterpreterState *interp(void)
 {
@@ -77,10 +77,10 @@ int cg_gc_wait_due(int interval_us, int *wake)
         int gen = due(g);
         if (gen >= 0)
             return gen;
-        while (nanosleep(&ts, NULL) < 0 && errno == EINTR) {}
+        while (nanosleep(&ts, NULL) < 0 && errno == EINTR) {
+        }
     }
 }
-
 
 /* ---------------------------------------------------------------------- */
 /* 2. After a death with the GIL held.
@@ -121,8 +121,8 @@ int cg_gc_wait_due(int interval_us, int *wake)
  * free list, left half-changed.
  */
 
-static _Atomic long g_epoch;                    /* pool abandonments so far */
-static long g_untracked_at[NUM_GENERATIONS];    /* g_epoch when last walked */
+static _Atomic long g_epoch;                 /* pool abandonments so far */
+static long g_untracked_at[NUM_GENERATIONS]; /* g_epoch when last walked */
 
 /* Make every prev link of list h agree with its next links (a next link of
    0, a track stopped half-way, ends the list there; a tail the head's prev
@@ -134,7 +134,7 @@ static long walk(PyGC_Head *h, int (*drop)(const void *), long *dropped)
     long mended = 0, steps = 0;
     PyGC_Head *prev = h, *cur = NEXT(h);
     while (cur != h && steps++ < WALK_LIMIT) {
-        if (cur == NULL) {                      /* h's own next was 0 */
+        if (cur == NULL) { /* h's own next was 0 */
             prev->_gc_next = (uintptr_t)h;
             mended++;
             break;
@@ -144,13 +144,13 @@ static long walk(PyGC_Head *h, int (*drop)(const void *), long *dropped)
             mended++;
         }
         PyGC_Head *next = NEXT(cur);
-        if (next == NULL) {                     /* the tail of a half-done track */
+        if (next == NULL) { /* the tail of a half-done track */
             cur->_gc_next = (uintptr_t)h;
             next = h;
             mended++;
         }
         if (drop && drop(cur)) {
-            prev->_gc_next = (uintptr_t)next;   /* next's prev: its own turn, or below */
+            prev->_gc_next = (uintptr_t)next; /* next's prev: its own turn, or below */
             cur->_gc_next = 0;
             cur->_gc_prev &= _PyGC_PREV_MASK_FINALIZED;
             (*dropped)++;
@@ -163,7 +163,7 @@ static long walk(PyGC_Head *h, int (*drop)(const void *), long *dropped)
     if (claimed != prev) {
         if (claimed && claimed != h && PREV(claimed) == prev &&
             (NEXT(claimed) == h || NEXT(claimed) == NULL)) {
-            prev->_gc_next = (uintptr_t)claimed;   /* a half-done track: finish it */
+            prev->_gc_next = (uintptr_t)claimed; /* a half-done track: finish it */
             claimed->_gc_next = (uintptr_t)h;
             prev = claimed;
         }
@@ -176,11 +176,11 @@ static long walk(PyGC_Head *h, int (*drop)(const void *), long *dropped)
 static int empty_free_lists(PyInterpreterState *in)
 {
     int any = 0;
-#define EMPTY(count, head)          \
-    do {                            \
-        any |= (count) != 0;        \
-        (count) = 0;                \
-        (head) = NULL;              \
+#define EMPTY(count, head)                                                                         \
+    do {                                                                                           \
+        any |= (count) != 0;                                                                       \
+        (count) = 0;                                                                               \
+        (head) = NULL;                                                                             \
     } while (0)
     EMPTY(in->float_state.numfree, in->float_state.free_list);
     for (int i = 0; i < PyTuple_NFREELISTS; i++)
@@ -232,17 +232,18 @@ static int untrack_object(PyObject *op)
     PyTypeObject *type, *meta;
     unsigned long flags, meta_flags;
     inquiry is_gc;
-    if (!op || !PEEK(&op->ob_type, type) || !type || !PEEK(&type->ob_base.ob_base.ob_type, meta) || !meta ||
-        !PEEK(&meta->tp_flags, meta_flags) || !(meta_flags & Py_TPFLAGS_TYPE_SUBCLASS) ||
-        !PEEK(&type->tp_flags, flags) || !(flags & Py_TPFLAGS_HAVE_GC) || !PEEK(&type->tp_is_gc, is_gc) || is_gc)
+    if (!op || !PEEK(&op->ob_type, type) || !type || !PEEK(&type->ob_base.ob_base.ob_type, meta) ||
+        !meta || !PEEK(&meta->tp_flags, meta_flags) || !(meta_flags & Py_TPFLAGS_TYPE_SUBCLASS) ||
+        !PEEK(&type->tp_flags, flags) || !(flags & Py_TPFLAGS_HAVE_GC) ||
+        !PEEK(&type->tp_is_gc, is_gc) || is_gc)
         return 0;
     PyGC_Head *gc = _Py_AS_GC(op), head, prev_head, next_head;
     if (!PEEK(gc, head) || !head._gc_next)
-        return 0;                   /* unreadable, or not tracked */
+        return 0; /* unreadable, or not tracked */
     PyGC_Head *prev = PREV(&head), *next = NEXT(&head);
     if (!prev || !PEEK(prev, prev_head) || !PEEK(next, next_head))
         return 0;
-    return untrack(gc);             /* reads and writes only what was read */
+    return untrack(gc); /* reads and writes only what was read */
 }
 
 /* The dead thread state's frames (3.11: tstate->cframe->current_frame,
@@ -261,7 +262,8 @@ static long untrack_locals(PyThreadState *t)
         PyTypeObject *code_type;
         int count;
         if (!PEEK(&f->f_code, code) || !code || !PEEK(&code->ob_base.ob_base.ob_type, code_type) ||
-            code_type != &PyCode_Type || !PEEK(&code->co_nlocalsplus, count) || count < 0 || count > (1 << 16))
+            code_type != &PyCode_Type || !PEEK(&code->co_nlocalsplus, count) || count < 0 ||
+            count > (1 << 16))
             break;
         for (int i = 0; i < count; i++) {
             PyObject *op, *content;

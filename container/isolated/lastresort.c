@@ -40,8 +40,8 @@ static bool g_running;
 static int g_fd;
 static char g_banner[512];
 static PyInterpreterState *g_interp;
-static int64_t g_due;      /* on the watch clock; 0: not armed */
-static int g_stop;         /* futex word: 1 ends the thread */
+static int64_t g_due; /* on the watch clock; 0: not armed */
+static int g_stop;    /* futex word: 1 ends the thread */
 
 static void write_all(const char *s, size_t n)
 {

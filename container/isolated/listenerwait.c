@@ -53,17 +53,18 @@
 #undef p_type /* <resolv.h> (core.h) renames it to __p_type; here it is ElfW(Phdr)'s */
 
 #define FASTRTPS_SONAME "libfastrtps.so.2."
-#define SET_LISTENER_3 \
-    "_ZN8eprosima7fastdds3dds17DomainParticipant12set_listenerEPNS1_25DomainParticipantListener" \
+#define SET_LISTENER_3                                                                             \
+    "_ZN8eprosima7fastdds3dds17DomainParticipant12set_listenerEPNS1_25DomainParticipantListener"   \
     "ERKNS1_10StatusMaskENSt6chrono8durationIlSt5ratioILl1ELl1EEEE"
-#define INFINITE_S INT64_MAX     /* std::chrono::seconds::max() */
-#define STEP_S 1                 /* each finite wait */
+#define INFINITE_S INT64_MAX /* std::chrono::seconds::max() */
+#define STEP_S 1             /* each finite wait */
 
-typedef uint32_t (*set_listener_fn)(void *self, void *listener, const void *mask, int64_t timeout_s);
+typedef uint32_t (*set_listener_fn)(void *self, void *listener, const void *mask,
+                                    int64_t timeout_s);
 
-static set_listener_fn g_real;   /* the definition in libfastrtps */
-static uintptr_t *g_slot;        /* libfastrtps's GOT slot for it */
-static long g_bounded;           /* infinite waits made finite, ever */
+static set_listener_fn g_real; /* the definition in libfastrtps */
+static uintptr_t *g_slot;      /* libfastrtps's GOT slot for it */
+static long g_bounded;         /* infinite waits made finite, ever */
 
 static uint32_t finite_set_listener(void *self, void *listener, const void *mask, int64_t timeout_s)
 {
@@ -80,10 +81,10 @@ static uint32_t finite_set_listener(void *self, void *listener, const void *mask
 }
 
 struct found {
-    const char *why;             /* set when a check failed */
+    const char *why; /* set when a check failed */
     char name[256];
-    uintptr_t base, lo, hi;      /* load bias, extent of its loaded segments */
-    uintptr_t slot;              /* address of the JUMP_SLOT word */
+    uintptr_t base, lo, hi; /* load bias, extent of its loaded segments */
+    uintptr_t slot;         /* address of the JUMP_SLOT word */
     uintptr_t relro_lo, relro_hi;
 };
 
@@ -121,11 +122,21 @@ static void find_slot(struct dl_phdr_info *info, struct found *f)
     int pltrel = 0;
     for (; dyn->d_tag != DT_NULL; dyn++) {
         switch (dyn->d_tag) {
-        case DT_JMPREL: jmprel = dyn_ptr(base, dyn->d_un.d_ptr); break;
-        case DT_PLTRELSZ: pltrelsz = dyn->d_un.d_val; break;
-        case DT_PLTREL: pltrel = (int)dyn->d_un.d_val; break;
-        case DT_SYMTAB: symtab = dyn_ptr(base, dyn->d_un.d_ptr); break;
-        case DT_STRTAB: strtab = dyn_ptr(base, dyn->d_un.d_ptr); break;
+        case DT_JMPREL:
+            jmprel = dyn_ptr(base, dyn->d_un.d_ptr);
+            break;
+        case DT_PLTRELSZ:
+            pltrelsz = dyn->d_un.d_val;
+            break;
+        case DT_PLTREL:
+            pltrel = (int)dyn->d_un.d_val;
+            break;
+        case DT_SYMTAB:
+            symtab = dyn_ptr(base, dyn->d_un.d_ptr);
+            break;
+        case DT_STRTAB:
+            strtab = dyn_ptr(base, dyn->d_un.d_ptr);
+            break;
         }
     }
     if (!jmprel || !symtab || !strtab || pltrel != DT_RELA) {
@@ -143,7 +154,8 @@ static void find_slot(struct dl_phdr_info *info, struct found *f)
             return;
         }
     }
-    f->why = "libfastrtps calls DomainParticipant::set_listener(listener, mask, timeout) without a PLT slot";
+    f->why = "libfastrtps calls DomainParticipant::set_listener(listener, mask, timeout) without a "
+             "PLT slot";
 }
 
 static int visit(struct dl_phdr_info *info, size_t size, void *arg)
@@ -184,7 +196,8 @@ int cg_bound_listener_wait(char *why_out, int why_size)
     if (h)
         dlclose(h);
     if (!real || (uintptr_t)real < f.lo || (uintptr_t)real >= f.hi) {
-        snprintf(why_out, why_size, "DomainParticipant::set_listener(listener, mask, timeout) is not defined in %s",
+        snprintf(why_out, why_size,
+                 "DomainParticipant::set_listener(listener, mask, timeout) is not defined in %s",
                  f.name);
         rc = -1;
         goto out;

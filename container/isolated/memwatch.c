@@ -37,24 +37,24 @@
 #include <sys/syscall.h>
 #include <unistd.h>
 
-#define RATE_BYTES_PER_MS (4ull << 20)   /* 4 GiB/s: a fast leak, paging in */
+#define RATE_BYTES_PER_MS (4ull << 20) /* 4 GiB/s: a fast leak, paging in */
 #define LOOK_MIN_MS 1
 #define LOOK_MAX_MS 100
 
 static struct {
-    int usage_fd;            /* -1: no watch */
-    int stat_fd;             /* memory.stat, -1: none (meminfo) */
-    int meminfo;             /* usage_fd is /proc/meminfo */
-    char stat_key[32];       /* "total_inactive_file" or "inactive_file" */
+    int usage_fd;      /* -1: no watch */
+    int stat_fd;       /* memory.stat, -1: none (meminfo) */
+    int meminfo;       /* usage_fd is /proc/meminfo */
+    char stat_key[32]; /* "total_inactive_file" or "inactive_file" */
     uint64_t limit, margin;
-    uint64_t last_end_used;  /* the use when it last ended a node, 0: none
-                                since memory last came back */
+    uint64_t last_end_used; /* the use when it last ended a node, 0: none
+                               since memory last came back */
 } W = {.usage_fd = -1, .stat_fd = -1};
 
 int cg_memwatch_set(int usage_fd, int stat_fd, const char *stat_key, int meminfo, uint64_t limit,
                     uint64_t margin)
 {
-    if (usage_fd < 0) {        /* off */
+    if (usage_fd < 0) { /* off */
         W.usage_fd = W.stat_fd = -1;
         return 0;
     }
@@ -105,7 +105,7 @@ static int64_t container_use(bool near)
         return -1;
     buf[n] = '\0';
     int64_t used = strtoll(buf, NULL, 10);
-    if (near && W.stat_fd >= 0) {   /* cache the kernel would reclaim first */
+    if (near && W.stat_fd >= 0) { /* cache the kernel would reclaim first */
         int64_t cache = read_field(W.stat_fd, W.stat_key, 1);
         if (cache > 0)
             used -= cache;
@@ -157,7 +157,7 @@ int memwatch_tick(struct cg_child *children, int sleep_ms)
         return sleep_ms;
     int look = LOOK_MIN_MS;
     if (W.last_end_used && (uint64_t)used + W.margin / 2 < W.last_end_used)
-        W.last_end_used = 0;     /* memory came back: a fresh start */
+        W.last_end_used = 0; /* memory came back: a fresh start */
     if ((uint64_t)used < trigger) {
         uint64_t ms = (trigger - (uint64_t)used) / 2 / RATE_BYTES_PER_MS;
         look = ms < LOOK_MIN_MS ? LOOK_MIN_MS : ms > LOOK_MAX_MS ? LOOK_MAX_MS : (int)ms;
@@ -178,8 +178,9 @@ void memwatch_say(const struct cg_child *c, char *text, size_t cap)
     if (!c->oom_in_use || n >= cap)
         return;
     const double mib = 1024.0 * 1024.0;
-    snprintf(text + n, cap - n,
-             "; out of memory: the container used %.1f MiB of the %.1f MiB it may use, and this node "
-             "process the most: %.1f MiB",
-             (double)c->oom_used / mib, (double)W.limit / mib, (double)c->oom_in_use / mib);
+    snprintf(
+        text + n, cap - n,
+        "; out of memory: the container used %.1f MiB of the %.1f MiB it may use, and this node "
+        "process the most: %.1f MiB",
+        (double)c->oom_used / mib, (double)W.limit / mib, (double)c->oom_in_use / mib);
 }

@@ -6,11 +6,10 @@
  * gilrepair.c to undo what the dead task left in CPython's GIL; then it
  * words the death and hands its CRASHED event to the herald thread if the
  * node is armed (herald.c), reports to Python through a pipe of fixed-size
- * records (struct cg_event) and leaves the zombie for cg_release to reap.  Between events, and after
- * each, it runs the lock doctor (mutexes.c) and the memory watch
- * (memwatch.c), which say how long it may sleep.  With --core-dumps it also has crashing children dumped
- * (dumps.c).  It never takes the GIL.  It alone touches the child list
- * (g_children) and cg_child.stop_reported.
+ * records (struct cg_event) and leaves the zombie for cg_release to reap.  Between events, and
+ * after each, it runs the lock doctor (mutexes.c) and the memory watch (memwatch.c), which say how
+ * long it may sleep.  With --core-dumps it also has crashing children dumped (dumps.c).  It never
+ * takes the GIL.  It alone touches the child list (g_children) and cg_child.stop_reported.
  *
  * Other threads talk to it through commands (spawn, stop) written as
  * pointers to a pipe, and through an eventfd that says "a stop flag was set"
@@ -33,15 +32,15 @@
 
 static int g_epfd = -1, g_wakefd = -1, g_cmd[2] = {-1, -1}, g_ev[2] = {-1, -1};
 static pthread_t g_monitor;
-static struct cg_child *g_children;   /* monitor-only */
-static char TAG_CMD, TAG_WAKE;        /* epoll tags that are not children */
+static struct cg_child *g_children; /* monitor-only */
+static char TAG_CMD, TAG_WAKE;      /* epoll tags that are not children */
 
 enum { CMD_SPAWN = 1, CMD_STOP = 2 };
-struct cg_cmd {              /* lives on the caller's stack */
+struct cg_cmd { /* lives on the caller's stack */
     int op;
     struct cg_child *child;
     int result;
-    uint32_t done;           /* futex word */
+    uint32_t done; /* futex word */
 };
 
 static void cmd_finish(struct cg_cmd *cmd, int result)
@@ -53,7 +52,7 @@ static void cmd_finish(struct cg_cmd *cmd, int result)
     syscall(SYS_futex, &cmd->done, FUTEX_WAKE_PRIVATE, 1, NULL, NULL, 0);
 }
 
-static int submit(struct cg_cmd *cmd)   /* from any thread; blocks */
+static int submit(struct cg_cmd *cmd) /* from any thread; blocks */
 {
     /* 8-byte writes to a pipe are atomic: no lock to be left held. */
     ssize_t n;
@@ -95,12 +94,18 @@ static uint32_t alloc_word(const struct cg_child *c)
            (c->retired & CGA_RETIRE_OVER_BUDGET ? CG_ALLOC_OVER_BUDGET : 0);
 }
 
-static void emit(uint32_t kind, const struct cg_child *c, int status,
-                 int code, int64_t t, uint32_t repairs, uint32_t flags)
+static void emit(uint32_t kind, const struct cg_child *c, int status, int code, int64_t t,
+                 uint32_t repairs, uint32_t flags)
 {
-    struct cg_event ev = {.kind = kind, .pid = c ? c->pid : 0, .status = status,
-                          .code = code, .serial = c ? c->serial : 0, .t_ns = t,
-                          .repairs = repairs, .alloc = alloc_word(c), .flags = flags};
+    struct cg_event ev = {.kind = kind,
+                          .pid = c ? c->pid : 0,
+                          .status = status,
+                          .code = code,
+                          .serial = c ? c->serial : 0,
+                          .t_ns = t,
+                          .repairs = repairs,
+                          .alloc = alloc_word(c),
+                          .flags = flags};
     monitor_emit(&ev);
 }
 
@@ -109,8 +114,7 @@ static void report_stop(struct cg_child *c, int64_t t)
     int s = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
     if (s != CG_STOP_NONE && !c->stop_reported) {
         c->stop_reported = 1;
-        emit(CG_EV_STOP, c, s, __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE),
-             t, 0, 0);
+        emit(CG_EV_STOP, c, s, __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE), t, 0, 0);
     }
 }
 
@@ -124,7 +128,7 @@ static int do_spawn(struct cg_child *c)
 
     struct epoll_event ev = {.events = EPOLLIN, .data.ptr = c};
     if (epoll_ctl(g_epfd, EPOLL_CTL_ADD, c->pidfd, &ev) < 0) {
-        int err = errno;   /* cannot watch it: do not let it run */
+        int err = errno; /* cannot watch it: do not let it run */
         siginfo_t si;
         syscall(SYS_pidfd_send_signal, c->pidfd, SIGKILL, NULL, 0);
         waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si, WEXITED | __WALL);
@@ -133,8 +137,8 @@ static int do_spawn(struct cg_child *c)
     }
     c->next = g_children;
     g_children = c;
-    mutexes_see(c);              /* its main task, for a death before the
-                                    first periodic look (mutexes.c) */
+    mutexes_see(c); /* its main task, for a death before the
+                       first periodic look (mutexes.c) */
     return 0;
 }
 
@@ -144,8 +148,7 @@ static bool child_is_dead(struct cg_child *c)
 {
     siginfo_t si;
     memset(&si, 0, sizeof si);
-    if (waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
-               WEXITED | __WALL | WNOHANG | WNOWAIT) < 0)
+    if (waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si, WEXITED | __WALL | WNOHANG | WNOWAIT) < 0)
         return errno == ECHILD;
     return si.si_pid != 0;
 }
@@ -153,7 +156,9 @@ static bool child_is_dead(struct cg_child *c)
 /* What the repair (gilrepair.c) knows of child c's main task. */
 static struct cg_dead as_dead(const struct cg_child *c)
 {
-    return (struct cg_dead){.pid = c->pid, .tcb = c->tcb, .stack_lo = c->map,
+    return (struct cg_dead){.pid = c->pid,
+                            .tcb = c->tcb,
+                            .stack_lo = c->map,
                             .stack_hi = c->map + c->map_len,
                             .slot = c->ctx ? c->ctx->slot : 0,
                             .ref_dropped = c->gil_ref_dropped};
@@ -217,8 +222,13 @@ static bool faulted_itself(const struct cg_child *c, int status, int code)
     if (code != CLD_KILLED && code != CLD_DUMPED)
         return false;
     switch (status) {
-    case SIGSEGV: case SIGBUS: case SIGILL: case SIGFPE:
-    case SIGABRT: case SIGTRAP: case SIGSYS:
+    case SIGSEGV:
+    case SIGBUS:
+    case SIGILL:
+    case SIGFPE:
+    case SIGABRT:
+    case SIGTRAP:
+    case SIGSYS:
         break;
     default:
         return false;
@@ -232,10 +242,9 @@ static void reap(struct cg_child *c, int64_t t)
     siginfo_t si;
     memset(&si, 0, sizeof si);
     /* WNOWAIT: look, repair, report; cg_release reaps (the pid stays ours). */
-    int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si,
-                   WEXITED | __WALL | WNOHANG | WNOWAIT);
+    int r = waitid((idtype_t)P_PIDFD, (id_t)c->pidfd, &si, WEXITED | __WALL | WNOHANG | WNOWAIT);
     if (r == 0 && si.si_pid == 0)
-        return;                  /* readable but not yet waitable */
+        return; /* readable but not yet waitable */
     if (r < 0 && errno != ECHILD)
         return;
     /* ECHILD: something else in the container reaped it (a waitpid(-1)).
@@ -253,22 +262,24 @@ static void reap(struct cg_child *c, int64_t t)
     uint32_t alloc = alloc_word(c);
     int asked = __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE);
     cg_describe_death(status, code, c->repairs, alloc,
-                      asked == CG_STOP_SIGNAL ? __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE) : 0,
+                      asked == CG_STOP_SIGNAL ? __atomic_load_n(&c->stop_signal, __ATOMIC_ACQUIRE)
+                                              : 0,
                       c->death_text, CG_DEATH_TEXT);
     if (alloc & CG_ALLOC_OVER_BUDGET)
         guard_say_over_budget(c->ctx, c->death_text, CG_DEATH_TEXT);
     memwatch_say(c, c->death_text, CG_DEATH_TEXT);
-    uint32_t flags = herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
+    uint32_t flags =
+        herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
     if (c->oom_in_use)
         flags |= CG_EVF_OUT_OF_MEMORY;
     /* Left a zombie (its pid still ours) for Python's release to reap
        (clonecore.c): the reaping waitid took ~0.9 ms of kernel time with 48
        node processes (median, bench.crash_latency --others 47), on the CPU
        the death's report needs next. */
-    report_stop(c, t);           /* never after the death record */
-    mutexes_bury(c);             /* its tasks may prove a mutex's owner dead */
+    report_stop(c, t); /* never after the death record */
+    mutexes_bury(c);   /* its tasks may prove a mutex's owner dead */
     if (g_cfg.core_dumps)
-        dumps_forget(c);         /* Python may release it once told */
+        dumps_forget(c); /* Python may release it once told */
     epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
     for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
         if (*p == c) {
@@ -294,8 +305,8 @@ static void *monitor_main(void *unused)
     for (;;) {
         int n = epoll_wait(g_epfd, evs, 32, sleep_ms);
         int64_t t = cg_mono_ns();
-        if (n <= 0) {                    /* EINTR (all signals are blocked),
-                                            or time for the lock doctor */
+        if (n <= 0) { /* EINTR (all signals are blocked),
+                         or time for the lock doctor */
             sleep_ms = next_look(t);
             continue;
         }
@@ -303,10 +314,11 @@ static void *monitor_main(void *unused)
            notice of a child must reach Python before its death record. */
         for (int i = 0; i < n; i++) {
             if (g_cfg.core_dumps && dumps_event(evs[i].data.ptr, t)) {
-                evs[i].data.ptr = NULL;   /* handled: not a child */
+                evs[i].data.ptr = NULL; /* handled: not a child */
             } else if (evs[i].data.ptr == &TAG_WAKE) {
                 uint64_t v;
-                if (read(g_wakefd, &v, sizeof v) < 0) { /* EAGAIN */ }
+                if (read(g_wakefd, &v, sizeof v) < 0) { /* EAGAIN */
+                }
                 for (struct cg_child *c = g_children; c; c = c->next)
                     report_stop(c, t);
             } else if (evs[i].data.ptr == &TAG_CMD) {
@@ -350,8 +362,7 @@ int monitor_start(int *event_fd)
         return r;
     g_epfd = epoll_create1(EPOLL_CLOEXEC);
     g_wakefd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
-    if (g_epfd < 0 || g_wakefd < 0 || pipe2(g_cmd, O_CLOEXEC) < 0 ||
-        pipe2(g_ev, O_CLOEXEC) < 0) {
+    if (g_epfd < 0 || g_wakefd < 0 || pipe2(g_cmd, O_CLOEXEC) < 0 || pipe2(g_ev, O_CLOEXEC) < 0) {
         int err = errno;
         close_fds();
         return -err;
@@ -382,7 +393,7 @@ int monitor_start(int *event_fd)
     int err = pthread_create(&g_monitor, NULL, monitor_main, NULL);
     pthread_sigmask(SIG_SETMASK, &old, NULL);
     if (!err)
-        pthread_setname_np(g_monitor, "cg-monitor");   /* for ps, gdb, benchmarks */
+        pthread_setname_np(g_monitor, "cg-monitor"); /* for ps, gdb, benchmarks */
     if (err) {
         dumps_stop();
         close(g_ev[0]);
@@ -420,5 +431,6 @@ int monitor_spawn(struct cg_child *c)
 void monitor_wake(void)
 {
     uint64_t one = 1;
-    if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */ }
+    if (write(g_wakefd, &one, sizeof one) < 0) { /* nothing to do */
+    }
 }

@@ -85,22 +85,21 @@
 #include <unistd.h>
 
 #define SEEN_EVERY_NS (500 * 1000000LL)
-#define AFTER_DEATH_NS (1000 * 1000000LL)   /* for this long after a death, */
-#define AFTER_DEATH_EVERY_NS (50 * 1000000LL)   /* look this often: its
-                                        siblings block on what it held soon */
-#define FIRST_LOOK_NS (2 * 1000000LL)   /* the first look, this long after the
-                                        death: not on the CPU the death's
-                                        report needs (a look reads /proc for
-                                        every task; on 2 cores it held the
-                                        core's listener off ~0.3 ms) */
+#define AFTER_DEATH_NS (1000 * 1000000LL) /* for this long after a death, */
+/* look this often: its siblings block on what it held soon */
+#define AFTER_DEATH_EVERY_NS (50 * 1000000LL)
+/* the first look, this long after the death: not on the CPU the death's
+   report needs (a look reads /proc for every task; on 2 cores it held the
+   core's listener off ~0.3 ms) */
+#define FIRST_LOOK_NS (2 * 1000000LL)
 #define STUCK_NS (1000 * 1000000LL)
-#define HELD_AFTER_NS (1000 * 1000000LL)   /* this long after a death, sweep
-                                    memory for mutexes its tasks still hold
-                                    that no task blocks on (heldscan.c) */
-#define RESERVED_PIDS 300   /* where the pid cursor wraps to (kernel/pid.c) */
-#define NDEAD 32            /* dead sets kept; the oldest is dropped first */
-#define NREPORTED 128       /* (waiter, lock, verdict) already reported */
-#define NPENDING 64         /* waits being timed for NO_OWNER / LIBC_LOCK */
+/* this long after a death, sweep memory for mutexes its tasks still hold
+   that no task blocks on (heldscan.c) */
+#define HELD_AFTER_NS (1000 * 1000000LL)
+#define RESERVED_PIDS 300 /* where the pid cursor wraps to (kernel/pid.c) */
+#define NDEAD 32          /* dead sets kept; the oldest is dropped first */
+#define NREPORTED 128     /* (waiter, lock, verdict) already reported */
+#define NPENDING 64       /* waits being timed for NO_OWNER / LIBC_LOCK */
 
 /* The kind bits of __data.__kind a plain mutex may have (pthreadP.h):
    the type (0-3) and PTHREAD_MUTEX_NO_ELISION_NP.  Any other bit (robust
@@ -111,25 +110,35 @@
 #define FUTEX_TID_MASK_ 0x3fffffff
 
 struct dead_set {
-    int pid;                 /* 0: empty */
+    int pid; /* 0: empty */
     uint64_t serial;
     struct cg_seen_tasks seen;
 };
 
 static struct dead_set g_dead[NDEAD];
 static int g_dead_next;
-static int g_pid_max, g_cursor;   /* ns_last_pid when last read */
-static uint64_t g_advanced;       /* how far the cursor moved since start */
+static int g_pid_max, g_cursor; /* ns_last_pid when last read */
+static uint64_t g_advanced;     /* how far the cursor moved since start */
 static int64_t g_next_look, g_died_at;
 static int g_last_dead_pid;
 static uint64_t g_last_dead_serial;
-static int g_scans;               /* generation of the current scan */
-static int64_t g_sweep_due;       /* when the next held-mutex sweep starts, 0: none */
-static bool g_sweeping;           /* one is under way */
+static int g_scans;         /* generation of the current scan */
+static int64_t g_sweep_due; /* when the next held-mutex sweep starts, 0: none */
+static bool g_sweeping;     /* one is under way */
 
-static struct { int tid; uintptr_t addr; int verdict; } g_reported[NREPORTED];
+static struct {
+    int tid;
+    uintptr_t addr;
+    int verdict;
+} g_reported[NREPORTED];
 static int g_reported_next;
-static struct { int tid; uintptr_t addr; int verdict; int64_t since; int scan; } g_pending[NPENDING];
+static struct {
+    int tid;
+    uintptr_t addr;
+    int verdict;
+    int64_t since;
+    int scan;
+} g_pending[NPENDING];
 
 /* ---- procfs without malloc or stdio ------------------------------------ */
 
@@ -188,8 +197,7 @@ static long parse_num(const char **p)
     unsigned long v = 0;
     if (s[0] == '0' && s[1] == 'x') {
         for (s += 2;; s++) {
-            int d = *s >= '0' && *s <= '9' ? *s - '0'
-                  : *s >= 'a' && *s <= 'f' ? *s - 'a' + 10 : -1;
+            int d = *s >= '0' && *s <= '9' ? *s - '0' : *s >= 'a' && *s <= 'f' ? *s - 'a' + 10 : -1;
             if (d < 0)
                 break;
             v = v * 16 + (unsigned long)d;
@@ -211,7 +219,7 @@ int task_syscall(int tid, struct task_syscall *out)
     ssize_t n = read_small(path, buf, sizeof buf);
     if (n <= 0)
         return n < 0 ? (int)n : -EIO;
-    if (buf[0] == 'r')               /* "running" */
+    if (buf[0] == 'r') /* "running" */
         return 0;
     const char *p = buf;
     long nr = parse_num(&p);
@@ -220,7 +228,7 @@ int task_syscall(int tid, struct task_syscall *out)
             out->args[i] = (uintptr_t)parse_num(&p);
     out->sp = (uintptr_t)parse_num(&p);
     out->pc = (uintptr_t)parse_num(&p);
-    out->nr = nr;                    /* -1: blocked outside a syscall */
+    out->nr = nr; /* -1: blocked outside a syscall */
     return 0;
 }
 
@@ -237,8 +245,13 @@ static void each_task(int pid, void (*fn)(int tid, void *arg), void *arg)
     long n;
     while ((n = syscall(SYS_getdents64, fd, buf, sizeof buf)) > 0)
         for (long off = 0; off < n;) {
-            struct { uint64_t ino; int64_t off; unsigned short reclen; unsigned char type; char name[]; } *d =
-                (void *)(buf + off);
+            struct {
+                uint64_t ino;
+                int64_t off;
+                unsigned short reclen;
+                unsigned char type;
+                char name[];
+            } *d = (void *)(buf + off);
             off += d->reclen;
             if (d->name[0] >= '0' && d->name[0] <= '9') {
                 const char *s = d->name;
@@ -303,7 +316,7 @@ static void see_one(int tid, void *arg)
             seen->t[i].advanced = g_advanced;
             return;
         }
-    if (seen->n == CG_SEEN_TASKS) {  /* make room: drop what may be reused */
+    if (seen->n == CG_SEEN_TASKS) { /* make room: drop what may be reused */
         int k = 0;
         for (int i = 0; i < seen->n; i++)
             if (!maybe_reused(&seen->t[i]))
@@ -339,9 +352,9 @@ void mutexes_bury(const struct cg_child *c)
     d->seen = c->seen;
     g_last_dead_pid = c->pid;
     g_last_dead_serial = c->serial;
-    g_next_look = cg_mono_ns() + FIRST_LOOK_NS;   /* look for its waiters soon */
-    g_sweep_due = cg_mono_ns() + HELD_AFTER_NS;   /* and later for what it holds */
-    g_died_at = -1;                  /* and often for a while (mutexes_tick) */
+    g_next_look = cg_mono_ns() + FIRST_LOOK_NS; /* look for its waiters soon */
+    g_sweep_due = cg_mono_ns() + HELD_AFTER_NS; /* and later for what it holds */
+    g_died_at = -1;                             /* and often for a while (mutexes_tick) */
 }
 
 /* The dead set that proves tid a dead child's task, or NULL. */
@@ -376,8 +389,8 @@ static bool prune_dead(void)
 
 /* ---- reporting ---------------------------------------------------------- */
 
-static void report(int verdict, const struct dead_set *d, int waiter, int owner,
-                   int kind, uintptr_t addr)
+static void report(int verdict, const struct dead_set *d, int waiter, int owner, int kind,
+                   uintptr_t addr)
 {
     if (verdict != CG_MUTEX_RELEASED) {
         for (int i = 0; i < NREPORTED; i++)
@@ -403,8 +416,8 @@ static void report(int verdict, const struct dead_set *d, int waiter, int owner,
 }
 
 /* A wait that only counts once it has lasted STUCK_NS. */
-static void report_if_stuck(int verdict, int waiter, int owner, int kind,
-                            uintptr_t addr, int64_t now)
+static void report_if_stuck(int verdict, int waiter, int owner, int kind, uintptr_t addr,
+                            int64_t now)
 {
     int free_slot = -1;
     for (int i = 0; i < NPENDING; i++) {
@@ -443,8 +456,8 @@ static bool mutex_caller(uintptr_t ret)
 static bool release(pthread_mutex_t *m, int owner)
 {
     int expected = owner;
-    if (!__atomic_compare_exchange_n(&m->__data.__owner, &expected, 0, false,
-                                     __ATOMIC_ACQ_REL, __ATOMIC_RELAXED))
+    if (!__atomic_compare_exchange_n(&m->__data.__owner, &expected, 0, false, __ATOMIC_ACQ_REL,
+                                     __ATOMIC_RELAXED))
         return false;
     if ((m->__data.__kind & MUTEX_TYPE_MASK) == PTHREAD_MUTEX_RECURSIVE_NP)
         m->__data.__count = 0;
@@ -466,7 +479,7 @@ static void mutex_waiter(int waiter, uintptr_t addr, int64_t now)
         return;
     }
     if (owner < 0 || task_exists(owner))
-        return;                      /* alive: never touched */
+        return; /* alive: never touched */
     const struct dead_set *d = dead_owner(owner);
     if (!d)
         report(CG_MUTEX_UNPROVEN, NULL, waiter, owner, kind, addr);
@@ -507,15 +520,14 @@ static int rwlock_caller(uintptr_t ret)
 static bool release_rwlock(pthread_rwlock_t *rw, int writer)
 {
     int expected = writer;
-    if (!__atomic_compare_exchange_n(&rw->__data.__cur_writer, &expected,
-                                     (int)syscall(SYS_gettid), false,
-                                     __ATOMIC_ACQ_REL, __ATOMIC_RELAXED))
+    if (!__atomic_compare_exchange_n(&rw->__data.__cur_writer, &expected, (int)syscall(SYS_gettid),
+                                     false, __ATOMIC_ACQ_REL, __ATOMIC_RELAXED))
         return false;
     return pthread_rwlock_unlock(rw) == 0;
 }
 
-#define RWLOCK_WRLOCKED 2   /* __readers: a writer holds it (glibc 2.36's
-                               PTHREAD_RWLOCK_WRLOCKED) */
+/* __readers: a writer holds it (glibc 2.36's PTHREAD_RWLOCK_WRLOCKED) */
+#define RWLOCK_WRLOCKED 2
 
 static void rwlock_waiter(int waiter, uintptr_t addr, int64_t now)
 {
@@ -523,12 +535,12 @@ static void rwlock_waiter(int waiter, uintptr_t addr, int64_t now)
     if (read_mem(addr, &rw, sizeof rw) < 0)
         return;
     int writer = rw.__data.__cur_writer;
-    if (writer == 0) {               /* readers hold it, or none recorded */
+    if (writer == 0) { /* readers hold it, or none recorded */
         report_if_stuck(CG_MUTEX_NO_OWNER, waiter, 0, CG_RWLOCK_KIND, addr, now);
         return;
     }
     if (writer < 0 || task_exists(writer))
-        return;                      /* alive: never touched */
+        return; /* alive: never touched */
     const struct dead_set *d = dead_owner(writer);
     if (!d)
         report(CG_MUTEX_UNPROVEN, NULL, waiter, writer, CG_RWLOCK_KIND, addr);
@@ -542,13 +554,11 @@ static void look_at(int tid, void *arg)
 {
     int64_t now = *(int64_t *)arg;
     struct task_syscall sc;
-    if (tid == (int)syscall(SYS_gettid) || task_syscall(tid, &sc) < 0 ||
-        sc.nr != SYS_futex)
+    if (tid == (int)syscall(SYS_gettid) || task_syscall(tid, &sc) < 0 || sc.nr != SYS_futex)
         return;
     int op = (int)sc.args[1] & FUTEX_CMD_MASK;
     uintptr_t addr = sc.args[0];
-    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 &&
-        sc.pc == (uintptr_t)g_layout.mutex_wait_pc) {
+    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 && sc.pc == (uintptr_t)g_layout.mutex_wait_pc) {
         uintptr_t ret;
         if (read_mem(sc.sp + 8 * (uintptr_t)g_layout.mutex_ret_slot, &ret, sizeof ret) == 0 &&
             mutex_caller(ret))
@@ -566,10 +576,10 @@ static void look_at(int tid, void *arg)
     } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)g_layout.private_wait_pc) {
         report_if_stuck(CG_MUTEX_LIBC_LOCK, tid, 0, -1, addr, now);
     } else if (op == FUTEX_LOCK_PI || op == FUTEX_LOCK_PI2) {
-        unsigned word;               /* a PI futex word holds its owner */
+        unsigned word; /* a PI futex word holds its owner */
         int owner;
-        if (read_mem(addr, &word, sizeof word) == 0 &&
-            (owner = (int)(word & FUTEX_TID_MASK_)) && !task_exists(owner)) {
+        if (read_mem(addr, &word, sizeof word) == 0 && (owner = (int)(word & FUTEX_TID_MASK_)) &&
+            !task_exists(owner)) {
             const struct dead_set *d = dead_owner(owner);
             report(d ? CG_MUTEX_EXCLUDED : CG_MUTEX_UNPROVEN, d, tid, owner, -1, addr);
         }
@@ -628,7 +638,7 @@ static void scan(struct cg_child *children, int64_t now)
     each_task(0, look_at, &now);
     for (struct cg_child *c = children; c; c = c->next)
         each_task(c->pid, look_at, &now);
-    for (int i = 0; i < NPENDING; i++)   /* waits that ended */
+    for (int i = 0; i < NPENDING; i++) /* waits that ended */
         if (g_pending[i].tid && g_pending[i].scan != g_scans)
             g_pending[i].tid = 0;
 }
@@ -659,7 +669,8 @@ int mutexes_tick(struct cg_child *children, int64_t now)
             scan(children, now);
         if (g_died_at < 0)
             g_died_at = now;
-        g_next_look = now + (now - g_died_at < AFTER_DEATH_NS ? AFTER_DEATH_EVERY_NS : SEEN_EVERY_NS);
+        g_next_look =
+            now + (now - g_died_at < AFTER_DEATH_NS ? AFTER_DEATH_EVERY_NS : SEEN_EVERY_NS);
     } else {
         for (int i = 0; i < NDEAD && !dead; i++)
             dead = g_dead[i].pid != 0;
@@ -667,7 +678,8 @@ int mutexes_tick(struct cg_child *children, int64_t now)
     if (sweep(now))
         return 0;
     if (g_sweep_due && (dead || children))
-        return (int)(((g_sweep_due < g_next_look ? g_sweep_due : g_next_look) - now + 999999) / 1000000);
+        return (int)(((g_sweep_due < g_next_look ? g_sweep_due : g_next_look) - now + 999999) /
+                     1000000);
     if (!children && !dead)
         return -1;
     return (int)((g_next_look - now + 999999) / 1000000);

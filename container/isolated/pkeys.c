@@ -181,7 +181,8 @@ int cg_pkeys_probe(struct cg_pkeys_probe *out)
     if (page != MAP_FAILED) {
         if (pkey_mprotect(page, pg, PROT_READ | PROT_WRITE, key) == 0 && key_of(page) == key) {
             page[0] = 1;
-            out->mprotect_keeps = mprotect(page, pg, PROT_READ | PROT_WRITE) == 0 && key_of(page) == key;
+            out->mprotect_keeps =
+                mprotect(page, pg, PROT_READ | PROT_WRITE) == 0 && key_of(page) == key;
             /* Inheritance: a PKRU unlike the default (writes to the probe
                key disabled), then a thread. */
             pkey_set(key, PKEY_DISABLE_WRITE);

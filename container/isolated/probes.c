@@ -25,7 +25,7 @@ uintptr_t cg_thread_pointer(void)
     return fs;
 }
 
-uintptr_t cg_robust_list_head(void)   /* what the kernel has for this task */
+uintptr_t cg_robust_list_head(void) /* what the kernel has for this task */
 {
     void *head = NULL;
     size_t len = 0;
@@ -34,27 +34,28 @@ uintptr_t cg_robust_list_head(void)   /* what the kernel has for this task */
     return (uintptr_t)head;
 }
 
-long cg_gettid(void) { return syscall(SYS_gettid); }
+long cg_gettid(void)
+{
+    return syscall(SYS_gettid);
+}
 
 void *cg_lookup(const char *name, const char *version)
 {
-    return version ? dlvsym(RTLD_DEFAULT, name, version)
-                   : dlsym(RTLD_DEFAULT, name);
+    return version ? dlvsym(RTLD_DEFAULT, name, version) : dlsym(RTLD_DEFAULT, name);
 }
 
-long cg_mutex_futex_offset(void)   /* glibc: futex word minus list.__next */
+long cg_mutex_futex_offset(void) /* glibc: futex word minus list.__next */
 {
     return (long)offsetof(pthread_mutex_t, __data.__lock) -
            (long)offsetof(pthread_mutex_t, __data.__list.__next);
 }
 
-int cg_probe_clone3(void)   /* 0 if the kernel has clone3, else errno */
+int cg_probe_clone3(void) /* 0 if the kernel has clone3, else errno */
 {
     /* A size of 0 is below CLONE_ARGS_SIZE_VER0: EINVAL if clone3 exists. */
     long r = syscall(SYS_clone3, NULL, (size_t)0);
     return (r < 0 && errno == EINVAL) ? 0 : (r < 0 ? errno : EEXIST);
 }
-
 
 struct probe_arg {
     pthread_mutex_t m;
@@ -63,7 +64,7 @@ struct probe_arg {
     long cleanup_off;
     char *sp;
     char *volatile tcb;
-    void *before, *after;    /* its .cleanup before / after the wait */
+    void *before, *after; /* its .cleanup before / after the wait */
 };
 
 static void *probe_waiter(void *p)
@@ -96,7 +97,7 @@ int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out)
     while (!__atomic_load_n(&a.ready, __ATOMIC_ACQUIRE))
         sched_yield();
     struct _pthread_cleanup_buffer *buf = NULL;
-    for (int i = 0; i < 2000 && (!buf || buf == a.before); i++) {   /* ~2 s */
+    for (int i = 0; i < 2000 && (!buf || buf == a.before); i++) { /* ~2 s */
         buf = __atomic_load_n((struct _pthread_cleanup_buffer **)(a.tcb + cleanup_off),
                               __ATOMIC_ACQUIRE);
         if (!buf || buf == a.before)
@@ -108,16 +109,16 @@ int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out)
         out->found = 1;
         char *lo = a.sp - 65536, *hi = a.sp + 65536;
         struct cg_cond_cbuf *cb = buf->__arg;
-        out->buf_on_stack = (char *)buf > lo && (char *)buf < hi &&
-                            (char *)cb > lo && (char *)cb < hi;
+        out->buf_on_stack =
+            (char *)buf > lo && (char *)buf < hi && (char *)cb > lo && (char *)cb < hi;
         if (out->buf_on_stack) {
             out->routine = (uintptr_t)buf->__routine;
             out->cbuf_matches = cb->cond == &a.cv && cb->mutex == &a.m;
             out->wseq_matches = cb->wseq + 2 == a.cv.__data.__wseq.__value64;
             out->holds_ref = a.cv.__data.__g_refs[cb->wseq & 1] == 2;
             Dl_info info;
-            out->routine_in_libc = dladdr((void *)out->routine, &info) &&
-                                   info.dli_fname && strstr(info.dli_fname, "libc.so");
+            out->routine_in_libc = dladdr((void *)out->routine, &info) && info.dli_fname &&
+                                   strstr(info.dli_fname, "libc.so");
         }
     }
     pthread_mutex_lock(&a.m);
@@ -137,8 +138,8 @@ mallctl_fn find_mallctl(void)
     mallctl_fn f = (mallctl_fn)dlsym(RTLD_DEFAULT, "mallctl");
     Dl_info a, b;
     /* jemalloc must be the malloc in use, not merely loaded. */
-    if (!f || !dladdr((void *)f, &a) ||
-        !dladdr(dlsym(RTLD_DEFAULT, "malloc"), &b) || a.dli_fbase != b.dli_fbase)
+    if (!f || !dladdr((void *)f, &a) || !dladdr(dlsym(RTLD_DEFAULT, "malloc"), &b) ||
+        a.dli_fbase != b.dli_fbase)
         return NULL;
     return f;
 }
@@ -197,11 +198,11 @@ static void *mutex_waiter_main(void *p)
         void (*wait_private)(int *) =
             (void (*)(int *))dlvsym(RTLD_DEFAULT, "__lll_lock_wait_private", "GLIBC_PRIVATE");
         __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
-        wait_private(w->word);       /* returns holding it (word 2) */
+        wait_private(w->word); /* returns holding it (word 2) */
     } else if (w->cv) {
         pthread_mutex_lock(w->m);
         __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
-        pthread_cond_wait(w->cv, w->m);   /* relocks: cond_lock */
+        pthread_cond_wait(w->cv, w->m); /* relocks: cond_lock */
         pthread_mutex_unlock(w->m);
     } else {
         __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
@@ -217,8 +218,7 @@ static void *mutex_waiter_main(void *p)
 static int wait_in_futex_within(int tid, const void *lo, size_t len, struct task_syscall *sc)
 {
     for (int i = 0; i < 2000; i++) {
-        if (task_syscall(tid, sc) == 0 && sc->nr == SYS_futex &&
-            sc->args[0] - (uintptr_t)lo < len)
+        if (task_syscall(tid, sc) == 0 && sc->nr == SYS_futex && sc->args[0] - (uintptr_t)lo < len)
             return 0;
         usleep(1000);
     }
@@ -230,7 +230,10 @@ static int wait_in_futex(int tid, const void *uaddr, struct task_syscall *sc)
     return wait_in_futex_within(tid, uaddr, 1, sc);
 }
 
-static uintptr_t stack_word(uintptr_t sp, int i) { return ((uintptr_t *)sp)[i]; }
+static uintptr_t stack_word(uintptr_t sp, int i)
+{
+    return ((uintptr_t *)sp)[i];
+}
 
 /* Block a pthread on a mutex of each kind glibc waits for in __lll_lock_wait
    (PTHREAD_MUTEX_{NORMAL,RECURSIVE,ERRORCHECK,ADAPTIVE}_NP, k = 0..3, and the
@@ -268,7 +271,7 @@ int cg_probe_mutexwait(struct cg_mutexwait_probe *out)
             return -EAGAIN;
         while (__atomic_load_n(&w.phase, __ATOMIC_ACQUIRE) == 0)
             sched_yield();
-        if (w.cv) {                  /* it waits on cv; take m, wake it */
+        if (w.cv) { /* it waits on cv; take m, wake it */
             if (wait_in_futex(w.tid, &cv.__data.__g_signals[0], &sc) < 0)
                 wait_in_futex(w.tid, &cv.__data.__g_signals[1], &sc);
             pthread_mutex_lock(&m);
@@ -353,23 +356,40 @@ static void *timed_waiter_main(void *p)
     /* The ...timed... calls take CLOCK_REALTIME (FUTEX_CLOCK_REALTIME);
        the ...clock... ones are given CLOCK_MONOTONIC. */
     int k = (w->how - TW_RWLOCK) % 6;
-    clockid_t clock = w->how == TW_CLOCKLOCK || (w->how >= TW_RWLOCK && k % 3 == 2) ? CLOCK_MONOTONIC
-                                                                                 : CLOCK_REALTIME;
+    clockid_t clock = w->how == TW_CLOCKLOCK || (w->how >= TW_RWLOCK && k % 3 == 2)
+                          ? CLOCK_MONOTONIC
+                          : CLOCK_REALTIME;
     struct timespec until;
     clock_gettime(clock, &until);
-    until.tv_sec += 10;          /* well past the probe's own 2 s waits */
+    until.tv_sec += 10; /* well past the probe's own 2 s waits */
     w->tid = (int)syscall(SYS_gettid);
     __atomic_store_n(&w->phase, 1, __ATOMIC_RELEASE);
     int r;
     switch (w->how < TW_RWLOCK ? w->how : TW_RWLOCK + k) {
-    case TW_TIMEDLOCK: r = pthread_mutex_timedlock(w->m, &until); break;
-    case TW_CLOCKLOCK: r = pthread_mutex_clocklock(w->m, clock, &until); break;
-    case TW_RWLOCK + 0: r = pthread_rwlock_wrlock(w->rw); break;
-    case TW_RWLOCK + 1: r = pthread_rwlock_timedwrlock(w->rw, &until); break;
-    case TW_RWLOCK + 2: r = pthread_rwlock_clockwrlock(w->rw, clock, &until); break;
-    case TW_RWLOCK + 3: r = pthread_rwlock_rdlock(w->rw); break;
-    case TW_RWLOCK + 4: r = pthread_rwlock_timedrdlock(w->rw, &until); break;
-    default: r = pthread_rwlock_clockrdlock(w->rw, clock, &until); break;
+    case TW_TIMEDLOCK:
+        r = pthread_mutex_timedlock(w->m, &until);
+        break;
+    case TW_CLOCKLOCK:
+        r = pthread_mutex_clocklock(w->m, clock, &until);
+        break;
+    case TW_RWLOCK + 0:
+        r = pthread_rwlock_wrlock(w->rw);
+        break;
+    case TW_RWLOCK + 1:
+        r = pthread_rwlock_timedwrlock(w->rw, &until);
+        break;
+    case TW_RWLOCK + 2:
+        r = pthread_rwlock_clockwrlock(w->rw, clock, &until);
+        break;
+    case TW_RWLOCK + 3:
+        r = pthread_rwlock_rdlock(w->rw);
+        break;
+    case TW_RWLOCK + 4:
+        r = pthread_rwlock_timedrdlock(w->rw, &until);
+        break;
+    default:
+        r = pthread_rwlock_clockrdlock(w->rw, clock, &until);
+        break;
     }
     if (r == 0 && w->m)
         pthread_mutex_unlock(w->m);
@@ -393,7 +413,7 @@ struct rw_writer {
     int tid;
 };
 
-static void *write_lock_and_end(void *p)   /* a writer that ends holding it */
+static void *write_lock_and_end(void *p) /* a writer that ends holding it */
 {
     struct rw_writer *w = p;
     w->tid = (int)syscall(SYS_gettid);
@@ -433,7 +453,10 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
         return -ENOENT;
     for (int k = 0; k < CG_RWLOCK_CALLERS; k++) {
         /* malloc'd: left behind, waiter and all, if the release fails */
-        struct { pthread_rwlock_t rw; struct timed_waiter w; } *b = malloc(sizeof *b);
+        struct {
+            pthread_rwlock_t rw;
+            struct timed_waiter w;
+        } *b = malloc(sizeof *b);
         if (!b)
             return -ENOMEM;
         pthread_rwlock_t *rw = &b->rw;
@@ -453,14 +476,14 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
         b->w = (struct timed_waiter){NULL, rw, TW_RWLOCK + k, 0, 0};
         struct task_syscall sc;
         if (start_timed_waiter(&t, &b->w) < 0)
-            return -EAGAIN;          /* b stays write-locked: left behind */
+            return -EAGAIN; /* b stays write-locked: left behind */
         if (wait_in_futex_within(b->w.tid, rw, sizeof *rw, &sc) == 0) {
             out->rw_seen[k] = 1;
             out->rw_op[k] = (int)sc.args[1];
             out->rw_val[k] = (int)sc.args[2];
             out->rw_pc[k] = sc.pc;
             out->rw_futex_off[k] = (long)(sc.args[0] - (uintptr_t)rw);
-            if (readers)             /* a blocked writer records nothing */
+            if (readers) /* a blocked writer records nothing */
                 out->rw_writer_recorded[k] = rw->__data.__cur_writer == 0;
             for (int i = 0; i < 32 && rw_fn[k]; i++) {
                 Dl_info info;
@@ -474,15 +497,15 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out)
         }
         int writer = wr.tid;
         if (readers ? pthread_rwlock_unlock(rw) == 0
-                    : __atomic_compare_exchange_n(&rw->__data.__cur_writer, &writer, out->self_tid, false,
-                                                  __ATOMIC_ACQ_REL, __ATOMIC_RELAXED) &&
+                    : __atomic_compare_exchange_n(&rw->__data.__cur_writer, &writer, out->self_tid,
+                                                  false, __ATOMIC_ACQ_REL, __ATOMIC_RELAXED) &&
                           pthread_rwlock_unlock(rw) == 0)
             for (int i = 0; i < 2000 && !out->rw_released[k]; i++) {
                 out->rw_released[k] = __atomic_load_n(&b->w.phase, __ATOMIC_ACQUIRE) == 2;
                 if (!out->rw_released[k])
                     usleep(1000);
             }
-        if (!out->rw_released[k]) {  /* stuck: leave it behind, say so */
+        if (!out->rw_released[k]) { /* stuck: leave it behind, say so */
             pthread_detach(t);
             return 0;
         }

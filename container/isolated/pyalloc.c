@@ -60,41 +60,41 @@
 #define likely(x) __builtin_expect(!!(x), 1)
 #define unlikely(x) __builtin_expect(!!(x), 0)
 
-#define POOL ((uintptr_t)16 << 10)      /* bytes a pool, and its alignment */
-#define ALIGN 16                        /* CPython's: every block 16-aligned */
-#define SMALL_MAX 512                   /* larger blocks: malloc */
+#define POOL ((uintptr_t)16 << 10) /* bytes a pool, and its alignment */
+#define ALIGN 16                   /* CPython's: every block 16-aligned */
+#define SMALL_MAX 512              /* larger blocks: malloc */
 #define NCLASSES (SMALL_MAX / ALIGN)
-#define REGION ((size_t)64 << 30)       /* reserved address space, all slots */
-#define EMPTY_KEPT 16                   /* empty pools an owner keeps paged in */
+#define REGION ((size_t)64 << 30) /* reserved address space, all slots */
+#define EMPTY_KEPT 16             /* empty pools an owner keeps paged in */
 
 struct pool {
-    uint16_t owner;                     /* slot */
-    uint16_t gen;                       /* owner's generation when made */
-    uint16_t cls;                       /* block size = (cls + 1) * ALIGN */
+    uint16_t owner; /* slot */
+    uint16_t gen;   /* owner's generation when made */
+    uint16_t cls;   /* block size = (cls + 1) * ALIGN */
     uint16_t size;
-    uint32_t used;                      /* blocks handed out */
+    uint32_t used; /* blocks handed out */
     uint32_t pad;
-    void *free;                         /* freed blocks, linked */
-    char *bump, *end;                   /* never handed out yet */
-    struct pool *next, *prev;           /* in its owner's usable[cls] (or empty) */
+    void *free;               /* freed blocks, linked */
+    char *bump, *end;         /* never handed out yet */
+    struct pool *next, *prev; /* in its owner's usable[cls] (or empty) */
 };
 #define HEADER (((sizeof(struct pool) + ALIGN - 1) / ALIGN) * ALIGN)
 
 struct owner {
     uint16_t gen;
-    struct pool *usable[NCLASSES];      /* pools with a free block */
-    struct pool *empty;                 /* pools with none in use */
+    struct pool *usable[NCLASSES]; /* pools with a free block */
+    struct pool *empty;            /* pools with none in use */
     unsigned nempty;
-    _Atomic(void *) handed;             /* blocks others freed for us */
-    _Atomic long inside;                /* its tasks in here (but a bound main task) */
+    _Atomic(void *) handed; /* blocks others freed for us */
+    _Atomic long inside;    /* its tasks in here (but a bound main task) */
     _Atomic uint64_t pools, dropped, handed_total, abandoned;
-    _Atomic long bytes;                 /* in use by its process (its blocks'
-                                           sizes; written holding the GIL) */
+    _Atomic long bytes; /* in use by its process (its blocks'
+                           sizes; written holding the GIL) */
 };
 
 static struct owner owners[CGA_NSLOTS];
 static char *g_base;
-static _Atomic uintptr_t g_bump;        /* offset of the next fresh pool */
+static _Atomic uintptr_t g_bump; /* offset of the next fresh pool */
 static bool g_installed;
 static PyMemAllocatorEx g_mine;
 
@@ -201,7 +201,7 @@ static void put_back(struct owner *o, struct pool *p, void *b)
     if (p->used == 0) {
         unlink_pool(&o->usable[p->cls], p);
         push_pool(&o->empty, p);
-        if (++o->nempty > EMPTY_KEPT)   /* keep the address, give the pages back */
+        if (++o->nempty > EMPTY_KEPT) /* keep the address, give the pages back */
             madvise((char *)p + HEADER, POOL - HEADER, MADV_DONTNEED);
     }
 }
@@ -225,7 +225,7 @@ static void *small_alloc(size_t n)
     int s = cga_caller_slot();
     struct owner *o = &owners[s];
     int cls = (int)((n - 1) / ALIGN);
-    if (unlikely(!o->usable[cls]))      /* a pool more: within its budget? */
+    if (unlikely(!o->usable[cls])) /* a pool more: within its budget? */
         cga_within_budget(s, POOL);
     enter(s);
     if (unlikely(atomic_load_explicit(&o->handed, memory_order_relaxed) != NULL))
@@ -242,11 +242,11 @@ static void *small_alloc(size_t n)
         b = p->bump;
         p->bump += p->size;
     }
-    cga_stop_point(s, CGA_STOP_PY_ALLOCATION);   /* the pool half-updated */
+    cga_stop_point(s, CGA_STOP_PY_ALLOCATION); /* the pool half-updated */
     p->used++;
     count(o, p->size);
     if (p->free == NULL && p->bump + p->size > p->end)
-        unlink_pool(&o->usable[cls], p);   /* full */
+        unlink_pool(&o->usable[cls], p); /* full */
     leave(s);
     return b;
 }
@@ -256,7 +256,7 @@ static void small_free(void *b)
     struct pool *p = pool_of(b);
     int s = cga_caller_slot();
     struct owner *to = &owners[p->owner];
-    if (p->gen != to->gen) {            /* an abandoned pool: leave it be */
+    if (p->gen != to->gen) { /* an abandoned pool: leave it be */
         atomic_fetch_add_explicit(&to->dropped, 1, memory_order_relaxed);
         return;
     }
@@ -314,10 +314,10 @@ static void *py_realloc(void *ctx, void *b, size_t n)
     if (n == 0)
         n = 1;
     if (!ours(b))
-        return cga_shared_realloc(b, n);   /* malloc'd: stays malloc'd */
+        return cga_shared_realloc(b, n); /* malloc'd: stays malloc'd */
     size_t have = pool_of(b)->size;
     if (n <= have && 4 * n > 3 * have)
-        return b;                       /* fits well enough where it is */
+        return b; /* fits well enough where it is */
     void *q = py_malloc(ctx, n);
     if (q) {
         memcpy(q, b, have < n ? have : n);
@@ -379,7 +379,7 @@ __attribute__((constructor)) static void install(void)
     g_mine = (PyMemAllocatorEx){NULL, py_malloc, py_calloc, py_realloc, py_free};
     set(PYMEM_DOMAIN_MEM, &g_mine);
     set(PYMEM_DOMAIN_OBJ, &g_mine);
-    if (hk_enabled()) {                 /* thread states, ...: shared too */
+    if (hk_enabled()) { /* thread states, ...: shared too */
         static PyMemAllocatorEx raw = {NULL, raw_malloc, raw_calloc, raw_realloc, raw_free};
         set(PYMEM_DOMAIN_RAW, &raw);
     }
@@ -400,7 +400,7 @@ static void abandon(struct owner *o)
     memset(o->usable, 0, sizeof o->usable);
     o->empty = NULL;
     o->nempty = 0;
-    atomic_store(&o->handed, NULL);     /* blocks of abandoned pools: dropped */
+    atomic_store(&o->handed, NULL); /* blocks of abandoned pools: dropped */
     atomic_fetch_add(&o->abandoned, 1);
 }
 
@@ -411,8 +411,8 @@ int py_slot_retire(int s, char *tcb)
     if (!g_installed)
         return 0;
     struct owner *o = &owners[s];
-    bool inside = atomic_load(&o->inside) != 0 ||
-                  (tcb && *(volatile int *)(tcb + g_py_inside_off) != 0);
+    bool inside =
+        atomic_load(&o->inside) != 0 || (tcb && *(volatile int *)(tcb + g_py_inside_off) != 0);
     atomic_store(&o->inside, 0);
     if (tcb)
         *(volatile int *)(tcb + g_py_inside_off) = 0;
@@ -473,7 +473,8 @@ EXPORT int cga_py_dump_tail(int exclude)
     uintptr_t used = exclude ? atomic_load(&g_bump) : 0;
     if (used >= REGION)
         return 0;
-    return madvise(g_base + used, REGION - used, exclude ? MADV_DONTDUMP : MADV_DODUMP) ? -errno : 0;
+    return madvise(g_base + used, REGION - used, exclude ? MADV_DONTDUMP : MADV_DODUMP) ? -errno
+                                                                                        : 0;
 }
 
 EXPORT int cga_py_stats(int s, struct cga_py_stats *out)

@@ -35,18 +35,22 @@ namespace detail = pybind11::detail;
 #error "a free-threaded CPython shards registered_instances; not handled"
 #endif
 
-namespace {
+namespace
+{
 
 // Inserts left before the next one rehashes (libstdc++ rehashes when the
 // element count would pass bucket_count * max_load_factor).
-long inserts_left(const detail::instance_map &map) {
-    const double capacity = std::floor(static_cast<double>(map.bucket_count()) * map.max_load_factor());
+long inserts_left(const detail::instance_map &map)
+{
+    const double capacity =
+        std::floor(static_cast<double>(map.bucket_count()) * map.max_load_factor());
     return static_cast<long>(capacity) - static_cast<long>(map.size());
 }
 
-}  // namespace
+} // namespace
 
-PYBIND11_MODULE(_pybind11_registry, m) {
+PYBIND11_MODULE(_pybind11_registry, m)
+{
     m.doc() = "pybind11's registry of live instances, kept ahead of the node processes";
     m.attr("INTERNALS_ID") = PYBIND11_INTERNALS_ID;
 
@@ -80,5 +84,6 @@ PYBIND11_MODULE(_pybind11_registry, m) {
             return true;
         },
         py::arg("headroom"),
-        "Rehash now unless `headroom` inserts are left before the next rehash; True if it rehashed.");
+        "Rehash now unless `headroom` inserts are left before the next rehash; True if it "
+        "rehashed.");
 }

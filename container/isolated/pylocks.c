@@ -49,18 +49,18 @@
 
 #include "allocguard.h"
 
-#define SLICE_MS 100                  /* a blocked acquire looks at its holder this often */
-#define STUCK_MS 1000                 /* ... and says so once if none is known after this */
-#define NDEAD 4096                    /* dead node processes remembered */
+#define SLICE_MS 100  /* a blocked acquire looks at its holder this often */
+#define STUCK_MS 1000 /* ... and says so once if none is known after this */
+#define NDEAD 4096    /* dead node processes remembered */
 
 /* ---------------------------------------------------------------------- */
 /* Dead node processes.                                                    */
 
-static _Atomic int g_dead[NDEAD];      /* pids, 0: a free entry */
+static _Atomic int g_dead[NDEAD]; /* pids, 0: a free entry */
 static _Atomic unsigned g_dead_next;
-static _Atomic int g_any_dead;         /* has any node process died yet? */
-static PyObject *g_repair_hook;        /* hook(lock, pid, tid) */
-static PyObject *g_stuck_hook;         /* hook(lock, waited_s) */
+static _Atomic int g_any_dead;  /* has any node process died yet? */
+static PyObject *g_repair_hook; /* hook(lock, pid, tid) */
+static PyObject *g_stuck_hook;  /* hook(lock, waited_s) */
 
 static int is_dead(int pid)
 {
@@ -77,7 +77,7 @@ static int is_dead(int pid)
 
 struct core {
     _Atomic uint32_t word;
-    _Atomic uint64_t holder;           /* pid << 32 | tid, 0: none known */
+    _Atomic uint64_t holder; /* pid << 32 | tid, 0: none known */
 };
 
 /* The calling task, as a holder: pid << 32 | tid.  getpid() and gettid()
@@ -93,8 +93,8 @@ struct core {
    glibc hands an ended thread's stack and TLS to a later thread.
    Without the descriptor's tid (module_exec could not find or check it)
    every acquire asks the kernel. */
-static long g_tid_offset = -1;          /* tid's offset in struct pthread */
-static _Atomic unsigned g_deaths;       /* node_died calls so far */
+static long g_tid_offset = -1;    /* tid's offset in struct pthread */
+static _Atomic unsigned g_deaths; /* node_died calls so far */
 static pthread_key_t g_me_key;
 static __thread uint64_t t_me;
 static __thread unsigned t_me_deaths;
@@ -124,10 +124,10 @@ static inline uint64_t me(void)
         return t_me;
     uint64_t v = me_slow();
     if ((uint32_t)descriptor_tid() != (uint32_t)v)
-        return v;                       /* a task whose descriptor is not its own: never kept */
+        return v; /* a task whose descriptor is not its own: never kept */
     t_me = v;
     t_me_deaths = deaths;
-    pthread_setspecific(g_me_key, (void *)1);   /* so that forget_me runs at its end */
+    pthread_setspecific(g_me_key, (void *)1); /* so that forget_me runs at its end */
     return v;
 }
 
@@ -189,14 +189,13 @@ static int wait_word(struct core *c, int64_t deadline, uint64_t *dead, int64_t *
             return GOT;
         }
         uint64_t h = atomic_load_explicit(&c->holder, memory_order_acquire);
-        if (h && is_dead((int)(h >> 32)) &&
-            atomic_compare_exchange_strong(&c->holder, &h, me())) {
+        if (h && is_dead((int)(h >> 32)) && atomic_compare_exchange_strong(&c->holder, &h, me())) {
             *dead = h;
             return TOOK_OVER;
         }
         int64_t slice = (int64_t)SLICE_MS * 1000000, t = now_ns();
         if (*stuck_at >= 0 && t >= *stuck_at && !h && atomic_load(&g_any_dead)) {
-            *stuck_at = -1;                 /* said once */
+            *stuck_at = -1; /* said once */
             return STUCK;
         }
         if (deadline >= 0) {
@@ -213,7 +212,7 @@ static int wait_word(struct core *c, int64_t deadline, uint64_t *dead, int64_t *
 }
 
 /* acquire(blocking=True, timeout=-1) arguments, as CPython 3.11 reads them:
-   *timeout is -1 (forever), 0 (try) or a relative time in ns. */
+ *timeout is -1 (forever), 0 (try) or a relative time in ns. */
 static int parse_acquire(PyObject *args, PyObject *kwds, _PyTime_t *timeout)
 {
     static char *kwlist[] = {"blocking", "timeout", NULL};
@@ -276,16 +275,14 @@ static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t
     int64_t stuck_at = start + (int64_t)STUCK_MS * 1000000;
     for (;;) {
         int r;
-        Py_BEGIN_ALLOW_THREADS
-        r = wait_word(c, deadline, dead, &stuck_at);
-        Py_END_ALLOW_THREADS
-        if (r == GOT || r == TOOK_OVER)
-            return 1;
+        Py_BEGIN_ALLOW_THREADS r = wait_word(c, deadline, dead, &stuck_at);
+        Py_END_ALLOW_THREADS if (r == GOT || r == TOOK_OVER) return 1;
         if (r == TIMED_OUT)
             return 0;
         if (r == STUCK) {
             if (g_stuck_hook) {
-                PyObject *res = PyObject_CallFunction(g_stuck_hook, "Od", lock, (now_ns() - start) / 1e9);
+                PyObject *res =
+                    PyObject_CallFunction(g_stuck_hook, "Od", lock, (now_ns() - start) / 1e9);
                 if (res)
                     Py_DECREF(res);
                 else
@@ -293,7 +290,7 @@ static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t
             }
             continue;
         }
-        if (Py_MakePendingCalls() < 0)   /* INTERRUPTED: run the handlers */
+        if (Py_MakePendingCalls() < 0) /* INTERRUPTED: run the handlers */
             return -1;
     }
 }
@@ -308,14 +305,14 @@ static int take_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint64_t
 static _Atomic int *g_stops_armed;
 static void (*g_stop_here)(int place);
 static int64_t (*g_stop_lock_key)(void);
-static PyObject *g_name_hook;           /* hook(lock, key) -> bool */
+static PyObject *g_name_hook; /* hook(lock, key) -> bool */
 static int g_in_name_hook;
 
 static int is_the_lock_asked_for(PyObject *lock)
 {
     int64_t key = g_stop_lock_key ? g_stop_lock_key() : 0;
     if (key <= 0)
-        return key == 0;                /* any lock; -1: no such request here */
+        return key == 0; /* any lock; -1: no such request here */
     if (!g_name_hook || g_in_name_hook)
         return 0;
     g_in_name_hook = 1;
@@ -341,8 +338,7 @@ static int acquire_core(PyObject *lock, struct core *c, _PyTime_t timeout, uint6
 /* lock                                                                    */
 
 typedef struct {
-    PyObject_HEAD
-    struct core c;
+    PyObject_HEAD struct core c;
     PyObject *weakrefs;
 } LockObject;
 
@@ -407,7 +403,8 @@ static PyObject *lock_holder(LockObject *self, void *unused)
 
 static PyObject *lock_repr(LockObject *self)
 {
-    return PyUnicode_FromFormat("<%s %s object at %p>", atomic_load(&self->c.word) ? "locked" : "unlocked",
+    return PyUnicode_FromFormat("<%s %s object at %p>",
+                                atomic_load(&self->c.word) ? "locked" : "unlocked",
                                 _PyType_Name(Py_TYPE(self)), self);
 }
 
@@ -442,7 +439,8 @@ static PyMethodDef lock_methods[] = {
 };
 
 static PyGetSetDef lock_getset[] = {
-    {"holder", (getter)lock_holder, NULL, "(pid, tid) of its last acquirer while held, else None", NULL},
+    {"holder", (getter)lock_holder, NULL, "(pid, tid) of its last acquirer while held, else None",
+     NULL},
     {NULL, NULL, NULL, NULL, NULL},
 };
 
@@ -488,9 +486,8 @@ static PyObject *allocate_lock(PyObject *module, PyObject *unused)
 /* RLock                                                                   */
 
 typedef struct {
-    PyObject_HEAD
-    struct core c;
-    unsigned long owner;               /* thread ident, as CPython's */
+    PyObject_HEAD struct core c;
+    unsigned long owner; /* thread ident, as CPython's */
     unsigned long count;
     PyObject *weakrefs;
 } RLockObject;
@@ -529,7 +526,7 @@ static PyObject *rlock_acquire(RLockObject *self, PyObject *args, PyObject *kwds
     if (r < 0)
         return NULL;
     if (r) {
-        self->owner = tid;              /* after a takeover: once, whatever the dead one's count */
+        self->owner = tid; /* after a takeover: once, whatever the dead one's count */
         self->count = 1;
     }
     if (dead)
@@ -665,14 +662,10 @@ static PyMemberDef rlock_members[] = {
 };
 
 static PyType_Slot rlock_slots[] = {
-    {Py_tp_new, rlock_new},
-    {Py_tp_dealloc, rlock_dealloc},
-    {Py_tp_repr, rlock_repr},
-    {Py_tp_methods, rlock_methods},
-    {Py_tp_getset, rlock_getset},
-    {Py_tp_members, rlock_members},
-    {Py_tp_traverse, rlock_traverse},
-    {0, NULL},
+    {Py_tp_new, rlock_new},           {Py_tp_dealloc, rlock_dealloc},
+    {Py_tp_repr, rlock_repr},         {Py_tp_methods, rlock_methods},
+    {Py_tp_getset, rlock_getset},     {Py_tp_members, rlock_members},
+    {Py_tp_traverse, rlock_traverse}, {0, NULL},
 };
 
 static PyType_Spec rlock_spec = {
@@ -694,7 +687,7 @@ static PyObject *node_died(PyObject *module, PyObject *arg)
     unsigned i = atomic_fetch_add(&g_dead_next, 1) % NDEAD;
     atomic_store(&g_dead[i], pid);
     atomic_store_explicit(&g_any_dead, 1, memory_order_release);
-    atomic_fetch_add_explicit(&g_deaths, 1, memory_order_release);   /* me(): (b) */
+    atomic_fetch_add_explicit(&g_deaths, 1, memory_order_release); /* me(): (b) */
     Py_RETURN_NONE;
 }
 
@@ -734,18 +727,21 @@ static PyMethodDef module_methods[] = {
     {"node_died", node_died, METH_O, "node_died(pid): a node process died without being stopped"},
     {"node_born", node_born, METH_O, "node_born(pid): a new node process has that pid"},
     {"set_hooks", set_hooks, METH_VARARGS,
-     "set_hooks(repair, stuck, named=None): repair(lock, pid, tid) after a lock whose holder's process died "
-     "is taken over; stuck(lock, waited_s) once a waiter has waited STUCK_MS with no holder known after a "
+     "set_hooks(repair, stuck, named=None): repair(lock, pid, tid) after a lock whose holder's "
+     "process died "
+     "is taken over; stuck(lock, waited_s) once a waiter has waited STUCK_MS with no holder known "
+     "after a "
      "death; named(lock, key) -> bool: is this the lock a stop request names by key"},
     {NULL, NULL, 0, NULL},
 };
 
 static int module_exec(PyObject *m)
 {
-    _Atomic int *(*armed_flag)(void) = (_Atomic int *(*)(void))dlsym(RTLD_DEFAULT, "cga_stops_armed_flag");
+    _Atomic int *(*armed_flag)(void) =
+        (_Atomic int *(*)(void))dlsym(RTLD_DEFAULT, "cga_stops_armed_flag");
     g_stop_here = (void (*)(int))dlsym(RTLD_DEFAULT, "cga_stop_here");
     g_stops_armed = armed_flag && g_stop_here ? armed_flag() : NULL;
-    g_stop_lock_key = (int64_t (*)(void))dlsym(RTLD_DEFAULT, "cga_stop_lock_key");
+    g_stop_lock_key = (int64_t(*)(void))dlsym(RTLD_DEFAULT, "cga_stop_lock_key");
     if (g_tid_offset < 0 && pthread_key_create(&g_me_key, forget_me) == 0)
         g_tid_offset = find_tid_offset();
     g_lock_type = (PyTypeObject *)PyType_FromModuleAndSpec(m, &lock_spec, NULL);
@@ -773,6 +769,7 @@ static struct PyModuleDef module_def = {
     .m_slots = module_slots,
 };
 
+PyMODINIT_FUNC PyInit__pylocks(void); /* no header: Python finds it by name */
 PyMODINIT_FUNC PyInit__pylocks(void)
 {
     return PyModuleDef_Init(&module_def);

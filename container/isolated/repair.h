@@ -15,40 +15,40 @@
 /* What the monitor repaired after a death (struct cg_event.repairs).
    Mirrored by core_events.Repair. */
 enum {
-    CG_REPAIR_GIL_RELEASED = 1 << 0,   /* the dead task held the GIL */
-    CG_REPAIR_GIL_MUTEX = 1 << 1,      /* ... or gil->mutex */
-    CG_REPAIR_SWITCH_MUTEX = 1 << 2,   /* ... or gil->switch_mutex */
-    CG_REPAIR_COND_WAITER = 1 << 3,    /* it was blocked on gil->cond */
-    CG_REPAIR_SWITCH_WAITER = 1 << 4,  /* it was blocked on gil->switch_cond */
-    CG_REPAIR_COND_LOCK = 1 << 5,      /* a condvar's internal lock stayed
-                                          taken: cleared */
-    CG_REPAIR_GIL_TIMEOUT = 1 << 6,    /* gil->mutex could not be taken to
-                                          check the GIL: nothing checked */
+    CG_REPAIR_GIL_RELEASED = 1 << 0,  /* the dead task held the GIL */
+    CG_REPAIR_GIL_MUTEX = 1 << 1,     /* ... or gil->mutex */
+    CG_REPAIR_SWITCH_MUTEX = 1 << 2,  /* ... or gil->switch_mutex */
+    CG_REPAIR_COND_WAITER = 1 << 3,   /* it was blocked on gil->cond */
+    CG_REPAIR_SWITCH_WAITER = 1 << 4, /* it was blocked on gil->switch_cond */
+    CG_REPAIR_COND_LOCK = 1 << 5,     /* a condvar's internal lock stayed
+                                         taken: cleared */
+    CG_REPAIR_GIL_TIMEOUT = 1 << 6,   /* gil->mutex could not be taken to
+                                         check the GIL: nothing checked */
     /* interp.c, when the dead task held the GIL: */
-    CG_REPAIR_PY_POOLS = 1 << 7,       /* its Python object pools abandoned,
-                                          their objects untracked before the
-                                          next collection */
-    CG_REPAIR_GC_LINKS = 1 << 8,       /* a half-updated link of the young
-                                          generation mended */
-    CG_REPAIR_FREELISTS = 1 << 9,      /* the interpreter's free lists emptied */
-    CG_REPAIR_PY_OBJECTS = 1 << 10,    /* objects it may have been changing
-                                          put out of the collector's sight */
+    CG_REPAIR_PY_POOLS = 1 << 7,    /* its Python object pools abandoned,
+                                       their objects untracked before the
+                                       next collection */
+    CG_REPAIR_GC_LINKS = 1 << 8,    /* a half-updated link of the young
+                                       generation mended */
+    CG_REPAIR_FREELISTS = 1 << 9,   /* the interpreter's free lists emptied */
+    CG_REPAIR_PY_OBJECTS = 1 << 10, /* objects it may have been changing
+                                       put out of the collector's sight */
 };
 
 /* One dead task the repair looks at: a child whose thread group is gone
    (a zombie, or already reaped). */
 struct cg_dead {
-    pid_t pid;              /* its tid (= pid) */
-    char *tcb;              /* its struct pthread */
-    char *stack_lo, *stack_hi;   /* its stack mapping */
-    int slot;               /* its allocator-guard slot, 0: none */
-    uint32_t repairs;       /* out: CG_REPAIR_* attributed to it */
-    void *gil_code;         /* out: it held the GIL: its innermost Python
-                               frame's code object (NULL: none), */
-    int gil_lasti;          /* ... and instruction offset */
-    int ref_dropped;        /* in: cg_gil_step_aside dropped its condvar
-                               group reference while it waited for its
-                               core dump */
+    pid_t pid;                 /* its tid (= pid) */
+    char *tcb;                 /* its struct pthread */
+    char *stack_lo, *stack_hi; /* its stack mapping */
+    int slot;                  /* its allocator-guard slot, 0: none */
+    uint32_t repairs;          /* out: CG_REPAIR_* attributed to it */
+    void *gil_code;            /* out: it held the GIL: its innermost Python
+                                  frame's code object (NULL: none), */
+    int gil_lasti;             /* ... and instruction offset */
+    int ref_dropped;           /* in: cg_gil_step_aside dropped its condvar
+                                  group reference while it waited for its
+                                  core dump */
 };
 
 struct cg_repair_cfg {
@@ -65,9 +65,9 @@ struct cg_repair_cfg {
    holds a reference on its condvar group.  cg_probe_condwait() checks this
    shape on a live waiter at start-up. */
 struct cg_cond_cbuf {
-    uint64_t wseq;          /* its position << 1 | group index */
-    void *cond;             /* pthread_cond_t * */
-    void *mutex;            /* pthread_mutex_t * */
+    uint64_t wseq; /* its position << 1 | group index */
+    void *cond;    /* pthread_cond_t * */
+    void *mutex;   /* pthread_mutex_t * */
     int private_;
 };
 
@@ -105,22 +105,22 @@ void cg_tstate_bind(struct _ts *ts);
 struct cg_gil_probe {
     unsigned long compiled_hex, running_hex;
     long runtime_size_compiled, runtime_size_elf;
-    int locked;              /* with the GIL held by the probe */
+    int locked; /* with the GIL held by the probe */
     int last_holder_is_me, tstate_current_is_me;
     int native_id_ok, thread_id_ok;
     int mutex_kind, switch_mutex_kind;
     int cond_wrefs_flags, switch_cond_wrefs_flags;
-    long gil_offset, mutex_offset, cond_offset;   /* for the report */
+    long gil_offset, mutex_offset, cond_offset; /* for the report */
 };
 int cg_gil_probe(struct cg_gil_probe *out);
 
 /* interp.c's facts for assumptions.py (takes the GIL itself). */
 struct cg_interp_probe {
-    int threshold[3], count[3];      /* generations[i], as compiled */
-    int generation0_is_head;         /* gc.generation0 == &generations[0].head */
+    int threshold[3], count[3]; /* generations[i], as compiled */
+    int generation0_is_head;    /* gc.generation0 == &generations[0].head */
     int enabled, collecting;
-    int young_links_ok;              /* generation 0's links agree both ways */
-    int free_lists_ok;               /* the free-list counts within bounds */
+    int young_links_ok; /* generation 0's links agree both ways */
+    int free_lists_ok;  /* the free-list counts within bounds */
 };
 int cg_interp_probe(struct cg_interp_probe *out);
 
@@ -138,6 +138,11 @@ void cg_hold_py_stack(void *const *codes, int n, int hold);
 void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd);
 /* "name (file:line)" of one such frame into buf (size bytes); its length. */
 int cg_frame_text(void *code, int lasti, char *buf, int size);
+
+/* interp.c: the collector's thread (collector.py) waits off the GIL until
+   a collection is due (its generation; -1: woken), then runs it. */
+int cg_gc_wait_due(int interval_us, int *wake);
+long cg_gc_collect(void *collect, int generation);
 
 /* interp.c: read len bytes at addr into out without faulting (false where
    any is unmapped).  What a dead task left is read only so. */

@@ -37,9 +37,9 @@
 #define EXPORT __attribute__((visibility("default")))
 
 static struct {
-    _Atomic int place;                  /* CGA_STOP_*, 0: none */
-    _Atomic int left;                   /* passes before the stop */
-    _Atomic uint32_t key;               /* PY_LOCK: the lock's key, 0: any */
+    _Atomic int place;    /* CGA_STOP_*, 0: none */
+    _Atomic int left;     /* passes before the stop */
+    _Atomic uint32_t key; /* PY_LOCK: the lock's key, 0: any */
 } g_stop[CGA_NSLOTS];
 
 /* Slots with a request: every place's check is one load of this while 0. */
@@ -58,7 +58,7 @@ EXPORT void cga_stop_request(int sig, siginfo_t *si, void *uc)
 {
     (void)sig;
     (void)uc;
-    if (si->si_code != SI_QUEUE)        /* a plain kill: not a request */
+    if (si->si_code != SI_QUEUE) /* a plain kill: not a request */
         return;
     int s = cga_slot_of_pid((int)syscall(SYS_getpid));
     if (s <= 0)
@@ -82,7 +82,7 @@ HIDDEN void cga_stop_passed(int s, int place)
     if (atomic_fetch_sub(&g_stop[s].left, 1) != 1)
         return;
     if (atomic_exchange(&g_stop[s].place, 0) != place)
-        return;                         /* another task got there first */
+        return; /* another task got there first */
     atomic_fetch_sub(&cga_stops_armed, 1);
     /* To this task, not the process: a process-directed SIGSTOP wakes one
        task (the main one, if it can take it) to start the group stop, and
