@@ -27,7 +27,7 @@ import sys
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, fmt_ratio, ms, ratio, stats
-from .goals import goal_at_least_ratio
+from .goals import Goal, goal_at_least_ratio
 from .loads import timed_load, timed_unload
 from .modes import PROCESS_PER_NODE, label
 from .results import Result, Table, summary_row
@@ -72,15 +72,8 @@ def measure_full(session: Session, n: int) -> dict:
     return data
 
 
-def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
-    params = {"n": n, "n_raw": n_raw, "out": str(out)}
-    session = Session(NAME, keep_logs=keep_logs)
-    try:
-        raw = session.core_worker("spawn", n_raw)
-        full = measure_full(session, n)
-    finally:
-        problems = session.close()
-
+def _raw_table(raw: dict, full: dict, n_raw: int) -> Table:
+    """Raw spawn → running Python, each ÷ the clone child's median."""
     clone = stats(ms(raw["clone_first_line"]))
     raw_rows = [
         ("clone3(CLONE_VM) child: CloneCore.spawn() called → the target's first line", clone),
@@ -117,10 +110,18 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
             fmt_ms(st["max"]),
             fmt_ratio(ratio(st["median"], clone["median"])),
         )
+    return t_raw
 
+
+def _mode_stats(full: dict) -> dict:
+    return {mode: stats(ms(full[mode]["loaded"])) for mode in CONTAINER_MODES}
+
+
+def _full_table(full: dict, n: int) -> Table:
+    """Full start of a node → ready: each mode, and the process per node step by step."""
     ppn = full[PROCESS_PER_NODE]
     ppn_ready = stats(ms(ppn["ready"]))
-    mode_stats = {mode: stats(ms(full[mode]["loaded"])) for mode in CONTAINER_MODES}
+    mode_stats = _mode_stats(full)
     t_full = Table(
         f"Full start of a node → ready (ms; n={n} interleaved rounds, the cold round 0 apart)",
         ["measure", "n", "median", "p90", "cold (round 0)", "process-per-node ÷ this (medians)"],
@@ -151,7 +152,14 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
     ):
         st = stats(ms(ppn[key]))
         t_full.add(f"  of which: {what}", st["n"], fmt_ms(st["median"]), fmt_ms(st["p90"]), "", "")
+    return t_full
 
+
+def _judge(raw: dict, full: dict) -> tuple[list[Goal], dict[str, float | None]]:
+    """The goals (clone ≥ 100× faster than fork+exec), and the ratios the summary shows."""
+    clone = stats(ms(raw["clone_first_line"]))
+    ppn_ready = stats(ms(full[PROCESS_PER_NODE]["ready"]))
+    mode_stats = _mode_stats(full)
     r_raw = ratio(stats(ms(raw["forkexec_site"]))["median"], clone["median"])
     r_raw_strict = ratio(stats(ms(raw["forkexec_nosite"]))["median"], clone["median"])
     r_pernode = ratio(ppn_ready["median"], mode_stats["isolated-per-node"]["median"])
@@ -182,6 +190,14 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
             GOAL_RATIO,
         ),
     ]
+    return goals, {"raw": r_raw, "isolated-per-node": r_pernode, "isolated-shared": r_shared}
+
+
+def _summary(raw: dict, full: dict, goals: list[Goal], ratios: dict[str, float | None]) -> list[dict]:
+    clone = stats(ms(raw["clone_first_line"]))
+    ppn_ready = stats(ms(full[PROCESS_PER_NODE]["ready"]))
+    mode_stats = _mode_stats(full)
+    r_raw, r_pernode, r_shared = ratios["raw"], ratios["isolated-per-node"], ratios["isolated-shared"]
     med = lambda st: f"{fmt_ms(st['median'])} ms"  # noqa: E731
     fe = stats(ms(raw["forkexec_site"]))
     summary = [
@@ -212,34 +228,49 @@ def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = Fal
         )
     st = mode_stats["thread"]
     summary.append(summary_row("child start", "full: LoadNode → LOADED (reference)", label("thread"), st))
-    notes = [
-        "Raw figures come from one worker process (python -m cloneguard.bench._core_worker spawn) that imports "
-        "rclpy first (a container-sized heap) and holds a CloneCore; each round does one clone child, "
-        "one fork+exec with site, one without, one os.fork. Stamps are CLOCK_MONOTONIC: taken just before "
-        "the call, and by the new process/child as its first Python statement (written to shared memory "
-        "by the clone child, to a pipe by the others).",
-        "The C monitor thread does the clone3 and hands the pid back to spawn(), which, in the medians "
-        "here, returns after the child has already run its first line. The goal is judged on the "
-        "interleaved clone figure (a spawn after other work, as a LoadNode is); back-to-back spawns are "
-        "faster (warm caches, monitor thread awake) and shown for reference.",
-        "fork+exec uses subprocess.Popen (vfork+exec in CPython 3.11), the same way the process-per-node "
-        "runner is launched. The venv interpreter needs site to find rclpy, so `python -c` with site is "
-        "what a process-per-node launcher pays; `-I -S` is the strict lower bound of any exec of CPython.",
-        "The full comparison is not like for like: the container's figure includes a DDS service round "
-        "trip and the LOADED event (see load_latency), the runner's ready line is a local pipe. The runner "
-        "finds the class the way the container does (container.registry, the cloneguard.components entry "
-        "points) and builds it on its own rclpy Context, as the per-node profile does in its child.",
-        "Every load is of cloneguard::Heartbeat and is unloaded (or the runner stopped) before the next.",
-    ]
+    return summary
+
+
+NOTES = [
+    "Raw figures come from one worker process (python -m cloneguard.bench._core_worker spawn) that imports "
+    "rclpy first (a container-sized heap) and holds a CloneCore; each round does one clone child, "
+    "one fork+exec with site, one without, one os.fork. Stamps are CLOCK_MONOTONIC: taken just before "
+    "the call, and by the new process/child as its first Python statement (written to shared memory "
+    "by the clone child, to a pipe by the others).",
+    "The C monitor thread does the clone3 and hands the pid back to spawn(), which, in the medians "
+    "here, returns after the child has already run its first line. The goal is judged on the "
+    "interleaved clone figure (a spawn after other work, as a LoadNode is); back-to-back spawns are "
+    "faster (warm caches, monitor thread awake) and shown for reference.",
+    "fork+exec uses subprocess.Popen (vfork+exec in CPython 3.11), the same way the process-per-node "
+    "runner is launched. The venv interpreter needs site to find rclpy, so `python -c` with site is "
+    "what a process-per-node launcher pays; `-I -S` is the strict lower bound of any exec of CPython.",
+    "The full comparison is not like for like: the container's figure includes a DDS service round "
+    "trip and the LOADED event (see load_latency), the runner's ready line is a local pipe. The runner "
+    "finds the class the way the container does (container.registry, the cloneguard.components entry "
+    "points) and builds it on its own rclpy Context, as the per-node profile does in its child.",
+    "Every load is of cloneguard::Heartbeat and is unloaded (or the runner stopped) before the next.",
+]
+
+
+def run(*, n: int = 20, n_raw: int = 100, out=DEFAULT_OUT, keep_logs: bool = False, quiet: bool = False) -> Result:
+    params = {"n": n, "n_raw": n_raw, "out": str(out)}
+    session = Session(NAME, keep_logs=keep_logs)
+    try:
+        raw = session.core_worker("spawn", n_raw)
+        full = measure_full(session, n)
+    finally:
+        problems = session.close()
+
+    goals, ratios = _judge(raw, full)
     result = Result(
         NAME,
         TITLE,
         command_line(NAME, {"n": n, "n_raw": n_raw}),
         params,
-        [t_raw, t_full],
+        [_raw_table(raw, full, n_raw), _full_table(full, n)],
         goals,
-        notes,
-        summary,
+        list(NOTES),
+        _summary(raw, full, goals, ratios),
         {"raw_ns": raw, "full_ns": full},
         problems,
     )

@@ -193,8 +193,16 @@ def measure(
                     d["wrong_signal"] += 1
     for r in running.values():
         session.stop(r)
+    _add_log_stamps(done)
+    return {"trials": data, "stuck": stuck}
+
+
+def _add_log_stamps(done: list[tuple]) -> None:
+    """Where the time went, from the containers' own log stamps: each crash's
+    'left in memory' and 'died' lines, into its data's leak_logged and
+    died_logged (done: (container process, its trial, the data it goes to))."""
     logs = {}
-    for proc, r, d in done:  # where the time went, from the containers' own log stamps
+    for proc, r, d in done:
         if proc.pid not in logs:
             logs[proc.pid] = log_stamps(proc.log_text())
         stamps = logs[proc.pid]
@@ -202,40 +210,11 @@ def measure(
             t = stamps.get((key, r["unique_id"]))
             if t is not None:
                 d[into].append(t - r["kill_wall_ns"])
-    return {"trials": data, "stuck": stuck}
 
 
-def run(
-    *,
-    n: int = 100,
-    n_monitor: int = 50,
-    settle: float = 0.05,
-    recycle: int = 25,
-    others: int = 0,
-    profiles: list[str] = PROFILES,
-    signals: list[str] = SIGNALS,
-    out=DEFAULT_OUT,
-    keep_logs: bool = False,
-    quiet: bool = False,
-) -> Result:
-    params = {
-        "n": n,
-        "n_monitor": n_monitor,
-        "settle": settle,
-        "recycle": recycle,
-        "others": others,
-        "profiles": list(profiles),
-        "signals": list(signals),
-        "out": str(out),
-    }
-    session = Session(NAME, keep_logs=keep_logs)
-    try:
-        measured = measure(session, list(profiles), list(signals), n, settle, recycle, others)
-        data, stuck = measured["trials"], measured["stuck"]
-        monitor = session.core_worker("kill", n_monitor) if n_monitor > 0 else {}
-    finally:
-        problems = session.close()
-
+def _latency_table(data: dict, profiles: list[str], signals: list[str], n: int, others: int):
+    """The first table (kill → CRASHED per profile and signal), its goals
+    and summary rows."""
     table = Table(
         f"Container: os.kill() of a node's process → CRASHED (ms; n={n} per row, interleaved"
         + (f"; {others} other idle nodes in each container)" if others else ")"),
@@ -283,6 +262,11 @@ def run(
                     verdict=g.verdict,
                 )
             )
+    return table, goals, summary
+
+
+def _steps_table(data: dict, profiles: list[str], signals: list[str]) -> Table:
+    """The container's own stamps of a death: CRASHED and its log lines."""
     steps = Table(
         "On the container's side: its CRASHED stamp and the rcutils stamps of the log lines it "
         "writes about the death (ms from os.kill(); medians)",
@@ -300,53 +284,67 @@ def run(
             d = data[p][s]
             leak, died, st = stats(ms(d["leak_logged"])), stats(ms(d["died_logged"])), stats(ms(d["stamp"]))
             steps.add(label(p), s, st["n"], fmt_ms(st["median"]), fmt_ms(died["median"]), fmt_ms(leak["median"]))
-    tables = [table, steps]
-    if monitor:
-        mt = Table(
-            f"Standalone CloneCore (worker process): os.kill() of an idle child → (ms; n={n_monitor})",
-            [
-                "signal",
-                "n",
-                "monitor detected: median",
-                "detected: p90",
-                "detected: max",
-                "on_event called: median",
-                "on_event: p90",
-            ],
+    return steps
+
+
+def _monitor_table(monitor: dict, n_monitor: int, summary: list[dict]) -> Table:
+    """The standalone core's table (its summary rows appended to summary)."""
+    mt = Table(
+        f"Standalone CloneCore (worker process): os.kill() of an idle child → (ms; n={n_monitor})",
+        [
+            "signal",
+            "n",
+            "monitor detected: median",
+            "detected: p90",
+            "detected: max",
+            "on_event called: median",
+            "on_event: p90",
+        ],
+    )
+    for s in ("SIGKILL", "SIGSEGV"):
+        det, ev = stats(ms(monitor[f"{s}_monitor"])), stats(ms(monitor[f"{s}_on_event"]))
+        mt.add(
+            s,
+            det["n"],
+            fmt_ms(det["median"]),
+            fmt_ms(det["p90"]),
+            fmt_ms(det["max"]),
+            fmt_ms(ev["median"]),
+            fmt_ms(ev["p90"]),
         )
-        for s in ("SIGKILL", "SIGSEGV"):
-            det, ev = stats(ms(monitor[f"{s}_monitor"])), stats(ms(monitor[f"{s}_on_event"]))
-            mt.add(
-                s,
-                det["n"],
-                fmt_ms(det["median"]),
-                fmt_ms(det["p90"]),
-                fmt_ms(det["max"]),
-                fmt_ms(ev["median"]),
-                fmt_ms(ev["p90"]),
+        summary.append(
+            summary_row(
+                "crash latency",
+                f"outside {s} → monitor detected (standalone core)",
+                "CloneCore",
+                det,
+                goal="(reference)",
             )
-            summary.append(
-                summary_row(
-                    "crash latency",
-                    f"outside {s} → monitor detected (standalone core)",
-                    "CloneCore",
-                    det,
-                    goal="(reference)",
-                )
-            )
-        tables.append(mt)
-    gap = ""
-    if monitor and "SIGKILL" in signals:
-        on_event = stats(ms(monitor["SIGKILL_on_event"]))["median"]
-        stamped = [stats(ms(data[p]["SIGKILL"]["stamp"]))["median"] for p in profiles]
-        if on_event is not None and None not in stamped:
-            gap = (
-                f" For SIGKILL, a standalone core reaches on_event {fmt_ms(on_event)} ms after the kill; "
-                f"the container stamps CRASHED at {' / '.join(fmt_ms(t) for t in stamped)} ms "
-                f"({' / '.join(label(p).split(', ')[1] for p in profiles)}), so about "
-                f"{' / '.join(fmt_ms(t - on_event) for t in stamped)} ms go between the core's listener "
-                "and the publish."
-            )
+        )
+    return mt
+
+
+def _gap(data: dict, monitor: dict, profiles: list[str], signals: list[str]) -> str:
+    """Where the standalone core and the container part, for SIGKILL ("": not measured)."""
+    if not (monitor and "SIGKILL" in signals):
+        return ""
+    on_event = stats(ms(monitor["SIGKILL_on_event"]))["median"]
+    stamped = [stats(ms(data[p]["SIGKILL"]["stamp"]))["median"] for p in profiles]
+    if on_event is None or None in stamped:
+        return ""
+    return (
+        f" For SIGKILL, a standalone core reaches on_event {fmt_ms(on_event)} ms after the kill; "
+        f"the container stamps CRASHED at {' / '.join(fmt_ms(t) for t in stamped)} ms "
+        f"({' / '.join(label(p).split(', ')[1] for p in profiles)}), so about "
+        f"{' / '.join(fmt_ms(t - on_event) for t in stamped)} ms go between the core's listener "
+        "and the publish."
+    )
+
+
+def _notes(
+    data: dict, stuck: list, monitor: dict, profiles: list[str], signals: list[str], settle: float, recycle: int
+) -> list[str]:
+    gap = _gap(data, monitor, profiles, signals)
     lost = sum(data[p][s]["lost"] for p in profiles for s in signals)
     hung = sum(data[p][s]["hung_after"] for p in profiles for s in signals)
     wrong = sum(data[p][s]["wrong_signal"] for p in profiles for s in signals)
@@ -379,6 +377,44 @@ def run(
             + (f"; gdb: {k['diagnosis']}" if k.get("diagnosis") else "")
             + " (log tail and stacks in the JSON)."
         )
+    return notes
+
+
+def run(
+    *,
+    n: int = 100,
+    n_monitor: int = 50,
+    settle: float = 0.05,
+    recycle: int = 25,
+    others: int = 0,
+    profiles: list[str] = PROFILES,
+    signals: list[str] = SIGNALS,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
+    params = {
+        "n": n,
+        "n_monitor": n_monitor,
+        "settle": settle,
+        "recycle": recycle,
+        "others": others,
+        "profiles": list(profiles),
+        "signals": list(signals),
+        "out": str(out),
+    }
+    session = Session(NAME, keep_logs=keep_logs)
+    try:
+        measured = measure(session, list(profiles), list(signals), n, settle, recycle, others)
+        data, stuck = measured["trials"], measured["stuck"]
+        monitor = session.core_worker("kill", n_monitor) if n_monitor > 0 else {}
+    finally:
+        problems = session.close()
+
+    table, goals, summary = _latency_table(data, profiles, signals, n, others)
+    tables = [table, _steps_table(data, profiles, signals)]
+    if monitor:
+        tables.append(_monitor_table(monitor, n_monitor, summary))
     result = Result(
         NAME,
         TITLE,
@@ -386,7 +422,7 @@ def run(
         params,
         tables,
         goals,
-        notes,
+        _notes(data, stuck, monitor, profiles, signals, settle, recycle),
         summary,
         {"container_ns": data, "stuck": stuck, "monitor_ns": monitor},
         problems,

@@ -44,6 +44,7 @@ from __future__ import annotations
 import json
 import re
 import sys
+from dataclasses import dataclass, field
 
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.factory import log_tail
@@ -321,48 +322,58 @@ def size_ratio_goal(goal: str, measure: str, value: float | None, limit: float, 
     return goal_ratio_at_most(goal, measure, value, limit)
 
 
-def run(
-    *,
-    sizes: list | tuple = tuple(DEFAULT_SIZES),
-    transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS),
-    count: int = 100,
-    warmup: int = 5,
-    period: float = 0.02,
-    large_period: float = 0.1,
-    dds_large_period: float = 0.5,
-    dds_large_count: int = 20,
-    burst: int = 1000,
-    burst_bytes: int = 256 * MIB,
-    burst_seconds: float = 3.0,
-    settle: float = 0.5,
-    no_floor: bool = False,
-    out=DEFAULT_OUT,
-    keep_logs: bool = False,
-    quiet: bool = False,
-) -> Result:
-    sizes_b = [parse_size(s) for s in sizes]
-    p = {
-        "count": count,
-        "warmup": warmup,
-        "period": period,
-        "large_period": large_period,
-        "dds_large_period": dds_large_period,
-        "dds_large_count": dds_large_count,
-        "burst": burst,
-        "burst_bytes": burst_bytes,
-        "burst_seconds": burst_seconds,
-        "settle": settle,
-    }
-    args = {"sizes": [str(s) for s in sizes], "transports": list(transports), **p, "no_floor": no_floor}
-    session = Session(NAME, keep_logs=keep_logs)
-    try:
-        data = measure(session, sizes_b, list(transports), p, floor=not no_floor)
-    finally:
-        problems = session.close()
-    fig = {key: summarize_floor(d) if key == "floor" else summarize(d) for key, d in data.items()}
-    floor = fig.get("floor")
-    floor_med = floor["latency"]["median"] if floor and not data["floor"]["error"] else None
+@dataclass
+class _Figures:
+    """One run's measurements (data, per (size, transport) and "floor") and
+    their figures (fig, the same keys), as the tables, goals and summary
+    read them."""
 
+    data: dict
+    fig: dict
+    sizes: list[int]
+    transports: list[str] | tuple[str, ...]
+
+    @property
+    def floor(self) -> dict | None:
+        return self.fig.get("floor")
+
+    @property
+    def floor_med(self) -> float | None:
+        floor = self.floor
+        return floor["latency"]["median"] if floor and not self.data["floor"]["error"] else None
+
+    @property
+    def small(self) -> int:
+        return min(self.sizes)
+
+    @property
+    def large(self) -> int:
+        return max(self.sizes)
+
+    @property
+    def intra_ts(self) -> list[str]:
+        return [t for t in self.transports if TRANSPORTS[t][1]]
+
+    def med(self, size: int, t: str) -> float | None:
+        if (size, t) not in self.fig or self.data[(size, t)]["error"]:
+            return None
+        return self.fig[(size, t)]["latency"]["median"]
+
+
+@dataclass
+class _Goals:
+    """The goals judged, and the ratios table that shows them, with each
+    goal by what it judges (for the summary's rows)."""
+
+    ratios: Table
+    goals: list[Goal] = field(default_factory=list)
+    size_goal: dict[str, Goal] = field(default_factory=dict)
+    floor_goal: dict[tuple[int, str], Goal] = field(default_factory=dict)
+    dds_goal: dict[str, Goal] = field(default_factory=dict)
+
+
+def _pairs_table(f: _Figures, period: float) -> Table:
+    """The first table: the floor's row, then a row per size and transport."""
     table = Table(
         "Per size and transport (one isolated per-node container; latency in ms)",
         [
@@ -385,10 +396,11 @@ def run(
             "sent over DDS (source)",
         ],
     )
+    floor = f.floor
     if floor is not None:
         lat = floor["latency"]
-        if data["floor"]["error"]:
-            table.add("–", FLOOR_LABEL, lat["n"], "failed: " + data["floor"]["error"], *["–"] * 13)
+        if f.data["floor"]["error"]:
+            table.add("–", FLOOR_LABEL, lat["n"], "failed: " + f.data["floor"]["error"], *["–"] * 13)
         else:
             table.add(
                 "–",
@@ -409,49 +421,56 @@ def run(
                 "–",
                 "–",
             )
-    for size in sizes_b:
-        for t in transports:
-            d, f = data[(size, t)], fig[(size, t)]
-            lat = f["latency"]
-            if d["error"]:
-                table.add(size_name(size), TRANSPORTS[t][0], lat["n"], "failed: " + d["error"], *["–"] * 13)
-                continue
-            table.add(
-                size_name(size),
-                TRANSPORTS[t][0],
-                lat["n"],
-                fmt_ms(lat["median"]),
-                fmt_ms(lat["p90"]),
-                fmt_ms(lat["max"]),
-                fmt_ms(d["plan"]["period"] * 1e3),
-                f["over_period"],
-                f"{f['burst_received']} / {f['burst_sent']}",
-                _fmt(f["msgs_s"]),
-                _fmt(f["mib_s"]),
-                _fmt(f["published_msgs_s"]),
-                _fmt(f["lost"], "d"),
-                "–" if f["dropped"] is None else f["dropped"],
-                fmt_ms(f["publish"]["median"]),
-                fmt_ms(f["build"]["median"]),
-                _fmt(f["sent_dds"], "d"),
-            )
+    for size in f.sizes:
+        for t in f.transports:
+            _add_pair_row(table, size, t, f.data[(size, t)], f.fig[(size, t)])
+    return table
 
-    small, large = min(sizes_b), max(sizes_b)
-    judged = small == GOAL_SMALL and large == GOAL_LARGE
-    intra_ts = [t for t in transports if TRANSPORTS[t][1]]
 
-    def med(size, t):
-        if (size, t) not in fig or data[(size, t)]["error"]:
-            return None
-        return fig[(size, t)]["latency"]["median"]
-
-    ratios = Table(
-        "Ratios (of medians, this run)", ["ratio", "numerator", "denominator", "measured", "goal", "verdict"]
+def _add_pair_row(table: Table, size: int, t: str, d: dict, f: dict) -> None:
+    lat = f["latency"]
+    if d["error"]:
+        table.add(size_name(size), TRANSPORTS[t][0], lat["n"], "failed: " + d["error"], *["–"] * 13)
+        return
+    table.add(
+        size_name(size),
+        TRANSPORTS[t][0],
+        lat["n"],
+        fmt_ms(lat["median"]),
+        fmt_ms(lat["p90"]),
+        fmt_ms(lat["max"]),
+        fmt_ms(d["plan"]["period"] * 1e3),
+        f["over_period"],
+        f"{f['burst_received']} / {f['burst_sent']}",
+        _fmt(f["msgs_s"]),
+        _fmt(f["mib_s"]),
+        _fmt(f["published_msgs_s"]),
+        _fmt(f["lost"], "d"),
+        "–" if f["dropped"] is None else f["dropped"],
+        fmt_ms(f["publish"]["median"]),
+        fmt_ms(f["build"]["median"]),
+        _fmt(f["sent_dds"], "d"),
     )
-    goals = []
-    size_goal = {}
-    for t in intra_ts:
-        r = ratio(med(large, t), med(small, t))
+
+
+def _judge(f: _Figures) -> _Goals:
+    """The goals (16 MiB vs 1 KiB, vs the floor, vs DDS) and their ratios table."""
+    out = _Goals(
+        Table("Ratios (of medians, this run)", ["ratio", "numerator", "denominator", "measured", "goal", "verdict"])
+    )
+    _judge_size(f, out)
+    if f.floor is not None:
+        _judge_floor(f, out)
+    if "dds" in f.transports:
+        _judge_dds(f, out)
+    return out
+
+
+def _judge_size(f: _Figures, out: _Goals) -> None:
+    small, large = f.small, f.large
+    judged = small == GOAL_SMALL and large == GOAL_LARGE
+    for t in f.intra_ts:
+        r = ratio(f.med(large, t), f.med(small, t))
         g = size_ratio_goal(
             f"{size_name(GOAL_LARGE)} median ≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the {size_name(GOAL_SMALL)} median",
             f"{TRANSPORTS[t][0]}: latency {size_name(large)} ÷ {size_name(small)}",
@@ -459,97 +478,110 @@ def run(
             LATENCY_GOAL_RATIO,
             judged,
         )
-        goals.append(g)
-        size_goal[t] = g
-        ratios.add(
+        out.goals.append(g)
+        out.size_goal[t] = g
+        out.ratios.add(
             f"{TRANSPORTS[t][0]}: {size_name(large)} ÷ {size_name(small)} latency",
-            f"{fmt_ms(med(large, t))} ms",
-            f"{fmt_ms(med(small, t))} ms",
+            f"{fmt_ms(f.med(large, t))} ms",
+            f"{fmt_ms(f.med(small, t))} ms",
             fmt_ratio(r),
             f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)}",
             g.verdict,
         )
-    floor_goal = {}
-    if floor is not None:
-        for t in intra_ts:
-            for size in sizes_b:
-                r = ratio(med(size, t), floor_med)
-                judged_here = size in (GOAL_SMALL, GOAL_LARGE)
-                if r is None:
-                    verdict = "not measured"
-                elif not judged_here:
-                    verdict = f"(reference: the goal is at {size_name(GOAL_SMALL)} and {size_name(GOAL_LARGE)})"
-                else:
-                    verdict = ratio_verdict(r, FLOOR_GOAL_RATIO)
-                ratios.add(
-                    f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ the floor, latency",
-                    f"{fmt_ms(med(size, t))} ms",
-                    f"{fmt_ms(floor_med)} ms",
+
+
+def _judge_floor(f: _Figures, out: _Goals) -> None:
+    floor_med = f.floor_med
+    for t in f.intra_ts:
+        for size in f.sizes:
+            r = ratio(f.med(size, t), floor_med)
+            judged_here = size in (GOAL_SMALL, GOAL_LARGE)
+            if r is None:
+                verdict = "not measured"
+            elif not judged_here:
+                verdict = f"(reference: the goal is at {size_name(GOAL_SMALL)} and {size_name(GOAL_LARGE)})"
+            else:
+                verdict = ratio_verdict(r, FLOOR_GOAL_RATIO)
+            out.ratios.add(
+                f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ the floor, latency",
+                f"{fmt_ms(f.med(size, t))} ms",
+                f"{fmt_ms(floor_med)} ms",
+                fmt_ratio(r),
+                f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)}",
+                verdict,
+            )
+            if judged_here:
+                g = Goal(
+                    f"intra median ≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor's at {size_name(size)}",
+                    f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ floor (latency medians)",
                     fmt_ratio(r),
-                    f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)}",
+                    None if r is None else r <= FLOOR_GOAL_RATIO,
                     verdict,
                 )
-                if judged_here:
-                    g = Goal(
-                        f"intra median ≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor's at {size_name(size)}",
-                        f"{TRANSPORTS[t][0]} at {size_name(size)} ÷ floor (latency medians)",
-                        fmt_ratio(r),
-                        None if r is None else r <= FLOOR_GOAL_RATIO,
-                        verdict,
-                    )
-                    goals.append(g)
-                    floor_goal[(size, t)] = g
-    dds_goal = {}
-    if "dds" in transports:
-        for t in intra_ts:
-            r = ratio(med(large, "dds"), med(large, t))
-            if r is None:
-                g = Goal(
-                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
-                    "–",
-                    None,
-                    "not measured",
-                )
-            elif large != GOAL_LARGE:
-                g = Goal(
-                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
-                    fmt_ratio(r),
-                    None,
-                    f"not judged (the goal is at {size_name(GOAL_LARGE)})",
-                )
-            else:
-                g = goal_at_least_ratio(
-                    f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
-                    f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)",
-                    r,
-                    DDS_GOAL_RATIO,
-                )
-                if g.met:
-                    g.verdict = f"met ({fmt_ratio(r)})"
-            goals.append(g)
-            dds_goal[t] = g
-            ratios.add(
-                f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}, latency",
-                f"{fmt_ms(med(large, 'dds'))} ms",
-                f"{fmt_ms(med(large, t))} ms",
-                fmt_ratio(r),
-                f"≥ {fmt_ratio(DDS_GOAL_RATIO)}",
-                g.verdict,
-            )
-        for t in intra_ts:
-            a, b = fig.get((large, t), {}).get("mib_s"), fig.get((large, "dds"), {}).get("mib_s")
-            ratios.add(
-                f"{TRANSPORTS[t][0]} ÷ DDS at {size_name(large)}, burst throughput",
-                f"{_fmt(a)} MiB/s",
-                f"{_fmt(b)} MiB/s",
-                fmt_ratio(ratio(a, b)),
-                "(reference)",
-                "",
-            )
+                out.goals.append(g)
+                out.floor_goal[(size, t)] = g
 
+
+def _dds_goal(t: str, large: int, r: float | None) -> Goal:
+    if r is None:
+        return Goal(
+            f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+            f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
+            "–",
+            None,
+            "not measured",
+        )
+    if large != GOAL_LARGE:
+        return Goal(
+            f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+            f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}",
+            fmt_ratio(r),
+            None,
+            f"not judged (the goal is at {size_name(GOAL_LARGE)})",
+        )
+    g = goal_at_least_ratio(
+        f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster than DDS at {size_name(GOAL_LARGE)}",
+        f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)} (latency medians)",
+        r,
+        DDS_GOAL_RATIO,
+    )
+    if g.met:
+        g.verdict = f"met ({fmt_ratio(r)})"
+    return g
+
+
+def _judge_dds(f: _Figures, out: _Goals) -> None:
+    large = f.large
+    for t in f.intra_ts:
+        r = ratio(f.med(large, "dds"), f.med(large, t))
+        g = _dds_goal(t, large, r)
+        out.goals.append(g)
+        out.dds_goal[t] = g
+        out.ratios.add(
+            f"DDS ÷ {TRANSPORTS[t][0]} at {size_name(large)}, latency",
+            f"{fmt_ms(f.med(large, 'dds'))} ms",
+            f"{fmt_ms(f.med(large, t))} ms",
+            fmt_ratio(r),
+            f"≥ {fmt_ratio(DDS_GOAL_RATIO)}",
+            g.verdict,
+        )
+    for t in f.intra_ts:
+        a, b = f.fig.get((large, t), {}).get("mib_s"), f.fig.get((large, "dds"), {}).get("mib_s")
+        out.ratios.add(
+            f"{TRANSPORTS[t][0]} ÷ DDS at {size_name(large)}, burst throughput",
+            f"{_fmt(a)} MiB/s",
+            f"{_fmt(b)} MiB/s",
+            fmt_ratio(ratio(a, b)),
+            "(reference)",
+            "",
+        )
+
+
+def _summary(f: _Figures, judged: _Goals) -> list[dict]:
+    """summary.md's rows: the floor, each transport's latency at the
+    smallest and largest size, and its burst throughput at the largest."""
     summary = []
+    floor = f.floor
     if floor is not None:
         summary.append(
             summary_row(
@@ -557,50 +589,65 @@ def run(
                 "floor: guard-condition trigger → callback (another child)",
                 "isolated per-node, rclpy only (reference)",
                 floor["latency"],
-                verdict=("failed: " + data["floor"]["error"]) if data["floor"]["error"] else "",
+                verdict=("failed: " + f.data["floor"]["error"]) if f.data["floor"]["error"] else "",
             )
         )
-    for t in transports:
+    small, large = f.small, f.large
+    for t in f.transports:
         for size in sorted({small, large}):
-            f = fig[(size, t)]
-            goal, verdict = "", ""
-            if size == large and t in size_goal:
-                goal = f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the {size_name(small)} median"
-                verdict = size_goal[t].verdict
-            if size == large and t == "dds" and dds_goal:
-                goal = f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster"
-                verdict = "; ".join(
-                    f"{'loan' if TRANSPORTS[i][3] else 'plain'}: {g.verdict}" for i, g in dds_goal.items()
-                )
-            if (size, t) in floor_goal:
-                goal = "; ".join(x for x in (goal, f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor") if x)
-                verdict = "; ".join(x for x in (verdict, f"floor: {floor_goal[(size, t)].verdict}") if x)
-            if data[(size, t)]["error"]:
-                verdict = "failed: " + data[(size, t)]["error"]
+            goal, verdict = _summary_goal(f, judged, size, t)
             summary.append(
                 summary_row(
                     "intra-process",
                     f"publish → callback latency, {size_name(size)}",
                     f"isolated per-node, {TRANSPORTS[t][0]}",
-                    f["latency"],
+                    f.fig[(size, t)]["latency"],
                     goal=goal,
                     verdict=verdict,
                 )
             )
-        f = fig[(large, t)]
+        fl = f.fig[(large, t)]
         summary.append(
             summary_row(
                 "intra-process",
                 f"burst throughput, {size_name(large)}",
                 f"isolated per-node, {TRANSPORTS[t][0]}",
-                {"n": f["burst_received"]},
-                median=f"{_fmt(f['msgs_s'])} msgs/s = {_fmt(f['mib_s'])} MiB/s",
+                {"n": fl["burst_received"]},
+                median=f"{_fmt(fl['msgs_s'])} msgs/s = {_fmt(fl['mib_s'])} MiB/s",
                 p90="",
             )
         )
+    return summary
 
-    dds_large = [size_name(s) for s in sizes_b if s > LARGE]
-    notes = [
+
+def _summary_goal(f: _Figures, judged: _Goals, size: int, t: str) -> tuple[str, str]:
+    """The goal and verdict of one latency row of the summary."""
+    small, large = f.small, f.large
+    goal, verdict = "", ""
+    if size == large and t in judged.size_goal:
+        goal = f"≤ {fmt_ratio(LATENCY_GOAL_RATIO)} the {size_name(small)} median"
+        verdict = judged.size_goal[t].verdict
+    if size == large and t == "dds" and judged.dds_goal:
+        goal = f"intra ≥ {fmt_ratio(DDS_GOAL_RATIO)} faster"
+        verdict = "; ".join(
+            f"{'loan' if TRANSPORTS[i][3] else 'plain'}: {g.verdict}" for i, g in judged.dds_goal.items()
+        )
+    if (size, t) in judged.floor_goal:
+        goal = "; ".join(x for x in (goal, f"≤ {fmt_ratio(FLOOR_GOAL_RATIO)} the floor") if x)
+        verdict = "; ".join(x for x in (verdict, f"floor: {judged.floor_goal[(size, t)].verdict}") if x)
+    if f.data[(size, t)]["error"]:
+        verdict = "failed: " + f.data[(size, t)]["error"]
+    return goal, verdict
+
+
+def _notes(f: _Figures, p: dict) -> list[str]:
+    """How it was measured (p: run()'s parameters)."""
+    count, warmup, period, settle = p["count"], p["warmup"], p["period"], p["settle"]
+    large_period, dds_large_period, dds_large_count = p["large_period"], p["dds_large_period"], p["dds_large_count"]
+    burst, burst_bytes, burst_seconds = p["burst"], p["burst_bytes"], p["burst_seconds"]
+    floor, floor_med, transports = f.floor, f.floor_med, f.transports
+    dds_large = [size_name(s) for s in f.sizes if s > LARGE]
+    return [
         *(
             [
                 f"The floor (first row): a bench::FloorWaiter and a bench::FloorTrigger loaded into the same "
@@ -662,15 +709,69 @@ def run(
         "'sent over DDS (source)' is the intra publisher's own DDS publish count: 0 means intra-process "
         "delivery never touched DDS (no subscriber outside the container).",
     ]
+
+
+def _raise_if_failed(data: dict) -> None:
+    """The report is written (with the failures in it); the run still failed."""
+    failed = [
+        ("floor" if key == "floor" else f"{size_name(key[0])} {key[1]}") + f": {d['error']}"
+        for key, d in data.items()
+        if d["error"]
+    ]
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {len(data)} pairs failed: " + "; ".join(failed))
+
+
+def run(
+    *,
+    sizes: list | tuple = tuple(DEFAULT_SIZES),
+    transports: list[str] | tuple[str, ...] = tuple(TRANSPORTS),
+    count: int = 100,
+    warmup: int = 5,
+    period: float = 0.02,
+    large_period: float = 0.1,
+    dds_large_period: float = 0.5,
+    dds_large_count: int = 20,
+    burst: int = 1000,
+    burst_bytes: int = 256 * MIB,
+    burst_seconds: float = 3.0,
+    settle: float = 0.5,
+    no_floor: bool = False,
+    out=DEFAULT_OUT,
+    keep_logs: bool = False,
+    quiet: bool = False,
+) -> Result:
+    sizes_b = [parse_size(s) for s in sizes]
+    p = {
+        "count": count,
+        "warmup": warmup,
+        "period": period,
+        "large_period": large_period,
+        "dds_large_period": dds_large_period,
+        "dds_large_count": dds_large_count,
+        "burst": burst,
+        "burst_bytes": burst_bytes,
+        "burst_seconds": burst_seconds,
+        "settle": settle,
+    }
+    args = {"sizes": [str(s) for s in sizes], "transports": list(transports), **p, "no_floor": no_floor}
+    session = Session(NAME, keep_logs=keep_logs)
+    try:
+        data = measure(session, sizes_b, list(transports), p, floor=not no_floor)
+    finally:
+        problems = session.close()
+    fig = {key: summarize_floor(d) if key == "floor" else summarize(d) for key, d in data.items()}
+    f = _Figures(data, fig, sizes_b, transports)
+    judged = _judge(f)
     result = Result(
         NAME,
         TITLE,
         command_line(NAME, args),
         {**args, "out": str(out)},
-        [table, ratios],
-        goals,
-        notes,
-        summary,
+        [_pairs_table(f, period), judged.ratios],
+        judged.goals,
+        _notes(f, p),
+        _summary(f, judged),
         {
             "pairs": [
                 {"size": key[0], "transport": key[1], **d, "figures": fig[key]}
@@ -682,13 +783,7 @@ def run(
         problems,
     )
     finish(result, out, quiet=quiet)
-    failed = [
-        ("floor" if key == "floor" else f"{size_name(key[0])} {key[1]}") + f": {d['error']}"
-        for key, d in data.items()
-        if d["error"]
-    ]
-    if failed:  # the report is written (with the failures in it); the run still failed
-        raise RuntimeError(f"{len(failed)} of {len(data)} pairs failed: " + "; ".join(failed))
+    _raise_if_failed(data)
     return result
 
 

@@ -159,6 +159,18 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         allow_abbrev=False,  # an isolated-only flag must be seen for what it is
         description="ROS 2 component container (rclpy) with optional per-node clone(CLONE_VM) process isolation.",
     )
+    _add_options(parser)
+    isolated = _IsolatedOptions(parser)
+    _add_isolated_options(isolated)
+    opts = parser.parse_args(argv)
+    given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
+    _check_isolated(parser, opts, given, isolated.flags)
+    _check_combinations(parser, opts, given)
+    return opts
+
+
+def _add_options(parser: argparse.ArgumentParser) -> None:
+    """The options of every mode."""
     parser.add_argument(
         "--use_multi_threaded_executor",
         "--use-multi-threaded-executor",
@@ -191,7 +203,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="exit with every thread's stack (status 1) if stopping takes longer than SECONDS "
         "(default: the --watchdog timeout; 0: no bound)",
     )
-    isolated = _IsolatedOptions(parser)
+
+
+def _add_isolated_options(isolated: _IsolatedOptions) -> None:
+    """The options that need --isolated."""
     isolated.add_argument(
         "--profile",
         choices=profiles.PROFILES,
@@ -317,15 +332,24 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     for flag, what in MITIGATION_SWITCHES.items():
         isolated.add_argument(flag, action="store_true", help=what)
-    opts = parser.parse_args(argv)
-    given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
+
+
+def _check_isolated(
+    parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str], isolated_flags: set[str]
+) -> None:
+    """Isolated-only options refused without --isolated; the node announcement's
+    period, which depends on the mode and profile."""
     if not opts.isolated:
-        for flag in sorted(isolated.flags & given):
+        for flag in sorted(isolated_flags & given):
             parser.error(f"{flag} needs --isolated")
     if opts.node_announcement is not None and opts.profile != "per-node":
         parser.error("--node-announcement needs the per-node profile (the participants of node processes)")
     if opts.node_announcement is None:
         opts.node_announcement = NODE_ANNOUNCEMENT_S if opts.isolated and opts.profile == "per-node" else 0.0
+
+
+def _check_combinations(parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str]) -> None:
+    """Combinations refused: an option that needs another, or one its other contradicts."""
     if opts.node_memory_limit and opts.no_alloc_guard:
         parser.error(
             "--node-memory-limit needs the allocator guard, which counts each node's memory: not --no-alloc-guard"
@@ -358,7 +382,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
             "--shared-arenas needs glibc malloc and --no-alloc-guard (the allocator guard "
             "gives every node process an arena of its own)"
         )
-    return opts
 
 
 def _ros_init(argv: list[str]) -> None:

@@ -679,31 +679,62 @@ def _probe_interp(ck: _Checker, ffi, lib) -> None:
     )
 
 
-def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
-    def u64(addr: int) -> int:
-        return int(ffi.cast("uint64_t *", addr)[0])
+class _Memory:
+    """Reads of the calling thread's memory and glibc's symbols, through the core."""
 
-    def i64(addr: int) -> int:
-        return int(ffi.cast("int64_t *", addr)[0])
+    def __init__(self, ffi, lib) -> None:
+        self.ffi, self.lib = ffi, lib
 
-    def i32(addr: int) -> int:
-        return int(ffi.cast("int32_t *", addr)[0])
+    def u64(self, addr: int) -> int:
+        return int(self.ffi.cast("uint64_t *", addr)[0])
 
-    def sym(name: str, version: str | None) -> int:
-        p = lib.cg_lookup(name.encode(), version.encode() if version else ffi.NULL)
-        return int(ffi.cast("uintptr_t", p))
+    def i64(self, addr: int) -> int:
+        return int(self.ffi.cast("int64_t *", addr)[0])
 
-    def desc(name: str) -> tuple[int, int, int]:
+    def i32(self, addr: int) -> int:
+        return int(self.ffi.cast("int32_t *", addr)[0])
+
+    def u32(self, addr: int) -> int:
+        return int(self.ffi.cast("uint32_t *", addr)[0])
+
+    def sym(self, name: str, version: str | None) -> int:
+        p = self.lib.cg_lookup(name.encode(), version.encode() if version else self.ffi.NULL)
+        return int(self.ffi.cast("uintptr_t", p))
+
+    def desc(self, name: str) -> tuple[int, int, int]:
         """nptl_db descriptor: (bits per element, element count, offset)."""
-        a = sym(name, "GLIBC_PRIVATE")
+        a = self.sym(name, "GLIBC_PRIVATE")
         if not a:
             raise IsolationUnavailable(f"glibc symbol {name} not found")
-        p = ffi.cast("uint32_t *", a)
+        p = self.ffi.cast("uint32_t *", a)
         return int(p[0]), int(p[1]), int(p[2])
 
+
+@dataclass
+class _Thread:
+    """The calling thread, as the verification reads it: its thread pointer
+    (tp), the size of its struct pthread, what the kernel has as its robust
+    list head."""
+
+    ck: _Checker
+    mem: _Memory
+    tp: int
+    sizeof_pthread: int
+    head: int
+
+    def inside(self, name: str, off: int, width: int) -> bool:
+        """Bounds first: a wrong offset must fail, not read wild memory."""
+        if 0 <= off and off + width <= self.sizeof_pthread:
+            return True
+        self.ck.failed.append(f"offset {name}={off} lies outside struct pthread ({self.sizeof_pthread} bytes)")
+        return False
+
+
+def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
+    mem = _Memory(ffi, lib)
     for name in ("_dl_allocate_tls", "_dl_deallocate_tls"):
         ck.check(
-            sym(name, "GLIBC_PRIVATE") != 0,
+            mem.sym(name, "GLIBC_PRIVATE") != 0,
             f"{name}@GLIBC_PRIVATE found",
             f"glibc symbol {name}@GLIBC_PRIVATE not found",
         )
@@ -711,29 +742,50 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
     tp = int(lib.cg_thread_pointer())
     if not tp:
         raise IsolationUnavailable("arch_prctl(ARCH_GET_FS) gave no thread pointer")
-    size_addr = sym("_thread_db_sizeof_pthread", "GLIBC_PRIVATE")
+    size_addr = mem.sym("_thread_db_sizeof_pthread", "GLIBC_PRIVATE")
     if not size_addr:
         raise IsolationUnavailable("glibc symbol _thread_db_sizeof_pthread not found")
-    sizeof_pthread = int(ffi.cast("uint32_t *", size_addr)[0])
+    sizeof_pthread = mem.u32(size_addr)
     is_main = lib.cg_gettid() == os.getpid()
 
-    # --- discovery -------------------------------------------------------
+    head = int(lib.cg_robust_list_head())
+    L = _discover(ck, mem, tp, head, overrides)
+    t = _Thread(ck, mem, tp, sizeof_pthread, head)
+    _verify_tcbhead(t, L)
+    _verify_pthread(t, L)
+    _verify_rseq(t, L)
+    if t.inside("cleanup", L.cleanup, 8):
+        ck.check(
+            L.cleanup == L.robust_head + 24,
+            f"cleanup @{L.cleanup} == robust_head + 24",
+            f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})",
+        )
+        L = _probe_condwait(ck, ffi, lib, L, overrides)
+    _probe_gil(ck, ffi, lib)
+    _probe_interp(ck, ffi, lib)
+    _probe_py_stack(ck, ffi, lib)
+    _verify_resp(t, L, is_main)
+    return L
+
+
+def _discover(ck: _Checker, mem: _Memory, tp: int, head: int, overrides: dict) -> Layout:
+    """The offsets, from glibc's nptl_db descriptors and symbols (then overrides)."""
+    lib = mem.lib
     found: dict[str, Any] = dict(TCBHEAD)
-    bits, n, tid = desc("_thread_db_pthread_tid")
+    bits, n, tid = mem.desc("_thread_db_pthread_tid")
     ck.check(
         (bits, n) == (32, 1), "tid descriptor shape", f"_thread_db_pthread_tid describes {n}x{bits} bits, expected 1x32"
     )
     found["tid"] = tid
-    bits, n, lst = desc("_thread_db_pthread_list")
+    bits, n, lst = mem.desc("_thread_db_pthread_list")
     ck.check(
         (bits, n) == (128, 1),
         "list descriptor shape",
         f"_thread_db_pthread_list describes {n}x{bits} bits, expected 1x128",
     )
     found["list"] = lst
-    head = int(lib.cg_robust_list_head())
     found["robust_head"] = head - tp if head else -1
-    bits, n, spec = desc("_thread_db_pthread_specific")
+    bits, n, spec = mem.desc("_thread_db_pthread_specific")
     # glibc describes it as one 2048-bit field; either shape is 32 pointers.
     ck.check(
         bits * n == 64 * PTHREAD_KEY_2NDLEVEL_SIZE,
@@ -741,39 +793,34 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
         f"_thread_db_pthread_specific describes {n}x{bits} bits, expected 32 pointers",
     )
     found["specific"] = spec
-    kd = int(ffi.cast("uint32_t *", sym("_thread_db_sizeof_pthread_key_data", "GLIBC_PRIVATE"))[0])
+    kd = mem.u32(mem.sym("_thread_db_sizeof_pthread_key_data", "GLIBC_PRIVATE"))
     found["specific_1stblock"] = spec - PTHREAD_KEY_2NDLEVEL_SIZE * kd
-    rseq_off_addr = sym("__rseq_offset", "GLIBC_2.35")
-    rseq_size_addr = sym("__rseq_size", "GLIBC_2.35")
-    found["rseq_cpu_id"] = (i64(rseq_off_addr) + RSEQ_CPU_ID) if rseq_off_addr else -1
-    resp = sym("__resp", "GLIBC_PRIVATE")
+    rseq_off_addr = mem.sym("__rseq_offset", "GLIBC_2.35")
+    found["rseq_cpu_id"] = (mem.i64(rseq_off_addr) + RSEQ_CPU_ID) if rseq_off_addr else -1
+    resp = mem.sym("__resp", "GLIBC_PRIVATE")
     found["resp_tls"] = resp - tp if resp else 0
     found["robust_futex_offset"] = int(lib.cg_mutex_futex_offset())
-    bits, n, cancel = desc("_thread_db_pthread_cancelhandling")
+    bits, n, cancel = mem.desc("_thread_db_pthread_cancelhandling")
     found["cleanup"] = cancel - 16
-    found["cond_cleanup"] = 0  # filled in by the probe below
+    found["cond_cleanup"] = 0  # filled in by the probe (_probe_condwait)
     found.update(overrides)
-    L = Layout(**{f.name: found[f.name] for f in fields(Layout) if f.name in found})
+    return Layout(**{f.name: found[f.name] for f in fields(Layout) if f.name in found})
 
-    # --- verification against the calling thread --------------------------
-    def inside(name: str, off: int, width: int) -> bool:
-        """Bounds first: a wrong offset must fail, not read wild memory."""
-        if 0 <= off and off + width <= sizeof_pthread:
-            return True
-        ck.failed.append(f"offset {name}={off} lies outside struct pthread ({sizeof_pthread} bytes)")
-        return False
 
+def _verify_tcbhead(t: _Thread, L: Layout) -> None:
+    """tcbhead_t's fields, each against what it must hold."""
+    ck, mem, tp = t.ck, t.mem, t.tp
     for name in ("tcb", "self"):
         off = getattr(L, name)
-        if inside(name, off, 8):
-            v = u64(tp + off)
+        if t.inside(name, off, 8):
+            v = mem.u64(tp + off)
             ck.check(
                 v == tp,
                 f"tcbhead.{name} @{off:#x} == thread pointer",
                 f"offset {name}={off:#x} does not hold: TCB+{off:#x} has {v:#x}, the thread pointer is {tp:#x}",
             )
-    if inside("multiple_threads", L.multiple_threads, 4):
-        v = i32(tp + L.multiple_threads)
+    if t.inside("multiple_threads", L.multiple_threads, 4):
+        v = mem.i32(tp + L.multiple_threads)
         want = (1,) if _task_count() > 1 else (0, 1)
         ck.check(
             v in want,
@@ -782,27 +829,33 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
         )
     for name in ("stack_guard", "pointer_guard"):
         off = getattr(L, name)
-        if inside(name, off, 8):
-            ck.check(u64(tp + off) != 0, f"{name} @{off:#x} set", f"offset {name}={off:#x} does not hold: value is 0")
-    f1 = i32(tp + TCBHEAD_FEATURE_1)
+        if t.inside(name, off, 8):
+            ck.check(
+                mem.u64(tp + off) != 0, f"{name} @{off:#x} set", f"offset {name}={off:#x} does not hold: value is 0"
+            )
+    f1 = mem.i32(tp + TCBHEAD_FEATURE_1)
     ck.check(f1 == 0, "CET (tcbhead.feature_1) off", f"CET is active (tcbhead.feature_1={f1:#x}); not supported")
 
-    if inside("tid", L.tid, 4):
-        v, me = i32(tp + L.tid), int(lib.cg_gettid())
+
+def _verify_pthread(t: _Thread, L: Layout) -> None:
+    """struct pthread's tid, list, robust list head and specific blocks."""
+    ck, mem, tp, head = t.ck, t.mem, t.tp, t.head
+    if t.inside("tid", L.tid, 4):
+        v, me = mem.i32(tp + L.tid), int(mem.lib.cg_gettid())
         ck.check(
             v == me,
             f"tid @{L.tid} == gettid() ({me})",
             f"offset tid={L.tid} does not hold: TCB+{L.tid} has {v}, gettid() is {me}",
         )
-    if inside("list", L.list, 16):
-        nxt = u64(tp + L.list)
-        ok = nxt != 0 and u64(nxt + 8) == tp + L.list
+    if t.inside("list", L.list, 16):
+        nxt = mem.u64(tp + L.list)
+        ok = nxt != 0 and mem.u64(nxt + 8) == tp + L.list
         ck.check(
             ok,
             f"list @{L.list}: list.next->prev == &list",
             f"offset list={L.list} does not hold: TCB+{L.list} is not a linked list_t",
         )
-    if inside("robust_head", L.robust_head, 24):
+    if t.inside("robust_head", L.robust_head, 24):
         ck.check(
             head == tp + L.robust_head,
             f"robust_head @{L.robust_head} == get_robust_list(0)",
@@ -813,16 +866,16 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
             "robust_head == tid + 16",
             f"offset robust_head={L.robust_head} is not tid+16 ({L.tid + 16})",
         )
-        fo = i64(tp + L.robust_head + 8)
+        fo = mem.i64(tp + L.robust_head + 8)
         ck.check(
             fo == L.robust_futex_offset,
             f"robust futex_offset {fo} == pthread_mutex_t layout",
             f"robust_futex_offset={L.robust_futex_offset} does not hold: glibc registered {fo}",
         )
-    if inside("specific", L.specific, 8) and inside(
+    if t.inside("specific", L.specific, 8) and t.inside(
         "specific_1stblock", L.specific_1stblock, PTHREAD_KEY_2NDLEVEL_SIZE * 16
     ):
-        v = u64(tp + L.specific)
+        v = mem.u64(tp + L.specific)
         ck.check(
             v == tp + L.specific_1stblock,
             f"specific[0] @{L.specific} -> specific_1stblock @{L.specific_1stblock}",
@@ -830,46 +883,47 @@ def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
             f"{L.specific_1stblock} does not hold: specific[0] is "
             f"{v:#x}, expected {tp + L.specific_1stblock:#x}",
         )
-    if inside("rseq_cpu_id", L.rseq_cpu_id, 4):
-        registered = rseq_size_addr and int(ffi.cast("uint32_t *", rseq_size_addr)[0]) > 0
-        cpu = i32(tp + L.rseq_cpu_id)
-        if registered:
-            ck.check(
-                0 <= cpu < 65536,
-                f"rseq cpu_id @{L.rseq_cpu_id} = {cpu}",
-                f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: value {cpu} is not a CPU number",
-            )
-        else:
-            ck.notes.append("rseq not registered by glibc (tunable?)")
-            ck.check(
-                cpu in (-1, -2),
-                f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
-                f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}",
-            )
-    if inside("cleanup", L.cleanup, 8):
+
+
+def _verify_rseq(t: _Thread, L: Layout) -> None:
+    """rseq's cpu_id: a CPU number where glibc registered rseq, else unregistered."""
+    ck, mem = t.ck, t.mem
+    if not t.inside("rseq_cpu_id", L.rseq_cpu_id, 4):
+        return
+    rseq_size_addr = mem.sym("__rseq_size", "GLIBC_2.35")
+    registered = rseq_size_addr and mem.u32(rseq_size_addr) > 0
+    cpu = mem.i32(t.tp + L.rseq_cpu_id)
+    if registered:
         ck.check(
-            L.cleanup == L.robust_head + 24,
-            f"cleanup @{L.cleanup} == robust_head + 24",
-            f"offset cleanup={L.cleanup} is not robust_head+24 ({L.robust_head + 24})",
+            0 <= cpu < 65536,
+            f"rseq cpu_id @{L.rseq_cpu_id} = {cpu}",
+            f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: value {cpu} is not a CPU number",
         )
-        L = _probe_condwait(ck, ffi, lib, L, overrides)
-    _probe_gil(ck, ffi, lib)
-    _probe_interp(ck, ffi, lib)
-    _probe_py_stack(ck, ffi, lib)
+    else:
+        ck.notes.append("rseq not registered by glibc (tunable?)")
+        ck.check(
+            cpu in (-1, -2),
+            f"rseq cpu_id @{L.rseq_cpu_id} unregistered",
+            f"offset rseq_cpu_id={L.rseq_cpu_id} does not hold: {cpu}",
+        )
+
+
+def _verify_resp(t: _Thread, L: Layout, is_main: bool) -> None:
+    """__resp: in the static TLS, pointing at _res (main thread) or into the thread's struct pthread."""
+    ck, mem, tp = t.ck, t.mem, t.tp
     ck.check(
         -65536 < L.resp_tls < 0,
         f"__resp in static TLS ({L.resp_tls})",
         f"offset resp_tls={L.resp_tls} is not in the static TLS below the TCB",
     )
     if -65536 < L.resp_tls < 0:
-        v = u64(tp + L.resp_tls)
+        v = mem.u64(tp + L.resp_tls)
         if is_main:
-            ok, wanted = v == sym("_res", "GLIBC_2.2.5"), "&_res"
+            ok, wanted = v == mem.sym("_res", "GLIBC_2.2.5"), "&_res"
         else:
-            ok, wanted = tp < v < tp + sizeof_pthread, "this thread's struct pthread"
+            ok, wanted = tp < v < tp + t.sizeof_pthread, "this thread's struct pthread"
         ck.check(
             ok,
             f"__resp @{L.resp_tls} -> {wanted}",
             f"offset resp_tls={L.resp_tls} does not hold: value {v:#x} is not {wanted}",
         )
-    return L
