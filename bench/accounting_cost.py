@@ -454,28 +454,8 @@ def judge_instructions(measure: str, a: float, b: float) -> Goal:
     return Goal(goal, measure, shown, r <= LIMIT, "met" if r <= LIMIT else f"missed: {pct(r)}, the goal +{GOAL_PCT:g}%")
 
 
-def run(
-    *,
-    a: Path,
-    b: Path = REPO_ROOT,
-    n: int = 20,
-    repeat: int = 5,
-    steps: int = 1000,
-    pairs_scale: float = 1.0,
-    cpu: int | None = None,
-    out=DEFAULT_OUT,
-    quiet: bool = False,
-) -> Result:
-    trees = {"A": Path(a).resolve(), "B": Path(b).resolve()}
-    info = {side: describe_tree(t) for side, t in trees.items()}
-    if cpu is None:
-        cpu = max(os.sched_getaffinity(0))
-    pin = cpu if cpu >= 0 else None
-    loop_pairs = {s: max(1, int(k * pairs_scale)) for s, k in LOOP_PAIRS.items()}
-    args = {"a": str(trees["A"]), "b": str(trees["B"]), "n": n, "repeat": repeat, "steps": steps, "cpu": cpu}
-    if pairs_scale != 1.0:
-        args["pairs_scale"] = pairs_scale
-    t0 = time.monotonic()
+def _count_instructions(trees: dict[str, Path], steps: int) -> tuple[dict[str, dict[str, dict]], str | None]:
+    """Each side's instructions per pair, single-stepped; and why not, where ptrace is refused."""
     instr: dict[str, dict[str, dict]] = {}
     uncounted = None  # why the instructions were not counted
     if steps > 0:
@@ -484,11 +464,11 @@ def run(
                 instr[alloc] = {side: step_worker(trees[side], alloc, steps) for side in "AB"}
         except OSError as exc:  # ptrace refused (Yama, a seccomp filter, no CAP_SYS_PTRACE ...)
             instr, uncounted = {}, str(exc)
-    t1 = time.monotonic()
-    pair_data = measure_time(trees, n, repeat, loop_pairs, pin)
-    seconds = {"instructions": round(t1 - t0, 1), "time": round(time.monotonic() - t1, 1)}
+    return instr, uncounted
 
-    goals, summary = [], []
+
+def _instructions_table(instr: dict, steps: int, goals: list[Goal], summary: list[dict]) -> Table:
+    """Instructions per pair, A and B (goals and summary rows appended)."""
     t_instr = Table(
         f"Instructions per malloc/free pair in a node process (single-stepped, {steps} pairs)",
         ["measure", "A", "B", "B − A", "B ÷ A", "B: on accounting lines", "verdict (≤ +2%)"],
@@ -506,6 +486,11 @@ def run(
             t_instr.add(m, f"{ia:.1f}", f"{ib:.1f}", f"{ib - ia:+.1f}", pct(ib / ia), extra, goal.verdict)
             summary.append(summary_row(NAME, m + " (instructions)", "A vs B", None, median=goal.measured,
                                        goal=goal.goal, verdict=goal.verdict))  # fmt: skip
+    return t_instr
+
+
+def _time_table(pair_data: dict, n: int, goals: list[Goal], summary: list[dict]) -> Table:
+    """Time per pair, B ÷ A in interleaved pairs (goals and summary rows appended)."""
     t_time = Table(
         f"Time per malloc/free pair in a node process: {n} interleaved pairs of workers",
         ["measure", "pairs", "A: median (ns)", "B: median (ns)", "B ÷ A: median of the ratios", "95% interval",
@@ -529,7 +514,11 @@ def run(
             )
             summary.append(summary_row(NAME, m + " (time)", "A vs B", None, median=goal.measured, goal=goal.goal,
                                        verdict=goal.verdict))  # fmt: skip
-    tables = [t_instr, t_time]
+    return t_time
+
+
+def _where_table(instr: dict) -> Table:
+    """Where B's extra instructions are."""
     groups = ["within_budget", "count_got", "count_freed", "bb_put", "bb_take"]
     t_where = Table(
         "Where B's extra instructions are, per pair: B's on the accounting functions (each with what is "
@@ -556,21 +545,26 @@ def run(
                 f"{d_guard - sum(by_fn.values()):+.1f}",
                 f"{d_all - d_guard - sal:+.1f}",
             )
-    if instr:
-        tables.append(t_where)
+    return t_where
 
-    def side(s: str) -> str:
-        d = info[s]
-        return (
-            f"{s}: {d['path']} at {d['commit'][:10]} ({d['subject']})"
-            + (", with uncommitted changes under container/" if d["dirty"] else "")
-            + f"; its guard {'counts' if d['counts_memory'] else 'does not count'} memory"
-            " (cga_slot_memory exported or not)"
-        )
 
-    notes = [
-        side("A") + ".",
-        side("B") + ".",
+def _side(info: dict, s: str) -> str:
+    d = info[s]
+    return (
+        f"{s}: {d['path']} at {d['commit'][:10]} ({d['subject']})"
+        + (", with uncommitted changes under container/" if d["dirty"] else "")
+        + f"; its guard {'counts' if d['counts_memory'] else 'does not count'} memory"
+        " (cga_slot_memory exported or not)"
+    )
+
+
+def _notes(
+    info: dict, n: int, repeat: int, steps: int, loop_pairs: dict, pin: int | None, seconds: dict, uncounted: str | None
+) -> list[str]:
+    """How it was measured, and on which trees."""
+    return [
+        _side(info, "A") + ".",
+        _side(info, "B") + ".",
         "Each worker: a fresh process, its side's guard preloaded (then jemalloc for the jemalloc rows) and its "
         "side's cloneguard.container (clone core and guard built together); a CloneCore with the guard on "
         "spawns one node process, which runs faults/hammer.c's hammer_pairs(size, n) (n × free(malloc(size)), "
@@ -592,6 +586,41 @@ def run(
         + f" Stepping took {seconds['instructions']:.0f} s, the pairs {seconds['time']:.0f} s.",
         *([f"Instructions not counted: {uncounted}."] if uncounted else []),
     ]
+
+
+def run(
+    *,
+    a: Path,
+    b: Path = REPO_ROOT,
+    n: int = 20,
+    repeat: int = 5,
+    steps: int = 1000,
+    pairs_scale: float = 1.0,
+    cpu: int | None = None,
+    out=DEFAULT_OUT,
+    quiet: bool = False,
+) -> Result:
+    trees = {"A": Path(a).resolve(), "B": Path(b).resolve()}
+    info = {side: describe_tree(t) for side, t in trees.items()}
+    if cpu is None:
+        cpu = max(os.sched_getaffinity(0))
+    pin = cpu if cpu >= 0 else None
+    loop_pairs = {s: max(1, int(k * pairs_scale)) for s, k in LOOP_PAIRS.items()}
+    args = {"a": str(trees["A"]), "b": str(trees["B"]), "n": n, "repeat": repeat, "steps": steps, "cpu": cpu}
+    if pairs_scale != 1.0:
+        args["pairs_scale"] = pairs_scale
+    t0 = time.monotonic()
+    instr, uncounted = _count_instructions(trees, steps)
+    t1 = time.monotonic()
+    pair_data = measure_time(trees, n, repeat, loop_pairs, pin)
+    seconds = {"instructions": round(t1 - t0, 1), "time": round(time.monotonic() - t1, 1)}
+
+    goals: list[Goal] = []
+    summary: list[dict] = []
+    tables = [_instructions_table(instr, steps, goals, summary), _time_table(pair_data, n, goals, summary)]
+    if instr:
+        tables.append(_where_table(instr))
+    notes = _notes(info, n, repeat, steps, loop_pairs, pin, seconds, uncounted)
     result = Result(
         NAME,
         TITLE,

@@ -184,6 +184,121 @@ class Result:
         )
 
 
+def _serve_env(alloc_guard: bool, jemalloc: bool, python_pools: bool) -> dict[str, str]:
+    """The container side's environment: the guard and jemalloc preloaded as asked."""
+    from cloneguard.container import allocator
+
+    env = dict(os.environ)
+    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + ([allocator.jemalloc_path()] if jemalloc else [])
+    env["LD_PRELOAD"] = " ".join(preload)
+    if not python_pools:
+        env[allocator.PY_POOLS_OFF] = "0"
+    return env
+
+
+@dataclass
+class _Watch:
+    """What the outside saw of one subprocess (its lines on stdout)."""
+
+    rng: random.Random
+    max_delay_ms: float
+    pids: dict[int, str] = field(default_factory=dict)  # its tasks: the sibling and each victim
+    dead: set[int] = field(default_factory=set)  # the victims killed
+    ready: bool = False
+    last: float = field(default_factory=time.monotonic)  # its last line
+    outcome: str | None = None  # "hung", "exited" or "done"
+
+    def line(self, words: list[str], res: Result) -> None:
+        """One line of the container side's: count it, kill a victim it spawned."""
+        from cloneguard.container.isolated.core_events import Repair
+
+        self.last = time.monotonic()
+        if words[0] == "ready":
+            self.ready = True
+            self.pids[int(words[1])] = "sibling"
+        elif words[0] == "spawned":
+            self.pids[int(words[2])] = f"victim {words[1]}"
+            self.dead.add(int(words[2]))
+            time.sleep(self.rng.uniform(0, self.max_delay_ms / 1000))
+            try:
+                os.kill(int(words[2]), signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            self.last = time.monotonic()
+        elif words[0] == "ok":
+            res.kills += 1
+            res.survived += 1
+            for name in Repair(int(words[2])).names():
+                res.repairs[name] += 1
+            res.quarantined += int(words[4])
+            res.py_abandoned += int(words[5])
+        elif words[0] == "stuck":
+            res.notes.append(" ".join(words))
+            self.outcome = "hung"
+        elif words[0] == "done":
+            self.outcome = "done"
+
+
+def _watch(proc: subprocess.Popen[bytes], w: _Watch, res: Result, hang_s: float) -> None:
+    """Read the subprocess's lines until it is done, exits, or makes no
+    progress for hang_s (60 s until it is ready)."""
+    assert proc.stdout is not None  # Popen(stdout=PIPE)
+    buf = b""
+    while w.outcome is None:
+        limit = (60.0 if not w.ready else hang_s) - (time.monotonic() - w.last)
+        r, _, _ = select.select([proc.stdout], [], [], max(0.0, limit))
+        if not r:
+            w.outcome = "hung"
+            break
+        chunk = os.read(proc.stdout.fileno(), 65536)
+        if not chunk:
+            w.outcome = "exited"
+            break
+        buf += chunk
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            w.line(line.decode().split(), res)
+
+
+def _one_run(
+    argv: list[str], env: dict[str, str], res: Result, w: _Watch, hang_s: float, hang_file: str | None
+) -> tuple[int, str]:
+    """One subprocess, watched until it ends (a hang diagnosed into res and
+    hang_file, then killed); its exit status and stderr."""
+    from cloneguard.harness import diagnose
+
+    proc = subprocess.Popen(
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        start_new_session=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None  # PIPE
+    w.last = time.monotonic()
+    try:
+        _watch(proc, w, res, hang_s)
+        if w.outcome == "hung" and w.ready:
+            res.kills += 1
+            res.hung += 1
+            if diagnose.gdb_available():
+                d = diagnose.diagnose(proc.pid, nodes_by_pid=w.pids, dead_pids=w.dead)
+                res.hangs.append(d.summary())
+                if hang_file:
+                    with open(hang_file, "w") as out:
+                        out.write(d.summary() + "\n\n" + d.stacks_text)
+    finally:  # whatever happened reading it (an error of ours too), it goes
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    rc = proc.returncode
+    err = proc.stderr.read().decode(errors="replace")
+    proc.stdout.close()
+    proc.stderr.close()
+    return rc, err
+
+
 def run(
     kills: int,
     *,
@@ -204,10 +319,6 @@ def run(
 ) -> Result:
     """``kills`` random kills in as many fresh subprocesses as needed (fewer
     if ``budget_s`` runs out or ``max_hangs`` hangs were seen)."""
-    from cloneguard.container import allocator
-    from cloneguard.container.isolated.core_events import Repair
-    from cloneguard.harness import diagnose
-
     res = Result(
         {
             "gil_repair": gil_repair,
@@ -220,11 +331,7 @@ def run(
             "interp_repair": interp_repair,
         }
     )
-    env = dict(os.environ)
-    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + ([allocator.jemalloc_path()] if jemalloc else [])
-    env["LD_PRELOAD"] = " ".join(preload)
-    if not python_pools:
-        env[allocator.PY_POOLS_OFF] = "0"
+    env = _serve_env(alloc_guard, jemalloc, python_pools)
     t0 = time.monotonic()
     rng = random.Random(seed)
     run_no = 0
@@ -253,84 +360,16 @@ def run(
             "--victim",
             victim,
         ]
-        proc = subprocess.Popen(
-            argv,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            env=env,
-            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-            start_new_session=True,
-        )
-        try:
-            pids: dict[int, str] = {}
-            dead: set[int] = set()
-            buf = b""
-            ready = False
-            last = time.monotonic()
-            outcome = None
-            while outcome is None:
-                limit = (60.0 if not ready else hang_s) - (time.monotonic() - last)
-                r, _, _ = select.select([proc.stdout], [], [], max(0.0, limit))
-                if not r:
-                    outcome = "hung"
-                    break
-                chunk = os.read(proc.stdout.fileno(), 65536)
-                if not chunk:
-                    outcome = "exited"
-                    break
-                buf += chunk
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
-                    words = line.decode().split()
-                    last = time.monotonic()
-                    if words[0] == "ready":
-                        ready = True
-                        pids[int(words[1])] = "sibling"
-                    elif words[0] == "spawned":
-                        pids[int(words[2])] = f"victim {words[1]}"
-                        dead.add(int(words[2]))
-                        time.sleep(rng.uniform(0, max_delay_ms / 1000))
-                        try:
-                            os.kill(int(words[2]), signal.SIGKILL)
-                        except ProcessLookupError:
-                            pass
-                        last = time.monotonic()
-                    elif words[0] == "ok":
-                        res.kills += 1
-                        res.survived += 1
-                        for name in Repair(int(words[2])).names():
-                            res.repairs[name] += 1
-                        res.quarantined += int(words[4])
-                        res.py_abandoned += int(words[5])
-                    elif words[0] == "stuck":
-                        res.notes.append(" ".join(words))
-                        outcome = "hung"
-                    elif words[0] == "done":
-                        outcome = "done"
-            if outcome == "hung" and ready:
-                res.kills += 1
-                res.hung += 1
-                if diagnose.gdb_available():
-                    d = diagnose.diagnose(proc.pid, nodes_by_pid=pids, dead_pids=dead)
-                    res.hangs.append(d.summary())
-                    if diagnose_dir:
-                        with open(os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt"), "w") as out:
-                            out.write(d.summary() + "\n\n" + d.stacks_text)
-        finally:  # whatever happened reading it (an error of ours too), it goes
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        rc = proc.returncode
-        err = proc.stderr.read().decode(errors="replace")
-        if outcome == "exited":
-            if not ready:
+        w = _Watch(rng, max_delay_ms)
+        hang_file = os.path.join(diagnose_dir, f"hang-{seed}-{run_no}.txt") if diagnose_dir else None
+        rc, err = _one_run(argv, env, res, w, hang_s, hang_file)
+        if w.outcome == "exited":
+            if not w.ready:
                 raise RuntimeError(f"random_kill did not start (rc {rc}):\n{err[-3000:]}")
             if rc != 0:
                 res.kills += 1
                 res.crashed += 1
                 res.notes.append(f"run {run_no}: exit {rc}: {err.strip()[-300:]}")
-        proc.stdout.close()
-        proc.stderr.close()
     res.seconds = time.monotonic() - t0
     return res
 

@@ -177,41 +177,9 @@ def report_root(tmp_path, monkeypatch):
     return root
 
 
-def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_root):
-    out = tmp_path / "run-1"
-    result = run_session(
-        pytester,
-        "--report-dir",
-        str(out),
-        "--run-label",
-        "smoke <1>",
-        "--container-exe",
-        "/opt/fake/component_container",
-        "scenarios",
-    )
-    result.assert_outcomes(passed=3, failed=1)
-    result.stdout.fnmatch_lines(["*cloneguard resilience report*", f"report: {out / 'report.html'}"])
-
-    data = json.loads((out / "report.json").read_text())
-    run = data["run"]
-    assert run["id"] == "run-1"
-    assert run["label"] == "smoke <1>"
-    assert run["container_exe"] == "/opt/fake/component_container"
-    assert run["exit_status"] == 1
-    assert "--report-dir" in run["pytest_args"]
-    assert run["host"]["kernel"] == os.uname().release
-    assert run["host"]["glibc"] == os.confstr("CS_GNU_LIBC_VERSION")
-    assert isinstance(run["host"]["pku"], bool)
-    assert run["junit"] == "junit.xml" and run["junit_writer"] == "pytest"
-
-    by_id = {s["nodeid"]: s for s in data["scenarios"]}
-    assert set(by_id) == {
-        "scenarios/test_fake.py::test_segfault[per-node]",
-        "scenarios/test_fake.py::test_segfault[shared]",
-        "scenarios/test_fake.py::test_abort",
-        "scenarios/test_fake.py::test_plain",  # under scenarios/, no fixture: still recorded
-    }
-    per_node = by_id["scenarios/test_fake.py::test_segfault[per-node]"]
+def _check_per_node_cell(per_node: dict) -> None:
+    """The per-node segfault cell of the session's report.json: its trials,
+    statistics, hang and expectation."""
     assert per_node["fault"] == "segfault-gil-held" and per_node["profile"] == "per-node"
     assert per_node["mitigations"] == {"gil_repair": True}
     assert per_node["outcome"] == "passed"
@@ -249,6 +217,43 @@ def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_ro
         }
     ]
     assert per_node["notes"] == ["checked with <valgrind> & friends"]
+
+
+def test_session_writes_report_json_html_and_junit(pytester, tmp_path, report_root):
+    out = tmp_path / "run-1"
+    result = run_session(
+        pytester,
+        "--report-dir",
+        str(out),
+        "--run-label",
+        "smoke <1>",
+        "--container-exe",
+        "/opt/fake/component_container",
+        "scenarios",
+    )
+    result.assert_outcomes(passed=3, failed=1)
+    result.stdout.fnmatch_lines(["*cloneguard resilience report*", f"report: {out / 'report.html'}"])
+
+    data = json.loads((out / "report.json").read_text())
+    run = data["run"]
+    assert run["id"] == "run-1"
+    assert run["label"] == "smoke <1>"
+    assert run["container_exe"] == "/opt/fake/component_container"
+    assert run["exit_status"] == 1
+    assert "--report-dir" in run["pytest_args"]
+    assert run["host"]["kernel"] == os.uname().release
+    assert run["host"]["glibc"] == os.confstr("CS_GNU_LIBC_VERSION")
+    assert isinstance(run["host"]["pku"], bool)
+    assert run["junit"] == "junit.xml" and run["junit_writer"] == "pytest"
+
+    by_id = {s["nodeid"]: s for s in data["scenarios"]}
+    assert set(by_id) == {
+        "scenarios/test_fake.py::test_segfault[per-node]",
+        "scenarios/test_fake.py::test_segfault[shared]",
+        "scenarios/test_fake.py::test_abort",
+        "scenarios/test_fake.py::test_plain",  # under scenarios/, no fixture: still recorded
+    }
+    _check_per_node_cell(by_id["scenarios/test_fake.py::test_segfault[per-node]"])
 
     shared = by_id["scenarios/test_fake.py::test_segfault[shared]"]
     assert shared["outcome"] == "failed"

@@ -362,27 +362,7 @@ class CloneCore:
         if self._keep_ahead is not None:
             self._keep_ahead()
         ffi, lib = _lib()
-        with CloneCore._instance_lock:
-            if CloneCore._open is not None:
-                raise RuntimeError("only one CloneCore may be open per process")
-            fd = ffi.new("int *")
-            layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
-            # stop_signal: the test rig's stop points (seams.stop_signal);
-            # dump_tools: the monitor has a crashing child dumped (dumps.c)
-            # where name_dump() said.
-            settings: dict[str, Any] = {"stop_signal": stop_signal}
-            if dump_tools is not None:
-                settings.update(core_dumps=1, gdb=dump_tools.gdb.encode(), fallocate=dump_tools.fallocate.encode())
-            config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), **settings})
-            # memory_watch: (what the container may use, the margin below it
-            # where the monitor ends the node process using the most).
-            self._watch_fds = self._watch_memory(memory_watch)
-            rc = lib.cg_start(layout, config, fd)
-            if rc < 0:
-                self._unwatch_memory()
-                raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
-            CloneCore._open = self
-        self._event_fd = fd[0]
+        self._event_fd = self._start_monitor(ffi, lib, stop_signal, dump_tools, memory_watch)
         self._on_event = on_event
         # _lock guards _entries, _closed, _spawning, and every use of a
         # child's block or pidfd (so none can race with release()).
@@ -413,6 +393,33 @@ class CloneCore:
 
             self._pylocks = _pylocks
             locks.activate()
+
+    def _start_monitor(
+        self, ffi, lib, stop_signal: int, dump_tools: DumpTools | None, memory_watch: tuple[MemoryLimit, int] | None
+    ) -> int:
+        """Start the C monitor, the one of this process (one CloneCore may be
+        open): the fd its events come on."""
+        with CloneCore._instance_lock:
+            if CloneCore._open is not None:
+                raise RuntimeError("only one CloneCore may be open per process")
+            fd = ffi.new("int *")
+            layout = ffi.new("struct cg_layout *", self.report.layout.as_dict())
+            # stop_signal: the test rig's stop points (seams.stop_signal);
+            # dump_tools: the monitor has a crashing child dumped (dumps.c)
+            # where name_dump() said.
+            settings: dict[str, Any] = {"stop_signal": stop_signal}
+            if dump_tools is not None:
+                settings.update(core_dumps=1, gdb=dump_tools.gdb.encode(), fallocate=dump_tools.fallocate.encode())
+            config = ffi.new("struct cg_config *", {**self.mitigations.as_config(), **settings})
+            # memory_watch: (what the container may use, the margin below it
+            # where the monitor ends the node process using the most).
+            self._watch_fds = self._watch_memory(memory_watch)
+            rc = lib.cg_start(layout, config, fd)
+            if rc < 0:
+                self._unwatch_memory()
+                raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
+            CloneCore._open = self
+        return fd[0]
 
     # -- children ---------------------------------------------------------
     def spawn(
