@@ -16,6 +16,7 @@ import shlex
 import sys
 import traceback
 from pathlib import Path
+from typing import Any
 
 from . import (
     child_start,
@@ -44,7 +45,7 @@ BENCHMARKS = {
     "scale": scale,
     "pkeys_cost": pkeys_cost,
 }
-PRESETS = {
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "default": {
         "child_start": {"n": 10, "n_raw": 100},
         "memory": {"nodes": 20, "settle": 1.0},

@@ -33,6 +33,7 @@ def _exec_stamp(argv: list[str]) -> tuple[int, int]:
     """fork+exec ``argv`` (subprocess, as a launcher would); (t0, the child's first-line stamp)."""
     t0 = time.monotonic_ns()
     p = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+    assert p.stdout is not None  # stdout=PIPE
     out = p.stdout.read()
     p.stdout.close()
     p.wait()
@@ -54,7 +55,7 @@ def _fork_stamp() -> tuple[int, int]:
 
 
 def spawn(n: int) -> dict:
-    out = {
+    out: dict[str, list[int]] = {
         k: []
         for k in (
             "clone_first_line",
@@ -144,8 +145,12 @@ def kill(n: int) -> dict:
                 death = core.wait(child, 10)
                 if death is None:
                     raise RuntimeError(f"child {child.pid} not reaped within 10 s of {sig.name}")
+
+                def came(serial: int = child.serial) -> bool:
+                    return serial in arrived
+
                 with cond:
-                    if not cond.wait_for(lambda child=child: child.serial in arrived, 10):
+                    if not cond.wait_for(came, 10):
                         raise RuntimeError(f"no on_event for child {child.pid} within 10 s")
                 detect.append(death.detected_monotonic_ns - t0)
                 deliver.append(arrived[child.serial] - t0)

@@ -489,7 +489,7 @@ def _instructions_table(instr: dict, steps: int, goals: list[Goal], summary: lis
     return t_instr
 
 
-def _time_table(pair_data: dict, n: int, goals: list[Goal], summary: list[dict]) -> Table:
+def _time_table(pair_data: list[dict], n: int, goals: list[Goal], summary: list[dict]) -> Table:
     """Time per pair, B ÷ A in interleaved pairs (goals and summary rows appended)."""
     t_time = Table(
         f"Time per malloc/free pair in a node process: {n} interleaved pairs of workers",

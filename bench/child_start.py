@@ -24,6 +24,7 @@ Goal: clone ≥ 100× faster than fork+exec, judged on each comparison.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, fmt_ratio, ms, ratio, stats
@@ -42,8 +43,8 @@ CONTAINER_MODES = ["isolated-per-node", "isolated-shared", "thread"]
 def measure_full(session: Session, n: int) -> dict:
     running = {mode: session.start(mode) for mode in CONTAINER_MODES}
     lease = session.lease()  # the process-per-node runners' own domain
-    data = {mode: {"cold": None, "loaded": []} for mode in CONTAINER_MODES}
-    ppn = {"cold": None, "ready": [], "first_line": [], "imports": [], "context": [], "build": []}
+    data: dict[str, dict[str, Any]] = {mode: {"cold": None, "loaded": []} for mode in CONTAINER_MODES}
+    ppn: dict[str, Any] = {"cold": None, "ready": [], "first_line": [], "imports": [], "context": [], "build": []}
     for i in range(n + 1):
         for mode in CONTAINER_MODES:
             trial = timed_load(running[mode], node_name=f"hb{i}")
@@ -65,8 +66,8 @@ def measure_full(session: Session, n: int) -> dict:
         ppn["imports"].append(r["imported_ns"] - r["main_ns"])
         ppn["context"].append(r["context_ns"] - r["imported_ns"])
         ppn["build"].append(r["ready_ns"] - r["context_ns"])
-    for r in running.values():
-        session.stop(r)
+    for container in running.values():
+        session.stop(container)
     session.release(lease)
     data[PROCESS_PER_NODE] = ppn
     return data

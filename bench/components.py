@@ -53,6 +53,7 @@ import time
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.timer import Timer
 from std_msgs.msg import String, UInt8MultiArray
 
 from cloneguard.container import intra
@@ -99,11 +100,11 @@ class _Sender(Node):
         self._stats_pub = self.create_publisher(String, "~/stats", STATS_QOS)
         self._sent = {name: 0 for name in PHASES.values()}
         self._started_ns = time.monotonic_ns()
-        self._matched_ns = None
+        self._matched_ns: int | None = None
         self._error = ""
         self._state = "matching"
         self._next_at = 0.0
-        self._housekeeping = None
+        self._housekeeping: Timer | None = None
 
     def _start_timer(self) -> None:
         # One timer drives every phase; it ticks at the latency phase's period
@@ -397,6 +398,7 @@ class FloorTrigger(_Sender):
 
     def _emit(self, phase: int, seq: int) -> None:
         target = self._target
+        assert target is not None, "a trigger before a FloorWaiter matched"  # _step: only once _matched()
         stamp = time.monotonic_ns()
         target.last = (stamp, seq, phase)
         target.guard.trigger()

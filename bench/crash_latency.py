@@ -33,6 +33,7 @@ import re
 import signal
 import sys
 import time
+from typing import Any
 
 from cloneguard_interfaces.msg import ComponentEvent
 
@@ -63,7 +64,7 @@ def log_stamps(text: str) -> dict[tuple[str, int], int]:
     """From a container log: when (wall clock ns, rcutils' stamp) the host
     logged that it keeps a dead node's objects ("leak", unique_id) and when
     the manager logged the death ("died", unique_id)."""
-    out = {}
+    out: dict[tuple[str, int], int] = {}
     for line in text.splitlines():
         m = _LOG_LINE.match(line)
         if not m:
@@ -134,9 +135,9 @@ def measure(
 ) -> dict:
     running = {p: _start(session, p, others) for p in profiles}
     crashes = {p: 0 for p in profiles}
-    last = {p: None for p in profiles}  # the signal of the container's last crash
-    victims = {p: {} for p in profiles}  # pid -> node name, this container's dead nodes
-    data = {
+    last: dict[str, str | None] = {p: None for p in profiles}  # the signal of the container's last crash
+    victims: dict[str, dict[int, str]] = {p: {} for p in profiles}  # pid -> node name, this container's dead nodes
+    data: dict[str, dict[str, dict[str, Any]]] = {
         p: {
             s: {
                 "stamp": [],
@@ -171,8 +172,9 @@ def measure(
                     except HarnessTimeout as exc:
                         what = f"LoadNode after a {last[p]} crash" if last[p] else "LoadNode, fresh container"
                         stuck.append(_stuck(running[p], what, exc, victims[p]))
-                        if last[p] is not None:
-                            data[p][last[p]]["hung_after"] += 1
+                        previous = last[p]
+                        if previous is not None:
+                            data[p][previous]["hung_after"] += 1
                         fresh(p)
                 else:
                     raise AssertionError(f"{label(p)}: a fresh container did not answer LoadNode either")

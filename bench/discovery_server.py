@@ -52,6 +52,8 @@ def server_profile(port: int, base: Path = NO_SHM_PROFILE) -> str:
         return f"{{{_NS}}}{tag}"
 
     [rtps] = [p.find(q("rtps")) for p in tree.iter(q("participant")) if p.get("is_default_profile") == "true"]
+    if rtps is None:
+        raise ValueError(f"{base}: the default participant profile has no <rtps>")
     ET.SubElement(rtps, q("prefix")).text = SERVER_PREFIX
     builtin = rtps.find(q("builtin"))
     if builtin is None:

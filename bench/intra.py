@@ -45,6 +45,7 @@ import json
 import re
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.factory import log_tail
@@ -212,7 +213,7 @@ def _run_loads(running: Running, pl: dict, extra: dict, loads: list[tuple[str, s
     cli = running.client
     names = {role: name for role, _, name, _ in loads}
     rec = {role: cli.subscribe(String, f"/{name}/stats", stats_qos) for role, name in names.items()}
-    out = {"plan": pl, "error": "", "source": None, "sink": None}
+    out: dict[str, Any] = {"plan": pl, "error": "", "source": None, "sink": None}
     loaded = []
     try:
         for _, plugin, name, params in loads:
@@ -246,7 +247,7 @@ def measure(
     session: Session, sizes: list[int], transports: list[str], p: dict, floor: bool = True, mode: str = MODE
 ) -> dict:
     running = session.start(mode)
-    data = {}
+    data: dict[str | tuple[int, str], dict] = {}
     index = 0
     try:
         if floor:

@@ -39,6 +39,7 @@ from cloneguard.harness.factory import ContainerFactory
 from cloneguard.harness.process import use_loopback_ros
 
 from .cli import arg_parser, command_line, finish
+from .goals import Goal
 from .results import Result, Table
 
 # The benchmark's own participant (the factory's clients) runs under the same
@@ -197,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
             "verdict",
         ],
     )
-    raw, goals = {}, []
+    raw: dict = {}
+    goals: list[Goal] = []
     with tempfile.TemporaryDirectory(prefix="cloneguard-leaks-") as logs:
         for mode in args.modes:
             g = measure(mode, args.cycles, args.warmup, logs)

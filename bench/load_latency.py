@@ -19,6 +19,7 @@ the per-node profile's median within 1.3× of thread mode's.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ms, fmt_ratio, ms, stats
@@ -38,7 +39,9 @@ DEFAULT_MODES = EVERYDAY_MODES
 def measure(session: Session, modes: list[str], n: int) -> dict:
     """{mode: {"cold": LoadTrial fields, "loaded": [ns], "round_trip": [ns], ...}}"""
     running = {mode: session.start(mode) for mode in modes}
-    data = {mode: {"cold": None, "loaded": [], "round_trip": [], "published": [], "unload": []} for mode in modes}
+    data: dict[str, dict[str, Any]] = {
+        mode: {"cold": None, "loaded": [], "round_trip": [], "published": [], "unload": []} for mode in modes
+    }
     for i in range(n + 1):
         for mode in modes:
             trial = timed_load(running[mode], node_name=f"hb{i}")

@@ -238,7 +238,7 @@ def run(
     for r, ts in by_rate.items():
         if not ts:
             continue
-        shoots = [overshoot(t) for t in ts]
+        shoots = [s for s in map(overshoot, ts) if s is not None]  # all of them where none was lost
         lost = sum(1 for t in ts if not t["ended_by_watch"])
         needed = (
             f"{_mib(max(shoots))} MiB (n={len(ts)})"

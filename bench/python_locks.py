@@ -25,6 +25,8 @@ import _thread
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 from cloneguard.container.isolated import _pylocks
 
@@ -81,15 +83,19 @@ def _contended(lock, ops: int, threads: int) -> int:
     return elapsed
 
 
-def cases(ops: int) -> dict[str, tuple[str, callable]]:
+def _contended_case(ops: int, n: int) -> Callable[[Any], float]:
+    return lambda lk: _contended(lk, ops, n) / ops
+
+
+def cases(ops: int) -> dict[str, tuple[str, Callable[[Any], float]]]:
     """case -> (type, fn(lock) -> ns per pair)."""
-    out = {
+    out: dict[str, tuple[str, Callable[[Any], float]]] = {
         "uncontended Lock": ("Lock", lambda lk: _uncontended(lk, ops, 1) / ops),
         "uncontended RLock": ("RLock", lambda lk: _uncontended(lk, ops, 1) / ops),
         "uncontended RLock, taken twice": ("RLock", lambda lk: _uncontended(lk, ops, 2) / (2 * ops)),
     }
     for n in THREADS:
-        out[f"contended Lock, {n} threads"] = ("Lock", lambda lk, n=n: _contended(lk, ops, n) / ops)
+        out[f"contended Lock, {n} threads"] = ("Lock", _contended_case(ops, n))
     return out
 
 

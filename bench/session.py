@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -174,7 +175,7 @@ class Session:
         if lease in self._leases:
             self._leases.remove(lease)
 
-    def start(self, mode: str, *, extra_args: list[str] = ()) -> Running:
+    def start(self, mode: str, *, extra_args: Sequence[str] = ()) -> Running:
         """Start a container in ``mode`` on a domain of its own; return once it answers."""
         lease = self.lease()
         proc = ContainerProcess(

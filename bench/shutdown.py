@@ -23,6 +23,7 @@ import select
 import signal
 import sys
 import time
+from collections.abc import Sequence
 
 from cloneguard.harness import procfs
 
@@ -95,7 +96,7 @@ def configs(modes: list[str], counts: list[int], idle_node: bool) -> list[tuple[
 def run(
     *,
     reps: int = 3,
-    counts: list[int] = (1, 5, 20),
+    counts: Sequence[int] = (1, 5, 20),
     settle: float = 0.5,
     modes: list[str] = DEFAULT_MODES,
     idle_node: bool = True,
@@ -107,7 +108,7 @@ def run(
     params = {"reps": reps, "counts": counts, "settle": settle, "modes": modes, "idle_node": idle_node, "out": str(out)}
     plan = configs(modes, counts, idle_node)
     session = Session(NAME, keep_logs=keep_logs)
-    data = {f"{m}|{p}|{c}": [] for m, p, c in plan}
+    data: dict[str, list] = {f"{m}|{p}|{c}": [] for m, p, c in plan}
     try:
         for _ in range(reps):
             for mode, plugin, count in plan:

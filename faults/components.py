@@ -398,6 +398,7 @@ class HoldsNativeMutex(Node):
         self._timer = None if orphan else self.create_timer(hold, self._give_back)
 
     def _give_back(self):
+        assert self._timer is not None  # the timer that called this: none for an orphan
         self._timer.cancel()
         if self.lock == _RWLOCK:
             nativelock.nativelock_rw_release()
@@ -611,7 +612,7 @@ class PayloadHolder(Node):
         loaned = self.declare_parameter("loaned", False).value
         topic = self.declare_parameter("topic", "payload").value
         self._now = time.monotonic_ns
-        self._held = collections.deque()
+        self._held: collections.deque = collections.deque()
         self._released = self._taken = 0
         self._UInt64 = UInt64
         self._sub = intra.create_subscription(

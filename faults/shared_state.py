@@ -15,7 +15,8 @@ import threading
 
 LOCK = threading.Lock()
 RLOCK = threading.RLock()
-CONDITION = threading.Condition()
+_CONDITION_LOCK = threading.RLock()  # the lock Condition() would make itself
+CONDITION = threading.Condition(_CONDITION_LOCK)
 
 
 class _Quiet(logging.Handler):
@@ -31,7 +32,7 @@ KINDS = ("lock", "rlock", "condition", "logging")
 
 def lock_of(kind: str):
     """The lock object behind ``kind`` (a Condition's and a handler's own)."""
-    return {"lock": LOCK, "rlock": RLOCK, "condition": CONDITION._lock, "logging": HANDLER.lock}[kind]
+    return {"lock": LOCK, "rlock": RLOCK, "condition": _CONDITION_LOCK, "logging": HANDLER.lock}[kind]
 
 
 def take(kind: str) -> None:

@@ -860,6 +860,10 @@ def _callback(name: str) -> Callable[[Rig], Trials]:
     return lambda rig: _Each(rig, lambda r, seed, index: callback_fault(r, name, seed, index))
 
 
+def _lock_death(family: LockFamily, kind: str, how: str, wait: str = "lock") -> Callable[[Rig], Trials]:
+    return lambda rig: LockDeath(rig, family, kind, how, wait)
+
+
 #: fault name -> make(rig) -> Trials. The malloc faults run under the
 #: allocator set-up the rig was started with (MALLOC_ALLOCATORS).
 FAULTS: dict[str, Callable[[Rig], Trials]] = {
@@ -881,17 +885,13 @@ FAULTS: dict[str, Callable[[Rig], Trials]] = {
     "out-of-memory/over-its-budget": lambda rig: OutOfMemory(rig, "budget"),
     "out-of-memory/container-full": lambda rig: OutOfMemory(rig, "watch"),
     **{
-        f"die-holding-{prefix}-{kind}/{how}": (
-            lambda rig, family=family, kind=kind, how=how: LockDeath(rig, family, kind, how)
-        )
+        f"die-holding-{prefix}-{kind}/{how}": _lock_death(family, kind, how)
         for prefix, family in (("python", PYTHON_LOCKS), ("native", NATIVE_MUTEXES))
         for kind in family.names
         for how in LOCK_DEATH_SIGNALS
     },
     **{
-        f"die-holding-native-normal-{wait}/sigkill": (
-            lambda rig, wait=wait: LockDeath(rig, NATIVE_MUTEXES, "normal", "sigkill", wait)
-        )
+        f"die-holding-native-normal-{wait}/sigkill": _lock_death(NATIVE_MUTEXES, "normal", "sigkill", wait)
         for wait in NATIVE_WAITS
     },
 }

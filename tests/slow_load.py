@@ -11,7 +11,7 @@ class SlowLoad:
     constructor is sleeping)."""
 
     def __init__(self, client, seconds: float, timeout: float = 30.0):
-        self._answers = []
+        self._answers: list[object] = []
         self._thread = threading.Thread(
             target=lambda: self._answers.append(
                 client.load(TESTRIG, "faults::SlowConstructor", parameters={"seconds": seconds}, timeout=timeout)

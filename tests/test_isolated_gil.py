@@ -49,7 +49,7 @@ def core():
 def assert_process_goes_on(core: CloneCore, counter: Counter) -> None:
     """The container's threads run Python, and so does a new child."""
     assert counter.advances(), "the container's counter thread stopped"
-    out = {}
+    out: dict[str, int] = {}
     child = core.spawn(lambda: out.update(x=sum(range(1000))))
     death = core.wait(child, 10)
     assert death is not None and death.exit_code == 0
@@ -233,6 +233,7 @@ def _run_freeze_script(gil_repair: bool, timeout: float) -> tuple[list[str], boo
         cwd=REPO,
         start_new_session=True,
     )
+    assert proc.stdout is not None  # stdout=PIPE
     lines, buf = [], b""
     deadline = time.monotonic() + timeout
     try:

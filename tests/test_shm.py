@@ -51,6 +51,7 @@ class Peer:
         self.proc = subprocess.Popen(
             [sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
+        assert self.proc.stdout is not None  # stdout=PIPE
         assert self.proc.stdout.readline().strip() == "ready"
 
     def stop(self):

@@ -54,6 +54,7 @@ def _spins_per_s(proc, seconds: float) -> float:
         line = proc.stdout.readline().split()
         last = (int(line[0]), float(line[1]))
         first = first or last
+    assert first is not None and last is not None, f"no line from the spinner within {seconds:g} s"
     return (last[0] - first[0]) / max(last[1] - first[1], 1e-6)
 
 
