@@ -40,6 +40,8 @@ from typing import NamedTuple
 
 import pytest
 
+from cloneguard.container.isolated.profiles import DEFAULT as DEFAULT_PROFILE
+
 from . import diagnose
 from .cpu_starve import CpuStarveUnavailable
 from .errors import HarnessTimeout
@@ -114,7 +116,7 @@ def profile_of(container_args) -> str:
             return args[i + 1]
         if arg.startswith("--profile="):
             return arg.split("=", 1)[1]
-    return "per-node"
+    return DEFAULT_PROFILE
 
 
 def _first_line(exc: BaseException) -> str:

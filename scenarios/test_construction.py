@@ -55,16 +55,17 @@ def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, rec
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)
 
 
-def test_node_killed_mid_construction_is_never_loaded(tracked, resilience, record_trial, trial_plan):
+@pytest.mark.parametrize("profile", ["per-node", "shared"])
+def test_node_killed_mid_construction_is_never_loaded(profile, tracked, resilience, record_trial, trial_plan):
     [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
         fault="die-in-constructor",
-        profile="per-node",
+        profile=profile,
         mitigations={},
         claim="a node whose process is killed while it is being built is reported "
         "Failed (LoadNode fails), never Loaded; the container goes on",
     )
-    rig, tracker = tracked("per-node")
+    rig, tracker = tracked(profile)
     node = tracker.load(TESTRIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
     ok = node.state == State.FAILED and "died during construction" in node.error
     out = Outcome(

@@ -25,9 +25,10 @@ MS = 1_000_000
     [
         ([], "threads"),
         (["--use_multi_threaded_executor"], "threads"),
-        (["--isolated"], "per-node"),
+        (["--isolated"], "shared"),
+        (["--isolated", "--profile", "per-node"], "per-node"),
+        (["--isolated", "--profile=per-node", "--cgroups"], "per-node"),
         (["--isolated", "--profile", "shared"], "shared"),
-        (["--isolated", "--profile=shared", "--cgroups"], "shared"),
     ],
 )
 def test_the_reports_profile_follows_the_container_arguments(args, profile):

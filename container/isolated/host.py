@@ -2,14 +2,15 @@
 
 Two participant profiles say where a node is built:
 
-``per-node`` (default)
+``shared`` (default)
+    The child builds the node on the container's Context (one DDS
+    participant for all) and spins it. A child that dies inside DDS can
+    leave the container's participant locked (the lock doctor repairs what
+    a waiter meets); a constructor that crashes ends only its child.
+``per-node``
     The child creates its own rclpy Context (its own DDS participant) and
     builds the node in it. A child that dies takes only its own participant's
     threads and locks with it.
-``shared``
-    The node is built in the container, on the container's Context (one DDS
-    participant for all), and only its executor spins in the child. A child
-    that dies inside DDS can leave the container's participant locked.
 
 The container's ``--profile`` is every load's unless the load asks for
 one (extra argument ``cloneguard.profile``): a container can give most of
@@ -138,7 +139,6 @@ class _NodeProcess:
     child: Any = None  # core.Child
     node: Any = None  # rclpy Node
     executor: Any = None  # SingleThreadedExecutor
-    context: Any = None  # the child's own Context (per-node)
     full_name: str = ""
     slot: int = -1  # this node's slot on the progress board
     start_ns: int = 0
@@ -180,8 +180,9 @@ class IsolatedHost:
         # The container's command line: the global ROS arguments a node built
         # with forward_global_arguments gets on its own Context (per-node).
         self._container_argv = list(container_argv)
-        # A node may be built in the container (the shared profile's, or a
-        # load asking for it: options.PROFILE), whatever the default.
+        # Any node may be built on the container's Context (the shared
+        # profile's, or a load asking for it: options.PROFILE), whatever
+        # the default.
         _robust_context_lock(context, logger)
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
@@ -317,12 +318,7 @@ class IsolatedHost:
         proc.slot = self.board.register(unique_id)
         proc.start_ns = time.time_ns()
         if proc.profile == SHARED:
-            proc.node = construction.construct(cls, args, self._context, unique_id)
-            proc.full_name = proc.node.get_fully_qualified_name()
-            proc.executor = SingleThreadedExecutor(context=self._context)
-            proc.executor.add_node(proc.node)
-            proc.stop_guard = proc.node.create_guard_condition(_stopping)
-            target = self._spin_target(proc)
+            target = self._shared_target(proc, cls, args)
         else:
             target = self._fresh_target(proc, cls, args)
         if self.cgroups is not None:
@@ -347,8 +343,7 @@ class IsolatedHost:
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built
         if proc.cgroup is not None:
             self.cgroups.attach(proc.cgroup, proc.child.pid)
-        if proc.profile != SHARED:
-            self._await_construction(proc)
+        self._await_construction(proc)
 
     def _undo(self, proc: _NodeProcess) -> None:
         """Undo a start that failed part-way (each step best-effort, so that
@@ -356,8 +351,6 @@ class IsolatedHost:
         steps = []
         if proc.child is not None and proc.state != "gone":
             steps.append(lambda: self._end_child(proc))
-        if proc.node is not None and proc.profile == SHARED and proc.state != "gone":
-            steps.append(lambda: self._destroy_built(proc))
         if proc.cgroup is not None:
             steps.append(lambda: self.cgroups.remove(proc.cgroup))
         if proc.slot >= 0:
@@ -371,12 +364,6 @@ class IsolatedHost:
                     f"unique_id {proc.unique_id}: clean-up after a failed start: {type(exc).__name__}: {exc}"
                 )
         proc.cgroup = None
-
-    @staticmethod
-    def _destroy_built(proc: _NodeProcess) -> None:
-        """A node built in the container (shared profile): its executor, then it."""
-        proc.executor.shutdown()
-        construction.destroy(proc.node)
 
     def _end_child(self, proc: _NodeProcess) -> None:
         """SIGKILL a child that was spawned for a start that failed; reap it;
@@ -456,50 +443,62 @@ class IsolatedHost:
                 raise handler.exception()
             handler.result()
 
-    def _spin_target(self, proc: _NodeProcess):
-        def run():
-            self._spin_until_stopped(proc)
-
-        return run
-
     def _fresh_target(self, proc: _NodeProcess, cls, args):
+        """A per-node child: its own Context, held by a placeholder node."""
+
         def run():
             ctx, placeholder = held_context(lambda: self._new_context(args.forward_global_arguments))
             self._build_and_spin(proc, ctx, cls, args, placeholder)
 
         return run
 
+    def _shared_target(self, proc: _NodeProcess, cls, args):
+        """A shared-profile child: the node is built on the container's
+        Context, but here, in its own process, like a per-node one: a
+        constructor that crashes ends this process, not the container."""
+
+        def run():
+            self._build_and_spin(proc, self._context, cls, args, None)
+
+        return run
+
     def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder):
-        """In a per-node child: build the node on ``ctx``, say READY (or
-        FAILED), spin it until asked to stop, then tear it all down. The
-        ``placeholder`` (placeholder.py) that holds the participant goes once the
-        node holds it too, or last after a failed construction: its
-        destruction, off the GIL, then deletes the participant."""
+        """In a node's child: build the node on ``ctx``, say READY (or
+        FAILED), spin it until asked to stop, then tear it all down. A
+        per-node child's ``placeholder`` (placeholder.py), which holds its
+        own Context's participant, goes once the node holds it too, or last
+        after a failed construction: its destruction, off the GIL, then
+        deletes the participant. ``placeholder`` None: ``ctx`` is the
+        container's (shared profile), which the child leaves as it is."""
         try:
             node = construction.construct(cls, args, ctx, proc.unique_id)
         except Exception as exc:
             # construct() has destroyed whatever node was half made; the
             # participant goes with the placeholder, and its threads end.
             proc.error = str(exc) if isinstance(exc, LoadError) else f"{type(exc).__name__}: {exc}"
-            release_context(ctx, placeholder)
+            if placeholder is not None:
+                release_context(ctx, placeholder)
             proc.handoff.post(FAILED)
             return
-        placeholder.destroy_node()
+        if placeholder is not None:
+            placeholder.destroy_node()
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         proc.stop_guard = node.create_guard_condition(_stopping)
-        proc.node, proc.executor, proc.context = node, executor, ctx
+        proc.node, proc.executor = node, executor
         proc.full_name = node.get_fully_qualified_name()
         proc.handoff.post(READY)
         try:
             self._spin_until_stopped(proc)
         finally:
-            # Also after a callback raised: the participant's threads
-            # must end (else this process outlives its node) and its
-            # SHM segments be unlinked; then the exception ends us (1).
+            # Also after a callback raised: the node leaves the graph, a
+            # per-node participant's threads end (else this process outlives
+            # its node) and its SHM segments are unlinked; then the
+            # exception ends us (1).
             executor.shutdown()
             construction.destroy(node)
-            release_context(ctx)
+            if placeholder is not None:
+                release_context(ctx)
 
     def _new_context(self, forward_global_arguments: bool) -> Context:
         """A node process's own rclpy Context, with the container's global ROS
@@ -611,8 +610,6 @@ class IsolatedHost:
                 self._core.kill(proc.child, signal.SIGKILL)
                 death = self._core.wait(proc.child)
             clean = death is not None and death.exit_code == 0
-            if clean and proc.profile == SHARED:
-                self._destroy_built(proc)
             self._forget(proc, leak=not clean)
 
     def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
@@ -736,8 +733,6 @@ class IsolatedHost:
                 f"{death.core_file} ({core_dump_size(death.core_file)})"
             )
         clean = death.exit_code == 0 and not death.repaired
-        if clean and proc.profile == SHARED:
-            self._destroy_built(proc)
         self._forget(proc, leak=not clean)
 
 

@@ -11,7 +11,7 @@ from fnmatch import fnmatchcase
 PER_NODE = "per-node"
 SHARED = "shared"
 PROFILES = (PER_NODE, SHARED)
-DEFAULT = PER_NODE
+DEFAULT = SHARED
 
 
 @dataclass(frozen=True)
