@@ -211,8 +211,8 @@ def _add_isolated_options(isolated: _IsolatedOptions) -> None:
         "--profile",
         choices=profiles.PROFILES,
         default=profiles.DEFAULT,
-        help="where nodes are built; 'per-node' gives each child its own rclpy Context "
-        "and DDS participant, 'shared' builds them on the container's (default: %(default)s)",
+        help="where nodes are built: each in its own process either way, on the container's rclpy Context "
+        "and DDS participant ('shared') or on one of its own ('per-node') (default: %(default)s)",
     )
     isolated.add_argument(
         "--profile-for",
