@@ -21,6 +21,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 
 from cloneguard.harness.process import REPO_ROOT, process_environment
 
@@ -38,10 +39,13 @@ ROS2CLI_SPIN_S = 0.5
 PROBE_TIMEOUT_S = 5.0
 
 
-def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
+def probe(running, nodes: Sequence[str] = (), timeout: float = PROBE_TIMEOUT_S) -> dict:
+    """One fresh process's look: when it saw the container's node, its
+    list_nodes service and every one of ``nodes`` (full names)."""
     env = process_environment(running.domain_id)
+    command = [sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn, "--timeout", str(timeout)]
     done = subprocess.run(
-        [sys.executable, "-m", "cloneguard.bench._discovery_probe", running.proc.fqn, "--timeout", str(timeout)],
+        [*command, "--nodes", *nodes],
         cwd=REPO_ROOT,
         env=env,
         stdin=subprocess.DEVNULL,
@@ -57,8 +61,8 @@ def probe(running, timeout: float = PROBE_TIMEOUT_S) -> dict:
 def run(
     *,
     probes: int = 20,
-    nodes: list[int] = (0, 4),
-    modes: list[str] = DEFAULT_MODES,
+    nodes: Sequence[int] = (0, 4),
+    modes: Sequence[str] = DEFAULT_MODES,
     settle: float = 2.0,
     out=DEFAULT_OUT,
     keep_logs: bool = False,
@@ -73,10 +77,11 @@ def run(
             for mode in modes:
                 running = session.start(mode)
                 try:
-                    for i in range(count):
-                        timed_load(running, node_name=f"n{i}")
+                    names = [f"/n{i}" for i in range(count)]
+                    for name in names:
+                        timed_load(running, node_name=name[1:])
                     time.sleep(settle)  # the container's own discovery traffic has settled
-                    data[f"{mode}|{count}"] = [probe(running) for _ in range(probes)]
+                    data[f"{mode}|{count}"] = [probe(running, names) for _ in range(probes)]
                 finally:
                     session.stop(running)
     finally:
@@ -95,6 +100,9 @@ def run(
             "service: max",
             f"seen within {ROS2CLI_SPIN_S:g} s (ros2 component list finds it)",
             "not seen in 5 s",
+            "every loaded node seen: median",
+            "every node: max",
+            "every node within 1 s",
         ],
     )
     summary = []
@@ -105,6 +113,9 @@ def run(
             svc_st = stats([t["service_s"] * 1e3 for t in trials if t["service_s"] is not None])
             within = sum(t["service_s"] is not None and t["service_s"] <= ROS2CLI_SPIN_S for t in trials)
             missing = sum(t["service_s"] is None for t in trials)
+            every = [t["all_nodes_s"] for t in trials]
+            every_st = stats([e * 1e3 for e in every if e is not None])
+            every_within = sum(e is not None and e <= 1.0 for e in every)
             table.add(
                 label(mode),
                 count,
@@ -115,6 +126,9 @@ def run(
                 fmt_ms(svc_st["max"]),
                 f"{within}/{len(trials)}",
                 missing,
+                fmt_ms(every_st["median"]),
+                fmt_ms(every_st["max"]),
+                f"{every_within}/{len(trials)}",
             )
             summary.append(
                 summary_row(

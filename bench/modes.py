@@ -9,6 +9,7 @@ HEARTBEAT = "cloneguard::Heartbeat"
 HEARTBEAT_PARAMS = {"period": 1.0}  # 1 Hz: an idle node, as the scale runs load them
 LISTENER = "cloneguard::Listener"  # no timer: idle unless a message arrives
 
+
 # Container modes: key -> (label, container arguments).
 MODES = {
     "isolated-per-node": ("isolated, per-node profile", ["--isolated", "--profile", "per-node"]),
@@ -33,5 +34,16 @@ PROCESS_PER_NODE = "process-per-node"
 PROCESS_PER_NODE_LABEL = "process per node (fork+exec, bench.process_per_node)"
 
 
+def isolated_default() -> str:
+    """The mode of an isolated container started with no --profile. Read
+    when asked: importing the container here would come before a benchmark
+    that chooses which tree to import (accounting_cost) has chosen."""
+    from cloneguard.container.isolated.profiles import DEFAULT
+
+    return f"isolated-{DEFAULT}"
+
+
 def label(mode: str) -> str:
-    return PROCESS_PER_NODE_LABEL if mode == PROCESS_PER_NODE else MODES[mode][0]
+    if mode == PROCESS_PER_NODE:
+        return PROCESS_PER_NODE_LABEL
+    return MODES[mode][0] + (" (the default)" if mode == isolated_default() else "")

@@ -242,9 +242,11 @@ def test_the_discovery_benchmark_probes_from_fresh_processes(tmp_path):
     [trials] = result.raw["trials"].values()
     assert len(trials) == 2
     # A container that answers its services is found by a fresh participant
-    # (in the probe's 5 s), and the node is seen no later than its service.
+    # (in the probe's 5 s), and the node is seen no later than its service;
+    # the loaded node is seen too.
     for t in trials:
         assert t["service_s"] is not None and t["node_s"] <= t["service_s"]
+        assert t["all_nodes_s"] is not None
     assert (tmp_path / "discovery.md").exists()
 
 
@@ -403,3 +405,20 @@ def test_the_accounting_benchmark_steps_and_times_each_tree_in_its_own_workers(t
     assert all(float(r["within_budget"]) > 0 and float(r["count_got"]) > 0 for r in where["rows"])
     assert [r["measure"] for r in timed["rows"]] == measures
     assert all(r["pairs"] == "1" and r["verdict (≤ +2%)"].startswith("undecided") for r in timed["rows"])
+
+
+def test_the_scale_benchmark_judges_the_default_profile_at_96_nodes():
+    from cloneguard.bench import scale
+    from cloneguard.bench.modes import isolated_default, label
+
+    default = isolated_default()
+    assert label(default).endswith("(the default)")
+    row = {"load_all_ns": 2.5e9, "idle_cpu_pct": 20.0, "pss_kb": 300 * 1024, "exit_ns": None}
+    goals = scale.default_goals({default: {96: row}}, 96)
+    assert [(g.goal, g.measure, g.met) for g in goals] == [
+        ("default profile load all ≤ 3 s", "at 96 nodes", True),
+        ("default profile idle CPU ≤ 15% of a core", "at 96 nodes", False),
+        ("default profile PSS ≤ 270 MiB", "at 96 nodes", False),
+        ("default profile SIGTERM → exit ≤ 2 s", "at 96 nodes", False),  # it did not exit at all
+    ]
+    assert [g.met for g in scale.default_goals({default: {}}, 96)] == [None] * 4  # not measured
