@@ -8,10 +8,13 @@ random over a window from a trial's Random, so that a trial replays.
     robot.inject(sequence(Starve("/planner", 0.01, 2.0), Kill("/planner"), every_s=0.5))
     robot.inject(random_over(t.rng, 3.0, [Kill("/planner"), Freeze("/map_server", 0.5)], count=2))
     robot.inject(KillAt("/planner", "python-lock"))
+    robot.inject([At(0.0, Drop("/scan", 4.0, probability=0.5)), At(1.0, Delay("/odom", 2.0, delay_s=0.3))])
 
 ``inject`` also takes a single fault or ``At``, and a bare fault in a list
-runs at once (at 0 s). Faults run at their times from the schedule's start; a freeze or a
-starvation lasts its seconds on a thread of its own, so faults overlap
+runs at once (at 0 s). Faults run at their times from the schedule's start; a freeze, a
+starvation or a message fault (message_faults.py: ``Drop``, ``Delay``,
+``Reorder``, ``Duplicate``, ``Corrupt``, ``Partition``) lasts its seconds
+on a thread of its own, so faults overlap
 where their times do. Each is recorded in ``System.faults`` (and so in
 the trial's history in the report) when it ends.
 
@@ -26,6 +29,13 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+
+from .message_faults import Corrupt, Delay, Drop, Duplicate, MessageFault, Partition, Reorder, stale
+
+__all__ = [
+    "At", "Corrupt", "Delay", "Drop", "Duplicate", "Freeze", "Kill", "KillAt", "MessageFault", "Partition",
+    "Reorder", "Starve", "as_schedule", "random_over", "run_schedule", "sequence", "stale",
+]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -82,8 +92,8 @@ class Starve:
         system.starve(self.node, self.cpus, self.seconds)
 
 
-ScheduledFault = Kill | KillAt | Freeze | Starve
-FAULTS = (Kill, KillAt, Freeze, Starve)
+ScheduledFault = Kill | KillAt | Freeze | Starve | MessageFault
+FAULTS = (Kill, KillAt, Freeze, Starve, MessageFault)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +32,7 @@ from .cpu_starve import CpuStarve
 from .crash_report import STACKS_WAIT_S, wait_for_report
 from .errors import HarnessTimeout
 from .factory import ContainerFactory
+from .message_faults import MessageEngine, MessageFault, run_message_fault
 from .process import ContainerProcess
 from .schedule import run_schedule
 from .talk import GoalOutcome, Talker
@@ -73,6 +75,9 @@ class Fault:
     start_ns: int
     end_ns: int
     unique_id: int = 0
+    # A message fault (message_faults.py): filed under its topic, and how
+    # many messages it dropped, delayed, duplicated ... ("dropped": 12).
+    counts: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def kind(self) -> str:
@@ -111,6 +116,11 @@ class System:
         self.container_args = list(container_args)
         self.memory_limit = memory_limit
         self.faults: list[Fault] = []
+        # What message faults draw from unless they name a seed: a seeded
+        # trial's seed (system_trials sets it), else 0.
+        self.seed = 0
+        self._messages: MessageEngine | None = None
+        self._messages_lock = threading.Lock()  # faults of a schedule start together
         self.watched: dict[str, Recorder] = {}  # every topic() asked for, by name
         self.proc: ContainerProcess
         self.client: ContainerClient
@@ -121,6 +131,7 @@ class System:
         self.proc = self._factory.start(self.container_args, memory_limit=self.memory_limit)
         self.client = self._factory.connect(self.proc)
         self._talk = Talker(self.client)
+        self._messages = None  # a new container has no message-fault engine yet
         self.nodes = {}
         for spec in self.specs:
             running = self._load(spec)
@@ -280,6 +291,20 @@ class System:
         end = time.monotonic_ns()
         self.faults.append(Fault(full_name, f"starve {cpus:g} CPU {seconds:g} s", start, end, running.unique_id))
         return start, end
+
+    def message_fault(self, fault: MessageFault) -> Fault:
+        """Put a message fault (message_faults.py: ``Drop``, ``Delay`` ...)
+        in force for its seconds; blocks meanwhile; the Fault recorded, with
+        its counts. The first loads the rig's engine into the container."""
+        with self._messages_lock:
+            if self._messages is None:
+                self._messages = MessageEngine(self.client)
+            engine = self._messages
+        seed = self.seed if fault.seed is None else fault.seed
+        start, end, counts = run_message_fault(engine, fault, seed)
+        recorded = Fault(fault.node, fault.describe(), start, end, counts=counts)
+        self.faults.append(recorded)
+        return recorded
 
     def inject(self, schedule) -> list[Fault]:
         """Run a fault schedule (schedule.py: faults at times from now, in

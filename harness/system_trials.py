@@ -290,6 +290,7 @@ def run_trials(
         first_fault = len(system.faults)
         exc: BaseException | None = None
         measured = None
+        system.seed = seed  # what its message faults draw from
         try:
             measured = trial(SystemTrial(index, seed, random.Random(seed), start))
         except AssertionError as raised:  # HarnessTimeout is one

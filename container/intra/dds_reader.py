@@ -71,7 +71,7 @@ def publisher_gid(publisher) -> bytes:
     return ffi.buffer(gid)[:]
 
 
-class _TakeBuffer:
+class TakeBuffer:
     """A reusable rcl_serialized_message_t and the gid/error buffers for takes.
 
     Not thread-safe: the reader uses it under its lock.
@@ -149,7 +149,7 @@ class GidFilteredReader(Waitable):
         try:
             with self._handle:
                 self.topic_name: str = self._handle.get_topic_name()
-            self._buffer = _TakeBuffer()
+            self._buffer = TakeBuffer()
         except BaseException:
             self._handle.destroy_when_not_in_use()
             raise

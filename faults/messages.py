@@ -1,0 +1,341 @@
+"""Message faults inside a container, with no node changed: the engine.
+
+``faults::MessageFaults`` is a component of the test rig. Loaded into a
+container (the harness does it at the first message fault of a System),
+it puts the engine between every subscription of the container's one
+interpreter and its callback: rclpy's executor's take of a DDS message
+(``Executor._take_subscription``, whatever executor spins the node, in
+every mode and profile: every node process runs in that interpreter), and
+the delivery of an intra-process subscription (``intra.api.Subscription``).
+Until a rule is set on a topic, a take on it costs one dict lookup more;
+a container without this component loaded is not touched at all, and a
+container installed without the rig cannot load it.
+
+The rules (message_rules.py) are the node's ``faults`` parameter, a JSON
+list, set through ROS's own parameter service: every set replaces them all,
+and a bad list is refused, saying why, changing nothing. The counts of what
+each rule did are on the ``~/counts`` service (std_srvs/Trigger: JSON).
+
+A message held back (delay, reorder) is delivered by its subscriber's own
+executor, as any message is: the engine makes a guard condition on that
+subscriber's node, and its pump thread (in this component's process)
+triggers it when the message is due.
+
+Over DDS, a rule that names publishers reads each message's publisher gid
+(container/intra/dds_reader.py's take) and finds its node in the ROS graph;
+an intra-process message's publisher is not known here, so such a rule
+passes intra-process messages untouched, and counts them as ``unknown``.
+"""
+
+from __future__ import annotations
+
+import copy
+import heapq
+import importlib
+import itertools
+import json
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import Executor, await_or_execute
+from rclpy.guard_condition import GuardCondition
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message
+from rclpy.subscription import Subscription
+from std_srvs.srv import Trigger
+
+from cloneguard.container.intra import api as intra_api
+from cloneguard.container.intra.dds_reader import TakeBuffer
+
+from .message_rules import ANY_TOPIC, ENGINE_NODE_NAME, Fate, Rule, RuleError, corrupt, fate, rules_from_text
+
+#: How often the pump looks for due messages while any are held (s).
+PUMP_PERIOD_S = 0.0002
+
+
+@dataclass
+class _Held:
+    """A message held back for its subscriber: ``deliver()`` does it."""
+
+    due: float
+    order: float  # among those due at once (a reorder window's shuffle)
+    deliver: Callable[[], None]  # run by the subscriber's executor
+
+
+class _Engine:
+    """The rules in force, what each did, and the messages held back. One
+    per interpreter (``ENGINE``); its tables are replaced whole, never
+    changed in place, so a take reads them without a lock."""
+
+    def __init__(self):
+        self.by_topic: dict[str, list[Rule]] = {}
+        self.any_topic: list[Rule] = []
+        self.counts: dict[str, Counter] = {}
+        self._numbers: dict = {}  # (rule id, subscription) -> messages seen
+        self._held: list[tuple[float, int, _Held, int]] = []  # heap: (due, seq, held, node key)
+        self._seq = itertools.count()
+        self._wakes: dict[int, GuardCondition] = {}  # id(node) -> its guard condition
+        # id(node) -> its due messages: the pump appends, the node's executor
+        # pops (each a single step under the GIL, across processes too).
+        self._due: dict[int, deque[_Held]] = {}
+        self._publishers: dict[bytes, str] = {}  # gid -> node full name
+        self._pumping = False
+        self._buffers: dict[int, TakeBuffer] = {}  # per subscription (its process takes with it)
+        self.installed = False
+
+    # -- the rules ---------------------------------------------------------------------------
+
+    def set_rules(self, rules: list[Rule]) -> None:
+        every = [r for r in rules if r.topic == ANY_TOPIC]
+        by_topic: dict[str, list[Rule]] = {}
+        for rule in rules:
+            if rule.topic != ANY_TOPIC:
+                by_topic.setdefault(rule.topic, []).append(rule)
+            self.counts.setdefault(rule.id, Counter())
+        for topic_rules in by_topic.values():
+            topic_rules.extend(every)
+        self.by_topic, self.any_topic = by_topic, every
+        if self._holds() and not self._pumping:
+            self._pumping = True
+            threading.Thread(target=self._pump, name="cloneguard-message-faults", daemon=True).start()
+
+    def rules_for(self, topic: str) -> list[Rule] | None:
+        """The rules on ``topic`` (those on every topic included); None: none."""
+        return self.by_topic.get(topic) or self.any_topic or None
+
+    def _holds(self) -> bool:
+        rules = [*self.any_topic, *(r for rs in self.by_topic.values() for r in rs)]
+        return bool(self._held) or any(r.kind in ("delay", "reorder") for r in rules)
+
+    def count(self, rule: Rule, what: str, n: int = 1) -> None:
+        self.counts.setdefault(rule.id, Counter())[what] += n
+
+    # -- a message's fate ----------------------------------------------------------------------
+
+    def apply(self, rules, subscription: str, subscriber: str, publisher, node, msg_args: tuple, deliver, *,
+              shared: bool = False):  # fmt: skip
+        """Decide the fate of one message and carry it out: the callable
+        that delivers it now (``deliver(msg_args)``, for the executor), or
+        None (dropped, or held to be delivered later). ``shared``: the
+        message is others' too (intra-process): corrupt a copy."""
+        now = time.monotonic()
+        f: Fate = fate(rules, subscription, subscriber, publisher, self._numbers, now)
+        if publisher is None:
+            for rule in rules:
+                if rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
+                    self.count(rule, "passed: publisher not known")
+        for rule in f.hit:
+            self.count(rule, _PAST[rule.kind])
+        if f.drop:
+            return None
+        if f.corrupt:
+            msg = msg_args[0]
+            if shared:
+                msg = msg.to_message() if hasattr(msg, "to_message") else copy.deepcopy(msg)
+            try:
+                msg_args = (corrupt(msg, f.corrupt), *msg_args[1:])
+            except (RuleError, TypeError, ValueError, AttributeError) as exc:
+                for rule in f.hit:
+                    if rule.kind == "corrupt":
+                        self.count(rule, f"not corrupted: {exc}")
+        copies = f.copies
+
+        def run():
+            for _ in range(copies):
+                deliver(msg_args)
+
+        if f.due:
+            self._hold(node, _Held(f.due, f.order, run))
+            return None
+        return run
+
+    def _hold(self, node, held: _Held) -> None:
+        key = id(node)
+        if key not in self._wakes:
+            self._due[key] = deque()
+            self._wakes[key] = node.create_guard_condition(lambda: self._release(key))
+        heapq.heappush(self._held, (held.due, next(self._seq), held, key))
+
+    def _release(self, key: int) -> None:
+        """In the subscriber's executor: deliver its due messages, those
+        due at once in their order."""
+        due, queue = [], self._due[key]
+        while queue:
+            due.append(queue.popleft())
+        for held in sorted(due, key=lambda h: (h.due, h.order)):
+            held.deliver()
+
+    def _pump(self) -> None:
+        """While anything is or may be held: move what is due to its
+        subscriber and wake that subscriber's executor."""
+        while self._holds():
+            now = time.monotonic()
+            woken = set()
+            while self._held and self._held[0][0] <= now:
+                _, _, held, key = heapq.heappop(self._held)
+                self._due[key].append(held)
+                woken.add(key)
+            for key in woken:
+                try:
+                    self._wakes[key].trigger()
+                except Exception:  # its node is gone: so are its messages
+                    self._wakes.pop(key, None)
+                    self._due.pop(key, None)
+            time.sleep(PUMP_PERIOD_S)
+        self._pumping = False
+
+    # -- publishers over DDS -----------------------------------------------------------------
+
+    def publisher_name(self, node, topic: str, gid: bytes) -> str | None:
+        name = self._publishers.get(gid)
+        if name is None:
+            for info in node.get_publishers_info_by_topic(topic):
+                ns = info.node_namespace.rstrip("/")
+                self._publishers[bytes(info.endpoint_gid[: len(gid)])] = f"{ns}/{info.node_name}"
+            name = self._publishers.get(gid)
+        return name
+
+    def buffer(self, sub) -> TakeBuffer:
+        buf = self._buffers.get(id(sub))
+        if buf is None:
+            buf = self._buffers[id(sub)] = TakeBuffer()
+        return buf
+
+
+_PAST = {"drop": "dropped", "partition": "dropped", "delay": "delayed", "reorder": "reordered",
+         "duplicate": "duplicated", "corrupt": "corrupted"}  # fmt: skip
+
+
+ENGINE = _Engine()
+
+# -- the two places messages reach callbacks -------------------------------------------------------
+
+_take_subscription = Executor._take_subscription
+_intra_deliver = intra_api.Subscription._deliver
+
+
+def _node_of(executor: Executor, sub: Subscription):
+    for node in executor.get_nodes():
+        if sub in node.subscriptions:
+            return node
+    return None
+
+
+def _faulty_take_subscription(self: Executor, sub: Subscription):
+    rules = ENGINE.rules_for(sub.topic_name)
+    if rules is None:
+        return _take_subscription(self, sub)
+    node = _node_of(self, sub)
+    if node is None:
+        return _take_subscription(self, sub)
+    subscriber = node.get_fully_qualified_name()
+    publisher = None
+    with_info = sub._callback_type is not Subscription.CallbackType.MessageOnly
+    if any(r.publishers for r in rules) and not with_info:
+        with sub.handle:
+            taken = ENGINE.buffer(sub).take(sub.handle.pointer)
+        if taken is None:
+            return None
+        data, gid = taken
+        publisher = ENGINE.publisher_name(node, sub.topic_name, gid)
+        args: tuple = (data if sub.raw else deserialize_message(data, sub.msg_type),)
+    else:
+        with sub.handle:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        if taken is None:
+            return None
+        args = tuple(taken) if with_info else (taken[0],)
+
+    def deliver(msg_args):
+        sub.callback(*msg_args)
+
+    run = ENGINE.apply(rules, f"{subscriber}|{sub.topic_name}", subscriber, publisher, node, args, deliver)
+    if run is None:
+        return None
+
+    async def _execute():
+        await await_or_execute(run)
+
+    return _execute
+
+
+def _faulty_intra_deliver(self, msg) -> None:
+    rules = ENGINE.rules_for(self.topic)
+    if rules is None or not self.intra:  # not intra: an rclpy subscription's, met at its take
+        return _intra_deliver(self, msg)
+    subscriber = self.node.get_fully_qualified_name()
+
+    def deliver(msg_args):
+        _intra_deliver(self, msg_args[0])
+
+    run = ENGINE.apply(rules, f"{subscriber}|{self.topic}", subscriber, None, self.node, (msg,), deliver, shared=True)
+    if run is not None:
+        run()
+
+
+def install() -> None:
+    """Put the engine in the two places (once per interpreter)."""
+    if not ENGINE.installed:
+        Executor._take_subscription = _faulty_take_subscription  # type: ignore[method-assign]
+        intra_api.Subscription._deliver = _faulty_intra_deliver  # type: ignore[method-assign]
+        ENGINE.installed = True
+
+
+class MessageFaults(Node):
+    """The engine's node: its ``faults`` parameter sets the rules, its
+    ``~/counts`` service tells what each rule did."""
+
+    def __init__(self, **kwargs):
+        super().__init__(ENGINE_NODE_NAME, **kwargs)
+        install()
+        self.add_on_set_parameters_callback(self._on_set)
+        self.declare_parameter("faults", "[]")
+        self.create_service(Trigger, "~/counts", self._counts)
+
+    def _on_set(self, params) -> SetParametersResult:
+        for p in params:
+            if p.name != "faults":
+                continue
+            try:
+                rules = rules_from_text(p.value)
+            except RuleError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            ENGINE.set_rules(rules)
+        return SetParametersResult(successful=True)
+
+    def _counts(self, request, response):
+        response.success = True
+        response.message = json.dumps({rid: dict(c) for rid, c in ENGINE.counts.items()})
+        return response
+
+
+class MessageProbe(Node):
+    """What a subscriber heard, seen from outside: every message it
+    receives on ``topic`` (of ``type``, e.g. ``std_msgs/msg/UInt64``) it
+    publishes again, unchanged, on ``~/heard``. Its subscription is an
+    intra-process one where the load asks for it (container.intra)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("message_probe", **kwargs)
+        topic = self.declare_parameter("topic", "chatter").value
+        msg_type = message_type(self.declare_parameter("type", "std_msgs/msg/String").value)
+        self._pub = self.create_publisher(msg_type, "~/heard", 1000)
+        self._sub = intra_api.create_subscription(self, msg_type, topic, self._heard, 1000)
+
+    def _heard(self, msg) -> None:
+        self._pub.publish(msg.to_message() if hasattr(msg, "to_message") else msg)
+
+
+def message_type(name: str):
+    """The message class ``package/msg/Type`` names; ValueError saying why not."""
+    package, kind, type_name = (name.split("/") + ["", ""])[:3]
+    try:
+        if kind != "msg" or not type_name:
+            raise ImportError("expected package/msg/Type")
+        return getattr(importlib.import_module(f"{package}.msg"), type_name)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"no message type {name!r}: {exc}") from None

@@ -1,0 +1,158 @@
+"""Message faults in a real container, no node changed (harness/message_faults.py,
+faults/messages.py): a Talker publishes "m <n>" on /chatter at 50 Hz, a
+MessageProbe republishes what it hears on /message_probe/heard, and the
+harness, outside the container, sees both: what was sent and what the
+subscriber got, message by message."""
+
+import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from std_msgs.msg import String
+
+from cloneguard.faults import PACKAGE as RIG
+from cloneguard.faults.message_rules import ENGINE_NODE_NAME
+from cloneguard.harness.schedule import At, Corrupt, Delay, Drop, Duplicate, Partition, Reorder
+from cloneguard.harness.system import NodeSpec
+
+MODES = {"threads": [], "shared": ["--isolated"], "per-node": ["--isolated", "--profile", "per-node"]}
+PERIOD_S = 0.02
+
+
+class Watched:
+    """The system, and what was sent and heard on it."""
+
+    def __init__(self, system_factory, mode: str = "shared", intra: bool = False):
+        extra = {"use_intra_process_comms": True} if intra else {}
+        nodes = [
+            NodeSpec("cloneguard", "cloneguard::Talker", parameters={"topic": "/chatter", "period": PERIOD_S,
+                     "message": "m"}, extra_arguments=extra),
+            NodeSpec(RIG, "faults::MessageProbe", parameters={"topic": "/chatter"}, extra_arguments=extra),
+        ]  # fmt: skip
+        self.system = system_factory(nodes, MODES[mode])
+        self.sent = self.system.topic(String, "/chatter", qos=1000)
+        self.heard = self.system.topic(String, "/message_probe/heard", qos=1000)
+        self.heard.wait_count(5, timeout=15)
+
+    def settle(self) -> int:
+        """Let 20 more messages (0.4 s: past any delay or reorder window the
+        tests set) go after the faults and every one of them be
+        heard; the last number sent."""
+        self.sent.wait_count(len(self.sent) + 20, timeout=10)
+        last = max(self.sent_numbers())
+        self.heard.wait_for(lambda msg: int(msg.data.split()[-1]) >= last, timeout=10, what=f"m {last} heard")
+        return last
+
+    def sent_numbers(self) -> list[int]:
+        return [_number(r) for r in self.sent.items()]
+
+    def heard_numbers(self) -> list[int]:
+        return [_number(r) for r in self.heard.items()]
+
+    def missing(self) -> list[int]:
+        """Sent while the probe listened, never heard."""
+        last = self.settle()
+        heard = self.heard_numbers()
+        return sorted(set(range(min(heard), last + 1)) - set(heard))
+
+
+def _number(received) -> int:
+    return int(received.msg.data.split()[-1])
+
+
+@pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
+@pytest.mark.parametrize("mode", list(MODES))
+def test_a_drop_hits_every_message_its_subscriber_would_have_had_for_its_time(system_factory, mode, intra):
+    w = Watched(system_factory, mode, intra)
+    [fault] = w.system.inject(Drop("/chatter", 1.0))
+    missing = w.missing()
+    assert fault.counts == {"dropped": len(missing)}
+    assert missing == list(range(missing[0], missing[-1] + 1))  # one run of them: the fault's second
+    assert 25 <= len(missing) <= 75  # 50 Hz for 1 s, on a loaded machine
+    assert w.system.alive()
+
+
+def test_a_seed_replays_which_messages_are_dropped(system_factory):
+    w = Watched(system_factory)
+    patterns = []
+    for seed in (11, 11, 12):
+        before = len(w.heard)
+        w.system.inject(Drop("/chatter", 1.0, probability=0.5, seed=seed))
+        w.settle()
+        heard = set(w.heard_numbers()[before:])
+        lost = sorted(set(range(min(heard), max(heard))) - heard)
+        # From the first message the fault dropped: heard or not, each in turn.
+        patterns.append([n in heard for n in range(lost[0], lost[0] + 30)])
+    assert patterns[0] == patterns[1]
+    assert patterns[0] != patterns[2]
+
+
+def test_a_delay_delivers_every_message_that_much_later(system_factory):
+    w = Watched(system_factory)
+    [fault] = w.system.inject(Delay("/chatter", 1.0, delay_s=0.2))
+    w.settle()
+    sent_at = {_number(r): r.at_ns for r in w.sent.items()}
+    late = sorted((r.at_ns - sent_at[_number(r)]) / 1e9 for r in w.heard.items() if _number(r) in sent_at)
+    delayed = [x for x in late if x > 0.1]
+    assert len(delayed) == fault.counts["delayed"] >= 25
+    assert 0.19 < delayed[len(delayed) // 2] < 0.3  # median lateness, on a loaded machine
+    assert w.missing() == []  # late, not lost
+
+
+def test_duplicates_and_reorderings_are_what_the_subscriber_gets(system_factory):
+    w = Watched(system_factory)
+    before = len(w.heard)
+    [dup] = w.system.inject(Duplicate("/chatter", 1.0, every=2))
+    w.settle()
+    heard = w.heard_numbers()[before:]
+    twice = [n for n in set(heard) if heard.count(n) == 2]
+    assert len(twice) == dup.counts["duplicated"] >= 10
+    before = len(w.heard)
+    [reorder] = w.system.inject(Reorder("/chatter", 1.0, window_s=0.2))
+    w.settle()
+    heard = w.heard_numbers()[before:]
+    inversions = sum(a > b for a, b in zip(heard, heard[1:], strict=False))
+    assert inversions > 0 and reorder.counts["reordered"] >= 25
+    assert sorted(heard) == list(range(min(heard), max(heard) + 1))  # each once: none lost, none twice
+    assert w.missing() == []
+
+
+@pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
+def test_corrupted_fields_reach_the_subscriber_and_no_one_else(system_factory, intra):
+    w = Watched(system_factory, intra=intra)
+    [fault] = w.system.inject(Corrupt("/chatter", 0.5, fields={"data": "m -1"}))
+    w.settle()
+    corrupted = [n for n in w.heard_numbers() if n == -1]
+    assert len(corrupted) == fault.counts["corrupted"] >= 10
+    assert -1 not in w.sent_numbers()  # the publisher's message, also sent over DDS, is untouched
+
+
+def test_a_partition_cuts_only_the_named_publishers_from_the_named_subscribers(system_factory):
+    w = Watched(system_factory)
+    [other] = w.system.inject(Partition(publishers=["/someone_else"], subscribers=["/message_probe"], seconds=0.5))
+    assert other.counts == {} and w.missing() == []
+    [cut] = w.system.inject(Partition(publishers=["/talker"], subscribers=["/message_probe"], seconds=1.0))
+    missing = w.missing()
+    assert cut.counts == {"dropped": len(missing)} and len(missing) >= 25
+
+
+def test_an_intra_process_message_has_no_known_publisher_so_a_publisher_rule_lets_it_pass(system_factory):
+    w = Watched(system_factory, intra=True)
+    [cut] = w.system.inject(Partition(publishers=["/talker"], subscribers=["/message_probe"], seconds=0.5))
+    assert w.missing() == []
+    assert cut.counts["passed: publisher not known"] >= 10
+
+
+def test_faults_overlap_on_a_schedule_and_the_engine_refuses_a_bad_list(system_factory):
+    w = Watched(system_factory)
+    faults = w.system.inject([At(0.0, Drop("/chatter", 1.0, every=2)), At(0.3, Duplicate("/chatter", 0.3))])
+    assert [f.kind for f in faults] == ["duplicate", "drop"]  # recorded as each ended
+    assert faults[1].counts["dropped"] >= 10 and faults[0].counts["duplicated"] >= 3
+    # The engine answers a bad rule list with the reason and changes nothing.
+    last_before = w.settle()
+    value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value='[{"id": "x", "kind": "explode"}]')
+    client = w.system.client.service_client(SetParameters, f"/{ENGINE_NODE_NAME}/set_parameters")
+    request = SetParameters.Request(parameters=[Parameter(name="faults", value=value)])
+    [result] = w.system.client.call(client, request).results
+    assert not result.successful and "needs id, kind and topic" in result.reason
+    assert [n for n in w.missing() if n > last_before] == []  # nothing dropped since
+    assert w.system.alive()
