@@ -21,10 +21,12 @@ executor, as any message is: the engine makes a guard condition on that
 subscriber's node, and its pump thread (in this component's process)
 triggers it when the message is due.
 
-Over DDS, a rule that names publishers reads each message's publisher gid
-(container/intra/dds_reader.py's take) and finds its node in the ROS graph;
-an intra-process message's publisher is not known here, so such a rule
-passes intra-process messages untouched, and counts them as ``unknown``.
+A rule that names publishers needs each message's publisher: over DDS
+the engine reads its gid (container/intra/dds_reader.py's take) and finds
+its node in the ROS graph; an intra-process message's publisher is noted
+when it hands the message over (``Publisher._hand_over``), while such a
+rule is on its topic. A message whose publisher is not known passes such a
+rule, counted (``passed: publisher not known``).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import itertools
 import json
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -216,6 +218,12 @@ ENGINE = _Engine()
 
 _take_subscription = Executor._take_subscription
 _intra_deliver = intra_api.Subscription._deliver
+_intra_hand_over = intra_api.Publisher._hand_over
+#: Intra-process messages handed over while a rule on their topic names
+#: publishers: id -> (the message, kept so that its id is not reused while
+#: here; its publisher's node). The newest INTRA_SOURCES only.
+_intra_sources: OrderedDict[int, tuple[object, str]] = OrderedDict()
+INTRA_SOURCES = 4096
 
 
 def _node_of(executor: Executor, sub: Subscription):
@@ -263,16 +271,28 @@ def _faulty_take_subscription(self: Executor, sub: Subscription):
     return _execute
 
 
+def _faulty_intra_hand_over(self, msg, targets) -> None:
+    rules = ENGINE.rules_for(self.topic)
+    if rules is not None and any(r.publishers for r in rules):
+        _intra_sources[id(msg)] = (msg, self.node.get_fully_qualified_name())
+        while len(_intra_sources) > INTRA_SOURCES:
+            _intra_sources.popitem(last=False)
+    _intra_hand_over(self, msg, targets)
+
+
 def _faulty_intra_deliver(self, msg) -> None:
     rules = ENGINE.rules_for(self.topic)
     if rules is None or not self.intra:  # not intra: an rclpy subscription's, met at its take
         return _intra_deliver(self, msg)
     subscriber = self.node.get_fully_qualified_name()
+    source = _intra_sources.get(id(msg))
+    publisher = source[1] if source is not None and source[0] is msg else None
 
     def deliver(msg_args):
         _intra_deliver(self, msg_args[0])
 
-    run = ENGINE.apply(rules, f"{subscriber}|{self.topic}", subscriber, None, self.node, (msg,), deliver, shared=True)
+    subscription = f"{subscriber}|{self.topic}"
+    run = ENGINE.apply(rules, subscription, subscriber, publisher, self.node, (msg,), deliver, shared=True)
     if run is not None:
         run()
 
@@ -282,6 +302,7 @@ def install() -> None:
     if not ENGINE.installed:
         Executor._take_subscription = _faulty_take_subscription  # type: ignore[method-assign]
         intra_api.Subscription._deliver = _faulty_intra_deliver  # type: ignore[method-assign]
+        intra_api.Publisher._hand_over = _faulty_intra_hand_over  # type: ignore[method-assign]
         ENGINE.installed = True
 
 
