@@ -14,7 +14,8 @@ container installed without the rig cannot load it.
 The rules (message_rules.py) are the node's ``faults`` parameter, a JSON
 list, set through ROS's own parameter service: every set replaces them all,
 and a bad list is refused, saying why, changing nothing. The counts of what
-each rule did are on the ``~/counts`` service (std_srvs/Trigger: JSON).
+each rule did (``seen``: the messages it was for; ``dropped``, ``delayed``
+...: those it hit) are on the ``~/counts`` service (std_srvs/Trigger: JSON).
 
 A message held back (delay, reorder) is delivered by its subscriber's own
 executor, as any message is: the engine makes a guard condition on that
@@ -126,10 +127,11 @@ class _Engine:
         message is others' too (intra-process): corrupt a copy."""
         now = time.monotonic()
         f: Fate = fate(rules, subscription, subscriber, publisher, self._numbers, now)
-        if publisher is None:
-            for rule in rules:
-                if rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
-                    self.count(rule, "passed: publisher not known")
+        for rule in rules:
+            if rule.applies(subscriber, publisher):
+                self.count(rule, "seen")
+            elif publisher is None and rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
+                self.count(rule, "passed: publisher not known")
         for rule in f.hit:
             self.count(rule, _PAST[rule.kind])
         if f.drop:

@@ -1,78 +1,32 @@
 """Message faults in a real container, no node changed (harness/message_faults.py,
-faults/messages.py): a Talker publishes "m <n>" on /chatter at 50 Hz, a
-MessageProbe republishes what it hears on /message_probe/heard, and the
-harness, outside the container, sees both: what was sent and what the
-subscriber got, message by message."""
+faults/messages.py), seen from outside by harness/message_probe.py: what a
+Talker sent on /chatter at 50 Hz and what a subscriber heard, message by
+message."""
 
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from std_msgs.msg import String
 
-from cloneguard.faults import PACKAGE as RIG
 from cloneguard.faults.message_rules import ENGINE_NODE_NAME
+from cloneguard.harness.message_probe import PROFILE_ARGS, ChatterProbe
+from cloneguard.harness.message_probe import number as _number
 from cloneguard.harness.schedule import At, Corrupt, Delay, Drop, Duplicate, Partition, Reorder
-from cloneguard.harness.system import NodeSpec
-
-MODES = {"threads": [], "shared": ["--isolated"], "per-node": ["--isolated", "--profile", "per-node"]}
-PERIOD_S = 0.02
-
-
-class Watched:
-    """The system, and what was sent and heard on it."""
-
-    def __init__(self, system_factory, mode: str = "shared", intra: bool = False):
-        extra = {"use_intra_process_comms": True} if intra else {}
-        nodes = [
-            NodeSpec("cloneguard", "cloneguard::Talker", parameters={"topic": "/chatter", "period": PERIOD_S,
-                     "message": "m"}, extra_arguments=extra),
-            NodeSpec(RIG, "faults::MessageProbe", parameters={"topic": "/chatter"}, extra_arguments=extra),
-        ]  # fmt: skip
-        self.system = system_factory(nodes, MODES[mode])
-        self.sent = self.system.topic(String, "/chatter", qos=1000)
-        self.heard = self.system.topic(String, "/message_probe/heard", qos=1000)
-        self.heard.wait_count(5, timeout=15)
-
-    def settle(self) -> int:
-        """Let 20 more messages (0.4 s: past any delay or reorder window the
-        tests set) go after the faults and every one of them be
-        heard; the last number sent."""
-        self.sent.wait_count(len(self.sent) + 20, timeout=10)
-        last = max(self.sent_numbers())
-        self.heard.wait_for(lambda msg: int(msg.data.split()[-1]) >= last, timeout=10, what=f"m {last} heard")
-        return last
-
-    def sent_numbers(self) -> list[int]:
-        return [_number(r) for r in self.sent.items()]
-
-    def heard_numbers(self) -> list[int]:
-        return [_number(r) for r in self.heard.items()]
-
-    def missing(self) -> list[int]:
-        """Sent while the probe listened, never heard."""
-        last = self.settle()
-        heard = self.heard_numbers()
-        return sorted(set(range(min(heard), last + 1)) - set(heard))
-
-
-def _number(received) -> int:
-    return int(received.msg.data.split()[-1])
 
 
 @pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
-@pytest.mark.parametrize("mode", list(MODES))
+@pytest.mark.parametrize("mode", list(PROFILE_ARGS))
 def test_a_drop_hits_every_message_its_subscriber_would_have_had_for_its_time(system_factory, mode, intra):
-    w = Watched(system_factory, mode, intra)
+    w = ChatterProbe(system_factory, mode, intra)
     [fault] = w.system.inject(Drop("/chatter", 1.0))
     missing = w.missing()
-    assert fault.counts == {"dropped": len(missing)}
+    assert fault.counts == {"seen": len(missing), "dropped": len(missing)}
     assert missing == list(range(missing[0], missing[-1] + 1))  # one run of them: the fault's second
     assert 25 <= len(missing) <= 75  # 50 Hz for 1 s, on a loaded machine
     assert w.system.alive()
 
 
 def test_a_seed_replays_which_messages_are_dropped(system_factory):
-    w = Watched(system_factory)
+    w = ChatterProbe(system_factory)
     patterns = []
     for seed in (11, 11, 12):
         before = len(w.heard)
@@ -87,11 +41,11 @@ def test_a_seed_replays_which_messages_are_dropped(system_factory):
 
 
 def test_a_delay_delivers_every_message_that_much_later(system_factory):
-    w = Watched(system_factory)
+    w = ChatterProbe(system_factory)
     [fault] = w.system.inject(Delay("/chatter", 1.0, delay_s=0.2))
     w.settle()
-    sent_at = {_number(r): r.at_ns for r in w.sent.items()}
-    late = sorted((r.at_ns - sent_at[_number(r)]) / 1e9 for r in w.heard.items() if _number(r) in sent_at)
+    sent_at = {_number(r.msg): r.at_ns for r in w.sent.items()}
+    late = sorted((r.at_ns - sent_at[_number(r.msg)]) / 1e9 for r in w.heard.items() if _number(r.msg) in sent_at)
     delayed = [x for x in late if x > 0.1]
     assert len(delayed) == fault.counts["delayed"] >= 25
     assert 0.19 < delayed[len(delayed) // 2] < 0.3  # median lateness, on a loaded machine
@@ -99,7 +53,7 @@ def test_a_delay_delivers_every_message_that_much_later(system_factory):
 
 
 def test_duplicates_and_reorderings_are_what_the_subscriber_gets(system_factory):
-    w = Watched(system_factory)
+    w = ChatterProbe(system_factory)
     before = len(w.heard)
     [dup] = w.system.inject(Duplicate("/chatter", 1.0, every=2))
     w.settle()
@@ -118,7 +72,7 @@ def test_duplicates_and_reorderings_are_what_the_subscriber_gets(system_factory)
 
 @pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
 def test_corrupted_fields_reach_the_subscriber_and_no_one_else(system_factory, intra):
-    w = Watched(system_factory, intra=intra)
+    w = ChatterProbe(system_factory, intra=intra)
     [fault] = w.system.inject(Corrupt("/chatter", 0.5, fields={"data": "m -1"}))
     w.settle()
     corrupted = [n for n in w.heard_numbers() if n == -1]
@@ -128,16 +82,16 @@ def test_corrupted_fields_reach_the_subscriber_and_no_one_else(system_factory, i
 
 @pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
 def test_a_partition_cuts_only_the_named_publishers_from_the_named_subscribers(system_factory, intra):
-    w = Watched(system_factory, intra=intra)
+    w = ChatterProbe(system_factory, intra=intra)
     [other] = w.system.inject(Partition(publishers=["/someone_else"], subscribers=["/message_probe"], seconds=0.5))
-    assert other.counts == {} and w.missing() == []
+    assert other.counts == {} and w.missing() == []  # not the talker's: not seen
     [cut] = w.system.inject(Partition(publishers=["/talker"], subscribers=["/message_probe"], seconds=1.0))
     missing = w.missing()
-    assert cut.counts == {"dropped": len(missing)} and len(missing) >= 25
+    assert cut.counts == {"seen": len(missing), "dropped": len(missing)} and len(missing) >= 25
 
 
 def test_faults_overlap_on_a_schedule_and_the_engine_refuses_a_bad_list(system_factory):
-    w = Watched(system_factory)
+    w = ChatterProbe(system_factory)
     faults = w.system.inject([At(0.0, Drop("/chatter", 1.0, every=2)), At(0.3, Duplicate("/chatter", 0.3))])
     assert [f.kind for f in faults] == ["duplicate", "drop"]  # recorded as each ended
     assert faults[1].counts["dropped"] >= 10 and faults[0].counts["duplicated"] >= 3

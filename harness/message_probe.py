@@ -1,0 +1,70 @@
+"""What was sent on a topic and what a subscriber inside the container
+heard, message by message: the rig's way to measure message faults from
+outside (tests/test_message_faults.py, scenarios/test_message_faults.py).
+
+A ``cloneguard::Talker`` publishes "m <n>" on /chatter every ``period_s``
+and the rig's ``faults::MessageProbe`` republishes what it hears on
+/message_probe/heard; the harness subscribes to both. The rig's own, not
+the public test API.
+"""
+
+from __future__ import annotations
+
+from std_msgs.msg import String
+
+from cloneguard.faults import PACKAGE as RIG
+
+from .system import NodeSpec
+
+#: Container arguments per profile (the rig's scenarios' names).
+PROFILE_ARGS = {"threads": [], "shared": ["--isolated", "--profile", "shared"],
+                "per-node": ["--isolated", "--profile", "per-node"]}  # fmt: skip
+TOPIC = "/chatter"
+#: 20 more messages after a fault (0.4 s at 50 Hz) outlast any delay or
+#: reorder window the rig sets (at most 0.3 s).
+SETTLE_MESSAGES = 20
+
+
+class ChatterProbe:
+    """The system, and what was sent and heard on it."""
+
+    def __init__(self, system_factory, profile: str = "shared", intra: bool = False, period_s: float = 0.02):
+        extra = {"use_intra_process_comms": True} if intra else {}
+        talker = {"topic": TOPIC, "period": period_s, "message": "m"}
+        nodes = [
+            NodeSpec("cloneguard", "cloneguard::Talker", parameters=talker, extra_arguments=extra),
+            NodeSpec(RIG, "faults::MessageProbe", parameters={"topic": TOPIC}, extra_arguments=extra),
+        ]
+        self.system = system_factory(nodes, PROFILE_ARGS[profile])
+        self.sent = self.system.topic(String, TOPIC, qos=1000)
+        self.heard = self.system.topic(String, "/message_probe/heard", qos=1000)
+        self.heard.wait_count(5, timeout=15)
+
+    def settle(self) -> int:
+        """Let SETTLE_MESSAGES more go and every one of them be heard; the
+        last number sent."""
+        self.sent.wait_count(len(self.sent) + SETTLE_MESSAGES, timeout=10)
+        last = max(self.sent_numbers())
+        self.heard.wait_for(lambda msg: number(msg) >= last, timeout=10, what=f"m {last} heard")
+        return last
+
+    def sent_numbers(self) -> list[int]:
+        return [number(r.msg) for r in self.sent.items()]
+
+    def heard_numbers(self, since: int = 0) -> list[int]:
+        """In the order heard, from the ``since``-th message heard on."""
+        return [number(r.msg) for r in self.heard.items()[since:]]
+
+    def sent_at(self) -> dict[int, int]:
+        """Number -> when the harness got it as sent (monotonic ns)."""
+        return {number(r.msg): r.at_ns for r in self.sent.items()}
+
+    def missing(self) -> list[int]:
+        """Sent while the probe listened, never heard (after settle())."""
+        last = self.settle()
+        heard = self.heard_numbers()
+        return sorted(set(range(min(heard), last + 1)) - set(heard))
+
+
+def number(msg) -> int:
+    return int(msg.data.split()[-1])
