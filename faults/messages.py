@@ -18,9 +18,8 @@ each rule did (``seen``: the messages it was for; ``dropped``, ``delayed``
 ...: those it hit) are on the ``~/counts`` service (std_srvs/Trigger: JSON).
 
 A message held back (delay, reorder) is delivered by its subscriber's own
-executor, as any message is: the engine makes a guard condition on that
-subscriber's node, and its pump thread (in this component's process)
-triggers it when the message is due.
+executor, as any message is, through a steady-clock timer the engine makes
+on that subscriber's node and sets to the earliest due time (``_Holder``).
 
 A rule that names publishers needs each message's publisher: over DDS
 the engine reads its gid (container/intra/dds_reader.py's take) and finds
@@ -37,18 +36,19 @@ import heapq
 import importlib
 import itertools
 import json
-import threading
+import math
 import time
-from collections import Counter, OrderedDict, deque
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import Executor, await_or_execute
-from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from std_srvs.srv import Trigger
 
 from cloneguard.container.intra import api as intra_api
@@ -56,37 +56,73 @@ from cloneguard.container.intra.dds_reader import TakeBuffer
 
 from .message_rules import ANY_TOPIC, ENGINE_NODE_NAME, Fate, Rule, RuleError, corrupt, fate, rules_from_text
 
-#: How often the pump looks for due messages while any are held (s).
-PUMP_PERIOD_S = 0.0002
-
 
 @dataclass
 class _Held:
     """A message held back for its subscriber: ``deliver()`` does it."""
 
-    due: float
+    due: float  # time.monotonic()
     order: float  # among those due at once (a reorder window's shuffle)
-    deliver: Callable[[], None]  # run by the subscriber's executor
+    deliver: Callable[[], None]
+
+
+class _Holder:
+    """One subscriber node's held messages, delivered by its own executor:
+    a steady-clock timer of the node's, set to the earliest due time (rcl's
+    wait wakes for it with no Python thread on the way), delivers what is
+    due and sets itself to the next. Used only by that node's executor."""
+
+    def __init__(self, node):
+        self._node = node
+        self._heap: list[tuple[float, int, _Held]] = []
+        self._seq = itertools.count()
+        self._timer: Timer | None = None
+        self._armed = math.inf  # the due time the timer is set for
+
+    def hold(self, held: _Held) -> None:
+        heapq.heappush(self._heap, (held.due, next(self._seq), held))
+        if held.due < self._armed:
+            self._arm()
+
+    def _arm(self) -> None:
+        due = self._heap[0][0]
+        period = max(due - time.monotonic(), 1e-6)
+        if self._timer is None:
+            self._timer = self._node.create_timer(period, self._fire, clock=_STEADY)
+        else:
+            self._timer.timer_period_ns = int(period * 1e9)
+            self._timer.reset()
+        self._armed = due
+
+    def _fire(self) -> None:
+        now = time.monotonic()
+        due = []
+        while self._heap and self._heap[0][0] <= now:
+            due.append(heapq.heappop(self._heap)[2])
+        for held in sorted(due, key=lambda h: (h.due, h.order)):
+            held.deliver()
+        if self._heap:
+            self._arm()
+        else:
+            assert self._timer is not None
+            self._timer.cancel()
+            self._armed = math.inf
 
 
 class _Engine:
     """The rules in force, what each did, and the messages held back. One
-    per interpreter (``ENGINE``); its tables are replaced whole, never
-    changed in place, so a take reads them without a lock."""
+    per interpreter (``ENGINE``); the rule tables are replaced whole, never
+    changed in place, so a take reads them without a lock. What a
+    subscription changes (its message numbers, its counts, its held
+    messages) is its own: only its executor writes it."""
 
     def __init__(self):
         self.by_topic: dict[str, list[Rule]] = {}
         self.any_topic: list[Rule] = []
-        self.counts: dict[str, Counter] = {}
+        self._counts: dict[tuple[str, str], Counter] = {}  # (rule id, subscription) -> counts
         self._numbers: dict = {}  # (rule id, subscription) -> messages seen
-        self._held: list[tuple[float, int, _Held, int]] = []  # heap: (due, seq, held, node key)
-        self._seq = itertools.count()
-        self._wakes: dict[int, GuardCondition] = {}  # id(node) -> its guard condition
-        # id(node) -> its due messages: the pump appends, the node's executor
-        # pops (each a single step under the GIL, across processes too).
-        self._due: dict[int, deque[_Held]] = {}
+        self._holders: dict[int, _Holder] = {}  # id(node) -> its held messages
         self._publishers: dict[bytes, str] = {}  # gid -> node full name
-        self._pumping = False
         self._buffers: dict[int, TakeBuffer] = {}  # per subscription (its process takes with it)
         self.installed = False
 
@@ -98,24 +134,23 @@ class _Engine:
         for rule in rules:
             if rule.topic != ANY_TOPIC:
                 by_topic.setdefault(rule.topic, []).append(rule)
-            self.counts.setdefault(rule.id, Counter())
         for topic_rules in by_topic.values():
             topic_rules.extend(every)
         self.by_topic, self.any_topic = by_topic, every
-        if self._holds() and not self._pumping:
-            self._pumping = True
-            threading.Thread(target=self._pump, name="cloneguard-message-faults", daemon=True).start()
 
     def rules_for(self, topic: str) -> list[Rule] | None:
         """The rules on ``topic`` (those on every topic included); None: none."""
         return self.by_topic.get(topic) or self.any_topic or None
 
-    def _holds(self) -> bool:
-        rules = [*self.any_topic, *(r for rs in self.by_topic.values() for r in rs)]
-        return bool(self._held) or any(r.kind in ("delay", "reorder") for r in rules)
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Rule id -> what it did, over every subscription."""
+        out: dict[str, Counter] = {}
+        for (rule_id, _), counts in list(self._counts.items()):
+            out.setdefault(rule_id, Counter()).update(counts)
+        return {rule_id: dict(c) for rule_id, c in out.items()}
 
-    def count(self, rule: Rule, what: str, n: int = 1) -> None:
-        self.counts.setdefault(rule.id, Counter())[what] += n
+    def _count(self, rule: Rule, subscription: str, what: str) -> None:
+        self._counts.setdefault((rule.id, subscription), Counter())[what] += 1
 
     # -- a message's fate ----------------------------------------------------------------------
 
@@ -129,11 +164,11 @@ class _Engine:
         f: Fate = fate(rules, subscription, subscriber, publisher, self._numbers, now)
         for rule in rules:
             if rule.applies(subscriber, publisher):
-                self.count(rule, "seen")
+                self._count(rule, subscription, "seen")
             elif publisher is None and rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
-                self.count(rule, "passed: publisher not known")
+                self._count(rule, subscription, "passed: publisher not known")
         for rule in f.hit:
-            self.count(rule, _PAST[rule.kind])
+            self._count(rule, subscription, _PAST[rule.kind])
         if f.drop:
             return None
         if f.corrupt:
@@ -145,7 +180,7 @@ class _Engine:
             except (RuleError, TypeError, ValueError, AttributeError) as exc:
                 for rule in f.hit:
                     if rule.kind == "corrupt":
-                        self.count(rule, f"not corrupted: {exc}")
+                        self._count(rule, subscription, f"not corrupted: {exc}")
         copies = f.copies
 
         def run():
@@ -153,44 +188,12 @@ class _Engine:
                 deliver(msg_args)
 
         if f.due:
-            self._hold(node, _Held(f.due, f.order, run))
+            holder = self._holders.get(id(node))
+            if holder is None:
+                holder = self._holders[id(node)] = _Holder(node)
+            holder.hold(_Held(f.due, f.order, run))
             return None
         return run
-
-    def _hold(self, node, held: _Held) -> None:
-        key = id(node)
-        if key not in self._wakes:
-            self._due[key] = deque()
-            self._wakes[key] = node.create_guard_condition(lambda: self._release(key))
-        heapq.heappush(self._held, (held.due, next(self._seq), held, key))
-
-    def _release(self, key: int) -> None:
-        """In the subscriber's executor: deliver its due messages, those
-        due at once in their order."""
-        due, queue = [], self._due[key]
-        while queue:
-            due.append(queue.popleft())
-        for held in sorted(due, key=lambda h: (h.due, h.order)):
-            held.deliver()
-
-    def _pump(self) -> None:
-        """While anything is or may be held: move what is due to its
-        subscriber and wake that subscriber's executor."""
-        while self._holds():
-            now = time.monotonic()
-            woken = set()
-            while self._held and self._held[0][0] <= now:
-                _, _, held, key = heapq.heappop(self._held)
-                self._due[key].append(held)
-                woken.add(key)
-            for key in woken:
-                try:
-                    self._wakes[key].trigger()
-                except Exception:  # its node is gone: so are its messages
-                    self._wakes.pop(key, None)
-                    self._due.pop(key, None)
-            time.sleep(PUMP_PERIOD_S)
-        self._pumping = False
 
     # -- publishers over DDS -----------------------------------------------------------------
 
@@ -210,6 +213,7 @@ class _Engine:
         return buf
 
 
+_STEADY = Clock(clock_type=ClockType.STEADY_TIME)  # time.monotonic()'s clock
 _PAST = {"drop": "dropped", "partition": "dropped", "delay": "delayed", "reorder": "reordered",
          "duplicate": "duplicated", "corrupt": "corrupted"}  # fmt: skip
 
@@ -332,7 +336,7 @@ class MessageFaults(Node):
 
     def _counts(self, request, response):
         response.success = True
-        response.message = json.dumps({rid: dict(c) for rid, c in ENGINE.counts.items()})
+        response.message = json.dumps(ENGINE.counts())
         return response
 
 
