@@ -25,6 +25,7 @@ from . import (
     load_latency,
     lock_doctor,
     memory,
+    message_faults_cost,
     pkeys_cost,
     python_locks,
     scale,
@@ -44,6 +45,7 @@ BENCHMARKS = {
     "lock_doctor": lock_doctor,
     "scale": scale,
     "pkeys_cost": pkeys_cost,
+    "message_faults_cost": message_faults_cost,
 }
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "default": {
@@ -57,6 +59,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "lock_doctor": {"nodes": [1, 10, 40], "threads": 4, "seconds": 5.0},
         "scale": {"counts": [12, 24, 48, 96], "idle": 10.0},
         "pkeys_cost": {"n": 30, "count": 100},
+        "message_faults_cost": {"n": 20, "count": 100},
     },
     "tiny": {
         "child_start": {"n": 2, "n_raw": 2},
@@ -74,6 +77,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "modes": ["thread", "isolated-per-node", "process-per-node"],
         },
         "pkeys_cost": {"n": 2, "count": 2, "pairs": 20_000, "repeat": 1},
+        "message_faults_cost": {"n": 1, "count": 2},
     },
 }
 

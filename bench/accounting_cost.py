@@ -43,7 +43,7 @@ large size classes), under glibc's malloc and under jemalloc.
   (A, B, then B, A ...) from allocator to allocator and from pair to pair;
   each worker runs ``--repeat`` loops of each size, its figure the median.
   Per pair the ratio B / A; per measure the median of the ratios and its
-  95% interval (the sign test's, pkeys_cost.median_interval). On one CPU
+  95% interval (the sign test's, figures.median_interval). On one CPU
   (``--cpu``, by default the last this process may use), as pkeys_cost.
 * Verdict against <= +2%: instructions, B / A; time, met if the whole
   interval is at or below +2%, missed if all of it is above, undecided
@@ -69,8 +69,8 @@ from pathlib import Path
 from cloneguard.harness.process import REPO_ROOT, stop_group
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
+from .figures import median_interval, pct
 from .goals import Goal
-from .pkeys_cost import median_interval, pct
 from .results import Result, Table, summary_row
 from .stepping import step_calls
 

@@ -46,3 +46,28 @@ def ratio(a: float | None, b: float | None) -> float | None:
     if a is None or b is None or b <= 0:
         return None
     return a / b
+
+
+def median_interval(values: list[float], confidence: float = 0.95) -> tuple[float, float, float] | None:
+    """The distribution-free interval for the median of ``values``: the
+    order statistics x(k) and x(n+1-k), k the largest with
+    P(Binomial(n, 1/2) ≤ k-1) ≤ (1 - confidence)/2 (the sign test's
+    interval). (low, high, its exact coverage), or None when there are too
+    few values for any (fewer than 6 at 95%)."""
+    xs = sorted(values)
+    n = len(xs)
+    tail, k = 0.0, 0
+    while k < n:
+        p = math.comb(n, k) / 2.0**n
+        if tail + p > (1.0 - confidence) / 2.0:
+            break
+        tail += p
+        k += 1
+    if k == 0:
+        return None
+    return xs[k - 1], xs[n - k], 1.0 - 2.0 * tail
+
+
+def pct(ratio: float) -> str:
+    """A ratio as a change: 1.034 -> "+3.4%"."""
+    return f"{100.0 * (ratio - 1.0):+.1f}%"

@@ -3,9 +3,10 @@ was met or by how much it was missed."""
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
 
-from .figures import fmt_ms, fmt_ratio
+from .figures import fmt_ms, fmt_ratio, median_interval, pct
 
 
 @dataclass
@@ -58,3 +59,22 @@ def goal_ratio_at_most(goal: str, measure: str, value: float | None, limit: floa
     if value is None:
         return Goal(goal, measure, "–", None, "not measured")
     return Goal(goal, measure, fmt_ratio(value), value <= limit, ratio_verdict(value, limit))
+
+
+def goal_median_ratio(goal: str, measure: str, ratios: list[float], limit: float) -> Goal:
+    """A ratio of interleaved pairs (A ÷ B each) judged against ``limit``
+    on its median's 95% interval: met if the interval ends at or below it,
+    missed if it starts above it, else undecided."""
+    if not ratios:
+        return Goal(goal, measure, "–", None, "not measured")
+    med, ci = statistics.median(ratios), median_interval(ratios)
+    if ci is None:
+        shown = f"{pct(med)} (n={len(ratios)})"
+        return Goal(goal, measure, shown, None, f"undecided: {len(ratios)} pairs give no 95% interval (6 needed)")
+    lo, hi, _ = ci
+    shown = f"{pct(med)} [{pct(lo)}, {pct(hi)}] (n={len(ratios)})"
+    if hi <= limit:
+        return Goal(goal, measure, shown, True, f"met: the interval ends at {pct(hi)}")
+    if lo > limit:
+        return Goal(goal, measure, shown, False, f"missed: the interval starts at {pct(lo)}")
+    return Goal(goal, measure, shown, None, f"undecided: the interval holds {pct(limit)}")

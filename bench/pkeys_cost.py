@@ -73,7 +73,6 @@ why and judges nothing (the container refuses ``--pkeys`` there)."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -83,8 +82,8 @@ import time
 from cloneguard.harness.process import REPO_ROOT, stop_group
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
-from .figures import fmt_ms
-from .goals import Goal
+from .figures import fmt_ms, median_interval, pct
+from .goals import Goal, goal_median_ratio
 from .modes import MODES
 from .results import Result, Table, summary_row
 from .stepping import step_calls
@@ -95,7 +94,6 @@ KEYS_ON, KEYS_OFF = "isolated-pkeys", "isolated-jemalloc"  # A, B
 SIDES = {"A": KEYS_ON, "B": KEYS_OFF}
 GOAL_PCT = 5.0  # at most 5% slower with keys
 LIMIT = 1.0 + GOAL_PCT / 100.0
-CONFIDENCE = 0.95
 INTRA_SIZES = ("1KiB", "1MiB")
 SIZES = (64, 4096)  # malloc/free
 STEP_BASE = 100  # pairs in the shorter of the two single-stepped calls
@@ -112,47 +110,8 @@ def keys_missing() -> str | None:
     return pkeys.probe().unavailable
 
 
-# -- the interval ------------------------------------------------------------
-def median_interval(values: list[float], confidence: float = CONFIDENCE) -> tuple[float, float, float] | None:
-    """The distribution-free interval for the median of ``values``: the
-    order statistics x(k) and x(n+1-k), k the largest with
-    P(Binomial(n, 1/2) ≤ k-1) ≤ (1 - confidence)/2 (the sign test's
-    interval). (low, high, its exact coverage), or None when there are too
-    few values for any (fewer than 6 at 95%)."""
-    xs = sorted(values)
-    n = len(xs)
-    tail, k = 0.0, 0
-    while k < n:
-        p = math.comb(n, k) / 2.0**n
-        if tail + p > (1.0 - confidence) / 2.0:
-            break
-        tail += p
-        k += 1
-    if k == 0:
-        return None
-    return xs[k - 1], xs[n - k], 1.0 - 2.0 * tail
-
-
-def pct(ratio: float) -> str:
-    return f"{100.0 * (ratio - 1.0):+.1f}%"
-
-
 def judge(measure: str, ratios: list[float]) -> Goal:
-    goal = f"≤ {GOAL_PCT:g}% slower with keys (95% interval)"
-    if not ratios:
-        return Goal(goal, measure, "–", None, "not measured")
-    med = statistics.median(ratios)
-    ci = median_interval(ratios)
-    if ci is None:
-        shown = f"{pct(med)} (n={len(ratios)})"
-        return Goal(goal, measure, shown, None, f"undecided: {len(ratios)} pairs give no 95% interval (6 needed)")
-    lo, hi, _ = ci
-    shown = f"{pct(med)} [{pct(lo)}, {pct(hi)}] (n={len(ratios)})"
-    if hi <= LIMIT:
-        return Goal(goal, measure, shown, True, f"met: the interval ends at {pct(hi)}")
-    if lo > LIMIT:
-        return Goal(goal, measure, shown, False, f"missed: the interval starts at {pct(lo)}")
-    return Goal(goal, measure, shown, None, f"undecided: the interval holds {pct(LIMIT)}")
+    return goal_median_ratio(f"≤ {GOAL_PCT:g}% slower with keys (95% interval)", measure, ratios, LIMIT)
 
 
 def judge_instructions(measure: str, a: float | None, b: float | None) -> Goal:

@@ -121,6 +121,9 @@ EXPECTED_TABLES = {
         ["node processes", "tasks looked at", "before any death", "after a death", "after a death, per task"],
         ["resident memory made", "container RSS", "monitor CPU", "more than with none, per MiB"],
     ],
+    "message_faults_cost": [
+        ["transport", "pairs", "engine loaded (A)", "no engine (B)", "A ÷ B: median [95% interval]"],
+    ],
     "scale": [
         [
             "mode",
@@ -147,6 +150,7 @@ EXPECTED_ROWS = {
     "python_locks": 6,  # 3 uncontended, contended at 2, 4, 8 threads
     "lock_doctor": 2,  # one per node count
     "scale": 6,  # 3 modes × 2 counts
+    "message_faults_cost": 2,  # intra-process, DDS
 }
 
 
