@@ -104,6 +104,8 @@ ACCOUNTING = {
     "block_bytes",
     "glibc_mmapped",
     "within_budget",
+    "block_within_budget",
+    "bytes_for",
     "cga_within_budget",
     "slot_bytes",
     "over_budget",
@@ -519,7 +521,7 @@ def _time_table(pair_data: list[dict], n: int, goals: list[Goal], summary: list[
 
 def _where_table(instr: dict) -> Table:
     """Where B's extra instructions are."""
-    groups = ["within_budget", "count_got", "count_freed", "bb_put", "bb_take"]
+    groups = ["block_within_budget", "count_got", "count_freed", "bb_put", "bb_take"]
     t_where = Table(
         "Where B's extra instructions are, per pair: B's on the accounting functions (each with what is "
         "inlined into it), jemalloc's sallocx (B − A), the rest of the guard (B − A less those) and "

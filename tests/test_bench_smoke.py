@@ -406,7 +406,7 @@ def test_the_accounting_benchmark_steps_and_times_each_tree_in_its_own_workers(t
     assert all(float(r["A"]) > 0 and float(r["B"]) > 0 for r in instr["rows"])
     # B's instructions put to the guard's accounting functions through its debug information
     assert [r["measure"] for r in where["rows"]] == measures
-    assert all(float(r["within_budget"]) > 0 and float(r["count_got"]) > 0 for r in where["rows"])
+    assert all(float(r["block_within_budget"]) > 0 and float(r["count_got"]) > 0 for r in where["rows"])
     assert [r["measure"] for r in timed["rows"]] == measures
     assert all(r["pairs"] == "1" and r["verdict (≤ +2%)"].startswith("undecided") for r in timed["rows"])
 

@@ -58,8 +58,9 @@ OVER = re.compile(
     [("bytes", 8 * MiB), ("native", 8 * MiB), ("python", 2 * MiB)],
     ids=["bytearray", "malloc", "python-objects"],
 )
-@pytest.mark.parametrize("args", [["--isolated"], ["--isolated", "--profile", "shared"], ["--isolated", "--jemalloc"]],
-                         ids=["per-node", "shared", "jemalloc"])  # fmt: skip
+@pytest.mark.parametrize("args", [["--isolated", "--profile", "per-node"], ["--isolated"], ["--isolated", "--jemalloc"],
+                                  ["--isolated", "--profile", "per-node", "--jemalloc"]],
+                         ids=["per-node", "shared", "jemalloc", "jemalloc-per-node"])  # fmt: skip
 def test_a_leaking_node_is_ended_alone_at_its_budget(limited, args, kind, step):
     robot = limited([ODOMETRY, _leak(kind, step)], [*args, "--node-memory-limit", f"{BUDGET // MiB}M"])
     odom = robot.topic(Float64, "/odom")

@@ -84,6 +84,7 @@ extern void *mallocx(size_t, int) __attribute__((weak));
 extern void *rallocx(void *, size_t, int) __attribute__((weak));
 extern void dallocx(void *, int) __attribute__((weak));
 extern size_t sallocx(const void *, int) __attribute__((weak));
+extern size_t nallocx(size_t, int) __attribute__((weak));
 extern int mallctl(const char *, void *, size_t *, void *, size_t) __attribute__((weak));
 
 /* jemalloc underneath?  A link-time fact: the weak reference is bound when
@@ -430,15 +431,38 @@ static __attribute__((noreturn, cold, noinline)) void over_budget(int s, long us
         pause();
 }
 
-/* Before slot s gets n bytes more: one load while it has no budget. */
-static inline void within_budget(int s, size_t n)
+/* What a block asked as n bytes will count (block_bytes) once got: jemalloc's
+   size class (an 8 MiB bytearray's 8 MiB + 57 B is a 10 MiB block), glibc's
+   chunk (n and its header, 16-aligned; an mmapped chunk is page-rounded,
+   less than 4 KiB more than this). */
+static inline size_t bytes_for(size_t n)
+{
+    if (g_je)
+        return nallocx(n ? n : 1, 0);
+    size_t chunk = (n + sizeof(size_t) + 15) & ~(size_t)15;
+    return chunk < 32 ? 32 : chunk;
+}
+
+/* Before slot s counts `more` bytes more: one load while it has no budget. */
+static inline void within_budget(int s, size_t more)
 {
     uint64_t limit = atomic_load_explicit(&slots[s].limit, memory_order_relaxed);
     if (likely(!limit) || !s)
         return;
     long used = slot_bytes(s);
-    if ((uint64_t)used + n > limit)
-        over_budget(s, used, n);
+    if ((uint64_t)used + more > limit)
+        over_budget(s, used, more);
+}
+
+/* Before slot s turns a block of `have` bytes (0: none) into one asked as n
+   bytes: judged on what the new block will count, so that no allocation
+   lands over the budget (the size is worked out only under a budget). */
+static inline void block_within_budget(int s, size_t n, size_t have)
+{
+    if (likely(!atomic_load_explicit(&slots[s].limit, memory_order_relaxed)) || !s)
+        return;
+    size_t will = bytes_for(n);
+    within_budget(s, will > have ? will - have : 0);
 }
 
 HIDDEN void cga_within_budget(int s, size_t n)
@@ -627,7 +651,7 @@ static inline bool shared_slot(int *s)
 
 static void *shared_in(int s, size_t n, size_t align, bool zero)
 {
-    within_budget(s, n);
+    block_within_budget(s, n, 0);
     enter(s);
     drain_mine(s);
     /* With keys nearly all of a Python node's allocating comes this way. */
@@ -672,9 +696,7 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n)
     if (!shared_slot(&s))
         return realloc(p, n);
     if (in_shared(p) && owner_of(p) == s) {
-        size_t have = block_bytes(p);
-        if (n > have)
-            within_budget(s, n - have);
+        block_within_budget(s, n, block_bytes(p));
         enter(s);
         drain_mine(s);
         count_freed(s, p);
@@ -708,7 +730,7 @@ static void *malloc_from(size_t n, const void *ra)
             errno = ENOMEM;
         return p;
     }
-    within_budget(s, n);
+    block_within_budget(s, n, 0);
     enter(s);
     drain_mine(s);
     cga_stop_point(s, CGA_STOP_ALLOCATION);
@@ -760,7 +782,7 @@ EXPORT void *calloc(size_t n, size_t size)
             errno = ENOMEM;
         return p;
     }
-    within_budget(s, total);
+    block_within_budget(s, total, 0);
     enter(s);
     if (s)
         drain_mine(s);
@@ -788,11 +810,8 @@ EXPORT void *realloc(void *p, size_t n)
     int o = active ? owner_of(p) : 0;
     void *q;
     if (o < 0 || owner_slot(o) == s) {
-        if (active) {
-            size_t have = block_bytes(p);
-            if (n > have)
-                within_budget(s, n - have);
-        }
+        if (active)
+            block_within_budget(s, n, block_bytes(p));
         enter(s);
         drain_mine(s);
         if (active)
@@ -840,7 +859,7 @@ static void *aligned(size_t align, size_t n, const void *ra)
             errno = ENOMEM;
         return p;
     }
-    within_budget(s, n);
+    block_within_budget(s, n, 0);
     enter(s);
     if (s)
         drain_mine(s);
@@ -1135,7 +1154,7 @@ EXPORT int cga_activate(int container_pid)
 {
     if (atomic_load(&g_active))
         return -EALREADY;
-    if (g_je && !(rallocx && dallocx && sallocx && mallctl))
+    if (g_je && !(rallocx && dallocx && sallocx && nallocx && mallctl))
         return -ENOSYS;
     g_page = (size_t)sysconf(_SC_PAGESIZE);
     glibc_usable_size = (size_t(*)(void *))dlsym(RTLD_NEXT, "malloc_usable_size");
