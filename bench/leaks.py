@@ -48,7 +48,7 @@ use_loopback_ros()
 
 MODES = {
     "threads": [],
-    "per-node": ["--isolated"],
+    "per-node": ["--isolated", "--profile", "per-node"],
     "shared": ["--isolated", "--profile", "shared"],
     "cgroups": ["--isolated", "--cgroups"],
 }

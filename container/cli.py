@@ -338,14 +338,14 @@ def _check_isolated(
     parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str], isolated_flags: set[str]
 ) -> None:
     """Isolated-only options refused without --isolated; the node announcement's
-    period, which depends on the mode and profile."""
+    period, which depends on the mode."""
     if not opts.isolated:
         for flag in sorted(isolated_flags & given):
             parser.error(f"{flag} needs --isolated")
-    if opts.node_announcement is not None and opts.profile != "per-node":
-        parser.error("--node-announcement needs the per-node profile (the participants of node processes)")
     if opts.node_announcement is None:
-        opts.node_announcement = NODE_ANNOUNCEMENT_S if opts.isolated and opts.profile == "per-node" else 0.0
+        # Whatever the container's profile: a rule or a LoadNode may give a
+        # node a participant of its own (the only participants it sets).
+        opts.node_announcement = NODE_ANNOUNCEMENT_S if opts.isolated else 0.0
 
 
 def _check_combinations(parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str]) -> None:

@@ -15,8 +15,9 @@ import threading
 
 LOCK = threading.Lock()
 RLOCK = threading.RLock()
-_CONDITION_LOCK = threading.RLock()  # the lock Condition() would make itself
-CONDITION = threading.Condition(_CONDITION_LOCK)
+# Its lock is the one Condition() makes itself: what a dead holder leaves is
+# named by the container as CONDITION._lock (tests/test_stop_points.py).
+CONDITION = threading.Condition()
 
 
 class _Quiet(logging.Handler):
@@ -32,7 +33,8 @@ KINDS = ("lock", "rlock", "condition", "logging")
 
 def lock_of(kind: str):
     """The lock object behind ``kind`` (a Condition's and a handler's own)."""
-    return {"lock": LOCK, "rlock": RLOCK, "condition": _CONDITION_LOCK, "logging": HANDLER.lock}[kind]
+    lock = CONDITION._lock  # type: ignore[attr-defined]  # private, but the one a Condition waits on
+    return {"lock": LOCK, "rlock": RLOCK, "condition": lock, "logging": HANDLER.lock}[kind]
 
 
 def take(kind: str) -> None:

@@ -260,7 +260,7 @@ def test_a_child_no_event_named_is_looked_into_too(container_factory):
 
     if not gdb_available():
         pytest.skip("no gdb here")
-    proc = container_factory.start(["--isolated"])
+    proc = container_factory.start(["--isolated", "--profile", "per-node"])  # it keeps a spare
     client = container_factory.connect(proc)
     (spare,) = rest.wait_at_rest(client.node, proc.pid, spare=True)
     d = diagnose(proc.pid)

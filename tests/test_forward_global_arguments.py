@@ -8,7 +8,11 @@ from std_msgs.msg import String
 from cloneguard.container.options import FORWARD_GLOBAL_WARNING
 
 GLOBAL_REMAP = ["--ros-args", "-r", "chatter:=global_chatter"]
-MODES = {"threads": [], "per-node": ["--isolated"], "shared": ["--isolated", "--profile", "shared"]}
+MODES = {
+    "threads": [],
+    "per-node": ["--isolated", "--profile", "per-node"],
+    "shared": ["--isolated", "--profile", "shared"],
+}
 
 
 @pytest.mark.parametrize("container_args", [args + GLOBAL_REMAP for args in MODES.values()], ids=list(MODES))

@@ -24,7 +24,7 @@ from cloneguard.harness.process import default_container_exe
 PKG = "cloneguard"
 MODES = {
     "threads": [],
-    "per-node": ["--isolated"],
+    "per-node": ["--isolated", "--profile", "per-node"],
     "shared": ["--isolated", "--profile", "shared"],
     "cgroups": ["--isolated", "--cgroups"],
 }

@@ -1,5 +1,5 @@
 """--node-announcement: the DDS participants of node processes re-announce
-themselves at their own period (3 s by default in the per-node profile),
+themselves at their own period (3 s by default in isolated mode),
 the container's own at the profile's (100 ms in the harness's profile). Measured from outside, as DDS sees it:
 the SPDP announcements that reach the domain's multicast group, counted
 per participant (the RTPS header's GUID prefix)."""
@@ -47,7 +47,7 @@ def announcements(domain_id: int, seconds: float) -> Counter:
         sock.close()
 
 
-@pytest.mark.parametrize("container_args", [["--isolated", "--node-announcement", "1"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node", "--node-announcement", "1"]])
 def test_node_participants_announce_at_their_own_period(client, container, domain_id):
     for i in range(3):
         client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name=f"hb{i}", parameters={"period": 1.0})
@@ -61,7 +61,7 @@ def test_node_participants_announce_at_their_own_period(client, container, domai
     assert len(fast) == 2 and len(slow) == 4 and len(seen) == 6, seen
 
 
-@pytest.mark.parametrize("container_args", [["--isolated", "--node-announcement", "0"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node", "--node-announcement", "0"]])
 def test_at_0_every_participant_keeps_the_profiles_period(client, container, domain_id):
     client.load_ok("cloneguard", "cloneguard::Heartbeat", node_name="hb0", parameters={"period": 1.0})
     time.sleep(1.0)
@@ -69,18 +69,21 @@ def test_at_0_every_participant_keeps_the_profiles_period(client, container, dom
     assert len(seen) == 4 and all(n >= 0.6 * WINDOW_S / 0.1 for n in seen.values()), seen
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
-def test_the_per_node_default_is_3_s(client, container):
+# In a shared container too: a rule or a LoadNode may give a node a
+# participant of its own.
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node"], ["--isolated"]],
+                         ids=["per-node", "shared"])  # fmt: skip
+def test_the_isolated_default_is_3_s(client, container):
     assert "node processes' participants announce every 3 s (the container's own: 0.1 s)" in container.log_text()
 
 
-@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "shared"], []])
-def test_nothing_changes_where_nodes_have_no_participant_of_their_own(client, container):
+@pytest.mark.parametrize("container_args", [[]])
+def test_nothing_changes_in_thread_mode(client, container):
     client.list()
     assert "participants announce every" not in container.log_text()
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node"]])
 def test_a_load_can_ask_for_the_shared_profile_in_a_per_node_container(client, container, domain_id):
     """cloneguard.profile per load: the shared node adds no participant
     (counted on the wire), the per-node one does; both run, and the shared

@@ -32,7 +32,7 @@ from cloneguard.harness.system import NodeSpec, System
 MODES = {
     "threads": [],
     "threads-multi-threaded": ["--use_multi_threaded_executor"],
-    "per-node": ["--isolated"],
+    "per-node": ["--isolated", "--profile", "per-node"],
     "shared": ["--isolated", "--profile", "shared"],
 }
 WAIT_S = 15.0

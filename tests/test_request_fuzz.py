@@ -37,7 +37,7 @@ from cloneguard.harness.plan import long_run
 
 MODES = {
     "threads": [],
-    "per-node": ["--isolated"],
+    "per-node": ["--isolated", "--profile", "per-node"],
     "shared": ["--isolated", "--profile", "shared"],
     "cgroups": ["--isolated", "--cgroups"],
 }

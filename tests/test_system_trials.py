@@ -35,6 +35,13 @@ def test_the_reports_profile_follows_the_container_arguments(args, profile):
     assert profile_of(args) == profile
 
 
+def test_the_harness_knows_the_containers_default_profile():
+    from cloneguard.container.isolated import profiles
+    from cloneguard.harness.system_trials import DEFAULT_PROFILE
+
+    assert DEFAULT_PROFILE == profiles.DEFAULT
+
+
 @pytest.mark.parametrize(
     "what, ends", [("SIGKILL", True), ("SIGSEGV", True), ("SIGTERM", True), ("SIGCONT", False), ("freeze 1 s", False)]
 )

@@ -47,7 +47,7 @@ def loaded_pid(client, unique_id) -> int:
     return client.wait_for_event(ComponentEvent.LOADED, unique_id=unique_id).pid
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node"]])
 def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, container):
     spare = the_spare(container)
     # Its placeholder holds the participant; hidden by its leading underscore.
@@ -69,7 +69,7 @@ def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, co
     assert loaded_pid(client, client.load_ok(PKG, "cloneguard::Heartbeat", node_name="hb2").unique_id) == nxt
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node"]])
 def test_a_load_that_needs_a_context_of_its_own_leaves_the_spare_alone(client, container):
     spare = the_spare(container)
     uid = client.load_ok(PKG, "cloneguard::Heartbeat", extra_arguments={"forward_global_arguments": True}).unique_id
@@ -78,7 +78,7 @@ def test_a_load_that_needs_a_context_of_its_own_leaves_the_spare_alone(client, c
     assert sorted(procfs.children_of(container.pid)) == sorted([spare, pid])
 
 
-@pytest.mark.parametrize("container_args", [["--isolated"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node"]])
 def test_a_spare_killed_from_outside_is_replaced_at_the_next_load(client, container):
     spare = the_spare(container)
     os.kill(spare, signal.SIGKILL)
@@ -92,7 +92,7 @@ def test_a_spare_killed_from_outside_is_replaced_at_the_next_load(client, contai
 
 
 def test_a_failed_construction_in_the_spare_answers_and_a_new_spare_is_made(container_factory, misfit_env):
-    container = container_factory.start(["--isolated"], extra_env=misfit_env)
+    container = container_factory.start(["--isolated", "--profile", "per-node"], extra_env=misfit_env)
     client = container_factory.connect(container)
     spare = the_spare(container)
     resp = client.load("misfit-components", "misfits::Raises")
@@ -106,13 +106,15 @@ def test_a_failed_construction_in_the_spare_answers_and_a_new_spare_is_made(cont
 @pytest.mark.parametrize(
     "container_args",
     [
-        ["--isolated", "--no-warm-spare"],
+        ["--isolated", "--profile", "per-node", "--no-warm-spare"],
         ["--isolated", "--profile", "shared"],
+        ["--isolated"],
         pytest.param(
-            ["--isolated", "--cgroups"], marks=pytest.mark.skipif(cgroup2_mount() is None, reason="no cgroup2 here")
+            ["--isolated", "--profile", "per-node", "--cgroups"],
+            marks=pytest.mark.skipif(cgroup2_mount() is None, reason="no cgroup2 here"),
         ),
     ],
-    ids=["no-warm-spare", "shared", "cgroups"],
+    ids=["no-warm-spare", "shared", "default", "cgroups"],
 )
 def test_no_spare_is_kept_when_switched_off_in_the_shared_profile_or_with_cgroups(client, container):
     # With --cgroups each node's process is born in its cgroup: none is made ahead.
@@ -129,7 +131,7 @@ def test_the_spare_switch_needs_isolated_mode(container_factory):
     assert "--no-warm-spare needs --isolated" in proc.log_text()
 
 
-@pytest.mark.parametrize("container_args", [["--isolated", "--no-warm-spare"]])
+@pytest.mark.parametrize("container_args", [["--isolated", "--profile", "per-node", "--no-warm-spare"]])
 def test_every_node_process_makes_its_participant_through_a_placeholder(client, container):
     # Not only the spare: a node process's participant is made (and, after
     # a failed construction, deleted) by its placeholder, off the GIL; the
