@@ -21,7 +21,7 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "7 passed" in proc.stdout
+    assert "9 passed" in proc.stdout
     run = json.loads((report / "report.json").read_text())
     outcomes = {s["nodeid"].split("::", 1)[1]: s["outcome"] for s in run["scenarios"]}
     assert outcomes == {
@@ -32,6 +32,8 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         "test_the_planner_is_back_under_a_restart_policy": "passed",
         "test_the_rest_outlives_the_planner_killed_holding_a_lock": "passed",
         "test_the_navigator_serves_goals_only_while_active_and_outlives_the_planner": "passed",
+        "test_the_planner_plans_on_what_odometry_still_arrives": "passed",
+        "test_late_odometry_delays_the_plans_by_as_much": "passed",
     }
     # the seeded trials: each recorded with its seed, its fault and what
     # every watched topic did; the rate held
@@ -43,7 +45,11 @@ def test_the_demo_robots_scenarios_pass_and_write_a_report(tmp_path):
         assert t["details"]["topics"]["/odom"]["rate_hz"] >= 9.0
         assert t["latency_ms"]["get_map"] < 500
     assert [e["met"] for e in seeded["expectations"]] == [True, True]
-    assert seeded["profile"] == "per-node" and seeded["fault"] == "planner SIGKILL at a random instant"
+    assert seeded["profile"] == "shared" and seeded["fault"] == "planner SIGKILL at a random instant"
+    # a message fault is each trial's history too, filed under its topic
+    lossy = next(s for s in run["scenarios"] if "still_arrives" in s["nodeid"])
+    for t in lossy["trials"]:
+        assert [(f["node"], f["kind"]) for f in t["details"]["faults"]] == [("/odom", "drop")], t
     # the report names the user's project and the versions it ran on
     assert run["run"]["project"] == "demo-robot"
     packages = run["run"]["packages"]
@@ -65,6 +71,7 @@ def test_the_example_uses_only_the_public_test_api():
         "cloneguard.harness.schedule",
         "cloneguard.harness.composition",
         "cloneguard.harness.named_faults",
+        "cloneguard.harness.system_trials",  # Measure
     }
     for path in DEMO.rglob("*.py"):
         for line in path.read_text().splitlines():
