@@ -2,6 +2,7 @@
 event is lost: what the launcher-side tracker reports."""
 
 import os
+import random
 import signal
 
 import pytest
@@ -57,26 +58,29 @@ def test_slow_constructor_is_loaded_not_failed(profile, tracked, resilience, rec
 
 @pytest.mark.parametrize("profile", ["per-node", "shared"])
 def test_node_killed_mid_construction_is_never_loaded(profile, tracked, resilience, record_trial, trial_plan):
-    [(index, seed)] = trial_plan(1, 1)
     resilience.describe(
-        fault="die-in-constructor",
+        fault="die-in-constructor (SIGKILL, SIGSEGV or SIGABRT, drawn)",
         profile=profile,
         mitigations={},
-        claim="a node whose process is killed while it is being built is reported "
+        claim="a node whose process dies while it is being built is reported "
         "Failed (LoadNode fails), never Loaded; the container goes on",
     )
     rig, tracker = tracked(profile)
-    node = tracker.load(TESTRIG, "faults::DieInConstructor", parameters={"signal": "SIGKILL"})
-    ok = node.state == State.FAILED and "died during construction" in node.error
-    out = Outcome(
-        TrialOutcome.SURVIVED if ok else TrialOutcome.FAILED, details={"state": node.state.value, "error": node.error}
-    )
-    stopped = rig.goes_on()
-    if stopped is not None:
-        out = rig.not_survived(stopped, out)  # hung (diagnosed) or crashed
-    elif not ok:
-        out.details["why"] = "not reported Failed with 'died during construction'"
-    record_trial(index, seed, out)
+    for index, seed in trial_plan(3, 200):
+        sig = random.Random(seed).choice(["SIGKILL", "SIGSEGV", "SIGABRT"])
+        node = tracker.load(TESTRIG, "faults::DieInConstructor", parameters={"signal": sig})
+        ok = node.state == State.FAILED and "died during construction" in node.error
+        out = Outcome(
+            TrialOutcome.SURVIVED if ok else TrialOutcome.FAILED,
+            details={"signal": sig, "state": node.state.value, "error": node.error},
+        )
+        stopped = rig.goes_on()
+        if stopped is not None:
+            record_trial(index, seed, rig.not_survived(stopped, out))  # hung (diagnosed) or crashed
+            break  # no container left to try the next trials in: they are not recorded
+        if not ok:
+            out.details["why"] = "not reported Failed with 'died during construction'"
+        record_trial(index, seed, out)
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=1.0)
 
 
