@@ -365,6 +365,13 @@ class IsolatedHost:
                 )
         proc.cgroup = None
 
+    @staticmethod
+    def _destroy_built(proc: _NodeProcess) -> None:
+        """A shared-profile node whose process ended cleanly: its executor,
+        then it (a per-node process destroys its own, with its Context)."""
+        proc.executor.shutdown()
+        construction.destroy(proc.node)
+
     def _end_child(self, proc: _NodeProcess) -> None:
         """SIGKILL a child that was spawned for a start that failed; reap it;
         keep what it left (it may have held locks), give its context back."""
@@ -488,17 +495,22 @@ class IsolatedHost:
         proc.node, proc.executor = node, executor
         proc.full_name = node.get_fully_qualified_name()
         proc.handoff.post(READY)
+        if placeholder is None:
+            # On the container's Context: once this process has ended
+            # cleanly the container destroys the node (_destroy_built), one
+            # after another at its shutdown instead of every node process at
+            # once on one GIL (96 nodes: 1.5 s against 3 s).
+            self._spin_until_stopped(proc)
+            return
         try:
             self._spin_until_stopped(proc)
         finally:
-            # Also after a callback raised: the node leaves the graph, a
-            # per-node participant's threads end (else this process outlives
-            # its node) and its SHM segments are unlinked; then the
-            # exception ends us (1).
+            # Also after a callback raised: the participant's threads must
+            # end (else this process outlives its node) and its SHM segments
+            # be unlinked; then the exception ends us (1).
             executor.shutdown()
             construction.destroy(node)
-            if placeholder is not None:
-                release_context(ctx)
+            release_context(ctx)
 
     def _new_context(self, forward_global_arguments: bool) -> Context:
         """A node process's own rclpy Context, with the container's global ROS
@@ -596,9 +608,12 @@ class IsolatedHost:
             if proc.cgroup is not None:
                 self.cgroups.unthrottle(proc.cgroup)
             self._core.request_stop(proc.child)
-            _wake(proc)
             self._core.kill(proc.child, signal.SIGTERM)
             live.append(proc)
+        # Woken last, all at once: a woken node process wants the GIL, and
+        # with some awake each core call above would wait for it again.
+        for proc in live:
+            _wake(proc)
         deadline = time.monotonic() + STOP_TIMEOUT_S
         for proc in live:
             death = self._core.wait(proc.child, timeout=max(0.0, deadline - time.monotonic()))
@@ -610,6 +625,8 @@ class IsolatedHost:
                 self._core.kill(proc.child, signal.SIGKILL)
                 death = self._core.wait(proc.child)
             clean = death is not None and death.exit_code == 0
+            if clean and proc.profile == SHARED:
+                self._destroy_built(proc)
             self._forget(proc, leak=not clean)
 
     def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
@@ -733,6 +750,8 @@ class IsolatedHost:
                 f"{death.core_file} ({core_dump_size(death.core_file)})"
             )
         clean = death.exit_code == 0 and not death.repaired
+        if clean and proc.profile == SHARED:
+            self._destroy_built(proc)
         self._forget(proc, leak=not clean)
 
 
