@@ -123,6 +123,7 @@ EXPECTED_TABLES = {
     ],
     "message_faults_cost": [
         ["transport", "pairs", "engine loaded (A)", "no engine (B)", "A ÷ B: median [95% interval]"],
+        ["transport", "hooks a message meets", "added (ns)", "of B's median latency"],
     ],
     "scale": [
         [
