@@ -34,6 +34,10 @@ from dataclasses import dataclass, field
 #: The engine's node (faults/messages.py) in a container the harness drives.
 ENGINE_NODE_NAME = "_cloneguard_message_faults"
 KINDS = ("drop", "partition", "delay", "reorder", "duplicate", "corrupt")
+#: What a rule's counts call the messages it hit, by kind (beside "seen":
+#: the messages it was for).
+OUTCOME = {"drop": "dropped", "partition": "dropped", "delay": "delayed", "reorder": "reordered",
+           "duplicate": "duplicated", "corrupt": "corrupted"}  # fmt: skip
 #: A rule on every topic.
 ANY_TOPIC = "*"
 #: A corrupt value that sets a builtin_interfaces/Time field back by seconds.
@@ -77,6 +81,9 @@ class Rule:
             raise RuleError(f"rule {self.id}: corrupt needs fields to set")
         if self.kind == "partition" and not (self.publishers and self.subscribers):
             raise RuleError(f"rule {self.id}: a partition needs publishers and subscribers")
+        for name in (*self.subscribers, *self.publishers):
+            if not name.startswith("/"):
+                raise RuleError(f"rule {self.id}: nodes are named by their full names (/lidar), not {name!r}")
 
     def applies(self, subscriber: str, publisher: str | None) -> bool:
         """Whether the rule is for this subscriber's node and (if it names

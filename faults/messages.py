@@ -54,7 +54,7 @@ from std_srvs.srv import Trigger
 from cloneguard.container.intra import api as intra_api
 from cloneguard.container.intra.dds_reader import TakeBuffer
 
-from .message_rules import ANY_TOPIC, ENGINE_NODE_NAME, Fate, Rule, RuleError, corrupt, fate, rules_from_text
+from .message_rules import ANY_TOPIC, ENGINE_NODE_NAME, OUTCOME, Fate, Rule, RuleError, corrupt, fate, rules_from_text
 
 
 @dataclass
@@ -160,27 +160,15 @@ class _Engine:
         that delivers it now (``deliver(msg_args)``, for the executor), or
         None (dropped, or held to be delivered later). ``shared``: the
         message is others' too (intra-process): corrupt a copy."""
-        now = time.monotonic()
-        f: Fate = fate(rules, subscription, subscriber, publisher, self._numbers, now)
-        for rule in rules:
-            if rule.applies(subscriber, publisher):
-                self._count(rule, subscription, "seen")
-            elif publisher is None and rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
-                self._count(rule, subscription, "passed: publisher not known")
+        f: Fate = fate(rules, subscription, subscriber, publisher, self._numbers, time.monotonic())
+        self._count_seen(rules, subscription, subscriber, publisher)
+        if f.corrupt and not f.drop:
+            msg_args = self._corrupted(f, subscription, msg_args, shared)
         for rule in f.hit:
-            self._count(rule, subscription, _PAST[rule.kind])
+            if rule.kind != "corrupt" or f.corrupt:  # emptied when it could not be done
+                self._count(rule, subscription, OUTCOME[rule.kind])
         if f.drop:
             return None
-        if f.corrupt:
-            msg = msg_args[0]
-            if shared:
-                msg = msg.to_message() if hasattr(msg, "to_message") else copy.deepcopy(msg)
-            try:
-                msg_args = (corrupt(msg, f.corrupt), *msg_args[1:])
-            except (RuleError, TypeError, ValueError, AttributeError) as exc:
-                for rule in f.hit:
-                    if rule.kind == "corrupt":
-                        self._count(rule, subscription, f"not corrupted: {exc}")
         copies = f.copies
 
         def run():
@@ -194,6 +182,29 @@ class _Engine:
             holder.hold(_Held(f.due, f.order, run))
             return None
         return run
+
+    def _count_seen(self, rules, subscription: str, subscriber: str, publisher) -> None:
+        for rule in rules:
+            if rule.applies(subscriber, publisher):
+                self._count(rule, subscription, "seen")
+            elif publisher is None and rule.publishers and (not rule.subscribers or subscriber in rule.subscribers):
+                self._count(rule, subscription, "passed: publisher not known")
+
+    def _corrupted(self, f: Fate, subscription: str, msg_args: tuple, shared: bool) -> tuple:
+        """The message with ``f.corrupt``'s fields set (a copy if others
+        have it too); if it cannot be (a field it has not), the message as
+        it was, ``f.corrupt`` emptied and the reason counted."""
+        msg = msg_args[0]
+        if shared:
+            msg = msg.to_message() if hasattr(msg, "to_message") else copy.deepcopy(msg)
+        try:
+            return (corrupt(msg, f.corrupt), *msg_args[1:])
+        except (RuleError, TypeError, ValueError, AttributeError) as exc:
+            f.corrupt = {}
+            for rule in f.hit:
+                if rule.kind == "corrupt":
+                    self._count(rule, subscription, f"not corrupted: {exc}")
+            return msg_args
 
     # -- publishers over DDS -----------------------------------------------------------------
 
@@ -214,8 +225,6 @@ class _Engine:
 
 
 _STEADY = Clock(clock_type=ClockType.STEADY_TIME)  # time.monotonic()'s clock
-_PAST = {"drop": "dropped", "partition": "dropped", "delay": "delayed", "reorder": "reordered",
-         "duplicate": "duplicated", "corrupt": "corrupted"}  # fmt: skip
 
 
 ENGINE = _Engine()

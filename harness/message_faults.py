@@ -38,7 +38,7 @@ from rcl_interfaces.srv import SetParameters
 from std_srvs.srv import Trigger
 
 from cloneguard.faults import PACKAGE as RIG_PACKAGE
-from cloneguard.faults.message_rules import ENGINE_NODE_NAME, STALE, Rule, rules_to_text
+from cloneguard.faults.message_rules import ENGINE_NODE_NAME, OUTCOME, STALE, Rule, rules_to_text
 
 __all__ = ["Corrupt", "Delay", "Drop", "Duplicate", "MessageFault", "Partition", "Reorder", "stale"]
 
@@ -194,6 +194,7 @@ class MessageEngine:
         self._client = client
         self._lock = threading.Lock()
         self._rules: dict[str, Rule] = {}
+        self._last: dict[str, Rule] = {}  # the rules ended
         self._next = 0
         resp = client.load(RIG_PACKAGE, "faults::MessageFaults", node_name=ENGINE_NODE_NAME)
         if not resp.success:
@@ -214,10 +215,13 @@ class MessageEngine:
     def stop(self, rule_id: str) -> dict[str, int]:
         """End it; what it did."""
         with self._lock:
-            self._rules.pop(rule_id, None)
+            self._last[rule_id] = self._rules.pop(rule_id)
             self._send()
         answer = self._client.call(self._counts, Trigger.Request(), resend_after=1.0)
-        return json.loads(answer.message).get(rule_id, {})
+        rule = self._last[rule_id]
+        # Every fault's own two counts, 0 if it met nothing, and any other
+        # it made ("not corrupted: ..." with the reason, "passed: ...").
+        return {"seen": 0, OUTCOME[rule.kind]: 0, **json.loads(answer.message).get(rule_id, {})}
 
     def _send(self) -> None:
         text = rules_to_text(list(self._rules.values()))

@@ -296,6 +296,12 @@ class System:
         """Put a message fault (message_faults.py: ``Drop``, ``Delay`` ...)
         in force for its seconds; blocks meanwhile; the Fault recorded, with
         its counts. The first loads the rig's engine into the container."""
+        strangers = [n for n in fault.subscribers if n not in self.nodes]
+        if strangers:
+            raise ValueError(
+                f"{fault.kind}: no node {', '.join(strangers)} in this system to hit the messages of; "
+                f"it has {sorted(self.nodes)}"
+            )
         with self._messages_lock:
             if self._messages is None:
                 self._messages = MessageEngine(self.client)

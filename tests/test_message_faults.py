@@ -78,13 +78,27 @@ def test_corrupted_fields_reach_the_subscriber_and_no_one_else(system_factory, i
     corrupted = [n for n in w.heard_numbers() if n == -1]
     assert len(corrupted) == fault.counts["corrupted"] >= 10
     assert -1 not in w.sent_numbers()  # the publisher's message, also sent over DDS, is untouched
+    # A field the message has not: delivered as sent, none counted corrupted, the reason said.
+    [typo] = w.system.inject(Corrupt("/chatter", 0.3, fields={"dta": "m -1"}))
+    said = "not corrupted: String has no field 'dta' (in 'dta')"
+    assert typo.counts["corrupted"] == 0 and typo.counts[said] == typo.counts["seen"] >= 5, typo.counts
+    w.settle()
+    assert w.heard_numbers().count(-1) == len(corrupted)  # delivered as sent
+
+
+def test_a_fault_on_a_node_the_system_has_not_is_refused_at_once(system_factory):
+    w = ChatterProbe(system_factory)
+    said = r"no node /mesage_probe in this system .* it has \['/message_probe', '/talker'\]"
+    with pytest.raises(ValueError, match=said):
+        w.system.inject(Drop("/chatter", 1.0, subscribers=["/mesage_probe"]))
+    assert w.system.faults == []
 
 
 @pytest.mark.parametrize("intra", [False, True], ids=["dds", "intra"])
 def test_a_partition_cuts_only_the_named_publishers_from_the_named_subscribers(system_factory, intra):
     w = ChatterProbe(system_factory, intra=intra)
     [other] = w.system.inject(Partition(publishers=["/someone_else"], subscribers=["/message_probe"], seconds=0.5))
-    assert other.counts == {} and w.missing() == []  # not the talker's: not seen
+    assert other.counts == {"seen": 0, "dropped": 0} and w.missing() == []  # not the talker's: not seen
     [cut] = w.system.inject(Partition(publishers=["/talker"], subscribers=["/message_probe"], seconds=1.0))
     missing = w.missing()
     assert cut.counts == {"seen": len(missing), "dropped": len(missing)} and len(missing) >= 25

@@ -83,6 +83,7 @@ def test_corrupt_sets_numbers_sequences_and_stale_stamps():
         (dict(id="a", kind="reorder", topic="/scan"), "window"),
         (dict(id="a", kind="corrupt", topic="/scan"), "needs fields"),
         (dict(id="a", kind="partition", topic="*", publishers=["/lidar"]), "publishers and subscribers"),
+        (dict(id="a", kind="drop", topic="/scan", subscribers=["planner"]), "full names"),
     ],
 )
 def test_a_bad_rule_is_refused_saying_why(rule, why):
