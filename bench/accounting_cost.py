@@ -70,7 +70,7 @@ from cloneguard.harness.process import REPO_ROOT, stop_group
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import median_interval, pct
-from .goals import Goal
+from .goals import Goal, goal_median_ratio
 from .results import Result, Table, summary_row
 from .stepping import step_calls
 
@@ -434,19 +434,7 @@ def ratios(pairs: list[dict], alloc: str, size: int) -> tuple[list[float], list[
 
 
 def judge_time(measure: str, rs: list[float]) -> Goal:
-    goal = f"≤ +{GOAL_PCT:g}% time with the accounting (95% interval of B ÷ A)"
-    if not rs:
-        return Goal(goal, measure, "–", None, "not measured")
-    med, ci = statistics.median(rs), median_interval(rs)
-    if ci is None:
-        return Goal(goal, measure, f"{pct(med)} (n={len(rs)})", None, f"undecided: {len(rs)} pairs, no 95% interval")
-    lo, hi, _ = ci
-    shown = f"{pct(med)} [{pct(lo)}, {pct(hi)}] (n={len(rs)})"
-    if hi <= LIMIT:
-        return Goal(goal, measure, shown, True, f"met: the interval ends at {pct(hi)}")
-    if lo > LIMIT:
-        return Goal(goal, measure, shown, False, f"missed: the interval starts at {pct(lo)}")
-    return Goal(goal, measure, shown, None, f"undecided: the interval holds {pct(LIMIT)}")
+    return goal_median_ratio(f"≤ +{GOAL_PCT:g}% time with the accounting (95% interval of B ÷ A)", measure, rs, LIMIT)
 
 
 def judge_instructions(measure: str, a: float, b: float) -> Goal:
