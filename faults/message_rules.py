@@ -85,6 +85,11 @@ class Rule:
             if not name.startswith("/"):
                 raise RuleError(f"rule {self.id}: nodes are named by their full names (/lidar), not {name!r}")
 
+    @property
+    def draws(self) -> str:
+        """What its draws depend on besides the seed: its salt, else its id."""
+        return self.salt or self.id
+
     def applies(self, subscriber: str, publisher: str | None) -> bool:
         """Whether the rule is for this subscriber's node and (if it names
         publishers) this message's publisher (None: not known)."""
@@ -97,7 +102,7 @@ class Rule:
         received under this rule is one it hits."""
         if self.every:
             return number % self.every == 0
-        return self.probability >= 1.0 or unit(self.seed, self.salt or self.id, subscription, number) < self.probability
+        return self.probability >= 1.0 or unit(self.seed, self.draws, subscription, number) < self.probability
 
     def to_json(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -200,13 +205,13 @@ def fate(
         elif rule.kind == "corrupt":
             out.corrupt.update(rule.fields)
         elif rule.kind == "delay":
-            extra = rule.jitter_s * unit(rule.seed, (rule.salt or rule.id) + "/jitter", subscription, number)
+            extra = rule.jitter_s * unit(rule.seed, rule.draws + "/jitter", subscription, number)
             out.due = max(out.due, now + rule.delay_s + extra)
         elif rule.kind == "reorder":
             # Every message of a window is due when it closes; then they go
             # in an order drawn like a hit, so a seed replays it too.
             out.due = max(out.due, (math.floor(now / rule.window_s) + 1) * rule.window_s)
-            out.order = unit(rule.seed, (rule.salt or rule.id) + "/order", subscription, number)
+            out.order = unit(rule.seed, rule.draws + "/order", subscription, number)
     return out
 
 

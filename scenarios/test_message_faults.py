@@ -5,6 +5,8 @@ trial puts one fault, drawn from its seed, on that subscriber for a
 second, and the harness compares what was sent with what was heard.
 Per-node and shared profiles, over DDS and intra-process delivery."""
 
+import statistics
+
 import pytest
 
 from cloneguard.harness.message_probe import ChatterProbe, number
@@ -47,6 +49,8 @@ def test_a_drop_loses_the_share_it_asks_for(system_factory, system_trials, profi
 def test_a_delay_adds_what_it_asks_for(system_factory, system_trials, profile, transport):
     w = probe(system_factory, profile, transport)
 
+    errors: list[float] = []  # each trial's added minus asked (ms)
+
     def lateness_ms(since: int) -> list[float]:
         sent_at = w.sent_at()
         return sorted((r.at_ns - sent_at[n]) / 1e6 for r, n in _heard(w, since) if n in sent_at)
@@ -54,24 +58,24 @@ def test_a_delay_adds_what_it_asks_for(system_factory, system_trials, profile, t
     def trial(t):
         delay_s = t.rng.choice([0.05, 0.1, 0.2, 0.3])
         missing_before = set(w.missing())
-        base = _median(lateness_ms(max(0, len(w.heard) - 20)))  # the last 20 before: the path's own
+        base = statistics.median(lateness_ms(max(0, len(w.heard) - 20)))  # the last 20 before: the path's own
         since = len(w.heard)
         [fault] = w.system.inject(Delay("/chatter", FAULT_S, delay_s=delay_s))
         assert set(w.missing()) == missing_before, "a delayed message was lost"
         delayed = [x for x in lateness_ms(since) if x > base + delay_s * 500]
         assert len(delayed) == fault.counts["delayed"], f"{len(delayed)} heard late, {fault.counts} delayed"
-        added = _median(delayed) - base
+        added = statistics.median(delayed) - base
         errors.append(added - delay_s * 1e3)
         assert abs(errors[-1]) <= TRIAL_SLACK_MS, f"median added {added:.2f} ms for {delay_s * 1e3:g} ms asked"
         return {"added minus asked": errors[-1]}
 
-    errors: list[float] = []
     system_trials(w.system, trial, fault="delay by a drawn 50-300 ms for 1 s",
                   claim=f"no message lost, each trial's median added latency within {TRIAL_SLACK_MS:g} ms of "
                         "the asked delay, and over the trials within 1 ms", at_least=AT_LEAST)  # fmt: skip
     # The claim on the median over every trial (one trial's median moves
     # with the machine's load by a millisecond or two).
-    assert abs(_median(errors)) <= 1.0, f"added minus asked, median over {len(errors)} trials: {_median(errors):.2f} ms"
+    overall = statistics.median(errors)
+    assert abs(overall) <= 1.0, f"added minus asked, median over {len(errors)} trials: {overall:.2f} ms"
 
 
 @cells
@@ -137,8 +141,3 @@ def test_a_partition_is_total_and_heals(system_factory, system_trials, profile, 
 
 def _heard(w: ChatterProbe, since: int):
     return [(r, number(r.msg)) for r in w.heard.items()[since:]]
-
-
-def _median(values: list[float]) -> float:
-    values = sorted(values)
-    return values[len(values) // 2]
