@@ -8,6 +8,9 @@ C (faults/hammer.c), so the figures are the allocator's, not Python's:
   node process (clone child), without the guard, with it preloaded but not
   started (what a process pays before ``--isolated`` starts it), and with
   it on;
+* a filled block of each size in a node process, asked for by its own
+  code (malloc, memcpy) or by the stack (the C library's strndup): with the
+  guard on, the second comes from the slot's shared arena (the split);
 * free() of a node's block by the container (the guard hands it back: one
   CAS), and the owner's later freeing of those blocks, per block.
 
@@ -65,6 +68,17 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
             for size in SIZES:
                 add(f"pair {size} B, container thread", lib.hammer_pairs(size, pairs), pairs)
                 in_child(lambda size=size: add(f"pair {size} B, node process", lib.hammer_pairs(size, pairs), pairs))
+                # The split (allocguard.c): a block the stack asks for comes
+                # from the slot's shared arena, one of the node's own code
+                # from its own; the same block, filled, both ways.
+                for whose, stack in (("its own code", 0), ("the stack", 1)):
+                    in_child(
+                        lambda size=size, whose=whose, stack=stack: add(
+                            f"filled pair {size} B, node process, asked by {whose}",
+                            lib.hammer_copy_pairs(size, pairs, stack),
+                            pairs,
+                        )
+                    )
             arr = ffi.new("void *[]", blocks)
             in_child(lambda arr=arr: lib.hammer_alloc_many(arr, 256, blocks))
             add("free of a node's 256 B block by the container", lib.hammer_free_many(arr, blocks), blocks)

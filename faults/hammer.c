@@ -158,3 +158,29 @@ int64_t hammer_free_many(void **blocks, long n)
         free(blocks[i]);
     return now_ns() - t0;
 }
+
+/* n pairs of a size-byte block filled with size - 1 bytes and freed:
+   stack != 0, the C library asks for it itself (strndup: to the allocator
+   guard a caller of the stack's, served from the shared arena); stack == 0,
+   this code mallocs it and copies the same bytes (the node's own arena).
+   size at most 4096. */
+int64_t hammer_copy_pairs(size_t size, long n, int stack)
+{
+    static char text[4096];
+    if (size < 1 || size > sizeof text)
+        return -1;
+    memset(text, 'x', size - 1);
+    text[size - 1] = '\0';
+    int64_t t0 = now_ns();
+    for (long i = 0; i < n; i++) {
+        char *volatile p;
+        if (stack) {
+            p = strndup(text, size - 1);
+        } else {
+            p = malloc(size);
+            memcpy(p, text, size);
+        }
+        free(p);
+    }
+    return now_ns() - t0;
+}

@@ -215,6 +215,38 @@ CASES = {
             delete(got[0])
             out.update(handed=core.slot_stats(d.alloc_slot)["handed_blocks"] - before)
     """,
+    # The split: in a child, a block the C library asks for itself (strdup:
+    # a caller the guard counts as the stack's, as it does the ROS stack and
+    # the interpreter) and a large Python object come from its shared
+    # arena; a block its own code mallocs (ctypes) from its own arena.
+    "split": """
+        libc.strdup.restype = ctypes.c_void_p
+        libc.strdup.argtypes = [ctypes.c_char_p]
+
+        def arena_of(p):
+            if allocator.jemalloc_active():
+                ind, ptr = ctypes.c_uint(), ctypes.c_void_p(p)
+                size = ctypes.c_size_t(ctypes.sizeof(ind))
+                assert libc.mallctl(b"arenas.lookup", ctypes.byref(ind), ctypes.byref(size),
+                                    ctypes.byref(ptr), ctypes.sizeof(ptr)) == 0
+                return ind.value
+            head = ctypes.c_size_t.from_address(p - 8).value
+            assert head & 0x4 and not head & 0x2, "not from a non-main arena"
+            return ctypes.c_void_p.from_address(p & ~((64 << 20) - 1)).value
+
+        with CloneCore(alloc_guard=True) as core:
+            seen = {}
+            def child():
+                own = libc.malloc(100)
+                stack = libc.strdup(b"x" * 100)
+                big = bytearray(20_000)
+                py = ctypes.addressof((ctypes.c_char * 1).from_buffer(big))
+                seen.update(own=arena_of(own), stack=arena_of(stack), python=arena_of(py))
+                libc.free(own)
+                libc.free(stack)
+            d = run_child(core, child)
+            out.update(seen, glibc_arenas=core.slot_stats(d.alloc_slot)["glibc_arenas"])
+    """,
     # Every slot bound to a live child: the next spawn is refused with a
     # message that says why (no free slot), not just ENOMEM.
     "slots_exhausted": """
@@ -304,9 +336,18 @@ def test_children_one_after_another_reuse_one_context(backend):
     out = run("reuse", backend)
     assert len(out["slots"]) == 1, out["slots"]
     if backend == "glibc":
-        assert out["glibc_arenas"] == 1  # the context's own, reused
+        assert out["glibc_arenas"] == 2  # the context's own and its shared arena, reused
     else:
-        assert out["narenas"] == out["arena"] + 1  # one arena made, none since
+        assert out["narenas"] == out["arena"] + 2  # its two arenas made (own, shared), none since
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_stacks_blocks_and_a_nodes_own_come_from_two_arenas(backend):
+    out = run("split", backend)
+    assert out["own"] != out["stack"], out
+    assert out["python"] == out["stack"], out
+    if backend == "glibc":
+        assert out["glibc_arenas"] == 2, out
 
 
 def test_a_node_never_allocates_from_glibcs_main_arena():

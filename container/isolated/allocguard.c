@@ -32,6 +32,13 @@
  *             arena is the first word of its 64 MiB-aligned heap.  Arenas are
  *             mapped to slots as each thread learns its own (owners[]).
  *
+ * A slot has two arenas (the split, g_split): the blocks the ROS stack and
+ * the interpreter ask for come from its shared arena, those of the node's
+ * own code from its own, so a node that tears its own blocks does not tear
+ * the structures every task walks.  glibc chooses an arena per thread: the
+ * guard swaps the two words of glibc's per-thread state (glibc_swap) for
+ * each such call.
+ *
  * Slot 0 is the container: its threads never die alone, so they free each
  * other's blocks directly, as the allocator does without us.  Threads a node
  * process creates (Fast DDS's) belong to its slot: they die with it.
@@ -46,6 +53,7 @@
 #include <dlfcn.h>
 #include <errno.h>
 #include <fcntl.h>
+#include <link.h>
 #include <malloc.h> /* memalign, pvalloc, malloc_usable_size */
 #include <pthread.h>
 #include <signal.h>
@@ -104,7 +112,8 @@ static struct {
 #define JE_ZERO 0x40
 #define JE_LG_ALIGN(la) ((int)(la))
 #define JE_ARENA(a) ((((int)(a)) + 1) << 20)
-#define JE_TCACHE_NONE (((int)(-1 + 2)) << 8) /* MALLOCX_TCACHE_NONE: MALLOCX_TCACHE(-1) */
+#define JE_TCACHE(tc) (((int)(tc) + 2) << 8) /* MALLOCX_TCACHE(tc): an explicit cache */
+#define JE_TCACHE_NONE JE_TCACHE(-1)         /* MALLOCX_TCACHE_NONE */
 
 /* jemalloc's extent hook table (public ABI: man jemalloc, "arena.<i>.extent_hooks"). */
 typedef struct je_hooks je_hooks;
@@ -128,6 +137,13 @@ struct je_hooks {
 #define GLIBC_NON_MAIN_ARENA 0x4u
 #define GLIBC_HEAP_MAX ((uintptr_t)64 << 20)
 #define GLIBC_PROBE_SIZE 2048 /* above the tcache sizes: from the arena */
+/* glibc keeps a thread's malloc state in two words of libc's static TLS
+   (malloc/malloc.c, malloc/arena.c): thread_arena, the arena it allocates
+   from, and tcache, its cache, a tcache_perthread_struct (64 two-byte counts
+   and 64 entry pointers: a chunk of 656 bytes).  Their offsets from the
+   thread pointer are found at activation (find_glibc_tls) and checked again
+   for each context (glibc_warm_shared). */
+#define GLIBC_TCACHE_CHUNK 656
 
 /* ---------------------------------------------------------------------- */
 /* State.                                                                  */
@@ -205,7 +221,20 @@ static _Atomic int g_active;
 static int g_container_pid;
 static uintptr_t g_region, g_region_len; /* jemalloc: slots 1.. carve from here */
 static int g_nslots = NSLOTS;
-static bool g_split; /* protection keys on (heapkeys.c) */
+/* The split: a node process's main task keeps the blocks the ROS stack and
+   the interpreter ask for (hk_shared_caller says which) in an arena of its
+   own, its shared arena, apart from those of the node's own code.  Those
+   blocks are what other tasks walk (the shared participant's entity lists,
+   the interpreter's objects): a node that overflows a block of its own, or
+   frees one twice, tears its own arena, not them.  On once the guard is
+   active, on both backends: jemalloc's slot range is two halves, the shared
+   arena's the upper; under glibc, activation refuses unless glibc's
+   per-thread malloc state was found (find_glibc_tls).  With protection keys
+   the own half is keyed and the shared one not (heapkeys.c). */
+static bool g_split;
+static bool g_keys; /* protection keys on (heapkeys.c) */
+/* glibc: thread_arena's and tcache's offsets from the thread pointer. */
+static long g_tls_arena, g_tls_tcache;
 static size_t g_page = 4096;
 static size_t (*glibc_usable_size)(void *);
 
@@ -218,6 +247,16 @@ static __thread int t_owner __attribute__((tls_model("initial-exec")));
 static __thread int t_bound __attribute__((tls_model("initial-exec")));
 static __thread int t_inside __attribute__((tls_model("initial-exec")));
 static __thread void *t_arena __attribute__((tls_model("initial-exec"))); /* glibc: its own */
+/* glibc, a bound main task with the split: its shared arena, that arena's
+   cache, and its owner index. */
+static __thread void *t_sh_arena __attribute__((tls_model("initial-exec")));
+static __thread void *t_sh_tcache __attribute__((tls_model("initial-exec")));
+static __thread int t_sh_owner __attribute__((tls_model("initial-exec")));
+/* jemalloc, a bound main task: the explicit cache of its shared arena
+   (tcache.create, made in cga_warm) + 1; 0: none (no cache: its other
+   threads).  Only shared blocks ever enter it, so it never serves a shared
+   block to a native malloc nor the reverse, as the thread cache would. */
+static __thread unsigned t_sh_cache1 __attribute__((tls_model("initial-exec")));
 /* A bound main task's bytes in use (memory in use, below): it alone writes
    it, the rest of its slot and the container read it. */
 static __thread _Atomic long t_bytes __attribute__((tls_model("initial-exec")));
@@ -277,15 +316,53 @@ static inline int owner_of(void *p)
     void *arena = glibc_arena_of(p);
     if (arena && arena == t_arena)
         return t_owner; /* its own arena: no table lookup */
+    if (arena && arena == t_sh_arena)
+        return t_sh_owner;
     return arena ? glibc_arena_owner(arena) : 0;
 }
 
-/* With keys: is p in some slot's shared (untagged) half? */
+/* Is p a shared block: in some slot's shared half (jemalloc), or in the
+   calling task's shared arena (glibc: the only one it frees into)? */
 static inline bool in_shared(const void *p)
 {
+    if (!g_je)
+        return t_sh_arena && glibc_arena_of((void *)p) == t_sh_arena;
     uintptr_t off = (uintptr_t)p - g_region;
     return g_split && off < g_region_len && ((off >> HALF_SHIFT) & 1);
 }
+
+/* glibc: run one call of glibc's malloc family on the task's shared arena
+   and its cache, by swapping the two words of glibc's per-thread state (a
+   free must swap the cache too: glibc caches a freed block in the calling
+   thread's cache, whatever its arena). */
+struct glibc_state {
+    void *arena, *tcache;
+};
+
+static inline void **tls_word(long off)
+{
+    uintptr_t tp;
+    __asm__("mov %%fs:0, %0" : "=r"(tp));
+    return (void **)(tp + (uintptr_t)off);
+}
+
+static inline struct glibc_state glibc_swap(struct glibc_state to)
+{
+    void **a = tls_word(g_tls_arena), **c = tls_word(g_tls_tcache);
+    struct glibc_state was = {*a, *c};
+    *a = to.arena;
+    *c = to.tcache;
+    atomic_signal_fence(memory_order_seq_cst);
+    return was;
+}
+
+#define ON_SHARED_ARENA(call)                                                                      \
+    ({                                                                                             \
+        struct glibc_state own_ = glibc_swap((struct glibc_state){t_sh_arena, t_sh_tcache});       \
+        __typeof__(call) r_ = (call);                                                              \
+        glibc_swap(own_);                                                                          \
+        r_;                                                                                        \
+    })
 
 static inline int owner_slot(int o)
 {
@@ -302,10 +379,17 @@ static inline int je_flags(int slot)
     return slot && !t_bound ? JE_ARENA(slots[slot].arena) : 0;
 }
 
-/* A slot's shared arena (with keys), never through a thread cache. */
+/* The cache a shared block goes through: the task's explicit one, else
+   none (never the thread cache). */
+static inline int shared_cache(void)
+{
+    return t_sh_cache1 ? JE_TCACHE(t_sh_cache1 - 1) : JE_TCACHE_NONE;
+}
+
+/* A slot's shared arena. */
 static inline int shared_flags(int slot)
 {
-    return JE_ARENA(slots[slot].shared_arena) | JE_TCACHE_NONE;
+    return JE_ARENA(slots[slot].shared_arena) | shared_cache();
 }
 
 static inline bool je_fast(int slot)
@@ -322,10 +406,16 @@ static inline void *be_malloc(int slot, size_t n)
 
 static inline void be_free(void *p)
 {
-    if (!g_je)
-        __libc_free(p);
-    else if (unlikely(in_shared(p)))
-        dallocx(p, JE_TCACHE_NONE); /* never into a thread cache */
+    if (!g_je) {
+        if (unlikely(in_shared(p))) {
+            struct glibc_state own = glibc_swap((struct glibc_state){t_sh_arena, t_sh_tcache});
+            __libc_free(p);
+            glibc_swap(own);
+        } else {
+            __libc_free(p);
+        }
+    } else if (unlikely(in_shared(p)))
+        dallocx(p, shared_cache()); /* never into the thread cache */
     else if (je_real.free)
         je_real.free(p); /* into this thread's own cache */
     else
@@ -610,6 +700,9 @@ static inline void drain_mine(int slot)
     struct owner *mine = &owners[t_owner];
     if (unlikely(atomic_load_explicit(&mine->stack, memory_order_relaxed)))
         drain_stack(mine, slot);
+    if (t_sh_owner &&
+        unlikely(atomic_load_explicit(&owners[t_sh_owner].stack, memory_order_relaxed)))
+        drain_stack(&owners[t_sh_owner], slot);
     if (slot == 0 && t_owner != 0 &&
         unlikely(atomic_load_explicit(&owners[0].stack, memory_order_relaxed)))
         drain_stack(&owners[0], 0);
@@ -637,16 +730,32 @@ static void hand_over(int o, void *p)
 }
 
 /* ---------------------------------------------------------------------- */
-/* Shared blocks (heapkeys.c): memory every node may write, from the calling
-   slot's shared arena when protection keys are on; plain malloc otherwise
-   (and for the container).  For pyalloc.c.                                */
+/* Shared blocks (g_split): the ROS stack's and the interpreter's, from the
+   calling slot's shared arena; plain malloc for the container and for tasks
+   without one (a node process's other threads under glibc).  With keys,
+   memory every node may write (heapkeys.c).                               */
 
 static inline bool shared_slot(int *s)
 {
     if (!g_split || !atomic_load_explicit(&g_active, memory_order_relaxed))
         return false;
     *s = my_slot();
-    return *s != 0;
+    return *s != 0 && (g_je || t_sh_arena);
+}
+
+static inline void *be_shared(int s, size_t n, size_t align, bool zero)
+{
+    if (!g_je)
+        return ON_SHARED_ARENA(align > 16 ? __libc_memalign(align, n)
+                               : zero     ? __libc_calloc(1, n)
+                                          : __libc_malloc(n));
+    return mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
+                                  (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
+}
+
+static inline void *be_shared_realloc(int s, void *p, size_t n)
+{
+    return g_je ? rallocx(p, n ? n : 1, shared_flags(s)) : ON_SHARED_ARENA(__libc_realloc(p, n));
 }
 
 static void *shared_in(int s, size_t n, size_t align, bool zero)
@@ -654,10 +763,9 @@ static void *shared_in(int s, size_t n, size_t align, bool zero)
     block_within_budget(s, n, 0);
     enter(s);
     drain_mine(s);
-    /* With keys nearly all of a Python node's allocating comes this way. */
+    /* Most of a Python node's allocating comes this way. */
     cga_stop_point(s, CGA_STOP_ALLOCATION);
-    void *p = mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
-                                     (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
+    void *p = be_shared(s, n, align, zero);
     leave(s);
     count_got(s, p);
     return p;
@@ -668,16 +776,16 @@ static void *shared_in(int s, size_t n, size_t align, bool zero)
    that asked for it, not to libstdc++. */
 static __thread const void *t_new_caller __attribute__((tls_model("initial-exec")));
 
-/* With keys: does this call, from ra, want shared memory?  Yes when it
-   comes from the ROS stack or the interpreter (heapkeys.c says which, and
-   why): their structures are written by every node process. */
+/* Does this call, from ra, want a shared block?  Yes when it comes from
+   the ROS stack or the interpreter (heapkeys.c says which, and why): their
+   structures are walked, and with keys written, by every node process. */
 static inline bool wants_shared(int s, const void *ra)
 {
     if (likely(!g_split) || !s)
         return false;
     const void *pc = t_new_caller;
     t_new_caller = NULL;
-    return hk_shared_caller(pc ? pc : ra);
+    return (g_je || t_sh_arena) && hk_shared_caller(pc ? pc : ra);
 }
 
 HIDDEN void *cga_shared_alloc(size_t n, bool zero)
@@ -700,7 +808,7 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n)
         enter(s);
         drain_mine(s);
         count_freed(s, p);
-        void *q = rallocx(p, n ? n : 1, shared_flags(s));
+        void *q = be_shared_realloc(s, p, n);
         leave(s);
         count_got(s, q ? q : p);
         return q;
@@ -816,10 +924,10 @@ EXPORT void *realloc(void *p, size_t n)
         drain_mine(s);
         if (active)
             count_freed(s, p);
-        q = check_main(s, !g_je          ? __libc_realloc(p, n)
-                          : in_shared(p) ? rallocx(p, n, shared_flags(s))
-                          : je_fast(s)   ? je_real.realloc(p, n)
-                                         : rallocx(p, n, je_flags(s)));
+        q = check_main(s, in_shared(p) ? be_shared_realloc(s, p, n)
+                          : !g_je      ? __libc_realloc(p, n)
+                          : je_fast(s) ? je_real.realloc(p, n)
+                                       : rallocx(p, n, je_flags(s)));
         leave(s);
         if (active)
             count_got(s, q ? q : p); /* a failed realloc leaves p as it was */
@@ -1148,8 +1256,72 @@ EXPORT const char *cga_backend(void)
     return mallocx ? "jemalloc" : "glibc";
 }
 
+/* glibc: find thread_arena and tcache (GLIBC_TCACHE_CHUNK says what they
+   are) in libc's TLS block, on a new thread that has just allocated: the one
+   word there that is its arena, and the one that points at a cache-sized
+   chunk of that arena.  Sets g_tls_arena and g_tls_tcache, or leaves them
+   0. */
+struct libc_tls {
+    char *block;
+    size_t len;
+};
+
+static int find_libc_tls(struct dl_phdr_info *info, size_t size, void *arg)
+{
+    (void)size;
+    struct libc_tls *t = arg;
+    if (!info->dlpi_name || !strstr(info->dlpi_name, "/libc.so"))
+        return 0;
+    for (int i = 0; i < info->dlpi_phnum; i++)
+        if (info->dlpi_phdr[i].p_type == PT_TLS) {
+            t->block = info->dlpi_tls_data;
+            t->len = info->dlpi_phdr[i].p_memsz;
+        }
+    return 1;
+}
+
+static void *tls_probe_thread(void *unused)
+{
+    (void)unused;
+    void *p = __libc_malloc(GLIBC_PROBE_SIZE);
+    void *arena = p ? glibc_arena_of(p) : NULL;
+    struct libc_tls t = {NULL, 0};
+    dl_iterate_phdr(find_libc_tls, &t);
+    long at_arena = -1, at_tcache = -1;
+    int arenas = 0, tcaches = 0;
+    for (size_t off = 0; arena && t.block && off + sizeof(void *) <= t.len; off += sizeof(void *)) {
+        void *w = *(void **)(t.block + off);
+        if (w == arena) {
+            at_arena = (long)off;
+            arenas++;
+        } else if (((uintptr_t)w & ~(GLIBC_HEAP_MAX - 1)) ==
+                       ((uintptr_t)arena & ~(GLIBC_HEAP_MAX - 1)) &&
+                   ((uintptr_t)w & 15) == 0 && glibc_arena_of(w) == arena &&
+                   block_bytes(w) == GLIBC_TCACHE_CHUNK) { /* in the arena's first heap */
+            at_tcache = (long)off;
+            tcaches++;
+        }
+    }
+    if (arenas == 1 && tcaches == 1) {
+        uintptr_t tp;
+        __asm__("mov %%fs:0, %0" : "=r"(tp));
+        g_tls_arena = (long)((uintptr_t)t.block - tp) + at_arena;
+        g_tls_tcache = (long)((uintptr_t)t.block - tp) + at_tcache;
+    }
+    __libc_free(p);
+    return NULL;
+}
+
+static void find_glibc_tls(void)
+{
+    pthread_t t;
+    if (pthread_create(&t, NULL, tls_probe_thread, NULL) == 0)
+        pthread_join(t, NULL);
+}
+
 /* Start guarding.  Called once, by the container, before any node process
-   exists.  0, or -errno. */
+   exists.  0, or -errno (-ENOTSUP: glibc's per-thread malloc state is not
+   where find_glibc_tls looks). */
 EXPORT int cga_activate(int container_pid)
 {
     if (atomic_load(&g_active))
@@ -1192,8 +1364,14 @@ EXPORT int cga_activate(int container_pid)
     __asm__("mov %%fs:0, %0" : "=r"(tp));
     g_inside_off = (long)((uintptr_t)&t_inside - tp);
     g_container_pid = container_pid;
-    g_split = g_je && hk_enabled();
-    if (g_split) {
+    if (!g_je) {
+        find_glibc_tls();
+        if (!g_tls_arena || !g_tls_tcache)
+            return -ENOTSUP;
+    }
+    g_split = true;
+    g_keys = g_je && hk_enabled();
+    if (g_keys) {
         int r = hk_tag_tables(&g_tables, sizeof g_tables);
         if (r)
             return r;
@@ -1266,11 +1444,10 @@ EXPORT int cga_slot_new(void)
         if (g_je) {
             uintptr_t base = g_region + ((uintptr_t)(s - 1) << SLOT_SHIFT);
             uintptr_t half = (uintptr_t)1 << HALF_SHIFT;
-            int r = g_split ? hk_tag(base, half, s) : 0;
+            int r = g_keys ? hk_tag(base, half, s) : 0;
             if (!r)
-                r = arena_new(&sl->hooks, &live[s].bump, base, g_split ? half : 2 * half,
-                              &sl->arena);
-            if (!r && g_split)
+                r = arena_new(&sl->hooks, &live[s].bump, base, half, &sl->arena);
+            if (!r)
                 r = arena_new(&sl->shared_hooks, &live[s].shared_bump, base + half, half,
                               &sl->shared_arena);
             if (r) { /* its range stays reserved, unused */
@@ -1282,6 +1459,32 @@ EXPORT int cga_slot_new(void)
         return s;
     }
     return -ENOSPC;
+}
+
+/* glibc: give the task whose TLS is current (a new context's, its own
+   arena just attached) a second arena and cache, its shared arena: with
+   both words of glibc's state cleared, glibc attaches another arena (a new
+   one, or one a thread that ended gave back) and makes that arena's cache,
+   exactly as for a new thread.  Then its own are put back.  0, or -errno
+   (-ENOTSUP: the words are not what find_glibc_tls took them for). */
+static int glibc_warm_shared(int slot)
+{
+    if (*tls_word(g_tls_arena) != t_arena || !*tls_word(g_tls_tcache))
+        return -ENOTSUP;
+    struct glibc_state own = glibc_swap((struct glibc_state){NULL, NULL});
+    void *probe = __libc_malloc(GLIBC_PROBE_SIZE);
+    struct glibc_state shared = glibc_swap(own);
+    void *arena = probe ? glibc_arena_of(probe) : NULL;
+    if (!arena || arena != shared.arena || arena == own.arena || !shared.tcache ||
+        shared.tcache == own.tcache)
+        return probe ? -ENOTSUP : -ENOMEM; /* the probe leaks */
+    t_sh_arena = shared.arena;
+    t_sh_tcache = shared.tcache;
+    be_free(probe); /* into the shared arena: in_shared */
+    t_sh_owner = glibc_arena_claim(arena, slot);
+    if (!t_sh_owner)
+        t_sh_arena = NULL;
+    return t_sh_owner ? 0 : -ENOMEM;
 }
 
 /* Called with a new context's thread pointer current (contexts.c borrows
@@ -1304,10 +1507,18 @@ EXPORT int cga_warm(int slot)
         unsigned arena = slots[slot].arena; /* its thread arena */
         if (mallctl("thread.arena", NULL, NULL, &arena, sizeof arena) != 0)
             return -EINVAL;
+        unsigned cache;
+        size_t len = sizeof cache;
+        if (mallctl("tcache.create", &cache, &len, NULL, 0) != 0)
+            return -ENOMEM;
+        t_sh_cache1 = cache + 1;
     } else {
         t_owner = learn_glibc_arena(slot);
         if (!t_owner)
             return -ENOMEM;
+        int r = glibc_warm_shared(slot);
+        if (r)
+            return r;
     }
     t_inside = 0;
     t_bound = 1;
@@ -1317,8 +1528,7 @@ EXPORT int cga_warm(int slot)
 /* A context is about to run a new node process. */
 EXPORT void cga_slot_bind(int slot)
 {
-    if (g_split)
-        hk_refresh_shared();
+    hk_refresh_shared();
     atomic_store(&live[slot].inside, 0);
     atomic_store(&slots[slot].state, CGA_BOUND);
 }
@@ -1328,7 +1538,7 @@ EXPORT void cga_child_start(void)
 {
     int s = t_slot1 - 1;
     if (s > 0) {
-        if (g_split)
+        if (g_keys)
             hk_child_enter(s);
         stops_clear(s);            /* no request of an earlier process */
         atomic_store(&t_bytes, 0); /* its memory in use, from nothing */

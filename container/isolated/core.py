@@ -417,6 +417,12 @@ class CloneCore:
             rc = lib.cg_start(layout, config, fd)
             if rc < 0:
                 self._unwatch_memory()
+                if rc == -errno.ENOTSUP:  # only the guard says so
+                    raise OSError(
+                        -rc,
+                        "cannot start the allocator guard: glibc's per-thread malloc state (thread_arena, "
+                        "tcache) is not in libc's TLS where glibc 2.36 keeps it (allocguard.c, find_glibc_tls)",
+                    )
                 raise OSError(-rc, f"cannot start the monitor: {os.strerror(-rc)}")
             CloneCore._open = self
         return fd[0]
