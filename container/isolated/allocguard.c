@@ -1280,6 +1280,13 @@ static int find_libc_tls(struct dl_phdr_info *info, size_t size, void *arg)
     return 1;
 }
 
+/* Can p be read?  (msync fails with ENOMEM on a page not mapped.) */
+static bool mapped(const void *p)
+{
+    uintptr_t page = (uintptr_t)p & ~(uintptr_t)(g_page - 1);
+    return page && msync((void *)page, g_page, MS_ASYNC) == 0;
+}
+
 static void *tls_probe_thread(void *unused)
 {
     (void)unused;
@@ -1294,10 +1301,9 @@ static void *tls_probe_thread(void *unused)
         if (w == arena) {
             at_arena = (long)off;
             arenas++;
-        } else if (((uintptr_t)w & ~(GLIBC_HEAP_MAX - 1)) ==
-                       ((uintptr_t)arena & ~(GLIBC_HEAP_MAX - 1)) &&
-                   ((uintptr_t)w & 15) == 0 && glibc_arena_of(w) == arena &&
-                   block_bytes(w) == GLIBC_TCACHE_CHUNK) { /* in the arena's first heap */
+        } else if (((uintptr_t)w & 15) == 0 && mapped((char *)w - sizeof(size_t)) &&
+                   mapped((void *)((uintptr_t)w & ~(GLIBC_HEAP_MAX - 1))) &&
+                   glibc_arena_of(w) == arena && block_bytes(w) == GLIBC_TCACHE_CHUNK) {
             at_tcache = (long)off;
             tcaches++;
         }
