@@ -41,6 +41,7 @@ SOURCES = (
     "lastresort.c",
     "memwatch.c",
     "heldscan.c",
+    "sigsafe.c",
 )
 
 CDEF = r"""
@@ -350,7 +351,7 @@ ffibuilder.set_source(
     # setuptools wants sources relative to the repo root (where setup.py runs).
     sources=[f"container/isolated/{n}" for n in SOURCES],
     include_dirs=[str(HERE)],
-    depends=[f"container/isolated/{n}" for n in ("core.h", "repair.h", "allocguard.h")],
+    depends=[f"container/isolated/{n}" for n in ("core.h", "repair.h", "allocguard.h", "sigsafe.h")],
     libraries=["dl", "pthread"],
     extra_compile_args=["-std=gnu11", *WARNINGS, "-Wno-unused-function", "-fvisibility=hidden"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would

@@ -25,6 +25,9 @@
  *                per-node heap protection rests on
  *   herald.c     the words for a death, and a node's CRASHED event published
  *                by a thread of the core's own, without Python
+ *   sigsafe.c    bounded text and whole writes for signal handlers and
+ *                dying tasks (sigsafe.h; crash.c, dumps.c, mutexes.c,
+ *                gilrepair.c, lastresort.c write with it)
  *
  * x86_64 and glibc only.  Everything layout-dependent comes from
  * assumptions.py through struct cg_layout (g_layout), checked against a live

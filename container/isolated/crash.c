@@ -26,6 +26,7 @@
  * stack) runs, and the process dies as it would have.
  */
 #include "core.h"
+#include "sigsafe.h"
 
 #include <errno.h>
 #include <linux/futex.h>
@@ -55,43 +56,6 @@ static const int crash_signals[] = {SIGSEGV, SIGBUS, SIGILL, SIGFPE, SIGABRT};
    crash_signals order; set once, before any fault can use them. */
 static struct sigaction g_container_prev[NCRASH];
 static int g_container_installed;
-
-struct out {
-    char b[256];
-    size_t n;
-};
-
-static void out_s(struct out *o, const char *s)
-{
-    while (*s && o->n < sizeof o->b)
-        o->b[o->n++] = *s++;
-}
-
-static void out_u(struct out *o, unsigned long v, unsigned base)
-{
-    char tmp[24];
-    int i = 0;
-    if (base == 16)
-        out_s(o, "0x");
-    do
-        tmp[i++] = "0123456789abcdef"[v % base];
-    while ((v /= base) && i < (int)sizeof tmp);
-    while (i && o->n < sizeof o->b)
-        o->b[o->n++] = tmp[--i];
-}
-
-static void out_flush(struct out *o)
-{
-    size_t done = 0;
-    while (done < o->n) {
-        ssize_t w = write(2, o->b + done, o->n - done);
-        if (w <= 0 && errno != EINTR)
-            break;
-        if (w > 0)
-            done += (size_t)w;
-    }
-    o->n = 0;
-}
 
 /* The report did not finish within 2 s (the symboliser waits for the
    dynamic linker's lock, say): die of the signal we were reporting.  It is
@@ -165,44 +129,40 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         syscall(SYS_timer_settime, timer, 0, &its, NULL);
     }
 
-    struct out o = {.n = 0};
+    char text[256];
+    struct ss_buf o = SS_BUF(text);
     const char *abbrev = sigabbrev_np(sig);
     bool container = g_container_installed && pid == g_container_pid;
-    out_s(&o, container ? "cloneguard: container pid " : "cloneguard: pid ");
-    out_u(&o, (unsigned long)pid, 10);
-    out_s(&o, " caught SIG");
-    out_s(&o, abbrev ? abbrev : "?");
-    out_s(&o, " at ");
+    ss_str(&o, container ? "cloneguard: container pid " : "cloneguard: pid ");
+    ss_dec(&o, (long)pid);
+    ss_str(&o, " caught SIG");
+    ss_str(&o, abbrev ? abbrev : "?");
+    ss_str(&o, " at ");
     if (si->si_code > 0) /* raised by a fault */
-        out_u(&o, (uintptr_t)si->si_addr, 16);
+        ss_hex(&o, (uintptr_t)si->si_addr);
     else /* sent: there is no address */
-        out_s(&o, "-");
-    out_s(&o, " (pc ");
-    out_u(&o, (unsigned long)uc->uc_mcontext.gregs[REG_RIP], 16);
-    out_s(&o, ")\ncloneguard: si_code ");
-    if (si->si_code < 0) {
-        out_s(&o, "-");
-        out_u(&o, (unsigned long)-si->si_code, 10);
-    } else {
-        out_u(&o, (unsigned long)si->si_code, 10);
-    }
+        ss_str(&o, "-");
+    ss_str(&o, " (pc ");
+    ss_hex(&o, (unsigned long)uc->uc_mcontext.gregs[REG_RIP]);
+    ss_str(&o, ")\ncloneguard: si_code ");
+    ss_dec(&o, si->si_code);
     if (si->si_code <= 0) {
-        out_s(&o, " (sent by pid ");
-        out_u(&o, (unsigned long)si->si_pid, 10);
-        out_s(&o, ")");
+        ss_str(&o, " (sent by pid ");
+        ss_dec(&o, (long)si->si_pid);
+        ss_str(&o, ")");
     }
     if (sig == SIGSEGV && si->si_code == SEGV_PKUERR) {
         /* A write the PKRU forbids: into a heap under another node's key
            (allocguard.c, heapkeys.c). */
-        out_s(&o, " (protection-key violation, key ");
-        out_u(&o, (unsigned long)si->si_pkey, 10);
-        out_s(&o, ")");
+        ss_str(&o, " (protection-key violation, key ");
+        ss_dec(&o, (long)si->si_pkey);
+        ss_str(&o, ")");
     }
     if (tid != pid) {
-        out_s(&o, ", thread ");
-        out_u(&o, (unsigned long)tid, 10);
+        ss_str(&o, ", thread ");
+        ss_dec(&o, (long)tid);
     }
-    out_s(&o, "\n");
+    ss_str(&o, "\n");
     struct cg_child *c = cg_crashing;
     int unclaimed = 0;
     bool claimed = c && __atomic_compare_exchange_n(&c->crash_nframes, &unclaimed, -1, false,
@@ -210,7 +170,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
     if (claimed) {
         /* The fault, and both stacks, raw: the container writes them once
            it has reported the death. */
-        out_flush(&o);
+        ss_flush(&o, 2);
         c->crash_tid = tid;
         c->crash_si_code = si->si_code;
         c->crash_sender = si->si_code <= 0 ? (int)si->si_pid : 0;
@@ -222,12 +182,12 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         __atomic_store_n(&c->crash_nframes, n > 0 ? n : 0, __ATOMIC_RELEASE);
     } else {
         void *frames[CG_CRASH_FRAMES];
-        out_s(&o, "cloneguard: native stack:\n");
-        out_flush(&o);
+        ss_str(&o, "cloneguard: native stack:\n");
+        ss_flush(&o, 2);
         int n = backtrace(frames, CG_CRASH_FRAMES);
         backtrace_symbols_fd(frames, n, 2);
-        out_s(&o, "cloneguard: Python ");
-        out_flush(&o);
+        ss_str(&o, "cloneguard: Python ");
+        ss_flush(&o, 2);
         cg_dump_py_stack(2); /* "Stack (most recent call first): ..." */
     }
 

@@ -29,6 +29,7 @@
  * dumps_forget, on this same thread.
  */
 #include "core.h"
+#include "sigsafe.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -164,12 +165,10 @@ bool dumps_ask(struct cg_child *c)
 
 static void say(struct cg_child *c, const char *a, const char *b)
 {
-    size_t n = 0, cap = sizeof c->core_why - 1;
-    for (const char *s = a; s && *s && n < cap; s++)
-        c->core_why[n++] = *s;
-    for (const char *s = b; s && *s && n < cap; s++)
-        c->core_why[n++] = *s;
-    c->core_why[n] = 0;
+    struct ss_buf o = SS_BUF(c->core_why);
+    ss_str(&o, a);
+    ss_str(&o, b);
+    ss_cstr(&o);
 }
 
 /* The last line the helper printed ("" if none), but for gdb's own

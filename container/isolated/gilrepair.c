@@ -62,6 +62,7 @@
 #include <unistd.h>
 
 #include "repair.h"
+#include "sigsafe.h"
 
 #define GIL (&_PyRuntime.ceval.gil)
 #define ANON ((struct cg_dead *)-1) /* a dead owner we cannot name */
@@ -576,21 +577,15 @@ void cg_hold_py_stack(void *const *codes, int n, int hold)
     PyGILState_Release(g);
 }
 
-static void put_text(char *buf, size_t size, size_t *len, const char *s, Py_ssize_t n)
-{
-    for (Py_ssize_t i = 0; (n < 0 ? s[i] != 0 : i < n) && *len < size; i++)
-        buf[(*len)++] = s[i];
-}
-
-static void put_str(char *buf, size_t size, size_t *len, PyObject *str)
+static void put_pystr(struct ss_buf *o, PyObject *str)
 {
     Py_ssize_t n = 0;
     const char *s = PyUnicode_Check(str) ? PyUnicode_AsUTF8AndSize(str, &n) : NULL;
-    if (s)
-        put_text(buf, size, len, s, n);
-    else {
+    if (s) {
+        ss_mem(o, s, (size_t)n);
+    } else {
         PyErr_Clear();
-        put_text(buf, size, len, "???", -1);
+        ss_str(o, "???");
     }
 }
 
@@ -600,16 +595,16 @@ int cg_frame_text(void *code_, int lasti, char *buf, int size)
 {
     PyGILState_STATE g = PyGILState_Ensure();
     PyCodeObject *code = (PyCodeObject *)code_;
-    size_t len = 0;
-    char num[24];
-    put_str(buf, (size_t)size - 1, &len, code->co_name);
-    put_text(buf, (size_t)size - 1, &len, " (", -1);
-    put_str(buf, (size_t)size - 1, &len, code->co_filename);
-    snprintf(num, sizeof num, ":%d)", PyCode_Addr2Line(code, lasti * (int)sizeof(_Py_CODEUNIT)));
-    put_text(buf, (size_t)size - 1, &len, num, -1);
-    buf[len] = 0;
+    struct ss_buf o = {buf, (size_t)size - 1, 0};
+    put_pystr(&o, code->co_name);
+    ss_str(&o, " (");
+    put_pystr(&o, code->co_filename);
+    ss_str(&o, ":");
+    ss_dec(&o, PyCode_Addr2Line(code, lasti * (int)sizeof(_Py_CODEUNIT)));
+    ss_str(&o, ")");
+    ss_cstr(&o);
     PyGILState_Release(g);
-    return (int)len;
+    return (int)o.n;
 }
 
 void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, int fd)
@@ -617,21 +612,21 @@ void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, in
     PyGILState_STATE g = PyGILState_Ensure();
     for (int i = 0; i < n; i++) {
         PyCodeObject *code = (PyCodeObject *)codes[i];
-        char line[1024], num[24];
-        size_t len = 0;
-        put_text(line, sizeof line, &len, "  File \"", -1);
-        put_str(line, sizeof line, &len, code->co_filename);
-        snprintf(num, sizeof num, "\", line %d in ",
-                 PyCode_Addr2Line(code, lasti[i] * (int)sizeof(_Py_CODEUNIT)));
-        put_text(line, sizeof line, &len, num, -1);
-        put_str(line, sizeof line, &len, code->co_name);
-        put_text(line, sizeof line, &len, "\n", -1);
-        if (len == sizeof line)
-            line[len - 1] = '\n';
-        if (write(fd, line, len) < 0)
+        char line[1024];
+        struct ss_buf o = {line, sizeof line - 1, 0};
+        ss_str(&o, "  File \"");
+        put_pystr(&o, code->co_filename);
+        ss_str(&o, "\", line ");
+        ss_dec(&o, PyCode_Addr2Line(code, lasti[i] * (int)sizeof(_Py_CODEUNIT)));
+        ss_str(&o, " in ");
+        put_pystr(&o, code->co_name);
+        ss_str(&o, "\n");
+        if (o.n == o.cap)
+            line[o.n - 1] = '\n';
+        if (ss_write_all(fd, line, o.n) < 0)
             break;
     }
-    if (more && write(fd, "  ...\n", 6) < 0) { /* stderr is gone */
-    }
+    if (more)
+        ss_write_all(fd, "  ...\n", 6);
     PyGILState_Release(g);
 }

@@ -30,6 +30,7 @@
 #include <unistd.h>
 
 #include "core.h"
+#include "sigsafe.h"
 
 /* How long to wait before looking again when not armed (the first arm
    comes right after the start). */
@@ -43,18 +44,6 @@ static PyInterpreterState *g_interp;
 static int64_t g_due; /* on the watch clock; 0: not armed */
 static int g_stop;    /* futex word: 1 ends the thread */
 
-static void write_all(const char *s, size_t n)
-{
-    while (n > 0) {
-        ssize_t w = write(g_fd, s, n);
-        if (w < 0 && errno == EINTR)
-            continue;
-        if (w <= 0)
-            return;
-        s += w, n -= (size_t)w;
-    }
-}
-
 static void *watch(void *arg)
 {
     (void)arg;
@@ -65,11 +54,11 @@ static void *watch(void *arg)
         int64_t due = __atomic_load_n(&g_due, __ATOMIC_ACQUIRE);
         int64_t left = due ? due - cg_watch_clock_ns() : UNARMED_NS;
         if (left <= 0) {
-            write_all(g_banner, strlen(g_banner));
+            ss_write_all(g_fd, g_banner, strlen(g_banner));
             const char *err = _Py_DumpTracebackThreads(g_fd, g_interp, NULL);
             if (err) {
-                write_all(err, strlen(err));
-                write_all("\n", 1);
+                ss_write_all(g_fd, err, strlen(err));
+                ss_write_all(g_fd, "\n", 1);
             }
             _exit(1);
         }

@@ -73,6 +73,7 @@
  * with process_vm_readv, so a wrong address is an error, not a fault.
  */
 #include "core.h"
+#include "sigsafe.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -142,32 +143,20 @@ static struct {
 
 /* ---- procfs without malloc or stdio ------------------------------------ */
 
-static char *put_str(char *p, char *end, const char *s)
-{
-    while (*s && p < end)
-        *p++ = *s++;
-    return p;
-}
-
 /* "/proc/<id>/<leaf>"; id 0: "/proc/self/<leaf>".  -1 if it does not fit. */
 static int proc_path(char *buf, size_t len, int id, const char *leaf)
 {
-    char *p = put_str(buf, buf + len - 1, "/proc/"), *end = buf + len - 1;
-    if (id == 0) {
-        p = put_str(p, end, "self");
-    } else {
-        char digits[12];
-        int n = 0;
-        for (unsigned v = (unsigned)id; v || n == 0; v /= 10)
-            digits[n++] = (char)('0' + v % 10);
-        while (n && p < end)
-            *p++ = digits[--n];
-    }
-    p = put_str(p, end, "/");
-    p = put_str(p, end, leaf);
-    if (p >= end)
+    struct ss_buf o = {buf, len - 1, 0};
+    ss_str(&o, "/proc/");
+    if (id == 0)
+        ss_str(&o, "self");
+    else
+        ss_dec(&o, id);
+    ss_str(&o, "/");
+    ss_str(&o, leaf);
+    if (o.n >= o.cap)
         return -1;
-    *p = '\0';
+    ss_cstr(&o);
     return 0;
 }
 
