@@ -55,10 +55,6 @@ int rm_lock(pthread_mutex_t *m, int64_t timeout_ns)
     return pthread_mutex_clocklock(m, CLOCK_MONOTONIC, &ts);
 }
 
-int rm_trylock(pthread_mutex_t *m)
-{
-    return pthread_mutex_trylock(m);
-}
 int rm_consistent(pthread_mutex_t *m)
 {
     return pthread_mutex_consistent(m);

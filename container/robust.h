@@ -9,7 +9,6 @@
 pthread_mutex_t *rm_new(void);
 void rm_free(pthread_mutex_t *m);
 int rm_lock(pthread_mutex_t *m, int64_t timeout_ns);
-int rm_trylock(pthread_mutex_t *m);
 int rm_consistent(pthread_mutex_t *m);
 int rm_unlock(pthread_mutex_t *m);
 

@@ -55,11 +55,6 @@ class RobustMutex:
         rc = lib.rm_lock(self._m, ns)
         return self._result(rc)
 
-    def try_lock(self) -> bool | None:
-        """None if someone holds it, else like lock()."""
-        rc = lib.rm_trylock(self._m)
-        return None if rc == errno.EBUSY else self._result(rc)
-
     def mark_consistent(self) -> None:
         self._check(lib.rm_consistent(self._m), "mark_consistent")
 

@@ -229,15 +229,17 @@ def test_locals_a_death_left_pointing_at_no_object_are_never_followed():
 def test_a_death_inside_pythons_object_allocator_abandons_only_that_process_pools():
     rc, out = _run("""
         with CloneCore(alloc_guard=True) as core:
-            deaths, abandoned = 0, 0
+            deaths, abandoned, pools = 0, 0, None
             while abandoned == 0 and deaths < 60:
                 c = core.spawn(lambda: interpfault.interpfault_die_inside(
                     allocator.GUARD_PATH.encode(), 20, 200000))
                 death = core.wait(c, 20)
                 deaths += 1
                 abandoned += death.py_abandoned
+                if death.py_abandoned:
+                    pools = core.slot_stats(death.alloc_slot)["python"]
                 core.release(c)
-            out.update(deaths=deaths, abandoned=abandoned)
+            out.update(deaths=deaths, abandoned=abandoned, slot_pools=pools)
             # The container and the next child allocate and collect as before.
             keep = [[i] * 3 for i in range(20000)]
             gc.collect()
@@ -247,6 +249,7 @@ def test_a_death_inside_pythons_object_allocator_abandons_only_that_process_pool
     """)
     assert rc == 0 and out.get("pools") is True, out
     assert out["abandoned"] >= 1, out
+    assert out["slot_pools"]["abandoned"] >= 1 and out["slot_pools"]["generation"] >= 1, out
     assert out["next_child"] == 0, out
 
 

@@ -272,7 +272,6 @@ int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 int cg_py_slot_stats(int slot, struct cga_py_stats *out);
 int cg_gc_wait_due(int interval_us, int *wake);
 long cg_gc_collect(void *collect, int generation);
-int cg_py_allocator_active(void);
 int cg_bound_listener_wait(char *why_out, int why_size);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
                       int stop_signal, char *out, int size);
@@ -290,6 +289,7 @@ int cg_lastresort_start(int fd, const char *banner);
 void cg_lastresort_arm(int64_t after_ns);
 void cg_lastresort_stop(void);
 
+#define SEGV_PKUERR ... /* si_code of a SIGSEGV a protection key raised */
 #define CG_EV_DEATH ...
 #define CG_EV_STOP ...
 #define CG_EV_CLOSED ...

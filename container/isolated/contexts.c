@@ -224,12 +224,6 @@ int cg_py_slot_stats(int slot, struct cga_py_stats *out)
     return G.py_stats ? G.py_stats(slot, out) : -ENOENT;
 }
 
-/* Does the guard's allocator serve CPython's objects (pyalloc.c)? */
-int cg_py_allocator_active(void)
-{
-    return G.py_active ? G.py_active() : 0;
-}
-
 /* The slot whose process allocated Python object memory p; -1 if unknown. */
 int guard_py_owner(const void *p)
 {

@@ -370,7 +370,6 @@ int cg_container_crash_report(void);
 /* contexts.c */
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 int cg_py_slot_stats(int slot, struct cga_py_stats *out);
-int cg_py_allocator_active(void);
 /* CLOCK_MONOTONIC in ns (the monitor's clock, listenerwait.c's). */
 static inline int64_t cg_mono_ns(void)
 {

@@ -57,8 +57,6 @@ from cloneguard.container.isolated.core_events import (
 from cloneguard.container.isolated.crash_reports import CrashStacks
 from cloneguard.container.isolated.memory_watch import MemoryLimit
 
-SEGV_PKUERR = 4  # si_code of a SIGSEGV a protection key raised (Linux, x86)
-
 __all__ = [
     "CloneCore",
     "Child",
@@ -662,7 +660,8 @@ class CloneCore:
         glibc arenas, blocks handed to it by others, and of those the ones
         not yet freed (``pending_blocks``/``pending_bytes``: for a
         quarantined slot, what leaked; counted only while no process is
-        bound to it). None without the guard."""
+        bound to it), and its Python pools (``python``). None without the
+        guard."""
         ffi, lib = _lib()
         out = ffi.new("struct cga_slot_stats *")
         if lib.cg_alloc_slot_stats(slot, out) < 0:
@@ -682,7 +681,20 @@ class CloneCore:
             "pending_blocks": out.pending_blocks,
             "pending_bytes": out.pending_bytes,
             "main_arena_allocs": out.main_arena_allocs,
+            "python": self._py_slot_stats(slot),
         }
+
+    @staticmethod
+    def _py_slot_stats(slot: int) -> dict | None:
+        """CPython's object pools of the slot (pyalloc.c): their generation
+        (one more each time they were abandoned), pools taken, blocks others
+        handed to it, frees into abandoned pools left undone, and deaths
+        inside them. None without the pools."""
+        ffi, lib = _lib()
+        py = ffi.new("struct cga_py_stats *")
+        if lib.cg_py_slot_stats(slot, py) < 0:
+            return None
+        return {k: getattr(py, k) for k in ("generation", "pools", "handed", "dropped", "abandoned")}
 
     def _no_free_slot(self) -> str | None:
         """Why a spawn found no allocator-guard slot, if that is why: every
@@ -856,7 +868,7 @@ class CloneCore:
             block = entry.child._block
             stacks = self._crash_stacks.take(block)
             event = replace(event, text=ffi.string(block.death_text).decode(errors="replace"))
-            if block.crash_si_code == SEGV_PKUERR and block.crash_pkey:
+            if block.crash_si_code == lib.SEGV_PKUERR and block.crash_pkey:
                 event = replace(event, pkey_fault=self._pkey_fault(block))
             if block.gil_code != ffi.NULL:
                 buf = ffi.new("char[]", 512)

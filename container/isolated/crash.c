@@ -38,10 +38,6 @@
 #include <ucontext.h>
 #include <unistd.h>
 
-#ifndef SEGV_PKUERR
-#define SEGV_PKUERR 4
-#endif
-
 /* The signal a crash report is about (for its watchdog, on the same thread).
    initial-exec: a plain %fs-relative access, no __tls_get_addr. */
 static __thread int cg_crash_sig __attribute__((tls_model("initial-exec")));

@@ -58,7 +58,6 @@
 enum { OFF = 0, ARMED = 1, CLAIMED = 2 };
 #define CDR_HEADER 4
 #define EVENT_CRASHED 3     /* ComponentEvent.CRASHED */
-#define SEGV_PKUERR_CODE 4  /* si_code of a protection-key fault */
 #define STAMP_AT CDR_HEADER /* the stamp (sec, nanosec) is the first field */
 
 struct cg_herald { /* one armed node's event, one allocation */
@@ -421,7 +420,7 @@ void herald_forget(struct cg_child *c)
 bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
 {
     if (c->gil_code != NULL || c->core_dump != CG_CORE_NONE ||
-        (c->crash_si_code == SEGV_PKUERR_CODE && c->crash_pkey) ||
+        (c->crash_si_code == SEGV_PKUERR && c->crash_pkey) ||
         __atomic_load_n(&c->stop_requested, __ATOMIC_ACQUIRE) == CG_STOP_PARENT)
         return false;
     /* Under g_lock: once cg_herald_stop has run, nothing more goes down
