@@ -173,3 +173,74 @@ def test_the_slugs_are_githubs():
 def test_the_readme_stays_short():
     lines = len((ROOT / "README.md").read_text().splitlines())
     assert lines <= README_MAX_LINES, f"README.md has {lines} lines; the reference belongs in docs/ (docs/index.md)"
+
+
+# -- CONTRIBUTING's recipes name files and code that exist ------------------------------
+
+CONTRIBUTING = ROOT / "CONTRIBUTING.md"
+_EXTENSIONS = (".py", ".c", ".h", ".md", ".msg", ".toml", ".yaml", ".sh")
+_IDENTIFIER = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
+
+
+def _tracked() -> list[str]:
+    import subprocess
+
+    out = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    return out.splitlines()
+
+
+def _spans(page: Path) -> list[str]:
+    return [m.group(0).strip("`").strip() for m in _CODE_SPAN.finditer(page.read_text())]
+
+
+def _recipe_paths(page: Path) -> list[str]:
+    """Code spans that name a file or folder: with a slash, or a file name
+    with a known extension (a pattern like ``faults/*.c`` counts)."""
+    return [
+        s
+        for s in _spans(page)
+        if " " not in s
+        and "=" not in s
+        and ("/" in s[1:] or (s.endswith(_EXTENSIONS) and s[0] != "."))
+        and not s.startswith(("/", "-"))
+    ]
+
+
+def _recipe_names(page: Path) -> list[str]:
+    """Code spans that name code: identifiers with an underscore, dotted or
+    not (``cg_herald_arm``, ``CloneCore.arm_crashed``), not file names."""
+    return [s for s in _spans(page) if _IDENTIFIER.match(s) and "_" in s and not s.endswith(_EXTENSIONS)]
+
+
+def test_every_file_contributing_names_exists():
+    import fnmatch
+
+    tracked = _tracked()
+    missing = [
+        p
+        for p in _recipe_paths(CONTRIBUTING)
+        if not any(
+            fnmatch.fnmatch(t, p.rstrip("/") + ("/*" if p.endswith("/") else ""))
+            or fnmatch.fnmatch(t, "*/" + p.rstrip("/") + ("/*" if p.endswith("/") else ""))
+            for t in tracked
+        )
+    ]
+    assert not missing, f"CONTRIBUTING.md names files the tree does not have: {missing}"
+
+
+def test_every_name_contributing_gives_code_is_in_the_code():
+    sources = "\n".join(
+        (ROOT / t).read_text(errors="replace")
+        for t in _tracked()
+        if t.endswith((".py", ".c", ".h", ".toml")) and (ROOT / t).is_file()
+    )
+    missing = [n for n in _recipe_names(CONTRIBUTING) if not re.search(rf"\b{re.escape(n.split('.')[-1])}\b", sources)]
+    assert not missing, f"CONTRIBUTING.md names code the tree does not have: {missing}"
+
+
+def test_the_recipe_checks_see_names():
+    """Not vacuous: the ComponentEvent recipe's files and functions are seen."""
+    assert "container/isolated/herald.c" in _recipe_paths(CONTRIBUTING)
+    assert "faults/*.c" in _recipe_paths(CONTRIBUTING)
+    assert "cg_herald_arm" in _recipe_names(CONTRIBUTING)
+    assert "CloneCore.arm_crashed" in _recipe_names(CONTRIBUTING)
