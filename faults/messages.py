@@ -37,8 +37,9 @@ import importlib
 import itertools
 import json
 import math
+import statistics
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -66,11 +67,23 @@ class _Held:
     deliver: Callable[[], None]
 
 
+#: How many of a holder's last timer wake-ups its lead is the median of.
+LEAD_SAMPLES = 15
+
+
 class _Holder:
     """One subscriber node's held messages, delivered by its own executor:
     a steady-clock timer of the node's, set to the earliest due time (rcl's
     wait wakes for it with no Python thread on the way), delivers what is
-    due and sets itself to the next. Used only by that node's executor."""
+    due and sets itself to the next. Used only by that node's executor.
+
+    The executor runs a timer's callback some time after the timer's time
+    (rcl's wake-up, then a turn of the executor: 0.4-1.5 ms on this
+    project's machine), and that would add to every delay. So the timer is
+    set that much ahead (its *lead*: the median of how late its last
+    LEAD_SAMPLES wake-ups were, measured here), and what is due within the
+    lead when it fires is delivered then: the subscriber gets each held
+    message at its due time give or take the wake-up's jitter."""
 
     def __init__(self, node):
         self._node = node
@@ -78,6 +91,11 @@ class _Holder:
         self._seq = itertools.count()
         self._timer: Timer | None = None
         self._armed = math.inf  # the due time the timer is set for
+        self._wake_at = 0.0  # when the timer was set to fire (time.monotonic())
+        self._late: deque[float] = deque(maxlen=LEAD_SAMPLES)  # its last wake-ups, s after _wake_at
+
+    def lead(self) -> float:
+        return statistics.median(self._late) if self._late else 0.0
 
     def hold(self, held: _Held) -> None:
         heapq.heappush(self._heap, (held.due, next(self._seq), held))
@@ -86,18 +104,22 @@ class _Holder:
 
     def _arm(self) -> None:
         due = self._heap[0][0]
-        period = max(due - time.monotonic(), 1e-6)
+        now = time.monotonic()
+        period = max(due - self.lead() - now, 1e-6)
         if self._timer is None:
             self._timer = self._node.create_timer(period, self._fire, clock=_STEADY)
         else:
             self._timer.timer_period_ns = int(period * 1e9)
             self._timer.reset()
         self._armed = due
+        self._wake_at = now + period
 
     def _fire(self) -> None:
         now = time.monotonic()
+        self._late.append(max(0.0, now - self._wake_at))
         due = []
-        while self._heap and self._heap[0][0] <= now:
+        within = now + self.lead()
+        while self._heap and self._heap[0][0] <= within:
             due.append(heapq.heappop(self._heap)[2])
         for held in sorted(due, key=lambda h: (h.due, h.order)):
             held.deliver()
