@@ -136,8 +136,8 @@ struct cg_event { /* one record on the event pipe: 64 bytes */
     uint64_t serial;
     int64_t t_ns;     /* CLOCK_MONOTONIC when the monitor noticed */
     uint32_t repairs; /* death: CG_REPAIR_* (repair.h) */
-    uint32_t alloc;   /* death: its allocator slot (low 16 bits, 0:
-                         none) | CG_ALLOC_* */
+    uint32_t alloc;   /* death: its allocator slot (CG_ALLOC_SLOT_MASK,
+                         0: none) | CG_ALLOC_* */
     uint64_t addr;    /* mutex: its address (the lock word's) */
     int32_t tid;      /* mutex: the task blocked on it */
     int32_t owner;    /* mutex: its owner's tid, 0: none recorded */
@@ -156,10 +156,17 @@ enum {
     CG_MUTEX_LIBC_LOCK = 5, /* a glibc-internal lock waited on for over a
                                second after a death (no owner recorded) */
 };
-#define CG_ALLOC_QUARANTINED (1u << 31)  /* died inside malloc */
-#define CG_ALLOC_PY_ABANDONED (1u << 30) /* died inside CPython's object allocator */
-#define CG_ALLOC_FAULTED (1u << 29)      /* quarantined: it died of a fault of its own */
-#define CG_ALLOC_OVER_BUDGET (1u << 28)  /* it ended itself over its memory budget */
+/* cg_event.alloc of a death: its slot in the low bits, and above
+   CG_ALLOC_SHIFT what its process left (cga_slot_retire's CGA_RETIRE_*
+   bits, allocguard.h, as they are). */
+#define CG_ALLOC_SLOT_MASK 0xffffu
+#define CG_ALLOC_SHIFT 28
+#define CG_ALLOC_QUARANTINED ((uint32_t)CGA_RETIRE_QUARANTINED << CG_ALLOC_SHIFT)
+#define CG_ALLOC_PY_ABANDONED ((uint32_t)CGA_RETIRE_PY_ABANDONED << CG_ALLOC_SHIFT)
+#define CG_ALLOC_FAULTED ((uint32_t)CGA_RETIRE_FAULTED << CG_ALLOC_SHIFT)
+#define CG_ALLOC_OVER_BUDGET ((uint32_t)CGA_RETIRE_OVER_BUDGET << CG_ALLOC_SHIFT)
+_Static_assert(CGA_RETIRE_OVER_BUDGET < (1 << (32 - CG_ALLOC_SHIFT)),
+               "CGA_RETIRE_* fit above the slot");
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };

@@ -19,7 +19,6 @@ from cloneguard.container.isolated._clonecore import ffi, lib
 RECORD_SIZE = ffi.sizeof("struct cg_event")
 KIND_DEATH, KIND_STOP, KIND_CLOSED, KIND_MUTEX = lib.CG_EV_DEATH, lib.CG_EV_STOP, lib.CG_EV_CLOSED, lib.CG_EV_MUTEX
 STOP_BY_PARENT, STOP_BY_SIGNAL = lib.CG_STOP_PARENT, lib.CG_STOP_SIGNAL
-ALLOC_SLOT_MASK = 0xFFFF
 
 
 class Repair(enum.IntFlag):
@@ -175,7 +174,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             core_dumped=code == os.CLD_DUMPED,
             detected_monotonic_ns=r.t_ns,
             repairs=Repair(r.repairs),
-            alloc_slot=r.alloc & ALLOC_SLOT_MASK,
+            alloc_slot=r.alloc & lib.CG_ALLOC_SLOT_MASK,
             alloc_quarantined=bool(r.alloc & lib.CG_ALLOC_QUARANTINED),
             alloc_faulted=bool(r.alloc & lib.CG_ALLOC_FAULTED),
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),

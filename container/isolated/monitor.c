@@ -87,11 +87,7 @@ static uint32_t alloc_word(const struct cg_child *c)
 {
     if (!c || !c->ctx)
         return 0;
-    return (uint32_t)c->ctx->slot |
-           (c->retired & CGA_RETIRE_QUARANTINED ? CG_ALLOC_QUARANTINED : 0) |
-           (c->retired & CGA_RETIRE_PY_ABANDONED ? CG_ALLOC_PY_ABANDONED : 0) |
-           (c->retired & CGA_RETIRE_FAULTED ? CG_ALLOC_FAULTED : 0) |
-           (c->retired & CGA_RETIRE_OVER_BUDGET ? CG_ALLOC_OVER_BUDGET : 0);
+    return ((uint32_t)c->ctx->slot & CG_ALLOC_SLOT_MASK) | (uint32_t)c->retired << CG_ALLOC_SHIFT;
 }
 
 static void emit(uint32_t kind, const struct cg_child *c, int status, int code, int64_t t,
