@@ -72,6 +72,17 @@ def test_each_repair_is_named_as_python_names_it(repair):
     assert words(9, os.CLD_KILLED, repairs=int(repair)) == f"killed by SIGKILL; repaired: {repair.name}"
 
 
+def test_pythons_repairs_are_the_cores():
+    """core_events.Repair has exactly repair.h's CG_REPAIRS, name for name
+    and bit for bit."""
+    core = {}
+    for bit in range(32):
+        name = lib.cg_repair_name(bit)
+        if name != ffi.NULL:
+            core[ffi.string(name).decode()] = 1 << bit
+    assert core and core == {r.name: int(r) for r in Repair if r}
+
+
 def test_a_long_text_is_cut_not_overrun():
     buf = ffi.new("char[]", 24)
     n = lib.cg_describe_death(9, os.CLD_KILLED, int(Repair.GIL_RELEASED), 0, 0, buf, 24)

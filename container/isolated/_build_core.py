@@ -273,6 +273,7 @@ int cg_py_slot_stats(int slot, struct cga_py_stats *out);
 int cg_gc_wait_due(int interval_us, int *wake);
 long cg_gc_collect(void *collect, int generation);
 int cg_bound_listener_wait(char *why_out, int why_size);
+const char *cg_repair_name(unsigned bit);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc,
                       int stop_signal, char *out, int size);
 int cg_herald_start(void *publish, const void *publisher);

@@ -385,6 +385,7 @@ static inline int64_t cg_mono_ns(void)
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
 /* herald.c */
+const char *cg_repair_name(unsigned bit);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
                       char *out, int size);
 int cg_herald_start(void *publish, const void *publisher);

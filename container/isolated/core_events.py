@@ -22,8 +22,9 @@ STOP_BY_PARENT, STOP_BY_SIGNAL = lib.CG_STOP_PARENT, lib.CG_STOP_SIGNAL
 
 
 class Repair(enum.IntFlag):
-    """What the monitor undid after a death, before reporting it (CG_REPAIR_*
-    in repair.h; gilrepair.c says how)."""
+    """What the monitor undid after a death, before reporting it: repair.h's
+    CG_REPAIRS, by name and bit (tests/test_herald.py checks these members
+    against the core's cg_repair_name); gilrepair.c and interp.c say how."""
 
     NONE = 0
     GIL_RELEASED = lib.CG_REPAIR_GIL_RELEASED  # the dead task held the GIL: released

@@ -92,11 +92,18 @@ static long g_failed;                /* publishes that failed, ever (atomic) */
 
 /* ---- the words ---------------------------------------------------------- */
 
-/* Names of the CG_REPAIR_* bits, in bit order: core_events.Repair's names. */
+/* Names of the CG_REPAIR_* bits, by bit (repair.h). */
 static const char *const REPAIR_NAMES[] = {
-    "GIL_RELEASED", "GIL_MUTEX", "SWITCH_MUTEX", "COND_WAITER", "SWITCH_WAITER", "COND_LOCK",
-    "GIL_TIMEOUT",  "PY_POOLS",  "GC_LINKS",     "FREELISTS",   "PY_OBJECTS",
+#define REPAIR_NAME(name, bit) [bit] = #name,
+    CG_REPAIRS(REPAIR_NAME)
+#undef REPAIR_NAME
 };
+
+/* The name of repair bit `bit`, NULL if none. */
+const char *cg_repair_name(unsigned bit)
+{
+    return bit < sizeof REPAIR_NAMES / sizeof *REPAIR_NAMES ? REPAIR_NAMES[bit] : NULL;
+}
 
 static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
     __attribute__((format(printf, 4, 5)));

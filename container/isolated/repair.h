@@ -12,27 +12,42 @@
 #include <stdint.h>
 #include <sys/types.h>
 
-/* What the monitor repaired after a death (struct cg_event.repairs).
-   Mirrored by core_events.Repair. */
+/* What the monitor repaired after a death (struct cg_event.repairs): each
+   repair's name and bit, written here only.  herald.c's words take the
+   names from it (cg_repair_name), core_events.Repair its members (checked
+   against cg_repair_name by tests/test_herald.py).
+     GIL_RELEASED   the dead task held the GIL
+     GIL_MUTEX      ... or gil->mutex
+     SWITCH_MUTEX   ... or gil->switch_mutex
+     COND_WAITER    it was blocked on gil->cond
+     SWITCH_WAITER  it was blocked on gil->switch_cond
+     COND_LOCK      a condvar's internal lock stayed taken: cleared
+     GIL_TIMEOUT    gil->mutex could not be taken to check the GIL: nothing
+                    checked
+   interp.c, when the dead task held the GIL:
+     PY_POOLS       its Python object pools abandoned, their objects
+                    untracked before the next collection
+     GC_LINKS       a half-updated link of the young generation mended
+     FREELISTS      the interpreter's free lists emptied
+     PY_OBJECTS     objects it may have been changing put out of the
+                    collector's sight */
+#define CG_REPAIRS(X)                                                                              \
+    X(GIL_RELEASED, 0)                                                                             \
+    X(GIL_MUTEX, 1)                                                                                \
+    X(SWITCH_MUTEX, 2)                                                                             \
+    X(COND_WAITER, 3)                                                                              \
+    X(SWITCH_WAITER, 4)                                                                            \
+    X(COND_LOCK, 5)                                                                                \
+    X(GIL_TIMEOUT, 6)                                                                              \
+    X(PY_POOLS, 7)                                                                                 \
+    X(GC_LINKS, 8)                                                                                 \
+    X(FREELISTS, 9)                                                                                \
+    X(PY_OBJECTS, 10)
+
 enum {
-    CG_REPAIR_GIL_RELEASED = 1 << 0,  /* the dead task held the GIL */
-    CG_REPAIR_GIL_MUTEX = 1 << 1,     /* ... or gil->mutex */
-    CG_REPAIR_SWITCH_MUTEX = 1 << 2,  /* ... or gil->switch_mutex */
-    CG_REPAIR_COND_WAITER = 1 << 3,   /* it was blocked on gil->cond */
-    CG_REPAIR_SWITCH_WAITER = 1 << 4, /* it was blocked on gil->switch_cond */
-    CG_REPAIR_COND_LOCK = 1 << 5,     /* a condvar's internal lock stayed
-                                         taken: cleared */
-    CG_REPAIR_GIL_TIMEOUT = 1 << 6,   /* gil->mutex could not be taken to
-                                         check the GIL: nothing checked */
-    /* interp.c, when the dead task held the GIL: */
-    CG_REPAIR_PY_POOLS = 1 << 7,    /* its Python object pools abandoned,
-                                       their objects untracked before the
-                                       next collection */
-    CG_REPAIR_GC_LINKS = 1 << 8,    /* a half-updated link of the young
-                                       generation mended */
-    CG_REPAIR_FREELISTS = 1 << 9,   /* the interpreter's free lists emptied */
-    CG_REPAIR_PY_OBJECTS = 1 << 10, /* objects it may have been changing
-                                       put out of the collector's sight */
+#define CG_REPAIR_BIT(name, bit) CG_REPAIR_##name = 1 << (bit),
+    CG_REPAIRS(CG_REPAIR_BIT)
+#undef CG_REPAIR_BIT
 };
 
 /* One dead task the repair looks at: a child whose thread group is gone
