@@ -450,6 +450,11 @@ extern mallctl_fn g_mallctl;
 
 /* monitor.c */
 int monitor_start(int *event_fd);
+/* On the monitor thread (or before it runs): have its epoll wait also watch
+   fd for input, its events handed over with tag (dumps_event), and stop
+   watching it.  0, or -errno. */
+int monitor_watch(int fd, void *tag);
+void monitor_unwatch(int fd);
 int monitor_stop(void);                       /* -EBUSY while a child is unreaped */
 int monitor_spawn(struct cg_child *c);        /* from any thread; blocks */
 void monitor_wake(void);                      /* async-signal-safe */
@@ -458,7 +463,7 @@ void repair_step_aside(struct cg_child *c);   /* on the monitor thread:
                                  c's main task waits for its dump */
 
 /* dumps.c: on the monitor thread, but dumps_ask */
-int dumps_start(int epfd);                 /* with cg_config.core_dumps only */
+int dumps_start(void);                     /* with cg_config.core_dumps only */
 bool dumps_ask(struct cg_child *c);        /* a crashing child; async-signal-safe */
 bool dumps_event(void *tag, int64_t now);  /* true: an epoll tag of dumps.c's */
 int dumps_tick(int64_t now, int sleep_ms); /* sleep ms, -1 */

@@ -38,7 +38,6 @@
 #include <spawn.h>
 #include <stdio.h>
 #include <string.h>
-#include <sys/epoll.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <sys/syscall.h>
@@ -53,7 +52,6 @@ enum { IDLE, GCORE, HOLES };
 
 static int g_req[2] = {-1, -1}; /* requests: cg_child pointers */
 static int g_log = -1;          /* memfd: the helpers' output */
-static int g_epfd = -1;
 static posix_spawn_file_actions_t g_actions;
 static posix_spawnattr_t g_attr;
 static bool g_ready;
@@ -110,11 +108,10 @@ int64_t cg_watch_clock_ns(void)
 /* What the helpers run with: nothing of the container's environment. */
 static char *const HELPER_ENV[] = {"PATH=/usr/bin:/bin", "LC_ALL=C", NULL};
 
-int dumps_start(int epfd)
+int dumps_start(void)
 {
     if (!g_cfg.core_dumps)
         return 0;
-    g_epfd = epfd;
     if (pipe2(g_req, O_CLOEXEC) < 0 || fcntl(g_req[0], F_SETFL, O_NONBLOCK) < 0)
         return -errno;
     g_log = memfd_create("cloneguard-dump-log", MFD_CLOEXEC);
@@ -146,10 +143,7 @@ int dumps_start(int epfd)
         r = posix_spawnattr_setflags(&g_attr, POSIX_SPAWN_SETSIGMASK | POSIX_SPAWN_SETSIGDEF);
     if (r)
         return -r;
-    struct epoll_event ev = {.events = EPOLLIN, .data.ptr = &TAG_REQ};
-    if (epoll_ctl(epfd, EPOLL_CTL_ADD, g_req[0], &ev) < 0)
-        return -errno;
-    return 0;
+    return monitor_watch(g_req[0], &TAG_REQ);
 }
 
 /* From a crashing child's handler: one pointer, atomic as any pipe write
@@ -212,9 +206,8 @@ static int spawn_helper(char *const argv[], int64_t now)
     if (r)
         return -r;
     g_helper_fd = (int)syscall(SYS_pidfd_open, pid, 0);
-    struct epoll_event ev = {.events = EPOLLIN, .data.ptr = &TAG_HELPER};
-    if (g_helper_fd < 0 || epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_helper_fd, &ev) < 0) {
-        int err = errno; /* cannot watch it: end it now */
+    int err = g_helper_fd < 0 ? errno : -monitor_watch(g_helper_fd, &TAG_HELPER);
+    if (err) { /* cannot watch it: end it now */
         kill(pid, SIGKILL);
         waitpid(pid, NULL, __WALL);
         if (g_helper_fd >= 0)
@@ -292,7 +285,7 @@ static void helper_ended(int64_t now)
     /* ECHILD: something in the container reaped it first; the file says. */
     if (waitid((idtype_t)P_PIDFD, (id_t)g_helper_fd, &si, WEXITED | __WALL) < 0)
         si.si_code = 0;
-    epoll_ctl(g_epfd, EPOLL_CTL_DEL, g_helper_fd, NULL);
+    monitor_unwatch(g_helper_fd);
     close(g_helper_fd);
     g_helper_fd = -1;
     if (g_stage == GCORE) {

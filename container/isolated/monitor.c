@@ -82,6 +82,17 @@ void monitor_emit(const struct cg_event *ev)
     }
 }
 
+int monitor_watch(int fd, void *tag)
+{
+    struct epoll_event ev = {.events = EPOLLIN, .data.ptr = tag};
+    return epoll_ctl(g_epfd, EPOLL_CTL_ADD, fd, &ev) < 0 ? -errno : 0;
+}
+
+void monitor_unwatch(int fd)
+{
+    epoll_ctl(g_epfd, EPOLL_CTL_DEL, fd, NULL);
+}
+
 /* The record's alloc word for child c (CG_ALLOC_*, its slot). */
 static uint32_t alloc_word(const struct cg_child *c)
 {
@@ -367,7 +378,7 @@ int monitor_start(int *event_fd)
     struct epoll_event e2 = {.events = EPOLLIN, .data.ptr = &TAG_WAKE};
     epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_cmd[0], &e1);
     epoll_ctl(g_epfd, EPOLL_CTL_ADD, g_wakefd, &e2);
-    if ((r = dumps_start(g_epfd)) < 0) {
+    if ((r = dumps_start()) < 0) {
         dumps_stop();
         close(g_ev[0]);
         g_ev[0] = -1;
