@@ -38,6 +38,7 @@ SOURCES = (
     "listenerwait.c",
     "pkeys.c",
     "herald.c",
+    "deathtext.c",
     "lastresort.c",
     "memwatch.c",
     "heldscan.c",

@@ -23,10 +23,11 @@
  *                layout, and the allocator in use
  *   pkeys.c      memory protection keys: what the machine has, and the facts
  *                per-node heap protection rests on
- *   herald.c     the words for a death, and a node's CRASHED event published
- *                by a thread of the core's own, without Python
+ *   herald.c     a node's CRASHED event, published by a thread of the core's
+ *                own, without Python
+ *   deathtext.c  the words for a death (the event's text and the log's)
  *   sigsafe.c    bounded text and whole writes for signal handlers and
- *                dying tasks (sigsafe.h; crash.c, dumps.c, mutexes.c,
+ *                dying tasks (sigsafe.h; crash.c, deathtext.c, dumps.c, mutexes.c,
  *                gilrepair.c, lastresort.c write with it)
  *
  * x86_64 and glibc only.  Everything layout-dependent comes from
@@ -384,10 +385,11 @@ static inline int64_t cg_mono_ns(void)
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
-/* herald.c */
+/* deathtext.c */
 const char *cg_repair_name(unsigned bit);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
                       char *out, int size);
+/* herald.c */
 int cg_herald_start(void *publish, const void *publisher);
 int cg_herald_stop(int timeout_ms);
 long cg_herald_failures(void);

@@ -42,7 +42,7 @@ class Repair(enum.IntFlag):
 
     def names(self) -> list[str]:
         """["GIL_RELEASED", ...]: the single flags set, in bit order (as the
-        core's words for a death name them, herald.c)."""
+        core's words for a death name them, deathtext.c)."""
         return [m.name or "" for m in Repair if m and m in self]
 
 
@@ -96,7 +96,7 @@ class Death:
     # protection key not its own (heapkeys.c)
     core_file: str = ""  # --core-dumps: the dump written of it (dumps.c),
     core_missing: str = ""  # or why it asked for one and got none
-    text: str = ""  # what the core says of it (cg_describe_death, herald.c)
+    text: str = ""  # what the core says of it (cg_describe_death, deathtext.c)
     announced: bool = False  # the herald published its CRASHED event
 
     @property

@@ -1,6 +1,6 @@
 /*
- * herald.c - a node's CRASHED event, published by the core itself, and the
- * words that describe a death.
+ * herald.c - a node's CRASHED event, published by the core itself (the
+ * words that describe the death: deathtext.c).
  *
  * Through Python, a death reached its CRASHED publish 0.3-0.4 ms after the
  * monitor's record (bench/README.md, "step by step"): the listener thread,
@@ -89,82 +89,6 @@ static int g_pipe_w = -1; /* the pipe's write end */
 static pthread_t g_thread;
 static struct herald_thread *g_self; /* the running herald's */
 static long g_failed;                /* publishes that failed, ever (atomic) */
-
-/* ---- the words ---------------------------------------------------------- */
-
-/* Names of the CG_REPAIR_* bits, by bit (repair.h). */
-static const char *const REPAIR_NAMES[] = {
-#define REPAIR_NAME(name, bit) [bit] = #name,
-    CG_REPAIRS(REPAIR_NAME)
-#undef REPAIR_NAME
-};
-
-/* The name of repair bit `bit`, NULL if none. */
-const char *cg_repair_name(unsigned bit)
-{
-    return bit < sizeof REPAIR_NAMES / sizeof *REPAIR_NAMES ? REPAIR_NAMES[bit] : NULL;
-}
-
-static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
-    __attribute__((format(printf, 4, 5)));
-static void add(char *out, size_t size, size_t *n, const char *fmt, ...)
-{
-    if (*n >= size - 1)
-        return;
-    va_list ap;
-    va_start(ap, fmt);
-    int k = vsnprintf(out + *n, size - *n, fmt, ap);
-    va_end(ap);
-    if (k > 0)
-        *n = *n + (size_t)k < size - 1 ? *n + (size_t)k : size - 1;
-}
-
-/* What the event and the log say of a death, as far as the core knows it:
-   how it ended (code: CLD_*, 0 when someone else reaped it), what the
-   monitor repaired, what the allocator guard did with its arena (CG_ALLOC_*
-   bits of the record's alloc word), and the outside signal that asked it
-   to stop (0: none).  Python adds what it alone knows. */
-int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
-                      char *out, int size)
-{
-    size_t n = 0, cap = (size_t)size;
-    if (size < 1)
-        return 0;
-    out[0] = '\0';
-    if (code == CLD_KILLED || code == CLD_DUMPED) {
-        const char *abbrev = sigabbrev_np(status);
-        if (abbrev)
-            add(out, cap, &n, "killed by SIG%s", abbrev);
-        else
-            add(out, cap, &n, "killed by signal %d", status);
-    } else if (code == 0) {
-        add(out, cap, &n, "exited, status unknown");
-    } else {
-        add(out, cap, &n, "exited with code %d", status);
-    }
-    if (repairs & ~(uint32_t)CG_REPAIR_GIL_TIMEOUT) {
-        const char *sep = "; repaired: ";
-        for (unsigned b = 0; b < sizeof REPAIR_NAMES / sizeof *REPAIR_NAMES; b++)
-            if (repairs & (1u << b)) {
-                add(out, cap, &n, "%s%s", sep, REPAIR_NAMES[b]);
-                sep = ", ";
-            }
-    }
-    if (alloc & CG_ALLOC_FAULTED)
-        add(out, cap, &n, "; it faulted, so its heap may be torn: its arena is quarantined");
-    else if (alloc & CG_ALLOC_QUARANTINED)
-        add(out, cap, &n, "; it died inside the allocator: its arena is quarantined");
-    if (alloc & CG_ALLOC_PY_ABANDONED)
-        add(out, cap, &n, "; it died inside Python's object allocator: its pools are abandoned");
-    if (stop_signal > 0) {
-        const char *abbrev = sigabbrev_np(stop_signal);
-        if (abbrev)
-            add(out, cap, &n, " after an outside SIG%s", abbrev);
-        else
-            add(out, cap, &n, " after an outside signal %d", stop_signal);
-    }
-    return (int)n;
-}
 
 /* ---- CDR ----------------------------------------------------------------- */
 

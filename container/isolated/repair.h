@@ -13,7 +13,7 @@
 #include <sys/types.h>
 
 /* What the monitor repaired after a death (struct cg_event.repairs): each
-   repair's name and bit, written here only.  herald.c's words take the
+   repair's name and bit, written here only.  deathtext.c's words take the
    names from it (cg_repair_name), core_events.Repair its members (checked
    against cg_repair_name by tests/test_herald.py).
      GIL_RELEASED   the dead task held the GIL
