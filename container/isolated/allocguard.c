@@ -32,7 +32,7 @@
  *             arena is the first word of its 64 MiB-aligned heap.  Arenas are
  *             mapped to slots as each thread learns its own (owners[]).
  *
- * A slot has two arenas (the split, g_split): the blocks the ROS stack and
+ * A slot has two arenas (the split): the blocks the ROS stack and
  * the interpreter ask for come from its shared arena, those of the node's
  * own code from its own, so a node that tears its own blocks does not tear
  * the structures every task walks.  glibc chooses an arena per thread: the
@@ -160,15 +160,16 @@ struct slot_hooks {
     _Atomic uintptr_t *bump; /* carved up to here (in live[]) */
 };
 
-/* With protection keys (heapkeys.c) a slot's range is two halves: its
-   native arena's, tagged with its key, and its shared arena's, untagged. */
+/* jemalloc: a slot's range is two halves (the split): its own arena's and
+   its shared arena's; with protection keys (heapkeys.c) the first is
+   tagged with the slot's key, the second not. */
 #define HALF_SHIFT (SLOT_SHIFT - 1)
 
 struct slot {
     _Atomic int state;       /* CGA_* */
     unsigned arena;          /* jemalloc: the arena made for it */
     struct slot_hooks hooks; /* ... and its range */
-    unsigned shared_arena;   /* with keys: for Python's blocks */
+    unsigned shared_arena;   /* jemalloc: for the stack's blocks (the split) */
     struct slot_hooks shared_hooks;
     _Atomic uint64_t main_allocs; /* glibc: blocks it got from the main
                                      arena (should stay 0: see
@@ -226,12 +227,11 @@ static int g_nslots = NSLOTS;
    own, its shared arena, apart from those of the node's own code.  Those
    blocks are what other tasks walk (the shared participant's entity lists,
    the interpreter's objects): a node that overflows a block of its own, or
-   frees one twice, tears its own arena, not them.  On once the guard is
-   active, on both backends: jemalloc's slot range is two halves, the shared
-   arena's the upper; under glibc, activation refuses unless glibc's
+   frees one twice, tears its own arena, not them.  Always on once the guard
+   is active, on both backends: jemalloc's slot range is two halves, the
+   shared arena's the upper; under glibc, activation refuses unless glibc's
    per-thread malloc state was found (find_glibc_tls).  With protection keys
    the own half is keyed and the shared one not (heapkeys.c). */
-static bool g_split;
 static bool g_keys; /* protection keys on (heapkeys.c) */
 /* glibc: thread_arena's and tcache's offsets from the thread pointer. */
 static long g_tls_arena, g_tls_tcache;
@@ -321,14 +321,27 @@ static inline int owner_of(void *p)
     return arena ? glibc_arena_owner(arena) : 0;
 }
 
-/* Is p a shared block: in some slot's shared half (jemalloc), or in the
-   calling task's shared arena (glibc: the only one it frees into)? */
-static inline bool in_shared(const void *p)
+/* Does the calling task have a shared arena?  Every task of a node
+   process under jemalloc (its slot's); under glibc its main task. */
+static inline bool has_shared(void)
+{
+    return g_je || t_sh_arena;
+}
+
+/* Is p, of owner o (owner_of(p)), a shared block: in some slot's shared
+   half (jemalloc), or in the calling task's shared arena (glibc: the only
+   one it frees into)? */
+static inline bool shared_block(const void *p, int o)
 {
     if (!g_je)
-        return t_sh_arena && glibc_arena_of((void *)p) == t_sh_arena;
+        return t_sh_owner && o == t_sh_owner;
     uintptr_t off = (uintptr_t)p - g_region;
-    return g_split && off < g_region_len && ((off >> HALF_SHIFT) & 1);
+    return off < g_region_len && ((off >> HALF_SHIFT) & 1);
+}
+
+static inline bool in_shared(void *p)
+{
+    return shared_block(p, g_je || !t_sh_owner ? 0 : owner_of(p));
 }
 
 /* glibc: run one call of glibc's malloc family on the task's shared arena
@@ -356,13 +369,12 @@ static inline struct glibc_state glibc_swap(struct glibc_state to)
     return was;
 }
 
-#define ON_SHARED_ARENA(call)                                                                      \
-    ({                                                                                             \
+#define ON_SHARED_ARENA(statement)                                                                 \
+    do {                                                                                           \
         struct glibc_state own_ = glibc_swap((struct glibc_state){t_sh_arena, t_sh_tcache});       \
-        __typeof__(call) r_ = (call);                                                              \
+        statement;                                                                                 \
         glibc_swap(own_);                                                                          \
-        r_;                                                                                        \
-    })
+    } while (0)
 
 static inline int owner_slot(int o)
 {
@@ -404,22 +416,25 @@ static inline void *be_malloc(int slot, size_t n)
     return je_fast(slot) ? je_real.malloc(n) : mallocx(n ? n : 1, je_flags(slot));
 }
 
-static inline void be_free(void *p)
+/* shared: shared_block(p, ...), which the caller knows. */
+static inline void be_free_as(void *p, bool shared)
 {
     if (!g_je) {
-        if (unlikely(in_shared(p))) {
-            struct glibc_state own = glibc_swap((struct glibc_state){t_sh_arena, t_sh_tcache});
+        if (unlikely(shared))
+            ON_SHARED_ARENA(__libc_free(p));
+        else
             __libc_free(p);
-            glibc_swap(own);
-        } else {
-            __libc_free(p);
-        }
-    } else if (unlikely(in_shared(p)))
+    } else if (unlikely(shared))
         dallocx(p, shared_cache()); /* never into the thread cache */
     else if (je_real.free)
         je_real.free(p); /* into this thread's own cache */
     else
         dallocx(p, 0);
+}
+
+static inline void be_free(void *p)
+{
+    be_free_as(p, in_shared(p));
 }
 
 static inline size_t be_usable(void *p)
@@ -730,32 +745,39 @@ static void hand_over(int o, void *p)
 }
 
 /* ---------------------------------------------------------------------- */
-/* Shared blocks (g_split): the ROS stack's and the interpreter's, from the
+/* Shared blocks (the split): the ROS stack's and the interpreter's, from the
    calling slot's shared arena; plain malloc for the container and for tasks
    without one (a node process's other threads under glibc).  With keys,
    memory every node may write (heapkeys.c).                               */
 
 static inline bool shared_slot(int *s)
 {
-    if (!g_split || !atomic_load_explicit(&g_active, memory_order_relaxed))
+    if (!atomic_load_explicit(&g_active, memory_order_relaxed))
         return false;
     *s = my_slot();
-    return *s != 0 && (g_je || t_sh_arena);
+    return *s != 0 && has_shared();
 }
 
 static inline void *be_shared(int s, size_t n, size_t align, bool zero)
 {
-    if (!g_je)
-        return ON_SHARED_ARENA(align > 16 ? __libc_memalign(align, n)
-                               : zero     ? __libc_calloc(1, n)
-                                          : __libc_malloc(n));
+    if (!g_je) {
+        void *p;
+        ON_SHARED_ARENA(p = align > 16 ? __libc_memalign(align, n)
+                            : zero     ? __libc_calloc(1, n)
+                                       : __libc_malloc(n));
+        return p;
+    }
     return mallocx(n ? n : 1, shared_flags(s) | (zero ? JE_ZERO : 0) |
                                   (align > 16 ? JE_LG_ALIGN(__builtin_ctzl(align)) : 0));
 }
 
 static inline void *be_shared_realloc(int s, void *p, size_t n)
 {
-    return g_je ? rallocx(p, n ? n : 1, shared_flags(s)) : ON_SHARED_ARENA(__libc_realloc(p, n));
+    if (g_je)
+        return rallocx(p, n ? n : 1, shared_flags(s));
+    void *q;
+    ON_SHARED_ARENA(q = __libc_realloc(p, n));
+    return q;
 }
 
 static void *shared_in(int s, size_t n, size_t align, bool zero)
@@ -781,11 +803,11 @@ static __thread const void *t_new_caller __attribute__((tls_model("initial-exec"
    structures are walked, and with keys written, by every node process. */
 static inline bool wants_shared(int s, const void *ra)
 {
-    if (likely(!g_split) || !s)
+    if (!s)
         return false;
     const void *pc = t_new_caller;
     t_new_caller = NULL;
-    return (g_je || t_sh_arena) && hk_shared_caller(pc ? pc : ra);
+    return has_shared() && hk_shared_caller(pc ? pc : ra);
 }
 
 HIDDEN void *cga_shared_alloc(size_t n, bool zero)
@@ -803,7 +825,8 @@ HIDDEN void *cga_shared_realloc(void *p, size_t n)
         return cga_shared_alloc(n, false);
     if (!shared_slot(&s))
         return realloc(p, n);
-    if (in_shared(p) && owner_of(p) == s) {
+    int o = owner_of(p);
+    if (shared_block(p, o) && owner_slot(o) == s) {
         block_within_budget(s, n, block_bytes(p));
         enter(s);
         drain_mine(s);
@@ -869,7 +892,7 @@ EXPORT void free(void *p)
         enter(s);
         drain_mine(s);
         count_freed(s, p);
-        be_free(p);
+        be_free_as(p, shared_block(p, o));
         leave(s);
     } else {
         hand_over(o, p);
@@ -924,10 +947,10 @@ EXPORT void *realloc(void *p, size_t n)
         drain_mine(s);
         if (active)
             count_freed(s, p);
-        q = check_main(s, in_shared(p) ? be_shared_realloc(s, p, n)
-                          : !g_je      ? __libc_realloc(p, n)
-                          : je_fast(s) ? je_real.realloc(p, n)
-                                       : rallocx(p, n, je_flags(s)));
+        q = check_main(s, shared_block(p, o) ? be_shared_realloc(s, p, n)
+                          : !g_je            ? __libc_realloc(p, n)
+                          : je_fast(s)       ? je_real.realloc(p, n)
+                                             : rallocx(p, n, je_flags(s)));
         leave(s);
         if (active)
             count_got(s, q ? q : p); /* a failed realloc leaves p as it was */
@@ -935,7 +958,8 @@ EXPORT void *realloc(void *p, size_t n)
         /* Someone else's block: copy it into ours (shared if it was), hand
            theirs back. */
         size_t have = be_usable(p);
-        q = in_shared(p) ? shared_in(s, n, 0, false) : malloc_from(n, __builtin_return_address(0));
+        q = shared_block(p, o) ? shared_in(s, n, 0, false)
+                               : malloc_from(n, __builtin_return_address(0));
         if (q) {
             memcpy(q, p, have < n ? have : n);
             hand_over(o, p);
@@ -1066,8 +1090,7 @@ NEW_OPS(DECLARE_NEW)
         void *(*f)params = real_##name;                                                            \
         if (unlikely(!f))                                                                          \
             f = real_##name = (void *(*)params)libstdcxx(#name);                                   \
-        if (unlikely(g_split))                                                                     \
-            t_new_caller = RA;                                                                     \
+        t_new_caller = RA; /* for wants_shared; cleared below */                                   \
         void *p = f ? f args : new_fallback(n_, align_, nothrow_);                                 \
         t_new_caller = NULL;                                                                       \
         return p;                                                                                  \
@@ -1375,7 +1398,6 @@ EXPORT int cga_activate(int container_pid)
         if (!g_tls_arena || !g_tls_tcache)
             return -ENOTSUP;
     }
-    g_split = true;
     g_keys = g_je && hk_enabled();
     if (g_keys) {
         int r = hk_tag_tables(&g_tables, sizeof g_tables);
