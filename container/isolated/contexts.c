@@ -10,6 +10,7 @@
  * allocator.  Runs on container threads, never in a child.
  */
 #include "core.h"
+#include "sigsafe.h"
 
 #include <asm/prctl.h>
 #include <dlfcn.h>
@@ -329,14 +330,16 @@ int guard_retire(struct cg_ctx *x, bool faulted)
 void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap)
 {
     struct cga_slot_memory m;
-    size_t n = strlen(text);
-    if (n >= cap || G.slot_memory(x->slot, &m) != 0 || !m.over_asked)
+    struct ss_buf o = {text, cap - 1, strlen(text)};
+    if (o.n >= o.cap || G.slot_memory(x->slot, &m) != 0 || !m.over_asked)
         return;
-    const double mib = 1024.0 * 1024.0;
-    bool small = m.over_asked < (1u << 20);
-    snprintf(
-        text + n, cap - n,
-        "; out of memory: %.1f MiB in use, over its limit of %.1f MiB (it asked for %.*f %s more)",
-        (double)m.over_used / mib, (double)m.limit / mib, small ? 0 : 1,
-        (double)m.over_asked / (small ? 1024.0 : mib), small ? "KiB" : "MiB");
+    bool small = m.over_asked < MIB;
+    ss_str(&o, "; out of memory: ");
+    ss_ratio(&o, m.over_used, MIB, 1);
+    ss_str(&o, " MiB in use, over its limit of ");
+    ss_ratio(&o, m.limit, MIB, 1);
+    ss_str(&o, " MiB (it asked for ");
+    ss_ratio(&o, m.over_asked, small ? 1024 : MIB, small ? 0 : 1);
+    ss_str(&o, small ? " KiB more)" : " MiB more)");
+    ss_cstr(&o);
 }

@@ -148,6 +148,7 @@ struct cg_event { /* one record on the event pipe: 64 bytes */
 #define CG_EVF_ANNOUNCED 1u     /* its CRASHED event is the herald's (herald.c) */
 #define CG_EVF_OUT_OF_MEMORY 2u /* the memory watch ended it (memwatch.c) */
 #define CG_DEATH_TEXT 768       /* cg_child.death_text */
+#define MIB ((uint64_t)1 << 20) /* bytes, in the words for a death */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
 enum {
     CG_MUTEX_RELEASED = 1,  /* plain mutex of a proven-dead owner: released */

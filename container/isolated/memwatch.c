@@ -29,6 +29,7 @@
  * node is not yet reaped: one leak ends one node, not every node in turn.
  */
 #include "core.h"
+#include "sigsafe.h"
 
 #include <errno.h>
 #include <signal.h>
@@ -174,13 +175,15 @@ int memwatch_tick(struct cg_child *children, int sleep_ms)
 /* Child c was ended by the watch: why, at the end of its death text. */
 void memwatch_say(const struct cg_child *c, char *text, size_t cap)
 {
-    size_t n = strlen(text);
-    if (!c->oom_in_use || n >= cap)
+    struct ss_buf o = {text, cap - 1, strlen(text)};
+    if (!c->oom_in_use || o.n >= o.cap)
         return;
-    const double mib = 1024.0 * 1024.0;
-    snprintf(
-        text + n, cap - n,
-        "; out of memory: the container used %.1f MiB of the %.1f MiB it may use, and this node "
-        "process the most: %.1f MiB",
-        (double)c->oom_used / mib, (double)W.limit / mib, (double)c->oom_in_use / mib);
+    ss_str(&o, "; out of memory: the container used ");
+    ss_ratio(&o, c->oom_used, MIB, 1);
+    ss_str(&o, " MiB of the ");
+    ss_ratio(&o, W.limit, MIB, 1);
+    ss_str(&o, " MiB it may use, and this node process the most: ");
+    ss_ratio(&o, c->oom_in_use, MIB, 1);
+    ss_str(&o, " MiB");
+    ss_cstr(&o);
 }

@@ -46,6 +46,23 @@ void ss_hex(struct ss_buf *o, unsigned long v)
     put_unsigned(o, v, 16);
 }
 
+void ss_ratio(struct ss_buf *o, uint64_t num, uint64_t den, int decimals)
+{
+    uint64_t scale = 1;
+    for (int i = 0; i < decimals; i++)
+        scale *= 10;
+    unsigned __int128 scaled = (unsigned __int128)num * scale;
+    uint64_t q = (uint64_t)(scaled / den), r = (uint64_t)(scaled % den);
+    if (r > den - r || (r == den - r && (q & 1)))
+        q++;
+    put_unsigned(o, q / scale, 10);
+    if (decimals > 0) {
+        ss_str(o, ".");
+        for (uint64_t d = scale / 10, f = q % scale; d > 0; d /= 10)
+            ss_mem(o, &"0123456789"[f / d % 10], 1);
+    }
+}
+
 char *ss_cstr(struct ss_buf *o)
 {
     o->b[o->n] = '\0';

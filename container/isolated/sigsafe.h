@@ -10,6 +10,7 @@
 #define CLONEGUARD_SIGSAFE_H
 
 #include <stddef.h>
+#include <stdint.h>
 
 /* Text built in b: n bytes so far, at most cap (one byte of b beyond cap
    stays for the NUL of ss_cstr). */
@@ -23,7 +24,11 @@ void ss_mem(struct ss_buf *o, const char *s, size_t n);
 void ss_str(struct ss_buf *o, const char *s); /* NULL: nothing */
 void ss_dec(struct ss_buf *o, long v);
 void ss_hex(struct ss_buf *o, unsigned long v); /* "0x..." */
-char *ss_cstr(struct ss_buf *o);                /* b, NUL-terminated */
+/* num / den with `decimals` digits after the point (0 to 3), rounded to the
+   nearest, ties to even: what printf's "%.*f" writes of a value it holds
+   exactly (a byte count over 1024 or 1 MiB, say). */
+void ss_ratio(struct ss_buf *o, uint64_t num, uint64_t den, int decimals);
+char *ss_cstr(struct ss_buf *o); /* b, NUL-terminated */
 /* All of it to fd, again after EINTR and short writes: 0, or -1. */
 int ss_write_all(int fd, const char *s, size_t n);
 /* The text so far to fd, then empty again. */
