@@ -194,7 +194,6 @@ class MessageEngine:
         self._client = client
         self._lock = threading.Lock()
         self._rules: dict[str, Rule] = {}
-        self._last: dict[str, Rule] = {}  # the rules ended
         self._next = 0
         resp = client.load(RIG_PACKAGE, "faults::MessageFaults", node_name=ENGINE_NODE_NAME)
         if not resp.success:
@@ -215,10 +214,9 @@ class MessageEngine:
     def stop(self, rule_id: str) -> dict[str, int]:
         """End it; what it did."""
         with self._lock:
-            self._last[rule_id] = self._rules.pop(rule_id)
+            rule = self._rules.pop(rule_id)
             self._send()
         answer = self._client.call(self._counts, Trigger.Request(), resend_after=1.0)
-        rule = self._last[rule_id]
         # Every fault's own two counts, 0 if it met nothing, and any other
         # it made ("not corrupted: ..." with the reason, "passed: ...").
         return {"seen": 0, OUTCOME[rule.kind]: 0, **json.loads(answer.message).get(rule_id, {})}
