@@ -90,16 +90,10 @@ def test_duplicates_and_reorderings_are_counted_and_nothing_is_lost(system_facto
     w = probe(system_factory, profile, transport)
 
     def trial(t):
-        since = len(w.heard)
-        [dup] = w.system.inject(Duplicate("/chatter", FAULT_S / 2, every=t.rng.choice([1, 2, 3])))
-        w.settle()
-        heard = w.heard_numbers(since)
+        dup, heard = _heard_under(w, Duplicate("/chatter", FAULT_S / 2, every=t.rng.choice([1, 2, 3])))
         twice = sum(heard.count(n) == 2 for n in set(heard))
         assert twice == dup.counts["duplicated"] > 0, f"{twice} heard twice, {dup.counts}"
-        since = len(w.heard)
-        [reorder] = w.system.inject(Reorder("/chatter", FAULT_S / 2, window_s=t.rng.choice([0.1, 0.2])))
-        w.settle()
-        heard = w.heard_numbers(since)
+        reorder, heard = _heard_under(w, Reorder("/chatter", FAULT_S / 2, window_s=t.rng.choice([0.1, 0.2])))
         assert sorted(heard) == list(range(min(heard), max(heard) + 1)), "a reordered message lost or doubled"
         inversions = sum(a > b for a, b in zip(heard, heard[1:], strict=False))
         assert inversions > 0 and reorder.counts["reordered"] == reorder.counts["seen"], reorder.counts
@@ -115,10 +109,9 @@ def test_corruption_reaches_its_subscriber_only(system_factory, system_trials, p
     w = probe(system_factory, profile, transport)
 
     def trial(t):
-        since = len(w.heard)
-        [fault] = w.system.inject(Corrupt("/chatter", FAULT_S / 2, fields={"data": "m -1"}, every=t.rng.choice([1, 2])))
-        w.settle()
-        corrupted = w.heard_numbers(since).count(-1)
+        corrupt = Corrupt("/chatter", FAULT_S / 2, fields={"data": "m -1"}, every=t.rng.choice([1, 2]))
+        fault, heard = _heard_under(w, corrupt)
+        corrupted = heard.count(-1)
         assert corrupted == fault.counts["corrupted"] > 0, f"{corrupted} heard corrupted, {fault.counts}"
         assert -1 not in w.sent_numbers(), "the publisher's own message was changed"
 
@@ -144,6 +137,15 @@ def test_a_partition_is_total_and_heals(system_factory, system_trials, profile, 
     system_trials(w.system, trial, fault="partition the talker from the subscriber for a drawn 0.3-1 s",
                   claim="every message between them lost while it lasts, none from 50 ms after it ends",
                   at_least=AT_LEAST)  # fmt: skip
+
+
+def _heard_under(w: ChatterProbe, fault):
+    """Inject the fault; it, once ended, and the numbers heard meanwhile and
+    until the subscriber settled."""
+    since = len(w.heard)
+    [injected] = w.system.inject(fault)
+    w.settle()
+    return injected, w.heard_numbers(since)
 
 
 def _heard(w: ChatterProbe, since: int):
