@@ -29,6 +29,7 @@ from cloneguard.container import locks
 
 # Imported here, in the container, when the class is looked up: a C library
 # loaded for the first time inside a clone child is best avoided.
+from cloneguard.faults import _nativelock
 from cloneguard.faults._hammer import lib as hammer
 from cloneguard.faults._nativelock import lib as nativelock
 from cloneguard.harness import firing
@@ -301,8 +302,9 @@ class DieHoldingNativeMutex(_FaultNode):
     word taken, no owner written; with ``in_cond_wait`` true, only once a
     :class:`WaitsForNativeMutex` waiting ``cond-timedwait`` or
     ``cond-clockwait`` is inside its condvar wait (its next step is the
-    relock). :class:`WaitsForNativeMutex` waits for the same lock. Needs
-    ``--isolated``."""
+    relock); with ``waited`` true, only once a task blocks on the mutex
+    (as one that holds it a while). :class:`WaitsForNativeMutex` waits for
+    the same lock. Needs ``--isolated``."""
 
     fault = "die-holding-native-mutex"
 
@@ -312,10 +314,13 @@ class DieHoldingNativeMutex(_FaultNode):
         how = self.declare_parameter("how", "sigkill").value
         self.taking = self.declare_parameter("taking", False).value
         self.in_cond_wait = self.declare_parameter("in_cond_wait", False).value
+        self.waited = self.declare_parameter("waited", False).value
         self.reading = self.declare_parameter("reading", False).value  # the rwlock: read-locked
         plain = self.lock not in (_FILE, _RWLOCK, nativelock.NL_ROBUST)
-        if how not in _HOW or ((self.taking or self.in_cond_wait) and not plain):
-            raise ValueError("how must be 'sigkill' or 'segfault'; taking and in_cond_wait need a plain mutex")
+        if how not in _HOW or ((self.taking or self.in_cond_wait or self.waited) and not plain):
+            raise ValueError(
+                "how must be 'sigkill' or 'segfault'; taking, in_cond_wait and waited need a plain mutex"
+            )
         self.how = _HOW[how]
 
     def fire(self):
@@ -327,16 +332,27 @@ class DieHoldingNativeMutex(_FaultNode):
             nativelock.nativelock_hold_and_die_in_cond_wait(self.lock, self.how)
         elif self.taking:
             nativelock.nativelock_die_taking(self.lock, self.how)
+        elif self.waited:
+            nativelock.nativelock_hold_and_die_once_waited(self.lock, self.how)
         else:
             nativelock.nativelock_hold_and_die(self.lock, self.how)
 
 
+# nativelock.c's functions called with the GIL held (ctypes.PyDLL: the
+# library cffi loaded, looked up again), as a C extension that does not
+# release it around a blocking call (rclpy's publish, into Fast DDS's locks).
+_USE_BY_HOLDING_GIL = ctypes.PyDLL(_nativelock.__file__).nativelock_use_by
+_USE_BY_HOLDING_GIL.argtypes = (ctypes.c_int, ctypes.c_int)
+
+
 class WaitsForNativeMutex(Node):
     """Takes and gives back nativelock.c's ``kind`` lock every ``period`` s
-    (the GIL released), the way ``wait`` says (:data:`NATIVE_WAITS`), and
-    publishes how many times on ``~/progress``: it stops if the lock is never
-    given back. A robust mutex that comes with EOWNERDEAD is made consistent
-    and counted on ``~/repaired``."""
+    (the GIL released; with ``hold_gil`` true, a plain mutex with the GIL
+    held, so that while it waits no Python thread of the container runs),
+    the way ``wait`` says (:data:`NATIVE_WAITS`), and publishes how many
+    times on ``~/progress``: it stops if the lock is never given back. A
+    robust mutex that comes with EOWNERDEAD is made consistent and counted
+    on ``~/repaired``."""
 
     def __init__(self, **kwargs):
         super().__init__("native_mutex_waiter", **kwargs)
@@ -354,6 +370,11 @@ class WaitsForNativeMutex(Node):
         if wait not in allowed:
             raise ValueError(f"parameter 'wait' for kind {self.lock} must be one of {sorted(allowed)}, not {wait!r}")
         self.way = NATIVE_WAITS[wait]
+        self._use_by = nativelock.nativelock_use_by
+        if self.declare_parameter("hold_gil", False).value:
+            if self.lock in (_FILE, _RWLOCK):
+                raise ValueError("hold_gil needs a kind of mutex, not the file lock or the rwlock")
+            self._use_by = _USE_BY_HOLDING_GIL
         self._count = self._repaired = 0
         self._msg = UInt64
         self._pub = self.create_publisher(UInt64, "~/progress", 10)
@@ -366,7 +387,7 @@ class WaitsForNativeMutex(Node):
         elif self.lock == _RWLOCK:
             r = nativelock.nativelock_rw_use(self.way != -1)
         else:
-            r = nativelock.nativelock_use_by(self.lock, self.way)
+            r = self._use_by(self.lock, self.way)
         if r < 0:
             raise OSError(-r, os.strerror(-r))
         if r == 1:

@@ -91,6 +91,21 @@ int nativelock_hold_and_die(int kind, int how)
     die(how);
 }
 
+/* Take it (a recursive one twice) and die once a task has blocked on it:
+   pthread_mutex_lock and its timed forms write 2 into the lock word before
+   they sleep on it.  Looks every 1 ms. */
+int nativelock_hold_and_die_once_waited(int kind, int how)
+{
+    if (bad(kind) || kind == NL_ROBUST)
+        return -EINVAL;
+    pthread_mutex_lock(&g_locks[kind]);
+    if (kind == NL_RECURSIVE)
+        pthread_mutex_lock(&g_locks[kind]);
+    while (__atomic_load_n(&g_locks[kind].__data.__lock, __ATOMIC_ACQUIRE) < 2)
+        usleep(1000);
+    die(how);
+}
+
 /* Die half-way through pthread_mutex_lock: the lock word taken (its first
    step), the owner not written yet (its next). */
 int nativelock_die_taking(int kind, int how)

@@ -17,6 +17,7 @@ enum {
 
 int nativelock_use(int kind);
 int nativelock_hold_and_die(int kind, int how);
+int nativelock_hold_and_die_once_waited(int kind, int how);
 int nativelock_die_taking(int kind, int how);
 int nativelock_hold(int kind);
 int nativelock_release(int kind);

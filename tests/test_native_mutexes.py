@@ -25,8 +25,8 @@ ISOLATED = [["--isolated"]]
 SIZEOF_MUTEX = 40  # pthread_mutex_t, x86_64
 
 
-def _waiting(client, kind: str, wait: str = "lock"):
-    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind, "wait": wait})
+def _waiting(client, kind: str, wait: str = "lock", **extra):
+    client.load_ok(TESTRIG, "faults::WaitsForNativeMutex", parameters={"kind": kind, "wait": wait, **extra})
     progress = client.subscribe(UInt64, "/native_mutex_waiter/progress")
     progress.wait_count(5, timeout=10)
     return progress
@@ -136,6 +136,23 @@ def test_a_dead_owners_lock_is_released_whichever_way_its_waiter_waits(client, c
     progress.wait_count(len(progress) + 20, timeout=5)
     holder2, _ = _die(client, kind, "segfault", **extra)
     client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder2.unique_id, timeout=5)
+    progress.wait_count(len(progress) + 20, timeout=5)
+
+
+@pytest.mark.parametrize("container_args", ISOLATED)
+@pytest.mark.parametrize(("kind", "wait"), [("normal", "lock"), ("recursive", "clocklock")])
+def test_a_dead_owners_mutex_is_released_while_its_waiter_holds_the_gil(client, container, kind, wait):
+    """The waiter blocks holding the GIL (as rclpy's publish does inside Fast
+    DDS), so no Python thread runs and the dead holder's process is not
+    reaped (Python reaps it once told of the death): its main task, the
+    owner, is a zombie that kill() still finds. It is dead all the same: the
+    mutex is released and the container goes on (it hung for ever before:
+    a CRASHED publish waited so on the send lock of a node killed in
+    send_response)."""
+    progress = _waiting(client, kind, wait, hold_gil=True)
+    holder, crashed = _die(client, kind, waited=True)
+    repaired = client.wait_for_event(ComponentEvent.REPAIRED, unique_id=holder.unique_id, timeout=5)
+    assert f"held by /native_mutex_holder (pid {crashed.pid})" in repaired.error_message, repaired.error_message
     progress.wait_count(len(progress) + 20, timeout=5)
 
 

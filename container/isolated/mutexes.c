@@ -30,8 +30,9 @@
  *            or readers hold, whose futex word (probed: __writers_futex for
  *            a writer on a writer, __wrphase_futex for a reader on a writer
  *            or a writer on readers) is uaddr;
- *   proves   its owner O was a task of a dead child: O was seen in it, no
- *            task with tid O exists now, and the pid cursor has not come
+ *   proves   its owner O was a task of a dead child: O was seen in it (a
+ *            dead child's tasks are all gone, but for its main task, a
+ *            zombie until Python reaps it), and the pid cursor has not come
  *            round to O since (Linux hands pids out in cyclic order, so O
  *            was not given to another task meanwhile);
  *   sweeps   HELD_AFTER_NS after a death, the container's memory for plain
@@ -346,7 +347,13 @@ void mutexes_bury(const struct cg_child *c)
     g_died_at = -1;                             /* and often for a while (mutexes_tick) */
 }
 
-/* The dead set that proves tid a dead child's task, or NULL. */
+/* The dead set that proves tid a dead child's task, or NULL.  A task it
+   proves is dead even where kill() still finds it: the child's main task
+   (tid = its pid) stays a zombie until Python's cg_release reaps it
+   (monitor.c leaves it so), and the Python thread that would may itself be
+   what waits, holding the GIL, on the mutex that task held (a CRASHED
+   publish on Fast DDS's send lock did).  The pid cannot be another task's
+   before that reaping, nor after it until the cursor comes round to it. */
 static const struct dead_set *dead_owner(int tid)
 {
     for (int i = 0; i < NDEAD; i++)
@@ -467,9 +474,9 @@ static void mutex_waiter(int waiter, uintptr_t addr, int64_t now)
         report_if_stuck(CG_MUTEX_NO_OWNER, waiter, 0, kind, addr, now);
         return;
     }
-    if (owner < 0 || task_exists(owner))
+    const struct dead_set *d = owner > 0 ? dead_owner(owner) : NULL;
+    if (owner < 0 || (!d && task_exists(owner)))
         return; /* alive: never touched */
-    const struct dead_set *d = dead_owner(owner);
     if (!d)
         report(CG_MUTEX_UNPROVEN, NULL, waiter, owner, kind, addr);
     else if (kind & ~(MUTEX_TYPE_MASK | MUTEX_NO_ELISION))
@@ -528,9 +535,9 @@ static void rwlock_waiter(int waiter, uintptr_t addr, int64_t now)
         report_if_stuck(CG_MUTEX_NO_OWNER, waiter, 0, CG_RWLOCK_KIND, addr, now);
         return;
     }
-    if (writer < 0 || task_exists(writer))
+    const struct dead_set *d = writer > 0 ? dead_owner(writer) : NULL;
+    if (writer < 0 || (!d && task_exists(writer)))
         return; /* alive: never touched */
-    const struct dead_set *d = dead_owner(writer);
     if (!d)
         report(CG_MUTEX_UNPROVEN, NULL, waiter, writer, CG_RWLOCK_KIND, addr);
     else if (rw.__data.__shared || !(rw.__data.__readers & RWLOCK_WRLOCKED))
@@ -567,10 +574,10 @@ static void look_at(int tid, void *arg)
     } else if (op == FUTEX_LOCK_PI || op == FUTEX_LOCK_PI2) {
         unsigned word; /* a PI futex word holds its owner */
         int owner;
-        if (read_mem(addr, &word, sizeof word) == 0 && (owner = (int)(word & FUTEX_TID_MASK_)) &&
-            !task_exists(owner)) {
+        if (read_mem(addr, &word, sizeof word) == 0 && (owner = (int)(word & FUTEX_TID_MASK_))) {
             const struct dead_set *d = dead_owner(owner);
-            report(d ? CG_MUTEX_EXCLUDED : CG_MUTEX_UNPROVEN, d, tid, owner, -1, addr);
+            if (d || !task_exists(owner))
+                report(d ? CG_MUTEX_EXCLUDED : CG_MUTEX_UNPROVEN, d, tid, owner, -1, addr);
         }
     }
 }
@@ -579,7 +586,7 @@ static void look_at(int tid, void *arg)
 
 static bool proven_dead(int tid)
 {
-    return dead_owner(tid) && !task_exists(tid);
+    return dead_owner(tid) != NULL;
 }
 
 /* The range of the tids the dead sets prove dead; false if none. */
@@ -603,7 +610,7 @@ static void held_found(uintptr_t addr, int owner, int kind)
     if (read_mem(addr, &m, sizeof m) < 0 || m.__data.__owner != owner || m.__data.__lock == 0)
         return;
     const struct dead_set *d = dead_owner(owner);
-    if (d && !task_exists(owner) && release((pthread_mutex_t *)addr, owner))
+    if (d && release((pthread_mutex_t *)addr, owner))
         report(CG_MUTEX_RELEASED, d, 0, owner, kind, addr);
 }
 
