@@ -58,12 +58,14 @@ CASES = {
                     libc.free(p)
             d1 = run_child(core, owner)
             before = core.slot_stats(d1.alloc_slot)
+            small = [n for n in map(libc.malloc_usable_size, blocks) if n <= 1024]
             for p in blocks:
                 libc.free(p)
             after_free = core.slot_stats(d1.alloc_slot)
             d2 = run_child(core, lambda: libc.free(libc.malloc(64)))
             out.update(slot1=d1.alloc_slot, slot2=d2.alloc_slot, before=before,
                        after_free=after_free, after_reuse=core.slot_stats(d2.alloc_slot),
+                       held=[len(small), sum(small)],
                        quarantined=[d1.alloc_quarantined, d2.alloc_quarantined])
     """,
     # A child SIGKILLed inside malloc/free: its slot is quarantined, blocks of
@@ -295,8 +297,11 @@ def test_blocks_freed_by_others_go_back_to_their_owner(backend):
     # the child's own frees handed nothing; the container's 50 were handed back
     assert after_free["handed_blocks"] - before["handed_blocks"] == 50
     assert after_free["pending_blocks"] - before["pending_blocks"] == 50
-    # ... and the next child in the slot freed them into its arena
+    # ... and the next child in the slot took them back: it freed the big
+    # ones into its arena, and holds the small ones (allocguard.c HELD_MAX,
+    # fewer than HELD_BLOCKS here) until its next drain
     assert after_reuse["pending_blocks"] == 0
+    assert [after_reuse["held_blocks"], after_reuse["held_bytes"]] == out["held"] != [0, 0]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -111,6 +111,8 @@ struct cga_slot_stats {
     uint64_t handed_blocks;
     uint64_t pending_blocks;
     uint64_t pending_bytes;
+    uint64_t held_blocks;
+    uint64_t held_bytes;
     uint64_t main_arena_allocs;
 };
 

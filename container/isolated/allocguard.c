@@ -188,6 +188,8 @@ struct owner {
     _Atomic int slot;
     _Atomic(void *) stack;   /* blocks handed over, linked through
                                 their first word */
+    _Atomic(void *) held;    /* the small ones its last drain took off the
+                                stack, freed at its next (HANDED_MARK) */
     _Atomic uint64_t handed; /* blocks pushed so far */
 };
 
@@ -669,12 +671,18 @@ int cga_caller_bound(void)
 
 /* A block on a hand-over stack carries, in its second word (blocks of 16 B
    and more), its own address mixed with this mark.  A second free of it
-   before its owner took it back (a double free across nodes) finds the mark
-   and kills the freer: otherwise the owner, not the faulty node, would pay
-   (it would free the block twice, or follow a stack linked to itself in
-   drain_stack forever, holding whatever it held: the GIL).  A free after the
-   owner took it back is not caught. */
+   before its owner freed it (a double free across nodes) finds the mark and
+   kills the freer: otherwise the owner, not the faulty node, would pay (it
+   would free the block twice, or follow a stack linked to itself in
+   drain_stack forever, holding whatever it held: the GIL).  The owner frees
+   the last HELD_BLOCKS blocks of up to HELD_MAX bytes handed over not when
+   its drain takes them off the stack but at its next drain (owner.held):
+   the two frees of a double free are often a few microseconds apart, and a
+   drain may fall between them.  A second free after that, or of another
+   block after the drain, is not caught. */
 #define HANDED_MARK ((uintptr_t)0x68616e6465642121ull) /* "handed!!" */
+#define HELD_MAX 1024  /* bytes: blocks held a drain long are this small */
+#define HELD_BLOCKS 64 /* and this many at most, the last handed over */
 
 static inline uintptr_t *mark_word(void *p)
 {
@@ -686,26 +694,51 @@ static __attribute__((noreturn, cold, noinline)) void freed_twice(void *p, int o
     char msg[160];
     int n = snprintf(msg, sizeof msg,
                      "cloneguard: double free: block %p of allocator slot %d was freed again "
-                     "before its owner took it back; aborting the freer\n",
+                     "before its owner freed it; aborting the freer\n",
                      p, owner_slot(o));
     if (n > 0 && write(2, msg, (size_t)n) < 0)
         n = 0;
     abort();
 }
 
+static void free_handed(void *p)
+{
+    uintptr_t *mark = mark_word(p);
+    if (mark)
+        *mark = 0;
+    be_free(p);
+}
+
+/* Take the blocks handed to o (counted freed by slot s): the small ones are
+   held, marked, until the next drain frees them; the rest are freed now.
+   Only exchanges touch o, so tasks of one slot may drain it at once. */
 static void drain_stack(struct owner *o, int s)
 {
     uint32_t pkru = hk_open(); /* the tables are the container's */
     void *p = atomic_exchange_explicit(&o->stack, NULL, memory_order_acquire);
     hk_close(pkru);
+    void *keep = NULL, **tail = &keep; /* in stack order: the last handed first */
+    int kept = 0;
     while (p) {
         void *next = *(void **)p;
-        uintptr_t *mark = mark_word(p);
-        if (mark)
-            *mark = 0;
         count_freed(s, p);
-        be_free(p);
+        if (kept < HELD_BLOCKS && be_usable(p) <= HELD_MAX) {
+            *tail = p;
+            tail = (void **)p;
+            *tail = NULL;
+            kept++;
+        } else {
+            free_handed(p);
+        }
         p = next;
+    }
+    pkru = hk_open();
+    void *old = atomic_exchange_explicit(&o->held, keep, memory_order_acq_rel);
+    hk_close(pkru);
+    while (old) {
+        void *next = *(void **)old;
+        free_handed(old);
+        old = next;
     }
 }
 
@@ -1654,11 +1687,16 @@ static void count_stack(struct owner *o, struct cga_slot_stats *out)
         out->pending_blocks++;
         out->pending_bytes += be_usable(p);
     }
+    for (void *p = atomic_load(&o->held); p; p = *(void **)p) {
+        out->held_blocks++;
+        out->held_bytes += be_usable(p);
+    }
 }
 
-/* What a slot holds.  pending_* (the blocks handed to it not yet freed:
-   for a quarantined slot, what has leaked) are counted only while no
-   process drains them (the slot is not bound). */
+/* What a slot holds.  pending_* (the blocks handed to it not taken back:
+   for a quarantined slot, what has leaked) and held_* (taken back, freed at
+   the next drain) are counted only while no process drains them (the slot
+   is not bound). */
 EXPORT int cga_slot_stats(int slot, struct cga_slot_stats *out)
 {
     if (slot < 0 || slot >= g_nslots)

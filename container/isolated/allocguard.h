@@ -74,8 +74,10 @@ struct cga_slot_stats {
     unsigned arena;          /* jemalloc arena index (jemalloc backend) */
     int glibc_arenas;        /* glibc arenas attributed to it */
     uint64_t handed_blocks;  /* blocks others freed and handed to it */
-    uint64_t pending_blocks; /* ... not freed into its arena yet */
+    uint64_t pending_blocks; /* ... not taken back by their owner yet */
     uint64_t pending_bytes;
+    uint64_t held_blocks; /* ... taken back, to be freed at its next drain */
+    uint64_t held_bytes;
     uint64_t main_arena_allocs; /* glibc: blocks it got from the container's
                                    main arena (a fallback glibc makes) */
 };

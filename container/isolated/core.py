@@ -658,9 +658,11 @@ class CloneCore:
         """What allocator-guard slot ``slot`` (a Death's ``alloc_slot``)
         holds: state ("idle", "bound", "quarantined"), pid, jemalloc arena,
         glibc arenas, blocks handed to it by others, and of those the ones
-        not yet freed (``pending_blocks``/``pending_bytes``: for a
-        quarantined slot, what leaked; counted only while no process is
-        bound to it), and its Python pools (``python``). None without the
+        not taken back yet (``pending_blocks``/``pending_bytes``: for a
+        quarantined slot, what leaked) and the small ones taken back but
+        held until its next drain, so that a second free of one is caught
+        (``held_blocks``/``held_bytes``); both counted only while no process
+        is bound to it; and its Python pools (``python``). None without the
         guard."""
         ffi, lib = _lib()
         out = ffi.new("struct cga_slot_stats *")
@@ -680,6 +682,8 @@ class CloneCore:
             "handed_blocks": out.handed_blocks,
             "pending_blocks": out.pending_blocks,
             "pending_bytes": out.pending_bytes,
+            "held_blocks": out.held_blocks,
+            "held_bytes": out.held_bytes,
             "main_arena_allocs": out.main_arena_allocs,
             "python": self._py_slot_stats(slot),
         }
