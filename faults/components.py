@@ -318,9 +318,7 @@ class DieHoldingNativeMutex(_FaultNode):
         self.reading = self.declare_parameter("reading", False).value  # the rwlock: read-locked
         plain = self.lock not in (_FILE, _RWLOCK, nativelock.NL_ROBUST)
         if how not in _HOW or ((self.taking or self.in_cond_wait or self.waited) and not plain):
-            raise ValueError(
-                "how must be 'sigkill' or 'segfault'; taking, in_cond_wait and waited need a plain mutex"
-            )
+            raise ValueError("how must be 'sigkill' or 'segfault'; taking, in_cond_wait and waited need a plain mutex")
         self.how = _HOW[how]
 
     def fire(self):
