@@ -15,7 +15,9 @@
 #include <stdint.h>
 
 /* A slot is one node process's allocator identity: its arena(s) and the
-   stack of blocks others freed for it.  Slot 0 is the container. */
+   stack of blocks others freed for it.  Slot 0 is the container.  (Between
+   the cdef markers: what the core's Python sees too, core.h.) */
+/* cdef: begin */
 enum {
     CGA_UNUSED = 0,      /* never handed out */
     CGA_IDLE = 1,        /* set up, no process in it (pooled) */
@@ -81,6 +83,7 @@ struct cga_slot_stats {
     uint64_t main_arena_allocs; /* glibc: blocks it got from the container's
                                    main arena (a fallback glibc makes) */
 };
+/* cdef: end */
 
 /* The functions the guard exports (allocguard.c, pyalloc.c, heapkeys.c,
    stops.c define them; nothing links against them: the container and the

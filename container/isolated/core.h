@@ -56,7 +56,11 @@
 #endif
 
 /* ---------------------------------------------------------------------- */
-/* Shapes shared with Python (mirrored in _build_core.py's cdef).          */
+/* Shapes shared with Python: the blocks between cdef markers are also the
+   cdef of the core's cffi module (_cdef.py says how it is made).          */
+
+/* cdef: begin */
+/* cdef: const SEGV_PKUERR */
 
 #define CG_MUTEX_TYPES 4 /* NORMAL, RECURSIVE, ERRORCHECK, ADAPTIVE */
 /* mutex_ret: 4 mutex types, then the condvar relock of each */
@@ -148,7 +152,6 @@ struct cg_event { /* one record on the event pipe: 64 bytes */
 #define CG_EVF_ANNOUNCED 1u     /* its CRASHED event is the herald's (herald.c) */
 #define CG_EVF_OUT_OF_MEMORY 2u /* the memory watch ended it (memwatch.c) */
 #define CG_DEATH_TEXT 768       /* cg_child.death_text */
-#define MIB ((uint64_t)1 << 20) /* bytes, in the words for a death */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */
 enum {
     CG_MUTEX_RELEASED = 1,  /* plain mutex of a proven-dead owner: released */
@@ -167,8 +170,11 @@ enum {
 #define CG_ALLOC_PY_ABANDONED ((uint32_t)CGA_RETIRE_PY_ABANDONED << CG_ALLOC_SHIFT)
 #define CG_ALLOC_FAULTED ((uint32_t)CGA_RETIRE_FAULTED << CG_ALLOC_SHIFT)
 #define CG_ALLOC_OVER_BUDGET ((uint32_t)CGA_RETIRE_OVER_BUDGET << CG_ALLOC_SHIFT)
+/* cdef: end */
 _Static_assert(CGA_RETIRE_OVER_BUDGET < (1 << (32 - CG_ALLOC_SHIFT)),
                "CGA_RETIRE_* fit above the slot");
+
+/* cdef: begin */
 
 enum { CG_STOP_NONE = 0, CG_STOP_PARENT = 1, CG_STOP_SIGNAL = 2 };
 enum { CG_RUNNING = 0, CG_REAPED = 1 };
@@ -183,6 +189,7 @@ enum { CG_PY_NOT_YET = 0, CG_PY_INSIDE = 1, CG_PY_LEFT = 2 };
 #define CG_CORE_FAILED 3
 #define CG_CORE_WAIT_S 600     /* how long a crashing child waits for its dump */
 #define CG_GO_STOP 0x80000000u /* cg_child.go: every wait at the gate ends */
+/* cdef: end */
 
 /* The tasks the monitor saw in a child (mutexes.c): each tid with where the
    kernel's pid cursor stood when it was last seen alive. */
@@ -198,6 +205,7 @@ struct cg_seen_tasks {
     struct cg_seen_task t[CG_SEEN_TASKS];
 };
 
+/* cdef: begin */
 struct cg_child { /* control block, lives in container memory */
     /* read by Python */
     int pid;
@@ -211,9 +219,35 @@ struct cg_child { /* control block, lives in container memory */
     int py_phase;       /* CG_PY_* (atomic; written by the child) */
     int stop_signal;    /* the signal that asked (atomic), 0: parent */
     int arena;          /* jemalloc arena the child bound to, -1: none */
-    unsigned go;        /* futex word: how many times the parent said
-                           go (cg_go), | CG_GO_STOP once asked to stop */
-    unsigned go_taken;  /* how many of those the child has waited for */
+    /* written by its crash report (crash.c; crash_tid below), read by
+       Python once reaped */
+    int crash_si_code;                       /* the fault's si_code (SEGV_PKUERR: 4), */
+    int crash_sender;                        /* who sent it (si_code <= 0), else 0, */
+    int crash_pkey;                          /* its key (SEGV_PKUERR), */
+    void *crash_addr;                        /* and its address */
+    int crash_nframes;                       /* 0: none; -1: being written; else how many */
+    void *crash_frames[CG_CRASH_FRAMES];     /* the crashing task's native stack */
+    int crash_py_nframes;                    /* its Python stack: how many frames, */
+    int crash_py_more;                       /* 1: it went on past CG_CRASH_PY_FRAMES */
+    void *crash_py_code[CG_CRASH_PY_FRAMES]; /* each frame's code object */
+    int crash_py_lasti[CG_CRASH_PY_FRAMES];  /* and instruction offset */
+    /* written by the repair (monitor) if it died holding the GIL: its
+       innermost Python frame, read by Python once reaped */
+    void *gil_code;
+    int gil_lasti;
+    /* --core-dumps (dumps.c): CG_CORE_*; the crashing main task waits in
+       its crash handler while the monitor has its dump written */
+    int core_dump;
+    char core_path[CG_CORE_PATH]; /* where (Python names it; "": nowhere) */
+    char core_why[CG_CORE_WHY];   /* CG_CORE_FAILED: why */
+    int herald_state;             /* herald.c: who owns its CRASHED event (atomic) */
+    /* written by the monitor at its death (cg_describe_death), read by
+       Python once reported */
+    char death_text[CG_DEATH_TEXT];
+    /* cdef: the rest is the core's */
+    unsigned go;       /* futex word: how many times the parent said
+                          go (cg_go), | CG_GO_STOP once asked to stop */
+    unsigned go_taken; /* how many of those the child has waited for */
     /* set up before the clone */
     PyObject *target;      /* borrowed: Python keeps it alive until reaped */
     PyThreadState *tstate; /* made by cg_spawn, deleted by cg_release */
@@ -236,35 +270,10 @@ struct cg_child { /* control block, lives in container memory */
     int retired;         /* CGA_RETIRE_* (allocguard.h): what it left in
                             the allocator guard, once reaped */
     struct cg_child *next;
-    struct cg_seen_tasks seen; /* its tasks, as the monitor saw them */
-    /* written by its crash report (crash.c), read by Python once reaped */
-    int crash_tid;                           /* the task that caught it, */
-    int crash_si_code;                       /* the fault's si_code (SEGV_PKUERR: 4), */
-    int crash_sender;                        /* who sent it (si_code <= 0), else 0, */
-    int crash_pkey;                          /* its key (SEGV_PKUERR), */
-    void *crash_addr;                        /* and its address */
-    int crash_nframes;                       /* 0: none; -1: being written; else how many */
-    void *crash_frames[CG_CRASH_FRAMES];     /* the crashing task's native stack */
-    int crash_py_nframes;                    /* its Python stack: how many frames, */
-    int crash_py_more;                       /* 1: it went on past CG_CRASH_PY_FRAMES */
-    void *crash_py_code[CG_CRASH_PY_FRAMES]; /* each frame's code object */
-    int crash_py_lasti[CG_CRASH_PY_FRAMES];  /* and instruction offset */
-    /* written by the repair (monitor) if it died holding the GIL: its
-       innermost Python frame, read by Python once reaped */
-    void *gil_code;
-    int gil_lasti;
-    /* --core-dumps (dumps.c): CG_CORE_*; the crashing main task waits in
-       its crash handler while the monitor has its dump written */
-    int core_dump;
-    char core_path[CG_CORE_PATH]; /* where (Python names it; "": nowhere) */
-    char core_why[CG_CORE_WHY];   /* CG_CORE_FAILED: why */
-    struct cg_child *dump_next;   /* the monitor's queue of dumps */
-    /* herald.c: its CRASHED event, and who owns it (atomic) */
-    struct cg_herald *herald;
-    int herald_state;
-    /* written by the monitor at its death (cg_describe_death), read by
-       Python once reported */
-    char death_text[CG_DEATH_TEXT];
+    struct cg_seen_tasks seen;  /* its tasks, as the monitor saw them */
+    int crash_tid;              /* crash.c: the task that caught it */
+    struct cg_child *dump_next; /* dumps.c: the monitor's queue of dumps */
+    struct cg_herald *herald;   /* herald.c: its CRASHED event */
     /* memwatch.c: its oom_score_adj (atomic; set before it goes), and what
        the watch saw when it ended it (monitor-only; oom_in_use 0: it did not) */
     int oom_score_adj;
@@ -336,6 +345,8 @@ struct cg_timedwait_probe {
     long off_wrphase_futex, off_writers_futex; /* offsetof in the rwlock */
 };
 
+/* cdef: end */
+
 /* A task's system call as /proc/<tid>/syscall shows it. */
 struct task_syscall {
     long nr; /* -1: blocked outside a syscall, -2: running
@@ -359,7 +370,9 @@ struct cg_ctx {
 
 #define AT(base, off, type) (*(type *)((char *)(base) + (off)))
 
-/* ---- Called from Python (the cdef in _build_core.py mirrors these) ---- */
+/* ---- Called from Python (these are the cdef's: _cdef.py) -------------- */
+
+/* cdef: begin */
 
 /* clonecore.c */
 int cg_start(const struct cg_layout *layout, const struct cg_config *cfg, int *event_fd);
@@ -379,13 +392,6 @@ int cg_container_crash_report(void);
 /* contexts.c */
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 int cg_py_slot_stats(int slot, struct cga_py_stats *out);
-/* CLOCK_MONOTONIC in ns (the monitor's clock, listenerwait.c's). */
-static inline int64_t cg_mono_ns(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
-}
 /* deathtext.c */
 const char *cg_repair_name(unsigned bit);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
@@ -441,8 +447,20 @@ int cg_probe_timedwait(struct cg_timedwait_probe *out);
 int cg_allocator(char *buf, size_t len);
 int cg_jemalloc_thread_tcache(void);
 int cg_jemalloc_thread_arena(void);
+/* dumps.c: any thread: CLOCK_MONOTONIC less dumps' time */
+int64_t cg_watch_clock_ns(void);
+/* cdef: end */
 
 /* ---- Among the core's files ------------------------------------------- */
+
+/* CLOCK_MONOTONIC in ns (the monitor's clock, listenerwait.c's). */
+static inline int64_t cg_mono_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+#define MIB ((uint64_t)1 << 20) /* bytes, in the words for a death */
 
 /* clonecore.c: set by cg_start, read-only afterwards. */
 extern struct cg_layout g_layout;
@@ -472,7 +490,6 @@ bool dumps_event(void *tag, int64_t now);  /* true: an epoll tag of dumps.c's */
 int dumps_tick(int64_t now, int sleep_ms); /* sleep ms, -1 */
 void dumps_forget(struct cg_child *c);     /* c is dead, about to be reported */
 void dumps_stop(void);
-int64_t cg_watch_clock_ns(void); /* any thread: CLOCK_MONOTONIC less dumps' time */
 
 /* mutexes.c: all on the monitor thread */
 int mutexes_start(void);                                  /* -ENOENT: no pid cursor to read */

@@ -31,6 +31,7 @@
      FREELISTS      the interpreter's free lists emptied
      PY_OBJECTS     objects it may have been changing put out of the
                     collector's sight */
+/* cdef: begin */
 #define CG_REPAIRS(X)                                                                              \
     X(GIL_RELEASED, 0)                                                                             \
     X(GIL_MUTEX, 1)                                                                                \
@@ -49,6 +50,7 @@ enum {
     CG_REPAIRS(CG_REPAIR_BIT)
 #undef CG_REPAIR_BIT
 };
+/* cdef: end */
 
 /* One dead task the repair looks at: a child whose thread group is gone
    (a zombie, or already reaped). */
@@ -116,6 +118,7 @@ int guard_py_abandoned(const void *p);
 struct _ts *cg_tstate_new(void);
 void cg_tstate_bind(struct _ts *ts);
 
+/* cdef: begin */
 /* Facts for assumptions.py (takes the GIL itself). */
 struct cg_gil_probe {
     unsigned long compiled_hex, running_hex;
@@ -158,6 +161,7 @@ int cg_frame_text(void *code, int lasti, char *buf, int size);
    a collection is due (its generation; -1: woken), then runs it. */
 int cg_gc_wait_due(int interval_us, int *wake);
 long cg_gc_collect(void *collect, int generation);
+/* cdef: end */
 
 /* interp.c: read len bytes at addr into out without faulting (false where
    any is unmapped).  What a dead task left is read only so. */
