@@ -3,8 +3,8 @@
 
 The C is rclglue.c (the generated module #includes it, so compiler messages
 point at rclglue.c lines) and intra/waker.c (a second source); rclglue.h and
-intra/waker.h are their interfaces, which the cdef below mirrors: keep them in
-step (a mismatch is a compile error in the generated module).
+intra/waker.h are their interfaces, whose cdef blocks are the module's cdef
+(scripts/cdef.py), after what it assumes of rcl's types.
 
 It is compiled against the real rcl/rmw/rcutils headers of the ROS 2 Jazzy
 wheels in this venv (``<sys.prefix>/include/<pkg>/<pkg>/...``) and linked to
@@ -76,51 +76,24 @@ def _include_dirs() -> list[str]:
     return dirs
 
 
-CDEF = r"""
+# rcl's types as far as Python uses them (opaque, but for the serialized
+# message's buffer: rcutils_uint8_array_t's fields) ...
+RCL_TYPES = r"""
 typedef struct { ...; } rcl_publisher_t;
 typedef struct { ...; } rcl_subscription_t;
 typedef struct { ...; } rcl_service_t;
 typedef struct { ...; } rcl_node_t;
 typedef struct { ...; } rcl_context_t;
-/* rcl_serialized_message_t is rcutils_uint8_array_t; only these fields are
-   read from Python. */
 typedef struct {
     uint8_t *buffer;
     size_t buffer_length;
     size_t buffer_capacity;
     ...;
 } rcl_serialized_message_t;
-
-#define CGR_GID_SIZE ...
-#define CGR_TAKEN ...
-#define CGR_NOT_TAKEN ...
-#define CGR_ERROR ...
-#define CGR_ERR_SIZE ...
-
-int cgr_message_init(rcl_serialized_message_t *msg, size_t capacity,
-                     char *err, size_t err_size);
-void cgr_message_fini(rcl_serialized_message_t *msg);
-int cgr_publisher_gid(const rcl_publisher_t *publisher, uint8_t *gid_out,
-                      char *err, size_t err_size);
-int cgr_take_serialized(const rcl_subscription_t *subscription,
-                        rcl_serialized_message_t *msg, uint8_t *gid_out,
-                        char *err, size_t err_size);
-int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t err_size);
-int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context,
-                  char *err, size_t err_size);
-int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
-int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len,
-                    char *err, size_t err_size);
-
-/* waker.h */
-#define CGW_TOKENS ...
-struct cgw_waker;
-int cgw_new(struct cgw_waker **out);
-int cgw_add(struct cgw_waker *w, void *guard_condition);
-void cgw_remove(struct cgw_waker *w, int token);
-void cgw_post(struct cgw_waker *w, int token);
-int cgw_close(struct cgw_waker *w, int timeout_ms);
 """
+# ... and ours, each written once, in the headers' cdef blocks (scripts/cdef.py).
+HEADERS = (HERE / "rclglue.h", HERE / "intra" / "waker.h")
+CDEF = RCL_TYPES + runpy.run_path(str(HERE.parent / "scripts" / "cdef.py"))["cdef"](HEADERS)
 
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
@@ -130,7 +103,13 @@ ffibuilder.set_source(
     sources=["container/intra/waker.c"],
     include_dirs=[str(HERE), str(HERE / "intra"), *_include_dirs()],
     # setuptools wants paths relative to the repo root (where setup.py runs).
-    depends=["container/rclglue.c", "container/rclglue.h", "container/intra/waker.c", "container/intra/waker.h"],
+    depends=[
+        "container/rclglue.c",
+        "container/rclglue.h",
+        "container/intra/waker.c",
+        "container/intra/waker.h",
+        "scripts/cdef.py",
+    ],
     libraries=["rcl", "rmw", "rcutils"],
     library_dirs=[str(LIB_DIR)],
     extra_compile_args=["-std=gnu11", *WARNINGS],

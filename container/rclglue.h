@@ -1,7 +1,7 @@
 /* rclglue: the rcl calls rclpy does not give us (see rclglue.c).
  *
- * The cdef in _build_rclglue.py mirrors this header: keep them in step (a
- * mismatch is a compile error in the generated module). */
+ * Between the cdef markers: the cdef of _build_rclglue.py's module
+ * (scripts/cdef.py). */
 #ifndef CLONEGUARD_INTRA_RCLGLUE_H
 #define CLONEGUARD_INTRA_RCLGLUE_H
 
@@ -13,6 +13,7 @@
 #include "rcl/service.h"
 #include "rcl/subscription.h"
 
+/* cdef: begin */
 /* Bytes of a DDS endpoint's gid as rmw gives it (rmw_gid_t.data). */
 #define CGR_GID_SIZE 16
 
@@ -47,5 +48,6 @@ int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
    text in err.  For a thread without the GIL (isolated/herald.c). */
 int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len, char *err,
                     size_t err_size);
+/* cdef: end */
 
 #endif

@@ -1,5 +1,5 @@
 """The core's cdef is made from its C headers' cdef blocks
-(container/isolated/_cdef.py): each rule, and what it refuses."""
+(scripts/cdef.py): each rule, and what it refuses."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import pytest
 
 from cloneguard.container.isolated import _clonecore
 
-HERE = Path(__file__).resolve().parents[1] / "container" / "isolated"
-CDEF = runpy.run_path(str(HERE / "_cdef.py"))
+REPO = Path(__file__).resolve().parents[1]
+HERE = REPO / "container" / "isolated"
+CDEF = runpy.run_path(str(REPO / "scripts" / "cdef.py"))
 
 HEADER = """
 #include <stdint.h>

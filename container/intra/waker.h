@@ -1,10 +1,11 @@
 /* waker.h - a container thread that wakes one subscriber node process's
- * executors (waker.c).  Mirrored by _build_rclglue.py's cdef. */
+ * executors (waker.c).  Its cdef block is _build_rclglue.py's too. */
 #ifndef CLONEGUARD_WAKER_H
 #define CLONEGUARD_WAKER_H
 
 #include <stdint.h>
 
+/* cdef: begin */
 #define CGW_TOKENS 256 /* guard conditions one waker can wake */
 
 struct cgw_waker;
@@ -22,5 +23,6 @@ void cgw_post(struct cgw_waker *w, int token);
    harmless.  0, or -ETIMEDOUT when its thread is stuck (then both are left
    behind). */
 int cgw_close(struct cgw_waker *w, int timeout_ms);
+/* cdef: end */
 
 #endif

@@ -5,7 +5,7 @@ generated module includes core.h, the declarations Python's calls need, and
 links the core's files as further sources; gilrepair.c is among them,
 compiled with Py_BUILD_CORE (it reads CPython's internal GIL state; see
 there), sharing only repair.h with the rest.  The cdef is made from the
-headers' cdef blocks (_cdef.py): what Python sees is written once, in C.
+headers' cdef blocks (scripts/cdef.py): what Python sees is written once, in C.
 Built with -fvisibility=hidden: the module exports its PyInit function only.
 
 Built by setup.py (``cffi_modules``); after an edit of the C,
@@ -44,9 +44,9 @@ SOURCES = (
 )
 
 # What Python's calls need, each written once, in the C headers' cdef
-# blocks (_cdef.py says how they become the cdef).
+# blocks (scripts/cdef.py says how they become the cdef).
 HEADERS = ("allocguard.h", "repair.h", "core.h")
-CDEF = runpy.run_path(str(HERE / "_cdef.py"))["cdef"]([HERE / h for h in HEADERS])
+CDEF = runpy.run_path(str(HERE.parents[1] / "scripts" / "cdef.py"))["cdef"]([HERE / h for h in HEADERS])
 
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
@@ -56,7 +56,7 @@ ffibuilder.set_source(
     # setuptools wants sources relative to the repo root (where setup.py runs).
     sources=[f"container/isolated/{n}" for n in SOURCES],
     include_dirs=[str(HERE)],
-    depends=[f"container/isolated/{n}" for n in (*HEADERS, "sigsafe.h", "_cdef.py")],
+    depends=[*(f"container/isolated/{n}" for n in (*HEADERS, "sigsafe.h")), "scripts/cdef.py"],
     libraries=["dl", "pthread"],
     extra_compile_args=["-std=gnu11", *WARNINGS, "-Wno-unused-function", "-fvisibility=hidden"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would

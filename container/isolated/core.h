@@ -57,7 +57,7 @@
 
 /* ---------------------------------------------------------------------- */
 /* Shapes shared with Python: the blocks between cdef markers are also the
-   cdef of the core's cffi module (_cdef.py says how it is made).          */
+   cdef of the core's cffi module (scripts/cdef.py says how it is made).   */
 
 /* cdef: begin */
 /* cdef: const SEGV_PKUERR */
@@ -370,7 +370,7 @@ struct cg_ctx {
 
 #define AT(base, off, type) (*(type *)((char *)(base) + (off)))
 
-/* ---- Called from Python (these are the cdef's: _cdef.py) -------------- */
+/* ---- Called from Python (these are the cdef's: scripts/cdef.py) ------ */
 
 /* cdef: begin */
 

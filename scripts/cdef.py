@@ -1,6 +1,7 @@
-"""The core's cdef, made from its C headers: each declaration Python's calls
-need is written once, in C, between ``/* cdef: begin */`` and
-``/* cdef: end */``; this turns those blocks into what cffi's cdef parses.
+"""A cffi module's cdef, made from its C headers (the clone core's, rclglue's):
+each declaration Python's calls need is written once, in C, between
+``/* cdef: begin */`` and ``/* cdef: end */``; this turns those blocks into
+what cffi's cdef parses.
 
 In a block:
 
