@@ -38,7 +38,7 @@ PROFILES = [
     pytest.param(["--isolated", "--profile", "per-node"], id="per-node"),
     pytest.param(["--isolated", "--profile", "shared"], id="shared"),
 ]
-TEXT_SIZE = 768
+TEXT_SIZE = lib.CG_DEATH_TEXT  # the room a death's words have (core.h)
 
 
 def words(status: int, code: int, repairs: int = 0, alloc: int = 0, stop_signal: int = 0) -> str:
