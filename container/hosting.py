@@ -19,11 +19,11 @@ node its own clone(CLONE_VM) child. Both take the same calls:
 ``report_deaths_to(on_death)``
     the manager, once made, says where a node the host loses on its own (a
     child that dies) is reported: ``on_death(unique_id, death)``.
-``publish_crashed_with(events)``, ``announce_crash(hosted, ...)``
+``publish_crashed_with(events)``, ``arm_crashed(hosted, ...)``
     a host that can may publish a node's CRASHED event itself, on the
     manager's event publisher, as soon as the node dies; ``on_death`` then
-    says so (``death.announced``). ``disarm_crash(hosted)`` takes that back
-    (False: too late, the node is dead and announced); ``crash_announced``
+    says so (``death.claimed``: the host claimed the death). ``disarm_crashed(hosted)`` takes that back
+    (False: too late, the node is dead and announced); ``crashed_claimed``
     says whether it happened.
 """
 
@@ -126,13 +126,13 @@ class ThreadHost:
     def publish_crashed_with(self, events) -> None:
         """No deaths, nothing to announce (see report_deaths_to)."""
 
-    def announce_crash(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
         pass
 
-    def disarm_crash(self, hosted: Hosted) -> bool:
+    def disarm_crashed(self, hosted: Hosted) -> bool:
         return True
 
-    def crash_announced(self, hosted: Hosted) -> bool:
+    def crashed_claimed(self, hosted: Hosted) -> bool:
         return False
 
     def memory(self, hosted: Hosted) -> tuple[int, int] | None:

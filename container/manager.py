@@ -137,7 +137,7 @@ class ComponentManager:
         self._restarts = None if restart_limit is None else RestartPolicy(node, self.reload, limit=restart_limit)
         host.report_deaths_to(self.on_death)
         # A node's CRASHED then goes out from the host's core where it can
-        # (isolated mode, no restart policy: announce_crash below).
+        # (isolated mode, no restart policy: arm_crashed below).
         host.publish_crashed_with(self._events)
         # The intra-process bus is container-owned: made here, before any child.
         intra.get_bus()
@@ -222,7 +222,7 @@ class ComponentManager:
         else:
             if self._restarts is None:  # else CRASHED says what the policy decided
                 try:
-                    self._host.announce_crash(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
+                    self._host.arm_crashed(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
                 except Exception as exc:  # then its CRASHED goes out through Python
                     self._log.warning(f"unique_id {unique_id}: its CRASHED stays Python's: {type(exc).__name__}: {exc}")
             # Its callbacks start now, not while the event and the log line
@@ -240,7 +240,7 @@ class ComponentManager:
         with self._lock:
             entry = self._loaded.get(request.unique_id)
             # A node whose death the host announced is gone (on_death follows).
-            if entry is not None and self._host.disarm_crash(entry.hosted):
+            if entry is not None and self._host.disarm_crashed(entry.hosted):
                 del self._loaded[request.unique_id]
             else:
                 entry = None
@@ -261,7 +261,7 @@ class ComponentManager:
 
     def _list(self, request, response):
         with self._lock:
-            entries = [(uid, e) for uid, e in sorted(self._loaded.items()) if not self._host.crash_announced(e.hosted)]
+            entries = [(uid, e) for uid, e in sorted(self._loaded.items()) if not self._host.crashed_claimed(e.hosted)]
         response.unique_ids = [uid for uid, _ in entries]
         response.full_node_names = [e.hosted.full_node_name for _, e in entries]
         return response
@@ -292,8 +292,8 @@ class ComponentManager:
             restart = self._restarts.on_crash(entry.request, entry.lineage, uptime(hosted.start_time_ns))
         reason = death.reason if restart is None else f"{death.reason}; {restart.text}"
         # The event first: logging goes to /rosout too, a DDS publish of its
-        # own. The host may have published it already (announce_crash).
-        if not death.announced:
+        # own. The host may have published it already (arm_crashed).
+        if not death.claimed:
             self._publish(
                 events.CRASHED,
                 entry,
@@ -340,7 +340,7 @@ class ComponentManager:
         with self._lock:
             entries, self._loaded = list(self._loaded.values()), {}
             for e in entries:  # their deaths from here on are no crashes
-                self._host.disarm_crash(e.hosted)
+                self._host.disarm_crashed(e.hosted)
         for uid in [e.hosted.unique_id for e in entries]:
             intra.get_bus().forget(uid)
         self._host.close([e.hosted for e in entries])

@@ -152,7 +152,7 @@ def _only_the_marker_is_heard(core, heard) -> None:
     the case published none."""
     marker = _armed_sleeper(core, unique_id=MARKER)
     core.kill(marker, signal.SIGKILL)
-    assert core.wait(marker, 10).announced
+    assert core.wait(marker, 10).claimed
     assert [m.unique_id for m in heard.wait(1)] == [MARKER]
     core.release(marker)
 
@@ -174,8 +174,8 @@ def test_the_core_publishes_an_armed_childs_crashed_event(herald, sig):
     core.kill(child, sig)
     death = core.wait(child, 10)
     rec.wait_for(lambda: death in rec.events)
-    assert death.announced and death.text == f"killed by {sig.name}"
-    assert core.crashed_announced(child)
+    assert death.claimed and death.text == f"killed by {sig.name}"
+    assert core.crashed_claimed(child)
     assert core.disarm_crashed(child) is False  # too late: it is announced
     (msg,) = heard.wait(1)
     stamp = msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec
@@ -201,7 +201,7 @@ def test_an_exit_is_published_with_its_code(herald):
     child = core.spawn(_exit_5_later)
     assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
     death = core.wait(child, 10)
-    assert death.announced
+    assert death.claimed
     (msg,) = heard.wait(1)
     assert (msg.error_message, msg.exit_signal, msg.exit_code) == ("exited with code 5", 0, 5)
     core.release(child)
@@ -220,7 +220,7 @@ def test_a_death_holding_the_gil_is_left_to_python(herald):
     assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
     death = core.wait(child, 10)
     rec.wait_for(lambda: death in rec.events)
-    assert death.gil_frame and not death.announced
+    assert death.gil_frame and not death.claimed
     assert core.disarm_crashed(child) is True
     core.release(child)
     _only_the_marker_is_heard(core, heard)
@@ -233,7 +233,7 @@ def test_a_disarmed_childs_death_is_pythons_to_report(herald):
     assert core.disarm_crashed(child) is True  # twice: still the caller's
     core.kill(child, signal.SIGKILL)
     death = core.wait(child, 10)
-    assert not death.announced and not core.crashed_announced(child)
+    assert not death.claimed and not core.crashed_claimed(child)
     assert death.text == "killed by SIGKILL"  # the words, whoever publishes
     core.release(child)
     _only_the_marker_is_heard(core, heard)
@@ -245,7 +245,7 @@ def test_a_child_asked_to_stop_by_its_parent_is_not_announced(herald):
     core.request_stop(child)
     core.kill(child, signal.SIGKILL)
     death = core.wait(child, 10)
-    assert not death.announced and core.disarm_crashed(child) is True
+    assert not death.claimed and core.disarm_crashed(child) is True
     core.release(child)
     _only_the_marker_is_heard(core, heard)
 
@@ -257,7 +257,7 @@ def test_after_the_herald_stops_every_death_is_pythons(herald):
     core.stop_herald()  # again: nothing to stop
     core.kill(child, signal.SIGKILL)
     death = core.wait(child, 10)
-    assert not death.announced
+    assert not death.claimed
     assert core.disarm_crashed(child) is True  # never claimed: still armed
     core.release(child)
     core.start_herald(*heard.publisher.publish_from_c())
@@ -275,7 +275,7 @@ def test_without_a_herald_an_armed_childs_death_is_pythons():
             assert core.arm_crashed(child, **{**ARM, "unique_id": i, "pid": child.pid})
             core.kill(child, signal.SIGKILL)
             death = core.wait(child, 10)
-            assert death is not None and not death.announced and not core.crashed_announced(child)
+            assert death is not None and not death.claimed and not core.crashed_claimed(child)
             if i % 2:
                 assert core.disarm_crashed(child) is True
             core.release(child)
@@ -358,14 +358,14 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
     announced = []
     for child in stuck:
         core.kill(child, signal.SIGKILL)
-        announced.append(core.wait(child, 10).announced)
+        announced.append(core.wait(child, 10).claimed)
     assert announced == [True] * IN_FLIGHT + [False, False]
     assert core.stop_herald(timeout=0.2) is False
     # The next herald (the fixture's publisher again) has pipe and thread of its own.
     core.start_herald(*heard.publisher.publish_from_c())
     child = _armed_sleeper(core, unique_id=7)
     core.kill(child, signal.SIGKILL)
-    assert core.wait(child, 10).announced
+    assert core.wait(child, 10).claimed
     assert [m.unique_id for m in heard.wait(1)] == [7]
     for c in [*stuck, child]:
         core.release(c)
@@ -375,23 +375,23 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
 
 
 class AnnouncingHost(ThreadHost):
-    """Thread mode's host, which also says, for the ids in ``announced``,
+    """Thread mode's host, which also says, for the ids in ``claimed``,
     that it has published their CRASHED itself: what the isolated host
     says between the core's publish and the death reaching the manager."""
 
     def __init__(self, executor, context):
         super().__init__(executor, context)
-        self.announced: set[int] = set()
+        self.claimed: set[int] = set()
         self.armed: list[int] = []
 
-    def announce_crash(self, hosted, *, package_name, plugin_name):
+    def arm_crashed(self, hosted, *, package_name, plugin_name):
         self.armed.append(hosted.unique_id)
 
-    def disarm_crash(self, hosted):
-        return hosted.unique_id not in self.announced
+    def disarm_crashed(self, hosted):
+        return hosted.unique_id not in self.claimed
 
-    def crash_announced(self, hosted):
-        return hosted.unique_id in self.announced
+    def crashed_claimed(self, hosted):
+        return hosted.unique_id in self.claimed
 
 
 def test_the_manager_neither_lists_nor_unloads_a_node_announced_dead_nor_publishes_it_again():
@@ -412,14 +412,14 @@ def test_the_manager_neither_lists_nor_unloads_a_node_announced_dead_nor_publish
                 ids.append(response.unique_id)
             dead, alive = ids
             assert host.armed == ids  # each armed once its LOADED was out
-            host.announced.add(dead)
+            host.claimed.add(dead)
             listed = manager._list(ListNodes.Request(), ListNodes.Response())
             assert list(listed.unique_ids) == [alive]
             refused = manager._unload(UnloadNode.Request(unique_id=dead), UnloadNode.Response())
             assert not refused.success and refused.error_message == f"No node found with unique_id: {dead}"
             # Its death reaches the manager: no second CRASHED. Then one the
             # host did not announce: the manager publishes that one.
-            manager.on_death(dead, NodeDeath(pid=1, exit_signal=9, exit_code=0, reason="killed", announced=True))
+            manager.on_death(dead, NodeDeath(pid=1, exit_signal=9, exit_code=0, reason="killed", claimed=True))
             manager.on_death(alive, NodeDeath(pid=2, exit_signal=9, exit_code=0, reason="killed"))
             heard.wait(3)  # LOADED, LOADED, and the one CRASHED
             crashed = [m.unique_id for m in heard.wait(3) if m.event_type == ComponentEvent.CRASHED]

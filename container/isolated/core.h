@@ -149,7 +149,7 @@ struct cg_event { /* one record on the event pipe: 64 bytes */
     uint32_t flags;   /* death: CG_EVF_* */
 };
 #define CG_RWLOCK_KIND (-2)     /* cg_event.code of a rwlock (mutexes.c) */
-#define CG_EVF_ANNOUNCED 1u     /* its CRASHED event is the herald's (herald.c) */
+#define CG_EVF_CLAIMED 1u       /* its CRASHED event is the herald's (herald.c) */
 #define CG_EVF_OUT_OF_MEMORY 2u /* the memory watch ended it (memwatch.c) */
 #define CG_DEATH_TEXT 768       /* cg_child.death_text */
 /* What the lock doctor did about a task blocked on a lock (mutexes.c). */

@@ -623,7 +623,7 @@ class CloneCore:
             self._entry(child)
             return bool(lib.cg_herald_disarm(child._block))
 
-    def crashed_announced(self, child: Child) -> bool:
+    def crashed_claimed(self, child: Child) -> bool:
         """The herald has announced the child's death (it may not be reported
         to on_event yet)."""
         _, lib = _lib()

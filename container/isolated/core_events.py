@@ -97,7 +97,7 @@ class Death:
     core_file: str = ""  # --core-dumps: the dump written of it (dumps.c),
     core_missing: str = ""  # or why it asked for one and got none
     text: str = ""  # what the core says of it (cg_describe_death, deathtext.c)
-    announced: bool = False  # the herald published its CRASHED event
+    claimed: bool = False  # the herald published its CRASHED event
 
     @property
     def status_lost(self) -> bool:
@@ -180,7 +180,7 @@ def decode(buf: bytes) -> tuple[int, CoreEvent | None]:
             alloc_faulted=bool(r.alloc & lib.CG_ALLOC_FAULTED),
             py_abandoned=bool(r.alloc & lib.CG_ALLOC_PY_ABANDONED),
             over_budget=bool(r.alloc & lib.CG_ALLOC_OVER_BUDGET),
-            announced=bool(r.flags & lib.CG_EVF_ANNOUNCED),
+            claimed=bool(r.flags & lib.CG_EVF_CLAIMED),
             out_of_memory=bool(r.flags & lib.CG_EVF_OUT_OF_MEMORY),
         )
     if kind == KIND_STOP:

@@ -10,7 +10,7 @@
  * which publishes it through rcl (rclglue's cgr_publish_cdr): no Python and
  * no GIL on the way, so the event also goes out when a dead node left the
  * GIL unusable.  Python still does the rest (log, bookkeeping), and does
- * not publish what the record says was announced (CG_EVF_ANNOUNCED).
+ * not publish what the record says was announced (CG_EVF_CLAIMED).
  *
  * Who owns an armed node's event, one word (cg_child.herald_state):
  *   OFF -> ARMED        cg_herald_arm (Python), once the node's LOADED is out

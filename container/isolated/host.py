@@ -93,7 +93,7 @@ class NodeDeath:
     exit_code: int
     reason: str
     allocator_quarantined: bool = False
-    announced: bool = False  # its CRASHED event is out already (announce_crash)
+    claimed: bool = False  # its CRASHED event is out already (arm_crashed)
     # It exited with status 0 after an outside SIGTERM or SIGINT (the
     # container's process group being stopped, say): a clean stop, no crash.
     stopped: bool = False
@@ -220,7 +220,7 @@ class IsolatedHost:
     def publish_crashed_with(self, events) -> None:
         """Let the core publish a node's CRASHED event itself, on ``events``'
         publisher (herald.c: a thread of its own, no Python on the way), for
-        the nodes ``announce_crash`` arms. The publisher stays in use, so
+        the nodes ``arm_crashed`` arms. The publisher stays in use, so
         that rclpy cannot destroy it, until close() has stopped the herald."""
         handle = events.handle
         handle.__enter__()
@@ -232,10 +232,10 @@ class IsolatedHost:
             return
         self._herald_handle = handle
 
-    def announce_crash(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
         """Should the node's process die from now on, the core publishes its
         CRASHED event (``publish_crashed_with``), and the manager hears of the
-        death with ``announced`` set. Undone by ``disarm_crash``."""
+        death with ``claimed`` set. Undone by ``disarm_crashed``."""
         proc = hosted.detail
         with self._lock:  # against a stop or an abort changing its state
             if self._herald_handle is None or proc.state != "running":
@@ -250,16 +250,16 @@ class IsolatedHost:
                 start_time_ns=hosted.start_time_ns,
             )
 
-    def disarm_crash(self, hosted: Hosted) -> bool:
+    def disarm_crashed(self, hosted: Hosted) -> bool:
         """Take the node's CRASHED event back from the core: True if its
         death, should it come, is the caller's to report; False if the core
         has announced it (the node is dead; on_death follows)."""
         return self._core.disarm_crashed(hosted.detail.child)
 
-    def crash_announced(self, hosted: Hosted) -> bool:
+    def crashed_claimed(self, hosted: Hosted) -> bool:
         """The core has announced the node's death; on_death may not have
         been called yet."""
-        return self._core.crashed_announced(hosted.detail.child)
+        return self._core.crashed_claimed(hosted.detail.child)
 
     def memory(self, hosted: Hosted) -> tuple[int, int] | None:
         """(bytes in use, budget in bytes, 0: none) of the node's process as
@@ -740,7 +740,7 @@ class IsolatedHost:
                     exit_code=death.exit_code or 0,
                     reason=reason,
                     allocator_quarantined=death.alloc_quarantined,
-                    announced=death.announced,
+                    claimed=death.claimed,
                     stopped=death.exit_code == 0 and proc.stop_signal is not None and not death.repaired,
                 ),
             )

@@ -276,7 +276,7 @@ static void reap(struct cg_child *c, int64_t t)
         guard_say_over_budget(c->ctx, c->death_text, CG_DEATH_TEXT);
     memwatch_say(c, c->death_text, CG_DEATH_TEXT);
     uint32_t flags =
-        herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_ANNOUNCED : 0;
+        herald_claim(c, status, code, alloc & CG_ALLOC_QUARANTINED) ? CG_EVF_CLAIMED : 0;
     if (c->oom_in_use)
         flags |= CG_EVF_OUT_OF_MEMORY;
     /* Left a zombie (its pid still ours) for Python's release to reap
