@@ -3,28 +3,7 @@
 The manager decides *what* is loaded; a host decides *where* it runs. The
 thread host spins every node on the container's own executor (single- or
 multi-threaded). The isolated host (``container.isolated.host``) gives each
-node its own clone(CLONE_VM) child. Both take the same calls:
-
-``start(unique_id, cls, args) -> Hosted``
-    build the node, ready to run; raise ``LoadError`` if it cannot be.
-``run(hosted)``
-    let its callbacks run (the manager calls it once it has announced the
-    load, so that they do not compete with that for the GIL).
-``stop(hosted)``
-    stop running it and destroy it.
-``close(hosted_nodes)``
-    stop every one of ``hosted_nodes`` and what the host keeps of its own
-    (container shutdown).
-
-``report_deaths_to(on_death)``
-    the manager, once made, says where a node the host loses on its own (a
-    child that dies) is reported: ``on_death(unique_id, death)``.
-``publish_crashed_with(events)``, ``arm_crashed(hosted, ...)``
-    a host that can may publish a node's CRASHED event itself, on the
-    manager's event publisher, as soon as the node dies; ``on_death`` then
-    says so (``death.claimed``: the host claimed the death). ``disarm_crashed(hosted)`` takes that back
-    (False: too late, the node is dead and announced); ``crashed_claimed``
-    says whether it happened.
+node its own clone(CLONE_VM) child. Both are a :class:`Host`.
 """
 
 from __future__ import annotations
@@ -32,8 +11,9 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from rclpy.node import Node
 
@@ -53,6 +33,62 @@ class Hosted:
     node: Node | None = None  # the node object, where the container holds it
     detail: Any = field(default=None, repr=False)  # host-specific state
     where: str = ""  # how the host runs it, for the load's log line ("profile shared")
+
+
+@dataclass(frozen=True)
+class NodeDeath:
+    """What the manager is told when a node's process dies on its own."""
+
+    pid: int
+    exit_signal: int
+    exit_code: int
+    reason: str
+    allocator_quarantined: bool = False
+    claimed: bool = False  # the host published its CRASHED event (Host.arm_crashed)
+    # It exited with status 0 after an outside SIGTERM or SIGINT (the
+    # container's process group being stopped, say): a clean stop, no crash.
+    stopped: bool = False
+
+
+class Host(Protocol):
+    """What the manager asks of a host."""
+
+    def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
+        """Build the node, ready to run; raise ``LoadError`` if it cannot be."""
+
+    def run(self, hosted: Hosted) -> None:
+        """Let its callbacks run (the manager calls it once it has published
+        the load, so that they do not compete with that for the GIL)."""
+
+    def stop(self, hosted: Hosted) -> None:
+        """Stop running it and destroy it."""
+
+    def close(self, hosted_nodes: Sequence[Hosted]) -> None:
+        """Stop every one of ``hosted_nodes`` and what the host keeps of its
+        own (container shutdown)."""
+
+    def report_deaths_to(self, on_death: Callable[[int, NodeDeath], None]) -> None:
+        """Where a node the host loses on its own (a child that dies) is
+        reported: ``on_death(unique_id, death)``."""
+
+    def publish_crashed_with(self, events) -> None:
+        """A host that can may publish a node's CRASHED event itself, on the
+        manager's event publisher (``events``), as soon as the node dies."""
+
+    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+        """From now on it does so for this node; ``on_death`` then says it
+        did (``death.claimed``)."""
+
+    def disarm_crashed(self, hosted: Hosted) -> bool:
+        """Take that back: False if too late (the node is dead, its CRASHED
+        claimed by the host)."""
+
+    def crashed_claimed(self, hosted: Hosted) -> bool:
+        """Whether the host has claimed the node's death (on_death may not
+        have come yet)."""
+
+    def memory(self, hosted: Hosted) -> tuple[int, int] | None:
+        """(bytes in use, budget) of the node, None where nothing counts it."""
 
 
 class ThreadHost:
@@ -119,7 +155,7 @@ class ThreadHost:
         self._executor.wake()
         turned.wait(timeout)
 
-    def report_deaths_to(self, on_death) -> None:
+    def report_deaths_to(self, on_death: Callable[[int, NodeDeath], None]) -> None:
         """Nothing to report: a node on the container's executor dies only
         with the container."""
 
@@ -139,6 +175,6 @@ class ThreadHost:
         """Nothing counts a node's memory in the container's one process."""
         return None
 
-    def close(self, hosted_nodes) -> None:
+    def close(self, hosted_nodes: Sequence[Hosted]) -> None:
         for hosted in hosted_nodes:
             self.stop(hosted)

@@ -37,7 +37,7 @@ from rclpy.qos import QoSProfile, qos_profile_services_default
 
 from . import diagnostics, events, intra, options, registry, repairs, seams
 from .events import EventPublisher
-from .hosting import Hosted
+from .hosting import Host, Hosted, NodeDeath
 from .options import LoadError
 from .restart import Lineage, RestartPolicy, uptime
 
@@ -115,7 +115,7 @@ class ComponentManager:
     # Requests a service keeps queued while its threads are busy.
     REQUEST_QUEUE = 1000
 
-    def __init__(self, node, host, *, logger=None, restart_limit: int | None = None):
+    def __init__(self, node, host: Host, *, logger=None, restart_limit: int | None = None):
         """``restart_limit``: reload a node whose process died (restart.py),
         at most that many times in a row; None: never."""
         self._node = node
@@ -131,7 +131,7 @@ class ComponentManager:
         # events that name them after their death.
         self._died: OrderedDict[int, _Entry] = OrderedDict()
         self._starting: set[int] = set()  # ids whose host.start() is running
-        self._early_deaths: dict[int, object] = {}  # deaths seen while starting
+        self._early_deaths: dict[int, NodeDeath] = {}  # deaths seen while starting
         self._unanswered = _Unanswered()
         self._builders = ThreadPoolExecutor(self.BUILDERS, thread_name_prefix="cloneguard-build")
         self._restarts = None if restart_limit is None else RestartPolicy(node, self.reload, limit=restart_limit)
@@ -268,7 +268,7 @@ class ComponentManager:
 
     # -- deaths (called by the host, from the core's listener thread) ----------
 
-    def on_death(self, unique_id: int, death) -> None:
+    def on_death(self, unique_id: int, death: NodeDeath) -> None:
         """A node's process died without being unloaded."""
         # First of all: publishers stop queueing to its subscriptions and
         # waking its (dead) executor.
@@ -285,7 +285,7 @@ class ComponentManager:
         if entry is not None:  # None: an unload got there first
             self._report_crash(entry, death)
 
-    def _report_crash(self, entry: _Entry, death) -> None:
+    def _report_crash(self, entry: _Entry, death: NodeDeath) -> None:
         hosted = entry.hosted
         restart = None
         if self._restarts is not None and self._node.context.ok():

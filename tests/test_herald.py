@@ -24,11 +24,10 @@ from ros_support import ros_nodes
 from test_isolated_core import Recorder, blocked_in, wait_sleeping, wait_until
 
 from cloneguard.container import events
-from cloneguard.container.hosting import ThreadHost
+from cloneguard.container.hosting import NodeDeath, ThreadHost
 from cloneguard.container.isolated._clonecore import ffi, lib
 from cloneguard.container.isolated.core import CloneCore
 from cloneguard.container.isolated.core_events import Repair
-from cloneguard.container.isolated.host import NodeDeath
 from cloneguard.container.manager import ComponentManager
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.client import HarnessTimeout

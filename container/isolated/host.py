@@ -56,7 +56,7 @@ from rclpy.executors import (
 from rclpy.signals import SignalHandlerOptions
 
 from .. import construction, intra, processes, repairs
-from ..hosting import Hosted
+from ..hosting import Hosted, NodeDeath
 from ..memory_budget import MEMORY_LIMIT
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
@@ -82,21 +82,6 @@ FAILED_EXIT_TIMEOUT_S = 5.0
 
 # The one-byte words a child (or the monitor) posts on a handoff.
 READY, FAILED, DIED = b"R", b"F", b"D"
-
-
-@dataclass(frozen=True)
-class NodeDeath:
-    """What the manager is told when a node's process dies on its own."""
-
-    pid: int
-    exit_signal: int
-    exit_code: int
-    reason: str
-    allocator_quarantined: bool = False
-    claimed: bool = False  # its CRASHED event is out already (arm_crashed)
-    # It exited with status 0 after an outside SIGTERM or SIGINT (the
-    # container's process group being stopped, say): a clean stop, no crash.
-    stopped: bool = False
 
 
 class _Handoff:
