@@ -178,3 +178,6 @@ class ThreadHost:
     def close(self, hosted_nodes: Sequence[Hosted]) -> None:
         for hosted in hosted_nodes:
             self.stop(hosted)
+
+
+_THREAD_HOST_IS_A_HOST: type[Host] = ThreadHost  # mypy holds it to the protocol

@@ -56,7 +56,7 @@ from rclpy.executors import (
 from rclpy.signals import SignalHandlerOptions
 
 from .. import construction, intra, processes, repairs
-from ..hosting import Hosted, NodeDeath
+from ..hosting import Host, Hosted, NodeDeath
 from ..memory_budget import MEMORY_LIMIT
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
@@ -811,3 +811,6 @@ def _describe(death: Death | None) -> str:
     elif death.core_missing:
         what += f"; no core dump: {death.core_missing}"
     return what
+
+
+_ISOLATED_HOST_IS_A_HOST: type[Host] = IsolatedHost  # mypy holds it to the protocol
