@@ -659,10 +659,8 @@ OOM_WATCH_MARGIN = 64 * MiB
 #: faults::MemoryLeak's kinds, and their parameters here: a leak is fast (the
 #: quick runs fill a 512 MiB container in about a second) and for ever
 #: (steps 0); "huge" is one allocation of 1.5 times what the container may
-#: use. Not more: under --jemalloc with the allocator guard a node's malloc of
-#: more than 896 MiB returns NULL (its slot's range is made into extents of
-#: at most 1 GiB when the slot is made: allocguard.c, make_address_map), so a
-#: bigger one would leak nothing.
+#: use (under --jemalloc with the allocator guard a node's block can be up to
+#: 4 GiB: allocguard.c, make_address_map).
 OOM_LEAKS = {
     "python": {"kind": "python", "step": 4 * MiB, "period": 0.005},
     "malloc": {"kind": "native", "step": 8 * MiB, "period": 0.005},
