@@ -67,8 +67,10 @@ mount -t cgroup2 cgroup2 /mnt/sys/fs/cgroup 2>/dev/null
 ip link set lo up; ip link set lo multicast on; ip route add 224.0.0.0/4 dev lo
 hostname pku-vm
 # Everything runs tens of times slower: a container may take over a minute to
-# answer its first ListNodes (harness/factory.py).
+# answer its first ListNodes (harness/factory.py), and a test of 60 loads
+# in a row (tests/test_heap_keys.py) takes ~220 s, past pytest's 120 s.
 export CLONEGUARD_READY_TIMEOUT=120
+export PYTEST_ADDOPTS="-o timeout=900"
 chroot /mnt /bin/bash -lc "\$(cat /command)"
 echo "pku-vm: exit status \$?"
 sync; poweroff -f
