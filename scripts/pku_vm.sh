@@ -15,8 +15,8 @@
 #   scripts/pku_vm.sh 'cd /work/main && .venv/bin/python -m pytest tests/test_heap_keys.py'
 #
 # Environment: PKU_VM_MEM (default 8G), PKU_VM_CPUS (default: this machine's),
-# PKU_VM_SNAPSHOT=DIR: the guest runs on a copy of checkout DIR taken as it
-# boots (all but DIR/.venv and DIR/reports, which stay this machine's), so
+# PKU_VM_SNAPSHOT=DIR: the guest runs on a copy of checkout DIR taken before
+# it boots (all but DIR/.venv and DIR/reports, which stay this machine's), so
 # that a run of an hour is not changed by editing DIR meanwhile.
 set -euo pipefail
 
@@ -44,13 +44,20 @@ for m in $order; do
     case $src in *.xz) xz -dc "$src" > "$root/modules/$(basename "$m").ko" ;;
                  *) cp "$src" "$root/modules/" ;; esac
 done
+if [[ -n ${PKU_VM_SNAPSHOT:-} ]]; then
+    # Copied here, before the guest boots: on the host it takes seconds, in
+    # the guest (over 9p) minutes during which an edit could tear the copy.
+    snap=$(realpath "$PKU_VM_SNAPSHOT")
+    copy=$(mktemp -d /var/tmp/pku-vm-snapshot.XXXXXX)
+    trap 'rm -rf "$work" "$copy"' EXIT
+    tar -C "$snap" --exclude=./.venv --exclude=./reports -cf - . | tar -C "$copy" -xf -
+    mkdir -p "$copy/.venv" "$copy/reports"
+fi
 {
     if [[ -n ${PKU_VM_SNAPSHOT:-} ]]; then
-        snap=$(realpath "$PKU_VM_SNAPSHOT")
-        printf 'mkdir -p /tmp/snapshot/.venv /tmp/snapshot/reports\n'
-        printf 'tar -C %q --exclude=./.venv --exclude=./reports -cf - . | tar -C /tmp/snapshot -xf - || exit 1\n' "$snap"
-        printf 'mount --bind %q /tmp/snapshot/.venv && mount --bind %q /tmp/snapshot/reports\n' "$snap/.venv" "$snap/reports"
-        printf 'mount --rbind /tmp/snapshot %q || exit 1\n' "$snap"
+        printf 'mount --bind %q %q && mount --bind %q %q || exit 1\n' \
+            "$snap/.venv" "$copy/.venv" "$snap/reports" "$copy/reports"
+        printf 'mount --rbind %q %q || exit 1\n' "$copy" "$snap"
     fi
     printf '%s\n' "$1"
 } > "$root/command"
