@@ -21,12 +21,17 @@ MODES = {
         "isolated, shared, 1 node in 10 per-node",
         ["--isolated", "--profile", "shared", "--profile-for", "/hb*0=per-node"],
     ),
+    # The default profile on the allocator that is not the default.
+    "isolated-shared-glibc": (
+        "isolated, shared profile, glibc malloc",
+        ["--isolated", "--profile", "shared", "--allocator", "glibc"],
+    ),
     "thread": ("thread mode (single-threaded executor)", []),
     "thread-mt": ("thread mode (multi-threaded executor)", ["--use_multi_threaded_executor"]),
     # What memory protection keys cost, side by side with the same allocator
     # without them (named with --modes only; --pkeys needs a CPU with PKU).
-    "isolated-jemalloc": ("isolated, per-node, jemalloc, --no-pkeys", ["--isolated", "--jemalloc", "--no-pkeys"]),
-    "isolated-pkeys": ("isolated, per-node, jemalloc, --pkeys", ["--isolated", "--jemalloc", "--pkeys"]),
+    "isolated-jemalloc": ("isolated, jemalloc, --no-pkeys", ["--isolated", "--jemalloc", "--no-pkeys"]),
+    "isolated-pkeys": ("isolated, jemalloc, --pkeys", ["--isolated", "--jemalloc", "--pkeys"]),
 }
 #: the modes every benchmark that takes --modes can run by default
 EVERYDAY_MODES = ["isolated-per-node", "isolated-shared", "thread", "thread-mt"]

@@ -337,7 +337,9 @@ def _growth_table(data: dict, lo: int, hi: int, modes) -> Table:
 def main(argv=None) -> int:
     parser = arg_parser(NAME, __doc__.split("\n\n")[0])
     parser.add_argument("--counts", type=int, nargs="+", default=[12, 24, 48], help="node counts (default 12 24 48)")
-    parser.add_argument("--modes", nargs="+", default=DEFAULT_MODES, choices=DEFAULT_MODES + ["thread-mt"])
+    parser.add_argument(
+        "--modes", nargs="+", default=DEFAULT_MODES, choices=[*DEFAULT_MODES, "thread-mt", "isolated-shared-glibc"]
+    )
     parser.add_argument("--settle", type=float, default=SETTLE_S, help="s after the last load before measuring")
     parser.add_argument("--idle", type=float, default=10.0, help="s of idle over which CPU is measured")
     parser.add_argument(

@@ -53,6 +53,11 @@ OWN_ARENAS_MAX = 4096
 MMAP_THRESHOLD = 128 * 1024
 
 
+#: The allocators --allocator names.
+ALLOCATORS = ("jemalloc", "glibc")
+JEMALLOC_MISSING = "libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)"
+
+
 class AllocatorUnavailable(RuntimeError):
     pass
 
@@ -155,7 +160,7 @@ def ensure_preloaded(
     if jemalloc and not jemalloc_active():
         path = jemalloc_path()
         if path is None:
-            raise AllocatorUnavailable("libjemalloc.so.2 not found (Debian: apt-get install libjemalloc2)")
+            raise AllocatorUnavailable(JEMALLOC_MISSING)
         missing.append(path)
     if python_locks and not locks.installed():
         missing.append("Python's lock types (isolated/boot.py)")

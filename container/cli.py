@@ -165,6 +165,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     opts = parser.parse_args(argv)
     given = {arg.split("=", 1)[0] for arg in argv if arg.startswith("--")}
     _check_isolated(parser, opts, given, isolated.flags)
+    _choose_allocator(parser, opts, given)
     _check_combinations(parser, opts, given)
     return opts
 
@@ -183,9 +184,19 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
         help="run each loaded node's executor in its own clone(CLONE_VM) process",
     )
     parser.add_argument(
+        "--allocator",
+        choices=allocator.ALLOCATORS,
+        default=None,
+        help="the malloc the container runs on; jemalloc re-executes it with Debian's libjemalloc2 "
+        "preloaded (default: jemalloc in isolated mode wherever libjemalloc2 is installed, since only "
+        "there can node heaps be under protection keys; glibc otherwise and in thread mode)",
+    )
+    parser.add_argument(
         "--jemalloc",
-        action="store_true",
-        help="run on jemalloc (re-executes with Debian's libjemalloc2 preloaded)",
+        dest="allocator",
+        action="store_const",
+        const="jemalloc",
+        help="--allocator jemalloc",
     )
     parser.add_argument(
         "--watchdog",
@@ -299,7 +310,7 @@ def _add_isolated_options(isolated: _IsolatedOptions) -> None:
         "--jemalloc-arenas",
         choices=("own", "auto"),
         default="own",
-        help="with --jemalloc and --no-alloc-guard: 'own' binds each node's process to an "
+        help="with jemalloc and --no-alloc-guard: 'own' binds each node's process to an "
         "arena of its own, 'auto' leaves the choice to jemalloc (the guard always gives "
         "each its own) (default: %(default)s)",
     )
@@ -310,8 +321,8 @@ def _add_isolated_options(isolated: _IsolatedOptions) -> None:
         default=None,
         help="each node process's native heap under a memory protection key of its own, writable "
         "by it and the container only, so that a stray write into another node's heap kills the "
-        "writer before it lands; needs --jemalloc and the allocator guard (default: on wherever "
-        "they can be: --jemalloc, the guard, and a CPU and kernel with keys; asked for "
+        "writer before it lands; needs jemalloc and the allocator guard (default: on wherever "
+        "they can be: jemalloc, the guard, and a CPU and kernel with keys; asked for "
         "explicitly, refused where they cannot be)",
     )
     isolated.add_argument(
@@ -348,6 +359,24 @@ def _check_isolated(
         opts.node_announcement = NODE_ANNOUNCEMENT_S if opts.isolated else 0.0
 
 
+def _choose_allocator(parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str]) -> None:
+    """opts.allocator as asked, else the mode's default; opts.jemalloc says
+    which, and opts.allocator_why why an isolated container is on glibc by
+    default (None where it is not)."""
+    if "--jemalloc" in given and "--allocator" in given:
+        parser.error("--jemalloc is --allocator jemalloc: one or the other")
+    opts.allocator_why = None
+    if opts.allocator is None:
+        if not opts.isolated:
+            opts.allocator = "glibc"
+        elif allocator.jemalloc_path() is None:
+            opts.allocator = "glibc"
+            opts.allocator_why = f"{allocator.JEMALLOC_MISSING}, so node heaps are without protection keys"
+        else:
+            opts.allocator = "jemalloc"
+    opts.jemalloc = opts.allocator == "jemalloc"
+
+
 def _check_combinations(parser: argparse.ArgumentParser, opts: argparse.Namespace, given: set[str]) -> None:
     """Combinations refused: an option that needs another, or one its other contradicts."""
     if opts.node_memory_limit and opts.no_alloc_guard:
@@ -363,14 +392,14 @@ def _check_combinations(parser: argparse.ArgumentParser, opts: argparse.Namespac
         parser.error("--restart-limit needs --restart-policy on-crash")
     if "--jemalloc-arenas" in given and not (opts.jemalloc and opts.no_alloc_guard):
         parser.error(
-            "--jemalloc-arenas needs --jemalloc and --no-alloc-guard (the allocator guard "
+            "--jemalloc-arenas needs jemalloc and --no-alloc-guard (the allocator guard "
             "gives every node process an arena of its own)"
         )
     if "--pkeys" in given and "--no-pkeys" in given:
         parser.error("--pkeys and --no-pkeys: one or the other")
     if opts.pkeys and not (opts.jemalloc and not opts.no_alloc_guard):
         parser.error(
-            "--pkeys needs --jemalloc and the allocator guard (the keys tag the ranges the "
+            "--pkeys needs jemalloc and the allocator guard (the keys tag the ranges the "
             "guard's jemalloc arenas carve each node's heap from)"
         )
     if opts.core_dumps is not None and opts.no_crash_report:
@@ -379,7 +408,7 @@ def _check_combinations(parser: argparse.ArgumentParser, opts: argparse.Namespac
         parser.error("--no-python-pools means nothing with --no-alloc-guard (the pools are the guard's)")
     if opts.shared_arenas and (opts.jemalloc or not opts.no_alloc_guard):
         parser.error(
-            "--shared-arenas needs glibc malloc and --no-alloc-guard (the allocator guard "
+            "--shared-arenas needs --allocator glibc and --no-alloc-guard (the allocator guard "
             "gives every node process an arena of its own)"
         )
 
@@ -445,6 +474,9 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
             why = "--no-pkeys"
         elif opts.no_alloc_guard:
             why = "--no-alloc-guard: the keys tag the ranges the guard's arenas carve node heaps from"
+        elif opts.allocator_why:  # the default fell back to glibc: said louder than a choice
+            logger.warning(f"glibc malloc: {opts.allocator_why}")
+            return
         else:
             why = pkeys.cpu_lacks_keys() or pkeys.NEEDS_JEMALLOC
         logger.info(f"memory protection keys over node heaps: off ({why})")
@@ -458,7 +490,7 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
         if opts.pkeys:
             raise SystemExit(f"component_container: --pkeys is unavailable here: {broken}")
         raise SystemExit(
-            "component_container: protection keys over node heaps (the default with --jemalloc) cannot "
+            "component_container: protection keys over node heaps (the default on jemalloc) cannot "
             f"be had here: {broken}; --no-pkeys runs without them"
         )
     logger.info(pkeys.heap_keys_describe())

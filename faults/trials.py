@@ -137,13 +137,14 @@ def _kill_when_firing(
     return rig.judge_death(resp.unique_id, pid, signal_expected=signal.SIGKILL, fault_ns=sent)
 
 
-# Container arguments of the allocator set-ups the malloc faults run under:
+# Container arguments of the allocator set-ups the memory faults run under,
+# each named, never left to the default (jemalloc where it is installed):
 # guarded (the default in isolated mode) and, as baselines, unguarded.
 MALLOC_ALLOCATORS = {
-    "glibc": [],
-    "jemalloc": ["--jemalloc"],
-    "glibc-unguarded": ["--no-alloc-guard"],
-    "jemalloc-own-unguarded": ["--no-alloc-guard", "--jemalloc", "--jemalloc-arenas", "own"],
+    "glibc": ["--allocator", "glibc"],
+    "jemalloc": ["--allocator", "jemalloc"],
+    "glibc-unguarded": ["--allocator", "glibc", "--no-alloc-guard"],
+    "jemalloc-own-unguarded": ["--allocator", "jemalloc", "--no-alloc-guard", "--jemalloc-arenas", "own"],
 }
 
 
@@ -659,7 +660,7 @@ OOM_WATCH_MARGIN = 64 * MiB
 #: faults::MemoryLeak's kinds, and their parameters here: a leak is fast (the
 #: quick runs fill a 512 MiB container in about a second) and for ever
 #: (steps 0); "huge" is one allocation of 1.5 times what the container may
-#: use (under --jemalloc with the allocator guard a node's block can be up to
+#: use (on jemalloc with the allocator guard a node's block can be up to
 #: 4 GiB: allocguard.c, make_address_map).
 OOM_LEAKS = {
     "python": {"kind": "python", "step": 4 * MiB, "period": 0.005},

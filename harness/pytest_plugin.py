@@ -74,7 +74,7 @@ def pytest_addoption(parser):
         action="append",
         default=[],
         metavar="ARG",
-        help="one more argument for every System's container (repeat it; --container-arg=--jemalloc)",
+        help="one more argument for every System's container (repeat it; --container-arg=--allocator=glibc)",
     )
     group.addoption(
         "--hold-failed",

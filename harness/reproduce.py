@@ -78,7 +78,7 @@ def add_parser(subparsers) -> None:
         "--allocator",
         choices=sorted(allocators),
         default=None,
-        help="a rig fault's allocator set-up (default: glibc, guarded)",
+        help="a rig fault's allocator set-up (default: the container's own, guarded)",
     )
     p.add_argument(
         "--container-arg",
@@ -130,7 +130,6 @@ def run(args) -> int:
         yours = ", ".join(named_faults.names()) or f"none is declared in {named_faults.GROUP}"
         raise SystemExit(f"no fault {args.fault!r}: the rig's are {', '.join(sorted(faults))}; yours: {yours}")
     args.profile = args.profile or "per-node"
-    args.allocator = args.allocator or "glibc"
     use_loopback_ros()
     log_dir = Path(tempfile.mkdtemp(prefix="cloneguard-reproduce-"))
     print(f"logs: {log_dir} (kept if a trial does not survive)", flush=True)
@@ -140,7 +139,7 @@ def run(args) -> int:
         factory = ContainerFactory(lease.domain_id, log_dir, exe=args.container_exe)
         try:
             try:
-                rig = Rig(factory, args.profile, extra_args=allocators[args.allocator])
+                rig = Rig(factory, args.profile, extra_args=allocators[args.allocator] if args.allocator else [])
                 fault = faults[args.fault](rig)
             except MemoryCgroupUnavailable as why:  # an out-of-memory fault's rig: never without a limit
                 raise SystemExit(f"{args.fault} needs a memory cgroup, and none can be made here: {why}") from None

@@ -11,7 +11,7 @@ owner's next take-back): the faulty node dies, the owner goes on.
 
 import pytest
 
-from cloneguard.faults.trials import FAULTS
+from cloneguard.faults.trials import FAULTS, MALLOC_ALLOCATORS
 from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
 
@@ -34,8 +34,7 @@ def test_a_double_free_of_another_nodes_block_kills_the_freer_alone(
         "(SIGABRT, the allocator guard's double-free check) and the block's owner goes on, its "
         "heap intact",
     )
-    extra = ("--jemalloc",) if allocator == "jemalloc" else ()
-    trials = FAULTS[FAULT](rig_factory(profile, extra_args=extra))
+    trials = FAULTS[FAULT](rig_factory(profile, extra_args=MALLOC_ALLOCATORS[allocator]))
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)

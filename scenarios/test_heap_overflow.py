@@ -9,7 +9,7 @@ corrupted, and every other node and the container go on untouched.
 
 import pytest
 
-from cloneguard.faults.trials import FAULTS
+from cloneguard.faults.trials import FAULTS, MALLOC_ALLOCATORS
 from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
 
@@ -27,8 +27,7 @@ def test_an_overflow_of_a_nodes_own_heap_stays_in_that_node(profile, allocator, 
         claim="a node that overflows a block of its own heap by 4 KiB and goes on allocating harms "
         "nothing but itself: another node's buffer stays intact, it and the container go on",
     )
-    extra = ("--jemalloc",) if allocator == "jemalloc" else ()
-    trials = FAULTS[FAULT](rig_factory(profile, extra_args=extra))
+    trials = FAULTS[FAULT](rig_factory(profile, extra_args=MALLOC_ALLOCATORS[allocator]))
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)

@@ -34,7 +34,7 @@ from collections import Counter
 
 import pytest
 
-from cloneguard.faults.trials import FAULTS, OOM_BUDGET, OOM_CGROUP_LIMIT, MiB
+from cloneguard.faults.trials import FAULTS, MALLOC_ALLOCATORS, OOM_BUDGET, OOM_CGROUP_LIMIT, MiB
 from cloneguard.harness.memory_cgroup import MemoryCgroupUnavailable
 from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
@@ -44,10 +44,10 @@ WATCH = "out-of-memory/container-full"
 # Every leak ended alone (deep: 99%; quick runs: all 3).
 FLOOR = 0.99
 ROWS = {
-    "per-node/glibc": ("per-node", []),
-    "shared/glibc": ("shared", []),
-    "per-node/jemalloc": ("per-node", ["--jemalloc"]),
-    "shared/jemalloc": ("shared", ["--jemalloc"]),
+    f"{profile}/{name}": (profile, args)
+    for name, args in MALLOC_ALLOCATORS.items()
+    if name in ("glibc", "jemalloc")
+    for profile in ("per-node", "shared")
 }
 CLAIMS = {
     BUDGET: f"a node leaking past its own budget ({OOM_BUDGET // MiB} MiB, cloneguard.memory_limit) while the "

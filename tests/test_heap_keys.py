@@ -15,7 +15,7 @@ from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness.skips import heap_keys_missing
 
 KEYS = ["--isolated", "--jemalloc", "--pkeys"]
-NO_KEYS = ["--isolated", "--jemalloc", "--no-pkeys"]  # they are on by default with --jemalloc
+NO_KEYS = ["--isolated", "--jemalloc", "--no-pkeys"]  # they are on by default on jemalloc
 MISSING = heap_keys_missing()
 needs_keys = pytest.mark.skipif(MISSING is not None, reason=f"--pkeys: {MISSING}")
 
@@ -27,11 +27,12 @@ def test_pkeys_is_refused_where_there_are_none(container_factory):
     assert "--pkeys is unavailable here: the CPU or kernel has no memory protection keys" in proc.log_text()
 
 
-def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(container_factory):
-    """No flag: with --jemalloc and the guard, keys wherever the CPU and
-    kernel have them (a wild write is caught); elsewhere the log says they
-    are off and why, and the container serves as before."""
-    proc = container_factory.start(["--isolated", "--jemalloc"])
+def test_keys_are_on_by_default_wherever_the_cpu_has_them(container_factory):
+    """No flag: jemalloc and the guard, the isolated defaults, and keys
+    wherever the CPU and kernel have them (a wild write is caught);
+    elsewhere the log says they are off and why, and the container serves
+    as before."""
+    proc = container_factory.start(["--isolated"])
     client = container_factory.connect(proc)
     victim = client.load_ok(TESTRIG, "faults::HeapVictim")
     log = proc.log_text()
@@ -52,7 +53,10 @@ def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(containe
 @pytest.mark.parametrize(
     ("args", "why"),
     [
-        (["--isolated"], "node heaps are keyed on jemalloc only (--jemalloc)"),
+        (
+            ["--isolated", "--allocator", "glibc"],
+            "node heaps are keyed on jemalloc only (the default; not --allocator glibc)",
+        ),
         (NO_KEYS, "--no-pkeys"),
         (["--isolated", "--jemalloc", "--no-alloc-guard"], "--no-alloc-guard"),
     ],
@@ -61,7 +65,7 @@ def test_keys_are_on_by_default_with_jemalloc_wherever_the_cpu_has_them(containe
 def test_the_log_says_why_keys_are_off(args, why, container_factory):
     proc = container_factory.start(args)
     container_factory.connect(proc).load_ok(TESTRIG, "faults::HeapVictim")
-    if args == ["--isolated"] and MISSING is not None:  # the CPU's reason comes first
+    if "glibc" in args and MISSING is not None:  # the CPU's reason comes first
         why = "the CPU has no memory protection keys"
     assert f"memory protection keys over node heaps: off ({why}" in proc.log_text()
 

@@ -253,20 +253,25 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
 @pytest.mark.parametrize(
     "args, needs",
     [
-        (["--isolated", "--shared-arenas"], "--shared-arenas needs glibc malloc and --no-alloc-guard"),
+        (
+            ["--isolated", "--allocator", "glibc", "--shared-arenas"],
+            "--shared-arenas needs --allocator glibc and --no-alloc-guard",
+        ),
         (
             ["--isolated", "--shared-arenas", "--no-alloc-guard", "--jemalloc"],
-            "--shared-arenas needs glibc malloc and --no-alloc-guard",
+            "--shared-arenas needs --allocator glibc and --no-alloc-guard",
         ),
-        (["--isolated", "--jemalloc-arenas", "own"], "--jemalloc-arenas needs --jemalloc and --no-alloc-guard"),
+        (["--isolated", "--jemalloc-arenas", "own"], "--jemalloc-arenas needs jemalloc and --no-alloc-guard"),
         (
             ["--isolated", "--jemalloc", "--jemalloc-arenas=auto"],
-            "--jemalloc-arenas needs --jemalloc and --no-alloc-guard",
+            "--jemalloc-arenas needs jemalloc and --no-alloc-guard",
         ),
         (
-            ["--isolated", "--no-alloc-guard", "--jemalloc-arenas", "auto"],
-            "--jemalloc-arenas needs --jemalloc and --no-alloc-guard",
+            ["--isolated", "--allocator", "glibc", "--no-alloc-guard", "--jemalloc-arenas", "auto"],
+            "--jemalloc-arenas needs jemalloc and --no-alloc-guard",
         ),
+        (["--isolated", "--allocator", "glibc", "--jemalloc"], "--jemalloc is --allocator jemalloc: one or the other"),
+        (["--isolated", "--allocator", "tcmalloc"], "argument --allocator: invalid choice: 'tcmalloc'"),
         (["--isolated", "--restart-limit", "3"], "--restart-limit needs --restart-policy on-crash"),
         (
             ["--isolated", "--restart-policy", "on-crash", "--restart-limit", "0"],
@@ -275,7 +280,7 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
         (["--isolated", "--node-announcement", "0.001"], "argument --node-announcement: must be 0"),
         (["--isolated", "--node-announcement", "nan"], "argument --node-announcement: must be 0"),
         (["--isolated", "--jemalloc", "--pkeys", "--no-pkeys"], "--pkeys and --no-pkeys: one or the other"),
-        (["--isolated", "--pkeys"], "--pkeys needs --jemalloc and the allocator guard"),
+        (["--isolated", "--allocator", "glibc", "--pkeys"], "--pkeys needs jemalloc and the allocator guard"),
     ],
     ids=[
         "shared-arenas-guarded",
@@ -283,6 +288,8 @@ def test_an_isolated_only_option_without_isolated_is_refused_in_one_line(args):
         "arenas-guarded",
         "arenas-jemalloc-guarded",
         "arenas-glibc",
+        "jemalloc-and-glibc",
+        "allocator-unknown",
         "restart-limit-alone",
         "restart-limit-0",
         "announcement-too-short",

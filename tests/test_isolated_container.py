@@ -10,6 +10,7 @@ from cloneguard_interfaces.msg import ComponentEvent
 from cloneguard_interfaces.srv import Echo
 from std_msgs.msg import String, UInt64
 
+from cloneguard.container import allocator
 from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import procfs
 
@@ -248,9 +249,9 @@ def test_an_outside_sigterm_stops_a_node_cleanly(client, container):
 @pytest.mark.parametrize(
     "container_args, per_task, guard",
     [
-        (["--isolated"], True, True),
-        (["--isolated", "--no-alloc-guard"], True, False),
-        (["--isolated", "--shared-arenas", "--no-alloc-guard"], False, False),
+        (["--isolated", "--allocator", "glibc"], True, True),
+        (["--isolated", "--allocator", "glibc", "--no-alloc-guard"], True, False),
+        (["--isolated", "--allocator", "glibc", "--shared-arenas", "--no-alloc-guard"], False, False),
         ([], False, False),
     ],
 )
@@ -261,6 +262,30 @@ def test_isolated_mode_gives_each_task_a_glibc_arena(client, container, per_task
     line = container.wait_for_log(r".* ready \(.*", timeout=10).group(0)
     assert ("glibc malloc, an arena per task" in line) == per_task, line
     assert ("allocator guard" in line) == guard, line
+
+
+def test_an_isolated_container_runs_on_jemalloc_by_default(container_factory):
+    # Installed by scripts/setup.sh: where it is not, the next test's rule applies.
+    assert allocator.jemalloc_path() is not None
+    proc = container_factory.start(["--isolated"])
+    container_factory.connect(proc)
+    line = proc.wait_for_log(r".* ready \(.*", timeout=10).group(0)
+    assert "jemalloc 5." in line and "allocator guard" in line, line
+
+
+def test_without_libjemalloc2_an_isolated_container_chooses_glibc_and_says_why(monkeypatch):
+    from cloneguard.container import cli
+
+    monkeypatch.setattr(allocator, "jemalloc_path", lambda: None)
+    opts = cli.parse_args(["--isolated"])
+    assert (opts.allocator, opts.jemalloc) == ("glibc", False)
+    assert opts.allocator_why.startswith(allocator.JEMALLOC_MISSING)
+    for asked in (["--isolated", "--allocator", "glibc"], []):  # chosen, or thread mode's default: no warning
+        opts = cli.parse_args(asked)
+        assert (opts.allocator, opts.allocator_why) == ("glibc", None)
+    monkeypatch.undo()
+    assert cli.parse_args(["--isolated"]).allocator == "jemalloc"
+    assert cli.parse_args(["--isolated", "--jemalloc"]).allocator == "jemalloc"
 
 
 def test_a_handoff_waits_on_descriptors_past_select_limit():

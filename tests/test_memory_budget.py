@@ -58,8 +58,9 @@ OVER = re.compile(
     [("bytes", 8 * MiB), ("native", 8 * MiB), ("python", 2 * MiB)],
     ids=["bytearray", "malloc", "python-objects"],
 )
-@pytest.mark.parametrize("args", [["--isolated", "--profile", "per-node"], ["--isolated"], ["--isolated", "--jemalloc"],
-                                  ["--isolated", "--profile", "per-node", "--jemalloc"]],
+@pytest.mark.parametrize("args", [["--isolated", "--profile", "per-node", "--allocator", "glibc"],
+                                  ["--isolated", "--allocator", "glibc"], ["--isolated", "--allocator", "jemalloc"],
+                                  ["--isolated", "--profile", "per-node", "--allocator", "jemalloc"]],
                          ids=["per-node", "shared", "jemalloc", "jemalloc-per-node"])  # fmt: skip
 def test_a_leaking_node_is_ended_alone_at_its_budget(limited, args, kind, step):
     robot = limited([ODOMETRY, _leak(kind, step)], [*args, "--node-memory-limit", f"{BUDGET // MiB}M"])
@@ -93,10 +94,10 @@ def test_a_nodes_own_budget_wins_over_the_containers(limited):
     assert robot.alive()
 
 
-@pytest.mark.parametrize("args", [["--isolated"], ["--isolated", "--jemalloc"]], ids=["glibc", "jemalloc"])
-def test_a_leak_whose_malloc_fails_counts_nothing(system_factory, args):
+@pytest.mark.parametrize("allocator", ["glibc", "jemalloc"])
+def test_a_leak_whose_malloc_fails_counts_nothing(system_factory, allocator):
     # 2**60 bytes: no allocator can give them; no memory is used.
-    robot = system_factory([ODOMETRY, _leak("huge", 1 << 60)], args)
+    robot = system_factory([ODOMETRY, _leak("huge", 1 << 60)], ["--isolated", "--allocator", allocator])
     held = robot.topic(UInt64, f"{LEAK}/held")
     robot.proc.wait_for_log(rf"\[memory_leak\]: malloc\({1 << 60}\) returned NULL: this step leaked nothing", 10)
     assert len(held) == 0 and robot.alive()

@@ -63,7 +63,9 @@ def _ended_by_the_watch(robot, name: str) -> re.Match:
     [("bytes", 8 * MiB), ("native", 8 * MiB), ("python", 2 * MiB)],
     ids=["bytearray", "malloc", "python-objects"],
 )
-@pytest.mark.parametrize("args", [["--isolated"], ["--isolated", "--profile", "shared"], ["--isolated", "--jemalloc"]],
+@pytest.mark.parametrize("args", [["--isolated", "--profile", "per-node", "--allocator", "glibc"],
+                                  ["--isolated", "--profile", "shared", "--allocator", "glibc"],
+                                  ["--isolated", "--allocator", "jemalloc"]],
                          ids=["per-node", "shared", "jemalloc"])  # fmt: skip
 def test_a_leak_that_would_fill_the_container_ends_the_leaking_node_alone(limited, args, kind, step):
     robot = limited([ODOMETRY, _memory_node("leak", kind, step)], args)

@@ -89,8 +89,9 @@ def probe() -> Support:
 # that writes them (Fast DDS's payload pools, rclpy's registry: the isolated
 # README).
 NEEDS_JEMALLOC = (
-    "node heaps are keyed on jemalloc only (--jemalloc): glibc picks an arena per thread, not per "
-    "call, so what the ROS stack allocates in a node process could not stay writable by every node"
+    "node heaps are keyed on jemalloc only (the default; not --allocator glibc): glibc picks an "
+    "arena per thread, not per call, so what the ROS stack allocates in a node process could not "
+    "stay writable by every node"
 )
 
 

@@ -222,8 +222,8 @@ def _header(report: Report) -> str:
     if host.get("cpu_usable") and host.get("cpu_usable") != host.get("cpu_count"):
         cpu_line += f" ({e(host['cpu_usable'])} usable)"
     cpu_line += (
-        "; PKU yes (with --jemalloc, unless --no-pkeys, each live node process writes its heap under a key "
-        "of its own, up to 14; "
+        "; PKU yes (on jemalloc, the isolated default, unless --no-pkeys, each live node process writes its heap "
+        "under a key of its own, up to 14; "
         "past 14, nodes share keys and are not protected from those they share with; the 15th key is the "
         "container's own, over its allocator tables)"
         if host.get("pku")
