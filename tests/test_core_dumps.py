@@ -15,8 +15,9 @@ import time
 
 import pytest
 from gil_waiters import Counter, signal_while_gil_held, spawn_busy
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, UInt64
 
+from cloneguard.faults import PACKAGE as TESTRIG
 from cloneguard.harness import procfs
 from cloneguard.harness.system import NodeSpec, longest_gap
 
@@ -28,6 +29,7 @@ ROBOT = [
 ]
 CONTAINER = os.path.join(sys.prefix, "bin", "component_container")
 ET_CORE = 4
+MiB = 1 << 20
 
 
 def _is_core_file(path) -> bool:
@@ -54,6 +56,35 @@ def test_a_crashing_node_is_dumped_under_its_name_and_the_rest_goes_on(system_fa
     odom.wait_count(len(odom) + 50, timeout=10)
     assert longest_gap(odom, at) < 0.5  # odometry never waited for the dump
     assert robot.alive()
+
+
+@pytest.mark.parametrize("allocator", ["jemalloc", "glibc"])
+def test_a_dump_holds_the_nodes_heap_and_not_the_untouched_reservation(system_factory, tmp_path, allocator):
+    # The node mallocs 4 blocks of 1 MiB and fills them with 0x01 bytes
+    # (faults::MemoryLeak, native): its heap, in its slot's range under
+    # jemalloc, must be in its dump; the guard's TiBs of reserved address
+    # space must not (allocguard.c cga_dump_exclude).
+    dumps = tmp_path / "dumps"
+    leak = NodeSpec(
+        TESTRIG,
+        "faults::MemoryLeak",
+        name="filled",
+        parameters={"kind": "native", "step": MiB, "steps": 4, "period": 0.01},
+    )
+    robot = system_factory([leak], ["--isolated", "--allocator", allocator, "--core-dumps", str(dumps)])
+    robot.topic(UInt64, "/filled/held").wait_for(lambda m: m.data == 4 * MiB, 15, "4 MiB held")
+    pid = robot.node("/filled").pid
+    robot.kill("/filled", signal.SIGSEGV)
+    robot.wait_crashed("/filled", timeout=120)
+    dump = dumps / f"core.filled.{pid}"
+    assert _is_core_file(dump)
+    assert dump.stat().st_size < 64 << 30  # the container's mappings, not the reservation
+    run = b"\x01" * (256 << 10)
+    with open(dump, "rb") as f:
+        found, tail = False, b""
+        while not found and (chunk := f.read(64 << 20)):
+            found, tail = run in tail + chunk, chunk[-len(run) :]
+    assert found, "the node's filled blocks are not in its dump"
 
 
 def _gdb_reads(dump, pid: int) -> None:

@@ -1312,6 +1312,75 @@ static void make_address_map(unsigned arena, size_t span)
 }
 
 /* ---------------------------------------------------------------------- */
+/* --core-dumps (core_dumps.py): what to leave out of a dump.
+ *
+ * gdb writes every mapping it can read, and reads even the PROT_NONE
+ * reservation jemalloc's slots carve from (16 GiB a slot, for every slot
+ * the container could have: TiBs), and under jemalloc every made slot's
+ * range is readable once its address map is made: a dump would write TiBs
+ * of zeros.  So while one is written the whole reservation is
+ * MADV_DONTDUMP but for the resident runs of each made slot's range (what a
+ * node process really uses; a page never touched, or purged, is zeros as
+ * far as a dump is concerned), gaps under DUMP_MIN_RUN kept in (their zeros
+ * become holes afterwards: dumps.c digs them), which bounds how many
+ * mappings the marking splits.  A page first touched while the dump is
+ * written is left out of that one dump; on a machine with swap, so is a
+ * page swapped out (it reads as not resident).  Afterwards the reservation
+ * is put back as it was (MADV_DODUMP; the mappings merge again).  Also
+ * Python's pools' never-used tail (pyalloc.c).  On the monitor thread, one
+ * dump at a time.                                                         */
+
+#define DUMP_MIN_RUN ((uintptr_t)2 << 20)
+
+static int dump_keep(uintptr_t from, uintptr_t to)
+{
+    return madvise((void *)from, to - from, MADV_DODUMP) ? -errno : 0;
+}
+
+/* Put the resident runs of [lo, hi) back into dumps. */
+static int dump_keep_resident(uintptr_t lo, uintptr_t hi)
+{
+    static unsigned char vec[1 << 16]; /* 256 MiB of pages a call */
+    uintptr_t from = 0, to = 0;        /* the run being gathered, or 0 */
+    for (uintptr_t at = lo; at < hi;) {
+        size_t pages = (hi - at) / g_page;
+        if (pages > sizeof vec)
+            pages = sizeof vec;
+        if (mincore((void *)at, pages * g_page, vec) != 0)
+            return -errno;
+        for (size_t i = 0; i < pages; i++, at += g_page) {
+            if (!(vec[i] & 1))
+                continue;
+            if (from && at - to >= DUMP_MIN_RUN) {
+                int r = dump_keep(from, to);
+                if (r)
+                    return r;
+                from = 0;
+            }
+            if (!from)
+                from = at;
+            to = at + g_page;
+        }
+    }
+    return from ? dump_keep(from, to) : 0;
+}
+
+EXPORT int cga_dump_exclude(int exclude)
+{
+    int r = py_dump_tail(exclude);
+    if (r || !g_je || !g_region_len)
+        return r;
+    if (madvise((void *)g_region, g_region_len, exclude ? MADV_DONTDUMP : MADV_DODUMP) != 0)
+        return -errno;
+    for (int s = 1; exclude && s < NSLOTS && !r; s++) {
+        const struct slot *sl = &slots[s];
+        if (sl->hooks.limit) /* made: its range is readable */
+            r = dump_keep_resident(sl->hooks.base, sl->shared_hooks.limit);
+    }
+    return r;
+}
+
+/* ---------------------------------------------------------------------- */
 /* Control, for the clone core.                                            */
 
 static void after_fork_child(void)

@@ -44,7 +44,7 @@ static struct {
     cga_slot_set_limit_fn slot_set_limit;
     cga_slot_memory_fn slot_memory;
     cga_stop_request_fn stop_request; /* optional: the rig's stop points */
-    cga_py_dump_tail_fn py_dump_tail; /* optional: --core-dumps */
+    cga_dump_exclude_fn dump_exclude; /* optional: --core-dumps */
 } G;
 
 static pthread_mutex_t g_pool_lock = PTHREAD_MUTEX_INITIALIZER; /* container threads only */
@@ -148,7 +148,7 @@ int guard_start(void)
     FIND(slot_set_limit, "cga_slot_set_limit");
     FIND(slot_memory, "cga_slot_memory");
     FIND(stop_request, "cga_stop_request");
-    FIND(py_dump_tail, "cga_py_dump_tail");
+    FIND(dump_exclude, "cga_dump_exclude");
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind || !G.child_start || !G.slot_retire ||
         !G.slot_stats || !G.py_stats || !G.py_owner || !G.py_active || !G.py_abandon ||
@@ -299,7 +299,7 @@ void guard_child_start(void)
    dumps written meanwhile (exclude 1), or put it back (0); 0 or -errno. */
 int guard_dump_exclude(int exclude)
 {
-    return G.py_dump_tail ? G.py_dump_tail(exclude) : 0;
+    return G.dump_exclude ? G.dump_exclude(exclude) : 0;
 }
 
 /* In the child: stop requests on signal sig (the test rig's stop points,

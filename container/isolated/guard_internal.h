@@ -49,6 +49,8 @@ HIDDEN bool bb_put(const void *p, int slot); /* false: table full */
 HIDDEN int bb_take(const void *p);           /* its slot, -1: not known */
 /* pyalloc.c: bytes of Python's small objects slot s has in use. */
 HIDDEN long py_slot_bytes(int s);
+/* --core-dumps: the pools' never-used tail out of dumps (1) or back (0). */
+HIDDEN int py_dump_tail(int exclude);
 HIDDEN void py_slot_begin(int s); /* a new process: from 0 */
 /* allocguard.c: slot s is over its memory budget if it gets n bytes more:
    then its process is ended there (SIGKILL to itself), the figures left

@@ -461,12 +461,12 @@ EXPORT int cga_py_active(void)
     return now.malloc == py_malloc;
 }
 
-/* --core-dumps (core_dumps.py): the region's never-used tail, past the
+/* --core-dumps (allocguard.c cga_dump_exclude): the region's never-used tail, past the
    last pool handed out, left out of a dump while one is written
    (MADV_DONTDUMP: gdb skips it) and given back after.  Without it a dump
    writes 64 GiB of reserved, untouched address space out as zeros.  A pool
    handed out meanwhile is left out of that one dump. */
-EXPORT int cga_py_dump_tail(int exclude)
+HIDDEN int py_dump_tail(int exclude)
 {
     if (!g_base)
         return 0;
