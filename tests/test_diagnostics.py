@@ -13,12 +13,15 @@ from cloneguard.harness.system import NodeSpec
 
 MiB = 1 << 20
 ODOMETRY = NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 20.0})
-# Holds 59 x 1 MiB, then stops: over 90% of a 64 MiB budget (57.6 MiB)
+# Holds 59 steps, then stops: over 90% of a 64 MiB budget (57.6 MiB)
 # whatever else its process holds (in the per-node profile, its
-# participant: ~2 MiB more), and not over it.
-HELD = 59 * MiB
+# participant: ~2 MiB more), and not over it. A step is a bytearray just
+# under 1 MiB, so that its block is 1 MiB under either allocator (1 MiB and
+# a header would be jemalloc's next size class, 1.25 MiB: 74 MiB in all).
+STEP = MiB - 4096
+HELD = 59 * STEP
 HOLDER = NodeSpec(TESTRIG, "faults::MemoryLeak", name="holder",
-                  parameters={"kind": "bytes", "step": MiB, "steps": HELD // MiB, "period": 0.01})  # fmt: skip
+                  parameters={"kind": "bytes", "step": STEP, "steps": 59, "period": 0.01})  # fmt: skip
 
 
 def _latest(array_recorder, names: set[str], timeout: float = 15.0) -> dict[str, DiagnosticStatus]:
