@@ -27,10 +27,10 @@ def test_without_protection_keys_a_use_after_free_lands_in_the_owner(profile, ri
         fault=FAULT,
         profile=profile,
         mitigations={"protection_keys": False},
-        claim="baseline: without memory protection keys, 64 bytes written by a node into another node's "
+        claim="baseline: without memory protection keys (--no-pkeys), 64 bytes written by a node into another node's "
         "block it has just freed land in the owner's heap: none of these trials survives",
     )
-    trials = FAULTS[FAULT](rig_factory(profile))
+    trials = FAULTS[FAULT](rig_factory(profile, extra_args=("--no-pkeys",)))
     run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_most=0.0)
@@ -43,11 +43,12 @@ def test_with_protection_keys_a_use_after_free_kills_the_writer_alone(profile, r
         fault=FAULT,
         profile=profile,
         mitigations={"protection_keys": True},
-        claim="with --pkeys, 64 bytes written by a node into another node's block it has just freed "
-        "fault in the writer: it alone is reported CRASHED (SIGSEGV, a protection-key violation in "
-        "the owner's heap) and the owner goes on, its heap intact",
+        claim="with protection keys (the default wherever the CPU has them), 64 bytes written by a node "
+        "into another node's block it has just freed fault in the writer: it alone is reported "
+        "CRASHED (SIGSEGV, a protection-key violation in the owner's heap) and the owner goes on, "
+        "its heap intact",
     )
-    trials = FAULTS[FAULT](rig_factory(profile, extra_args=("--jemalloc", "--pkeys")))
+    trials = FAULTS[FAULT](rig_factory(profile))  # the default: jemalloc, keyed
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)

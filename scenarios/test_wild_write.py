@@ -32,10 +32,10 @@ def test_without_protection_keys_a_wild_write_corrupts_silently(profile, rig_fac
         fault=FAULT,
         profile=profile,
         mitigations={"protection_keys": False},
-        claim="baseline: without memory protection keys, 64 bytes written by one node into a buffer in "
+        claim="baseline: without memory protection keys (--no-pkeys), 64 bytes written by one node into a buffer in "
         "another node's native heap land there, and nothing but the victim notices",
     )
-    trials = FAULTS[FAULT](rig_factory(profile))
+    trials = FAULTS[FAULT](rig_factory(profile, extra_args=("--no-pkeys",)))
     run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
@@ -48,11 +48,12 @@ def test_with_protection_keys_a_wild_write_kills_the_writer_alone(profile, rig_f
         fault=FAULT,
         profile=profile,
         mitigations={"protection_keys": True},
-        claim="with --pkeys, 64 bytes written by one node into a buffer in another node's native "
-        "heap fault in the writer: it alone is reported CRASHED (SIGSEGV, a protection-key "
-        "violation in the victim's heap) and the victim's buffer is intact",
+        claim="with protection keys (the default wherever the CPU has them), 64 bytes written by one node "
+        "into a buffer in another node's native heap fault in the writer: it alone is reported "
+        "CRASHED (SIGSEGV, a protection-key violation in the victim's heap) and the victim's buffer "
+        "is intact",
     )
-    trials = FAULTS[FAULT](rig_factory(profile, extra_args=("--jemalloc", "--pkeys")))
+    trials = FAULTS[FAULT](rig_factory(profile))  # the default: jemalloc, keyed
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.SURVIVED, at_least=FLOOR if planned >= DEEP_FLOOR_TRIALS else 1.0)
@@ -68,8 +69,7 @@ def test_a_wild_write_into_shared_memory_corrupts_with_keys_or_without(keys, rig
         "(a 4 KiB bytearray: memory every node writes legitimately, under no key) land there, with "
         "--pkeys or without, and nothing but the victim notices",
     )
-    extra = ("--jemalloc", "--pkeys") if keys else ()
-    trials = FAULTS[SHARED](rig_factory("per-node", extra_args=extra))
+    trials = FAULTS[SHARED](rig_factory("per-node", extra_args=() if keys else ("--no-pkeys",)))
     run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     resilience.expect_no_container_death()
     resilience.expect_rate(TrialOutcome.CORRUPTED, at_least=1.0)
@@ -85,16 +85,17 @@ def test_a_wild_write_into_the_containers_state(keys, rig_factory, resilience, r
         profile="per-node",
         mitigations={"protection_keys": keys},
         claim=(
-            "with --pkeys, 64 bytes written by a node into the container's allocator tables fault in the "
+            "with protection keys (the default wherever the CPU has them), 64 bytes written by a node "
+            "into the container's allocator tables fault in the "
             "writer: it alone is reported CRASHED (SIGSEGV, a protection-key violation in the container's "
             "allocator tables) and the rest goes on"
             if keys
-            else "baseline: without memory protection keys, 64 bytes written by a node into the container's "
+            else "baseline: without memory protection keys (--no-pkeys), 64 bytes written by a node into "
+            "the container's "
             "allocator tables land there, and nothing notices"
         ),
     )
-    extra = ("--jemalloc", "--pkeys") if keys else ("--jemalloc", "--no-pkeys")
-    trials = FAULTS[TABLES](rig_factory("per-node", extra_args=extra))
+    trials = FAULTS[TABLES](rig_factory("per-node", extra_args=() if keys else ("--no-pkeys",)))
     planned = run_trials(trials.trial, trials.settle, quick=3, deep=200, rig=trials.rig)
     if keys:
         resilience.expect_no_container_death()
