@@ -1328,7 +1328,10 @@ static void make_address_map(unsigned arena, size_t span)
  * page swapped out (it reads as not resident).  Afterwards the reservation
  * is put back as it was (MADV_DODUMP; the mappings merge again).  Also
  * Python's pools' never-used tail (pyalloc.c).  On the monitor thread, one
- * dump at a time.                                                         */
+ * dump at a time.  Its cost is mincore over every made slot's 16 GiB, ~10
+ * ms a slot in the kernel (0.47-0.48 s at 48 slots, 0.77-0.89 s at 96;
+ * cga_dump_exclude timed in a process with the guard and jemalloc
+ * preloaded), during which the monitor reports no other death.            */
 
 #define DUMP_MIN_RUN ((uintptr_t)2 << 20)
 
