@@ -15,7 +15,7 @@ stops at its first trial that does not survive and holds its container:
 
     python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trial-seed 746315781
     python -m cloneguard.harness reproduce scenarios/test_robot.py::test_planner --trials 200 \
-        --container-arg=--jemalloc
+        --container-arg=--allocator=glibc
 
 and a fault a package of yours declares by name (named_faults.py, entry
 point group ``cloneguard.harness.faults``) the same way, by its name:
@@ -85,7 +85,7 @@ def add_parser(subparsers) -> None:
         action="append",
         default=[],
         metavar="ARG",
-        help="a scenario of yours: one more container argument (repeat it; --container-arg=--jemalloc)",
+        help="a scenario of yours: one more container argument (repeat it; --container-arg=--allocator=glibc)",
     )
     p.add_argument("--seed", type=int, default=1, help="base seed; each trial's seed is drawn from it")
     p.add_argument(
