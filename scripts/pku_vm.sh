@@ -16,7 +16,8 @@
 #
 # Environment: PKU_VM_MEM (default 8G), PKU_VM_CPUS (default: this machine's),
 # PKU_VM_SNAPSHOT=DIR: the guest runs on a copy of checkout DIR taken before
-# it boots (all but DIR/.venv and DIR/reports, which stay this machine's), so
+# it boots (all but DIR/.venv and DIR/reports, which stay this machine's, and
+# the linters' and pytest's caches, which change under a running linter), so
 # that a run of an hour is not changed by editing DIR meanwhile.
 set -euo pipefail
 
@@ -50,7 +51,8 @@ if [[ -n ${PKU_VM_SNAPSHOT:-} ]]; then
     snap=$(realpath "$PKU_VM_SNAPSHOT")
     copy=$(mktemp -d /var/tmp/pku-vm-snapshot.XXXXXX)
     trap 'rm -rf "$work" "$copy"' EXIT
-    tar -C "$snap" --exclude=./.venv --exclude=./reports -cf - . | tar -C "$copy" -xf -
+    tar -C "$snap" --exclude=./.venv --exclude=./reports --exclude=.mypy_cache --exclude=.ruff_cache \
+        --exclude=.pytest_cache -cf - . | tar -C "$copy" -xf -
     mkdir -p "$copy/.venv" "$copy/reports"
 fi
 {
