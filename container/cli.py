@@ -20,7 +20,7 @@ import threading
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 # OpenBLAS (under numpy, under rclpy's messages) starts a process-wide thread
 # pool lazily; started from inside a node's clone child, those threads would
@@ -44,6 +44,12 @@ from .restart import DEFAULT_LIMIT as DEFAULT_RESTART_LIMIT
 from .restart import POLICIES
 from .stop_signals import StopSignals
 from .watchdog import ClockFactory, MonotonicClock, Watchdog, bound_shutdown
+
+if TYPE_CHECKING:
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+
+    from .isolated.host import IsolatedHost
+    from .isolated.memory_watch import MemoryLimit
 
 DEFAULT_NODE_NAME = "ComponentManager"
 # Threads serving LoadNode/UnloadNode/ListNodes (and the watchdog, restarts):
@@ -82,7 +88,7 @@ MITIGATION_SWITCHES = {
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):
+    def error(self, message: str) -> NoReturn:
         """One line, exit status 2 (argparse would add the usage)."""
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
@@ -145,7 +151,7 @@ class _IsolatedOptions:
         self._group = parser.add_argument_group("isolated mode (each needs --isolated)")
         self.flags: set[str] = set()
 
-    def add_argument(self, *args, **kwargs) -> argparse.Action:
+    def add_argument(self, *args: str, **kwargs: Any) -> argparse.Action:
         action = self._group.add_argument(*args, **kwargs)
         self.flags.update(action.option_strings)
         return action
@@ -442,7 +448,7 @@ def _raise_open_file_limit() -> tuple[int, int] | None:
     return soft, top
 
 
-def _announce_nodes_every(seconds: float, logger) -> None:
+def _announce_nodes_every(seconds: float, logger: RcutilsLogger) -> None:
     """Node processes' participants (made after the container's own) at
     their own announcement period (isolated/dds_defaults.cpp)."""
     from .isolated.dds_defaults import DdsDefaultsUnavailable, announce_nodes_every
@@ -463,7 +469,7 @@ def _heap_keys_wanted(opts: argparse.Namespace) -> bool:
     return bool(opts.pkeys) or (opts.jemalloc and not opts.no_alloc_guard)
 
 
-def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
+def _check_heap_keys(opts: argparse.Namespace, logger: RcutilsLogger) -> None:
     """Say in the log whether node heaps are under protection keys, and
     why not; refuse an explicit --pkeys that cannot be had, and keys the
     guard holds where a fact they rest on does not hold (pkeys.c)."""
@@ -496,7 +502,7 @@ def _check_heap_keys(opts: argparse.Namespace, logger) -> None:
     logger.info(pkeys.heap_keys_describe())
 
 
-def _fastdds_intraprocess_off(logger) -> None:
+def _fastdds_intraprocess_off(logger: RcutilsLogger) -> None:
     """No Fast DDS participant thread delivers into another participant's
     readers by calling into them (docs/fastdds.md: a node process killed in
     there leaves the other's locks held)."""
@@ -513,7 +519,7 @@ def _fastdds_intraprocess_off(logger) -> None:
         )
 
 
-def _watch_clock(opts) -> ClockFactory:
+def _watch_clock(opts: argparse.Namespace) -> ClockFactory:
     """What the watchdog and the shutdown bound read time on: in isolated
     mode the clone core's clock, which stands still while a core dump is
     written (a node that crashed holding the GIL waits for it with the GIL)."""
@@ -524,7 +530,13 @@ def _watch_clock(opts) -> ClockFactory:
     return DumpPausedClock
 
 
-def _make_host(opts, argv, executor, context, logger):
+def _make_host(
+    opts: argparse.Namespace,
+    argv: list[str],
+    executor: SingleThreadedExecutor | MultiThreadedExecutor,
+    context: Context,
+    logger: RcutilsLogger,
+) -> ThreadHost | IsolatedHost:
     if not opts.isolated:
         return ThreadHost(executor, context)
     # Imported here: thread mode must work where the C core cannot (not
@@ -591,7 +603,7 @@ def _make_host(opts, argv, executor, context, logger):
         raise SystemExit(f"component_container: --isolated is unavailable here: {exc}") from None
 
 
-def _memory_watch(opts, logger):
+def _memory_watch(opts: argparse.Namespace, logger: RcutilsLogger) -> tuple[MemoryLimit, int] | None:
     """(what the container may use, the margin) for the memory watch, or
     None: off, or without the allocator guard to weigh nodes."""
     if opts.no_memory_watch or opts.no_alloc_guard:
@@ -717,9 +729,10 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
     if watchdog_s > 0:
         # In isolated mode each tick also reads the progress board, so a lock
         # a dead child left on it is found and repaired even when idle.
-        on_tick = host.board.snapshot if opts.isolated else None
+        on_tick = host.board.snapshot if opts.isolated else None  # type: ignore[union-attr]  # an IsolatedHost
         watchdog = Watchdog(node, watchdog_s, executors=[executor], on_tick=on_tick, clock=_watch_clock(opts))
-    node_watchdog = NodeWatchdog(node, host, opts.node_watchdog) if opts.node_watchdog > 0 else None
+    # --node-watchdog needs --isolated (parse_args): the host is an IsolatedHost.
+    node_watchdog = NodeWatchdog(node, host, opts.node_watchdog) if opts.node_watchdog > 0 else None  # type: ignore[arg-type]
     return _Container(
         opts, stop_signals, context, node, executor, services, host, manager, watchdog_s, watchdog, node_watchdog
     )
@@ -792,7 +805,7 @@ def _stop(c: _Container, signum: int) -> int:
     return status
 
 
-def _serve_services(services, node) -> None:
+def _serve_services(services: MultiThreadedExecutor, node: Node) -> None:
     """The services' executor: its callbacks contain their own failures
     (manager.py); should anything still escape, it is logged and serving
     goes on."""
@@ -806,7 +819,7 @@ def _serve_services(services, node) -> None:
             node.get_logger().error("a service callback raised (served on):\n" + traceback.format_exc())
 
 
-def _spin(executor, stop: StopSignals, failure: list) -> None:
+def _spin(executor: SingleThreadedExecutor | MultiThreadedExecutor, stop: StopSignals, failure: list) -> None:
     try:
         executor.spin()
     except BaseException as exc:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from rclpy.logging import LoggingSeverity
 from rclpy.node import Node
 
@@ -9,8 +11,11 @@ from . import intra
 from ._rclglue import ffi, lib
 from .options import LoadError, NodeArguments
 
+if TYPE_CHECKING:
+    from rclpy.context import Context
 
-def construct(cls: type[Node], args: NodeArguments, context, owner: int) -> Node:
+
+def construct(cls: type[Node], args: NodeArguments, context: Context, owner: int) -> Node:
     """Instantiate ``cls`` for load ``owner`` (its unique_id); any failure
     becomes a :class:`LoadError`, and whatever node the constructor had
     already made is destroyed (it leaves no trace in the ROS graph).

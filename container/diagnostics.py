@@ -10,8 +10,13 @@ budget"; else OK.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.timer import Timer
 
 PERIOD_S = 1.0
 TOPIC = "/diagnostics"
@@ -39,7 +44,7 @@ def status(container: str, full_name: str, unique_id: int, pid: int, memory: Mem
     )
 
 
-def publish_every_second(node, nodes: Callable[[], Iterable[tuple[str, int, int, Memory]]]):
+def publish_every_second(node: Node, nodes: Callable[[], Iterable[tuple[str, int, int, Memory]]]) -> Timer:
     """A timer on ``node`` that publishes the statuses of ``nodes()``:
     (full name, unique_id, pid, memory) each."""
     publisher = node.create_publisher(DiagnosticArray, TOPIC, 10)

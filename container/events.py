@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 from cloneguard_interfaces.msg import ComponentEvent
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import InvalidHandle
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+if TYPE_CHECKING:
+    from rclpy._rclpy_pybind11 import Publisher as PublisherHandle
+    from rclpy.node import Node
 
 EVENTS_TOPIC = "~/_container/component_events"
 
@@ -28,7 +33,7 @@ REPAIRED = ComponentEvent.REPAIRED
 
 
 class EventPublisher:
-    def __init__(self, node):
+    def __init__(self, node: Node) -> None:
         self._node = node
         self._pub = node.create_publisher(ComponentEvent, EVENTS_TOPIC, EVENTS_QOS)
 
@@ -77,7 +82,7 @@ class EventPublisher:
         return msg
 
     @property
-    def handle(self):
+    def handle(self) -> PublisherHandle:
         """rclpy's handle of the publisher underneath: whoever publishes on
         it from C (``publish_from_c``) keeps it in use (``with handle``)."""
         return self._pub.handle

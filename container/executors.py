@@ -19,12 +19,21 @@ raises still ends the container, as with rclcpp.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from rclpy.exceptions import InvalidHandle
 from rclpy.executors import MultiThreadedExecutor
 
+if TYPE_CHECKING:
+    from typing import Any
+
+    from rclpy.executors import WaitableEntityType
+    from rclpy.node import Node
+    from rclpy.task import Task
+
 
 class NodesMultiThreadedExecutor(MultiThreadedExecutor):
-    def wait_for_ready_callbacks(self, *args, **kwargs):
+    def wait_for_ready_callbacks(self, *args: Any, **kwargs: Any) -> tuple[Task, WaitableEntityType, Node]:
         failed_with = None
         while True:
             try:

@@ -13,13 +13,19 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rclpy.node import Node
 
 from . import construction
 from .memory_budget import MEMORY_LIMIT, OOM_SCORE_ADJ
 from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.executors import Executor
+
+    from .events import EventPublisher
 
 
 @dataclass
@@ -53,7 +59,7 @@ class NodeDeath:
 class Host(Protocol):
     """What the manager asks of a host."""
 
-    def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
+    def start(self, unique_id: int, cls: type[Node], args: NodeArguments) -> Hosted:
         """Build the node, ready to run; raise ``LoadError`` if it cannot be."""
 
     def run(self, hosted: Hosted) -> None:
@@ -71,7 +77,7 @@ class Host(Protocol):
         """Where a node the host loses on its own (a child that dies) is
         reported: ``on_death(unique_id, death)``."""
 
-    def publish_crashed_with(self, events) -> None:
+    def publish_crashed_with(self, events: EventPublisher) -> None:
         """A host that can may publish a node's CRASHED event itself, on the
         manager's event publisher (``events``), as soon as the node dies."""
 
@@ -94,7 +100,7 @@ class Host(Protocol):
 class ThreadHost:
     """Every node on the container's own executor, as upstream's containers."""
 
-    def __init__(self, executor, context):
+    def __init__(self, executor: Executor, context: Context) -> None:
         self._executor = executor
         self._context = context
         # unique_id -> "built" / "running" / "stopped": an UnloadNode sent
@@ -102,7 +108,7 @@ class ThreadHost:
         self._lock = threading.Lock()
         self._states: dict[int, str] = {}
 
-    def start(self, unique_id: int, cls, args: NodeArguments) -> Hosted:
+    def start(self, unique_id: int, cls: type[Node], args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs an isolated container started with --cgroups")
         if args.memory_limit:
@@ -131,7 +137,7 @@ class ThreadHost:
             if self._states.get(hosted.unique_id) != "built":
                 return
             self._states[hosted.unique_id] = "running"
-            self._executor.add_node(hosted.node)
+            self._executor.add_node(hosted.node)  # type: ignore[arg-type]  # thread mode holds every node it built
 
     def stop(self, hosted: Hosted) -> None:
         with self._lock:
@@ -159,7 +165,7 @@ class ThreadHost:
         """Nothing to report: a node on the container's executor dies only
         with the container."""
 
-    def publish_crashed_with(self, events) -> None:
+    def publish_crashed_with(self, events: EventPublisher) -> None:
         """No deaths, nothing to announce (see report_deaths_to)."""
 
     def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:

@@ -34,7 +34,7 @@ import sys
 import threading
 import types
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from . import processes, repairs, seams
@@ -55,7 +55,7 @@ class DeadHolder:
 _callbacks: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def on_dead_holder(lock, callback: Callable[[DeadHolder], None]) -> None:
+def on_dead_holder(lock: object, callback: Callable[[DeadHolder], None]) -> None:
     """Call ``callback(DeadHolder)`` when ``lock`` is taken over from a
     holder whose process died (isolated mode), in the thread that then
     holds it, before its ``acquire()`` returns. One callback a lock; a later
@@ -63,7 +63,7 @@ def on_dead_holder(lock, callback: Callable[[DeadHolder], None]) -> None:
     _callbacks[lock] = callback
 
 
-def _referrer_name(obj) -> str:
+def _referrer_name(obj: object) -> str:
     """What refers to ``obj``: a module's global (``pkg.mod.NAME``), or an
     attribute of one (``pkg.mod.CONDITION._lock``, ``pkg.mod.Class.attr``);
     else, through the collector, an attribute of an object named so in
@@ -82,7 +82,7 @@ def _modules() -> list[tuple[str, types.ModuleType]]:
     return modules + ([("__main__", sys.modules["__main__"])] if "__main__" in sys.modules else [])  # a script's last
 
 
-def _module_names(modules):
+def _module_names(modules: list[tuple[str, types.ModuleType]]) -> Iterator[tuple[str, object]]:
     """(name, value) of every module's globals (``pkg.mod.NAME``), then of
     the attributes of those that are neither modules nor plain values
     (``pkg.mod.OBJ.attr``)."""
@@ -102,7 +102,7 @@ def _module_names(modules):
 _asked_for: dict[int, tuple[int, object]] = {}
 
 
-def _is_asked_for(lock, key: int) -> bool:
+def _is_asked_for(lock: object, key: int) -> bool:
     """pylocks.c's name hook, while a python-lock stop request names a lock
     (the test rig's, seams.py): is ``lock`` the one named so? Looked up once
     per key, again only while not found and modules were imported since."""
@@ -114,7 +114,7 @@ def _is_asked_for(lock, key: int) -> bool:
     return seen[1] is lock
 
 
-def _referrer_by_gc(obj, modules: dict[int, str], depth: int = 3) -> str:
+def _referrer_by_gc(obj: object, modules: dict[int, str], depth: int = 3) -> str:
     for ref in gc.get_referrers(obj):
         if isinstance(ref, dict):
             key = next((k for k, v in ref.items() if v is obj), None)
@@ -137,7 +137,7 @@ def _referrer_by_gc(obj, modules: dict[int, str], depth: int = 3) -> str:
     return repr(obj)
 
 
-def _took_over(lock, pid: int, tid: int) -> None:
+def _took_over(lock: object, pid: int, tid: int) -> None:
     """pylocks.c's hook, in the acquirer's thread, holding the lock."""
     unique_id, node = processes.node_of(pid)
     name = _referrer_name(lock)
@@ -154,7 +154,7 @@ def _took_over(lock, pid: int, tid: int) -> None:
         callback(DeadHolder(lock, name, node, pid, tid))
 
 
-def _stuck(lock, waited_s: float) -> None:
+def _stuck(lock: object, waited_s: float) -> None:
     """pylocks.c's other hook: a thread has waited this long, after a node
     process died, for a lock whose holder is not known (one that died
     between taking it and recording itself looks so): not taken over, said."""

@@ -29,7 +29,7 @@ import traceback
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -40,6 +40,28 @@ from .events import EventPublisher
 from .hosting import Host, Hosted, NodeDeath
 from .options import LoadError
 from .restart import Lineage, RestartPolicy, uptime
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from typing import TypeAlias, TypedDict, Unpack
+
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+    from rclpy.node import Node
+
+    from .options import NodeArguments
+
+    # A service's request and response (LoadNode, UnloadNode or ListNodes).
+    _Request: TypeAlias = LoadNode.Request | UnloadNode.Request | ListNodes.Request
+    _Response: TypeAlias = LoadNode.Response | UnloadNode.Response | ListNodes.Response
+
+    class _CrashFields(TypedDict, total=False):
+        """What a CRASHED event says beyond the node (``_publish``'s extra fields)."""
+
+        error_message: str
+        exit_signal: int
+        exit_code: int
+        allocator_quarantined: bool
+
 
 #: How many dead nodes the manager remembers, for the REPAIRED events that
 #: name them (a repair comes within seconds of its death).
@@ -57,16 +79,19 @@ class _Unanswered:
         self._count = 0
         self._changed = threading.Condition()
 
-    def counted(self, handler):
-        def taken(request, response):
+    def counted(
+        self, handler: Callable[[_Request, _Response], _Response]
+    ) -> Callable[[_Request, _Response], _Response]:
+        def taken(request: _Request, response: _Response) -> _Response:
             with self._changed:
                 self._count += 1
             return handler(request, response)
 
         return taken
 
-    def answering(self, send):
-        def send_response(response, header) -> None:
+    def answering(self, send: Callable[[_Response, Any], None]) -> Callable[[_Response, Any], None]:
+        # header: rclpy's rmw_request_id_t or rmw_service_info_t (pybind11, untyped)
+        def send_response(response: _Response, header: Any) -> None:
             try:
                 send(response, header)
             finally:
@@ -115,7 +140,9 @@ class ComponentManager:
     # Requests a service keeps queued while its threads are busy.
     REQUEST_QUEUE = 1000
 
-    def __init__(self, node, host: Host, *, logger=None, restart_limit: int | None = None):
+    def __init__(
+        self, node: Node, host: Host, *, logger: RcutilsLogger | None = None, restart_limit: int | None = None
+    ) -> None:
         """``restart_limit``: reload a node whose process died (restart.py),
         at most that many times in a row; None: never."""
         self._node = node
@@ -152,17 +179,25 @@ class ComponentManager:
         ):
             counted = self._unanswered.counted(handler)
             srv = node.create_service(srv_type, f"~/_container/{name}", counted, qos_profile=qos, callback_group=group)
-            srv.send_response = self._unanswered.answering(srv.send_response)
+            # The service's own send_response, wrapped (mypy: no assigning to a method).
+            srv.send_response = self._unanswered.answering(srv.send_response)  # type: ignore[method-assign,assignment]
         # Repairs recorded by whichever task did them (repairs.py), published here.
         self._repair_timer = node.create_timer(self.REPAIR_POLL_S, self.publish_repairs)
         self._diagnostics_timer = diagnostics.publish_every_second(node, self._figures)
 
     # -- services -------------------------------------------------------------
 
-    def _on_load_node(self, request, response):
+    def _on_load_node(self, request: LoadNode.Request, response: LoadNode.Response) -> LoadNode.Response:
         return self._contained("LoadNode", self._load, request, response, None)
 
-    def _contained(self, what, handler, request, response, *args):
+    def _contained(
+        self,
+        what: str,
+        handler: Callable[..., _Response],
+        request: _Request,
+        response: _Response,
+        *args: Lineage | None,
+    ) -> _Response:
         """Run a request; an exception nobody expected fails that request only."""
         try:
             return handler(request, response, *args)
@@ -176,7 +211,9 @@ class ComponentManager:
                 response.error_message = message
             return response
 
-    def _load(self, request, response, lineage: Lineage | None):
+    def _load(
+        self, request: LoadNode.Request, response: LoadNode.Response, lineage: Lineage | None
+    ) -> LoadNode.Response:
         try:
             spec = registry.find(request.package_name, request.plugin_name)
             args = options.from_request(request)
@@ -233,10 +270,10 @@ class ComponentManager:
         response.unique_id = unique_id
         return response
 
-    def _on_unload_node(self, request, response):
+    def _on_unload_node(self, request: UnloadNode.Request, response: UnloadNode.Response) -> UnloadNode.Response:
         return self._contained("UnloadNode", self._unload, request, response)
 
-    def _unload(self, request, response):
+    def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> UnloadNode.Response:
         with self._lock:
             entry = self._loaded.get(request.unique_id)
             # A node whose death the host announced is gone (on_death follows).
@@ -256,10 +293,10 @@ class ComponentManager:
         response.success = True
         return response
 
-    def _on_list_nodes(self, request, response):
+    def _on_list_nodes(self, request: ListNodes.Request, response: ListNodes.Response) -> ListNodes.Response:
         return self._contained("ListNodes", self._list, request, response)
 
-    def _list(self, request, response):
+    def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> ListNodes.Response:
         with self._lock:
             entries = [(uid, e) for uid, e in sorted(self._loaded.items()) if not self._host.crashed_claimed(e.hosted)]
         response.unique_ids = [uid for uid, _ in entries]
@@ -312,7 +349,7 @@ class ComponentManager:
         else:
             self._log.error(f"{who} died: {reason}")
 
-    def reload(self, request, lineage: Lineage) -> None:
+    def reload(self, request: LoadNode.Request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""
         resp = self._contained("restart", self._load, request, LoadNode.Response(), lineage)
         if not resp.success:
@@ -348,7 +385,7 @@ class ComponentManager:
 
     # -- helpers --------------------------------------------------------------
 
-    def _start(self, unique_id: int, cls, args):
+    def _start(self, unique_id: int, cls: type[Node], args: NodeArguments) -> Hosted:
         """host.start on a thread of its own, waited for at most
         CONSTRUCT_WAIT_S. A start that finishes after that is undone."""
         # box["late"] is set by whichever comes first, under the lock: the
@@ -385,7 +422,9 @@ class ComponentManager:
             self._starting.add(unique_id)
         return unique_id
 
-    def _load_failed(self, request, response, message: str, log_detail: str = ""):
+    def _load_failed(
+        self, request: LoadNode.Request, response: LoadNode.Response, message: str, log_detail: str = ""
+    ) -> LoadNode.Response:
         message = shown(message)
         # The detail is for the log only: clients get upstream's answer as is.
         detail = f" ({shown(log_detail, 1500)})" if log_detail else ""
@@ -429,7 +468,7 @@ class ComponentManager:
                 **names,
             )
 
-    def _publish(self, event_type, entry: _Entry, **extra) -> None:
+    def _publish(self, event_type: int, entry: _Entry, **extra: Unpack[_CrashFields]) -> None:
         hosted = entry.hosted
         self._events.publish(
             event_type,

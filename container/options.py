@@ -14,12 +14,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from rclpy.parameter import Parameter
 
 from . import seams
 from .isolated.profiles import PROFILES
 from .memory_budget import MEMORY_LIMIT, OOM_SCORE_ADJ, OOM_SCORE_ADJ_RANGE, parse_size
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from composition_interfaces.srv import LoadNode
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rclpy.context import Context
 
 # rcutils log severities a LoadNode.log_level may set (0 means "unset"); like
 # rclcpp_components, any other value is ignored.
@@ -91,7 +99,7 @@ class NodeArguments:
     log_level: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
-    def node_kwargs(self, context) -> dict:
+    def node_kwargs(self, context: Context) -> dict:
         """Keyword arguments for ``rclpy.node.Node.__init__``."""
         return {
             "context": context,
@@ -101,7 +109,7 @@ class NodeArguments:
         }
 
 
-def _parameters(messages) -> list[Parameter]:
+def _parameters(messages: Iterable[ParameterMsg]) -> list[Parameter]:
     out = []
     for msg in messages:
         if not msg.name:
@@ -116,7 +124,7 @@ def _parameters(messages) -> list[Parameter]:
     return out
 
 
-def _extra_arguments(messages) -> dict[str, object]:
+def _extra_arguments(messages: Iterable[ParameterMsg]) -> dict[str, object]:
     extra = {}
     for param in _parameters(messages):
         wanted = KNOWN_EXTRA_ARGUMENTS.get(param.name)
@@ -160,7 +168,7 @@ def _requested_name(namespace: str, name: str) -> str:
     return f"/{ns}/{name}" if ns else f"/{name}"
 
 
-def from_request(request) -> NodeArguments:
+def from_request(request: LoadNode.Request) -> NodeArguments:
     """Validate a ``LoadNode.Request`` and build the node's arguments."""
     rules = list(request.remap_rules)
     if request.node_name:

@@ -15,6 +15,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from composition_interfaces.srv import LoadNode
+    from rclpy.node import Node
+    from rclpy.timer import Timer
 
 POLICIES = ("never", "on-crash")
 DEFAULT_LIMIT = 5
@@ -40,14 +48,14 @@ class Decision:
 class RestartPolicy:
     def __init__(
         self,
-        node,
-        reload,
+        node: Node,
+        reload: Callable[[LoadNode.Request, Lineage], None],
         *,
         initial_s: float = 0.5,
         max_s: float = 30.0,
         stable_s: float = 60.0,
         limit: int = DEFAULT_LIMIT,
-    ):
+    ) -> None:
         if limit < 1:
             raise ValueError("a restart limit is at least 1")
         self._node = node
@@ -55,7 +63,7 @@ class RestartPolicy:
         self.initial_s, self.max_s, self.stable_s, self.limit = initial_s, max_s, stable_s, limit
         self._timers: list = []
 
-    def on_crash(self, request, lineage: Lineage, uptime_s: float) -> Decision:
+    def on_crash(self, request: LoadNode.Request, lineage: Lineage, uptime_s: float) -> Decision:
         """Schedule a reload, unless the lineage reached the limit."""
         if uptime_s >= self.stable_s:
             lineage.in_a_row, lineage.delay_s = 0, 0.0
@@ -69,9 +77,9 @@ class RestartPolicy:
         lineage.restarts += 1
         lineage.in_a_row += 1
         delay = lineage.delay_s
-        timer = None
+        timer: Timer = None  # type: ignore[assignment]  # set below, before fire() can run
 
-        def fire():
+        def fire() -> None:
             timer.cancel()
             self._timers.remove(timer)
             self._node.destroy_timer(timer)

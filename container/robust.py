@@ -93,7 +93,7 @@ class RobustMutex:
     def __enter__(self) -> bool:
         return self.acquire()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.unlock()
 
     @staticmethod

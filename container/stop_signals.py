@@ -12,19 +12,23 @@ from __future__ import annotations
 
 import os
 import signal
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from types import FrameType
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class StopSignals:
-    def __init__(self):
+    def __init__(self) -> None:
         self._r, self._w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         os.set_blocking(self._r, True)
         self._previous = {sig: signal.signal(sig, self._ignore) for sig in STOP_SIGNALS}
         self._previous_fd = signal.set_wakeup_fd(self._w, warn_on_full_buffer=False)
 
     @staticmethod
-    def _ignore(signum, frame):
+    def _ignore(signum: int, frame: FrameType | None) -> None:
         pass  # the wakeup fd already carries it
 
     def post(self, why: int = 0) -> None:

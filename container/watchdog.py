@@ -40,8 +40,12 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from rclpy.executors import Executor
+    from rclpy.node import Node
 
 BANNER = "cloneguard watchdog"
 FALLBACK_GRACE_S = 2.0
@@ -130,7 +134,15 @@ def bound_shutdown(timeout_s: float, clock: ClockFactory = MonotonicClock) -> _D
 
 
 class Watchdog:
-    def __init__(self, node, timeout_s: float, *, executors=(), on_tick=None, clock: ClockFactory = MonotonicClock):
+    def __init__(
+        self,
+        node: Node,
+        timeout_s: float,
+        *,
+        executors: Iterable[Executor] = (),
+        on_tick: Callable[[], object] | None = None,
+        clock: ClockFactory = MonotonicClock,
+    ) -> None:
         """``node`` spins on the executor whose timer drives the watchdog;
         ``executors`` are the others that must keep making progress."""
         if timeout_s <= 0:

@@ -19,7 +19,7 @@ import argparse
 import sys
 
 
-def _add_compare(subparsers) -> None:
+def _add_compare(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "compare",
         help="compare two runs' survival rates and latencies",
@@ -43,7 +43,7 @@ def _add_compare(subparsers) -> None:
     p.set_defaults(func=run_compare)
 
 
-def run_compare(args) -> int:
+def run_compare(args: argparse.Namespace) -> int:
     from .report.compare import compare_reports, format_comparison
     from .report.model import load_report
 
@@ -56,7 +56,7 @@ def run_compare(args) -> int:
     return 0
 
 
-def _add_render(subparsers) -> None:
+def _add_render(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("render", help="re-render report.html from report.json")
     p.add_argument("run", metavar="RUN", help="report directory or report.json")
     p.add_argument(
@@ -65,7 +65,7 @@ def _add_render(subparsers) -> None:
     p.set_defaults(func=run_render)
 
 
-def run_render(args) -> int:
+def run_render(args: argparse.Namespace) -> int:
     from .report.model import load_report
     from .report.render import write_html
 
@@ -74,7 +74,7 @@ def run_render(args) -> int:
     return 0
 
 
-def _add_merge(subparsers) -> None:
+def _add_merge(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "merge",
         help="join the reports of shards (--shard K/N) and of other seeds into one report",
@@ -93,7 +93,7 @@ def _add_merge(subparsers) -> None:
     p.set_defaults(func=run_merge)
 
 
-def run_merge(args) -> int:
+def run_merge(args: argparse.Namespace) -> int:
     from .report.merge import merge_reports, write_merged
     from .report.model import load_report
 
@@ -111,20 +111,20 @@ def run_merge(args) -> int:
     return 1 if failed else 0
 
 
-def _add_reproduce(subparsers) -> None:
+def _add_reproduce(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from .reproduce import add_parser
 
     add_parser(subparsers)
 
 
-def _add_summary(subparsers) -> None:
+def _add_summary(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser("summary", help="a report as Markdown: the trials table and every non-survival")
     p.add_argument("run", metavar="RUN", help="report directory or report.json")
     p.add_argument("--hang-chars", type=int, default=240, help="how much of each diagnosis to quote")
     p.set_defaults(func=run_summary)
 
 
-def run_summary(args) -> int:
+def run_summary(args: argparse.Namespace) -> int:
     from .report.model import load_report
     from .report.summary import markdown
 

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import rclpy
 from cloneguard_interfaces.msg import ComponentEvent
@@ -22,6 +23,23 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from .errors import HarnessTimeout  # raised here; importable from here too
+
+if TYPE_CHECKING:
+    from typing import TypedDict, Unpack
+
+    from rclpy.client import Client
+    from rclpy.task import Task
+
+    class LoadFields(TypedDict, total=False):
+        """The keyword arguments of ContainerClient.load_request."""
+
+        node_name: str
+        node_namespace: str
+        log_level: int
+        remap_rules: Sequence[str]
+        parameters: dict[str, object] | Sequence[ParameterMsg]
+        extra_arguments: dict[str, object] | Sequence[ParameterMsg]
+
 
 EVENT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -57,7 +75,7 @@ LIST_RESEND_S = 2.0
 class Received:
     """A message and when (CLOCK_MONOTONIC ns) the harness got it."""
 
-    msg: object
+    msg: Any  # a message of the topic's type: any ROS message type
     at_ns: int
 
 
@@ -70,7 +88,7 @@ class Recorder:
         self._items: list[Received] = []
         self._listeners: list = []
 
-    def _add(self, msg) -> None:
+    def _add(self, msg: object) -> None:
         with self._cond:
             self._items.append(Received(msg, time.monotonic_ns()))
             self._cond.notify_all()
@@ -78,12 +96,12 @@ class Recorder:
         for listener in listeners:  # outside our lock: they take their own
             listener(msg)
 
-    def add_listener(self, fn) -> None:
+    def add_listener(self, fn: Callable[[Any], object]) -> None:
         """Call ``fn(msg)`` for every message from now on (on the spin thread)."""
         with self._cond:
             self._listeners.append(fn)
 
-    def remove_listener(self, fn) -> None:
+    def remove_listener(self, fn: Callable[[Any], object]) -> None:
         with self._cond:
             self._listeners.remove(fn)
 
@@ -98,11 +116,11 @@ class Recorder:
         with self._cond:
             return len(self._items)
 
-    def wait_for(self, predicate, timeout: float, what: str = ""):
+    def wait_for(self, predicate: Callable[[Any], object], timeout: float, what: str = "") -> Any:
         """Wait until ``predicate(msg)`` holds for some message; return it."""
         scanned = 0
 
-        def first_match():
+        def first_match() -> Received | None:
             nonlocal scanned
             for item in self._items[scanned:]:
                 if predicate(item.msg):
@@ -161,7 +179,7 @@ class ContainerClient:
 
     # -- generic --------------------------------------------------------------
 
-    def call(self, client, request, timeout: float = 10.0, *, resend_after: float | None = None):
+    def call(self, client: Client, request: object, timeout: float = 10.0, *, resend_after: float | None = None) -> Any:
         """Call a service; wait for it to exist and answer within ``timeout``.
 
         ``resend_after`` (for requests that change nothing): send the request
@@ -183,15 +201,15 @@ class ContainerClient:
             if time.monotonic() >= deadline:
                 raise HarnessTimeout(f"no answer from {client.srv_name} within {timeout:.1f} s")
 
-    def run_on_spin_thread(self, fn):
+    def run_on_spin_thread(self, fn: Callable[[], object]) -> Task:
         """A future of ``fn()``, called on the spin thread (between two of
         its callbacks, never during one)."""
         return self._executor.create_task(fn)
 
-    def service_client(self, srv_type, name: str):
+    def service_client(self, srv_type: type, name: str) -> Client:
         return self.node.create_client(srv_type, name, qos_profile=SERVICE_QOS)
 
-    def subscribe(self, msg_type, topic: str, qos=10) -> Recorder:
+    def subscribe(self, msg_type: type, topic: str, qos: QoSProfile | int = 10) -> Recorder:
         rec = Recorder(topic)
         self._subs.append(self.node.create_subscription(msg_type, topic, rec._add, qos))
         return rec
@@ -223,14 +241,16 @@ class ContainerClient:
         )
         return req
 
-    def load(self, package_name: str, plugin_name: str, *, timeout: float = 15.0, **fields) -> LoadNode.Response:
+    def load(
+        self, package_name: str, plugin_name: str, *, timeout: float = 15.0, **fields: Unpack[LoadFields]
+    ) -> LoadNode.Response:
         return self.send_load(self.load_request(package_name, plugin_name, **fields), timeout)
 
     def send_load(self, request: LoadNode.Request, timeout: float = 15.0) -> LoadNode.Response:
         """A LoadNode request as it is, however odd its fields."""
         return self.call(self._load, request, timeout)
 
-    def load_ok(self, package_name: str, plugin_name: str, **fields) -> LoadNode.Response:
+    def load_ok(self, package_name: str, plugin_name: str, **fields: Unpack[LoadFields]) -> LoadNode.Response:
         """Load and insist that it worked."""
         resp = self.load(package_name, plugin_name, **fields)
         if not resp.success:
@@ -247,7 +267,7 @@ class ContainerClient:
         return list(zip(resp.unique_ids, resp.full_node_names, strict=True))
 
     def wait_for_event(self, event_type: int, *, unique_id: int | None = None, timeout: float = 10.0) -> ComponentEvent:
-        def match(ev):
+        def match(ev: ComponentEvent) -> bool:
             return ev.event_type == event_type and (unique_id is None or ev.unique_id == unique_id)
 
         what = EVENT_NAMES.get(event_type, str(event_type)) + (f" for unique_id {unique_id}" if unique_id else "")
@@ -278,8 +298,8 @@ class ContainerClient:
         self.node.destroy_node()
         self._ctx.try_shutdown()
 
-    def __enter__(self):
+    def __enter__(self) -> ContainerClient:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -110,13 +110,13 @@ def _xml_entities(path: Path, text: str) -> list[_Entity]:
     if root.tag != "launch":
         raise CompositionError(f"{path}: the root element is <{root.tag}>, not <launch>")
 
-    def entity(el) -> _Entity:
+    def entity(el: ET.Element) -> _Entity:
         return _Entity(el.tag, dict(el.attrib), [entity(c) for c in el])
 
     return [entity(el) for el in root]
 
 
-def _yaml_entity(path: Path, item) -> _Entity:
+def _yaml_entity(path: Path, item: object) -> _Entity:
     if not isinstance(item, Mapping) or len(item) != 1:
         raise CompositionError(f"{path}: each item of 'launch:' is one action, e.g. '- node_container: ...'")
     [(tag, body)] = item.items()
@@ -208,11 +208,11 @@ def _node(path: Path, ent: _Entity, values: dict) -> NodeSpec:
     )
 
 
-def _text(path: Path, raw, values: dict) -> str:
+def _text(path: Path, raw: object, values: dict) -> str:
     """A launch string with its ``$(var X)`` replaced; any other
     substitution refused by name."""
 
-    def one(match) -> str:
+    def one(match: re.Match[str]) -> str:
         words = match.group(1).split()
         if len(words) == 2 and words[0] == "var":
             if words[1] not in values:
@@ -223,7 +223,7 @@ def _text(path: Path, raw, values: dict) -> str:
     return _SUBSTITUTION.sub(one, str(raw))
 
 
-def _value(path: Path, raw, values: dict):
+def _value(path: Path, raw: object, values: dict) -> object:
     """A parameter's value: YAML's types (as launch types them: 20 an int,
     20.0 a float, true a bool, a list), from text after substitution."""
     if raw is None:

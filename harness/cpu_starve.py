@@ -96,7 +96,7 @@ class CpuStarve:
             raise
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         try:
             if self._home is not None:
                 (self._home / "cgroup.procs").write_text(str(self.pid))

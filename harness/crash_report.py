@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 
 from . import symbols
 
@@ -22,7 +23,7 @@ STACKS_WAIT_S = 5.0
 _FRAME = re.compile(r"^\S+\(.*\)\s*\[0x[0-9a-f]+\]\s*$")
 
 
-def _block(lines: list[str], first: int, keep) -> list[str]:
+def _block(lines: list[str], first: int, keep: Callable[[str], bool]) -> list[str]:
     """lines[first] and the lines right after it that ``keep`` accepts."""
     out = [lines[first]]
     for line in lines[first + 1 :]:
@@ -60,7 +61,7 @@ def has_native_stack(report: str | None, pid: int) -> bool:
     return report is not None and f"cloneguard: pid {pid} native stack:" in report
 
 
-def wait_for_report(read_log, pid: int, timeout: float = STACKS_WAIT_S) -> str | None:
+def wait_for_report(read_log: Callable[[], str], pid: int, timeout: float = STACKS_WAIT_S) -> str | None:
     """``pid``'s report once its native stack is on the log (or what there
     is after ``timeout``), its frames named where the libraries allow."""
     deadline = time.monotonic() + timeout

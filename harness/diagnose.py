@@ -33,10 +33,16 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import procfs
+
+if TYPE_CHECKING:
+    from .client import ContainerClient
+    from .process import ContainerProcess
 
 GDB_TIMEOUT_S = 90
 # How the container's own log lines about a lock it left as it was begin
@@ -410,7 +416,7 @@ def diagnose(
     return Diagnosis(pid, "\n".join(texts), threads, blocked, states, names, not_repaired_lines(log))
 
 
-def of_container(proc, client) -> Diagnosis | None:
+def of_container(proc: ContainerProcess, client: ContainerClient) -> Diagnosis | None:
     """The diagnosis of a hung container (a ContainerProcess) whose
     ContainerClient saw its events, naming its nodes from them; None
     where gdb is missing."""
@@ -419,7 +425,9 @@ def of_container(proc, client) -> Diagnosis | None:
     return diagnose(proc.pid, nodes_by_pid=client.nodes_by_pid(), dead_pids=client.dead_pids(), log=proc.log_text())
 
 
-def _owners(pid: int, waits) -> dict[tuple[str, str], int | None]:
+def _owners(
+    pid: int, waits: Iterable[tuple[ThreadStack, tuple[str, str, str] | None]]
+) -> dict[tuple[str, str], int | None]:
     """The owner tid of every lock waited on that records one: a mutex's
     ``__owner`` (read in the waiter's process: one gdb call per process),
     the GIL's last holder (one interpreter: read once, in the container)."""

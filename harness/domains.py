@@ -41,10 +41,10 @@ class DomainLease:
             os.close(self._fd)  # closing drops the flock
             self._fd = -1
 
-    def __enter__(self):
+    def __enter__(self) -> DomainLease:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.release()
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .client import ContainerClient
 from .memory_cgroup import MemoryCgroup
-from .process import NO_SHM_PROFILE, ContainerProcess
+from .process import NO_SHM_PROFILE, ContainerProcess, ExitStatus
 
 #: how long a started container may take to answer ListNodes; a slower
 #: machine (an emulated CPU: scripts/pku_vm.sh) sets CLONEGUARD_READY_TIMEOUT
@@ -65,7 +65,7 @@ class ContainerFactory:
         args: Sequence[str] = (),
         *,
         node_name: str = "ComponentManager",
-        fastdds_profile=NO_SHM_PROFILE,
+        fastdds_profile: Path = NO_SHM_PROFILE,
         extra_env: dict[str, str] | None = None,
         exe: str | None = None,
         memory_limit: int | None = None,
@@ -100,7 +100,7 @@ class ContainerFactory:
         wait_ready(cli, proc)
         return cli
 
-    def stop_all(self):
+    def stop_all(self) -> list[ExitStatus]:
         for cli in self.clients:
             cli.close()
         return [proc.stop() for proc in self.started]

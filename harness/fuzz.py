@@ -19,12 +19,17 @@ tests/test_request_fuzz.py drives real containers with these.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from composition_interfaces.srv import LoadNode
 from hypothesis import strategies as st
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
+
+if TYPE_CHECKING:
+    from composition_interfaces.srv import UnloadNode
 
 PKG = "cloneguard"
 #: components a valid load may name, with the parameters it may set
@@ -111,7 +116,7 @@ _ints = st.one_of(st.integers(-(2**63), 2**63 - 1), st.sampled_from([0, -1, 2**6
 
 
 @st.composite
-def parameter_values(draw) -> ParameterValue:
+def parameter_values(draw: st.DrawFn) -> ParameterValue:
     """A ParameterValue of any type rcl_interfaces names, or of none (0, or
     a number it never defined), with every field drawn regardless of type."""
     value = ParameterValue()
@@ -164,7 +169,7 @@ _PARAMETER_TYPES = st.sampled_from(range(ParameterType.PARAMETER_NOT_SET, Parame
 
 
 @st.composite
-def builtin_parameters(draw) -> ParameterMsg:
+def builtin_parameters(draw: st.DrawFn) -> ParameterMsg:
     """A built-in parameter with a value of any type (most of them wrong)."""
     value = draw(parameter_values())
     value.type = draw(_PARAMETER_TYPES)
@@ -207,7 +212,16 @@ class Load:
         return f"Load(valid={self.valid}, {fields!r})"
 
 
-def _request(package, plugin, name, namespace, log_level, remaps, parameters, extra) -> LoadNode.Request:
+def _request(
+    package: str,
+    plugin: str,
+    name: str,
+    namespace: str,
+    log_level: int,
+    remaps: Iterable[str],
+    parameters: Iterable[ParameterMsg],
+    extra: Iterable[ParameterMsg],
+) -> LoadNode.Request:
     req = LoadNode.Request()
     req.package_name, req.plugin_name = package, plugin
     req.node_name, req.node_namespace = name, namespace
@@ -219,7 +233,7 @@ def _request(package, plugin, name, namespace, log_level, remaps, parameters, ex
 
 
 @st.composite
-def valid_loads(draw, *, cgroups: bool) -> Load:
+def valid_loads(draw: st.DrawFn, *, cgroups: bool) -> Load:
     """A load that must succeed: a demo component, a legal name, legal
     parameters and extra arguments."""
     plugin = draw(st.sampled_from(VALID_PLUGINS))
@@ -245,7 +259,7 @@ def valid_loads(draw, *, cgroups: bool) -> Load:
 
 
 @st.composite
-def hostile_loads(draw) -> Load:
+def hostile_loads(draw: st.DrawFn) -> Load:
     """Anything at all in any field; some fields kept plausible so that the
     request gets past the early checks to the later ones."""
     plausible = st.sampled_from([PKG])
@@ -277,7 +291,7 @@ def hostile_loads(draw) -> Load:
 
 
 @st.composite
-def hostile_parameter_loads(draw) -> Load:
+def hostile_parameter_loads(draw: st.DrawFn) -> Load:
     """A load that gets past every early check to the constructor (a demo
     component, a legal name, no remap rules), with hostile parameters and
     at least one built-in one: what Node.__init__ and the component refuse
@@ -296,7 +310,7 @@ def hostile_parameter_loads(draw) -> Load:
     return Load(req, valid=False)
 
 
-def unload_ids(live: list[int], gone: list[int]):
+def unload_ids(live: list[int], gone: list[int]) -> st.SearchStrategy[int]:
     """Ids to unload: live ones, unloaded ones, never-given ones, uint64 edges."""
     choices = [st.integers(0, UINT64_MAX), st.sampled_from([0, 1, 2**63 - 1, 2**63, UINT64_MAX])]
     if live:
@@ -319,7 +333,7 @@ class Model:
     highest: int = 0
     requests: int = 0
 
-    def apply_load(self, load: Load, resp) -> None:
+    def apply_load(self, load: Load, resp: LoadNode.Response) -> None:
         self.requests += 1
         if load.valid:
             assert resp.success, f"a valid load failed: {resp.error_message!r} ({load!r})"
@@ -335,7 +349,7 @@ class Model:
         self.highest = uid
         self.live[uid] = resp.full_node_name
 
-    def apply_unload(self, uid: int, resp) -> None:
+    def apply_unload(self, uid: int, resp: UnloadNode.Response) -> None:
         self.requests += 1
         if uid in self.live:
             assert resp.success, f"unloading live unique_id {uid} failed: {resp.error_message!r}"

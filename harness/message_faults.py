@@ -31,7 +31,7 @@ import math
 import threading
 import time
 from dataclasses import KW_ONLY, dataclass, field
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
@@ -41,6 +41,10 @@ from cloneguard.faults import PACKAGE as RIG_PACKAGE
 from cloneguard.faults.message_rules import ENGINE_NODE_NAME, OUTCOME, STALE, Rule, rules_to_text
 
 __all__ = ["Corrupt", "Delay", "Drop", "Duplicate", "MessageFault", "Partition", "Reorder", "stale"]
+
+if TYPE_CHECKING:
+    from .client import ContainerClient
+    from .system import System
 
 
 def stale(seconds: float) -> tuple[str, float]:
@@ -64,7 +68,7 @@ class MessageFault:
     kind: ClassVar[str] = ""
     lasts: ClassVar[bool] = True
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not 0 < self.seconds <= 3600:
             raise ValueError(f"a message fault lasts 0-3600 s, not {self.seconds!r}")
         # Lists are welcome: kept as tuples (the fault is frozen).
@@ -106,7 +110,7 @@ class MessageFault:
     def _details(self) -> list[str]:
         return []
 
-    def apply(self, system) -> None:
+    def apply(self, system: System) -> None:
         system.message_fault(self)
 
 
@@ -168,7 +172,7 @@ class Corrupt(MessageFault):
         return {"fields": dict(self.fields)}
 
     def _details(self) -> list[str]:
-        def shown(v):
+        def shown(v: object) -> str:
             if isinstance(v, tuple) and v and v[0] == STALE:
                 return f"{v[1]:g} s stale"
             return "NaN" if isinstance(v, float) and math.isnan(v) else repr(v)
@@ -190,7 +194,7 @@ class MessageEngine:
     """The harness's side of the rig's engine in one container: loads it,
     sets the rules in force (the faults under way), reads what each did."""
 
-    def __init__(self, client):
+    def __init__(self, client: ContainerClient):
         self._client = client
         self._lock = threading.Lock()
         self._rules: dict[str, Rule] = {}

@@ -10,11 +10,16 @@ the public test API.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from std_msgs.msg import String
 
 from cloneguard.faults import PACKAGE as RIG
 
 from .system import NodeSpec
+
+if TYPE_CHECKING:
+    from .pytest_plugin import SystemFactory
 
 #: Container arguments per profile (the rig's scenarios' names).
 PROFILE_ARGS = {"threads": [], "shared": ["--isolated", "--profile", "shared"],
@@ -28,7 +33,9 @@ SETTLE_MESSAGES = 20
 class ChatterProbe:
     """The system, and what was sent and heard on it."""
 
-    def __init__(self, system_factory, profile: str = "shared", intra: bool = False, period_s: float = 0.02):
+    def __init__(
+        self, system_factory: SystemFactory, profile: str = "shared", intra: bool = False, period_s: float = 0.02
+    ):
         extra = {"use_intra_process_comms": True} if intra else {}
         talker = {"topic": TOPIC, "period": period_s, "message": "m"}
         nodes = [
@@ -66,5 +73,5 @@ class ChatterProbe:
         return sorted(set(range(min(heard), last + 1)) - set(heard))
 
 
-def number(msg) -> int:
+def number(msg: String) -> int:
     return int(msg.data.split()[-1])

@@ -29,6 +29,14 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .composition import Composition
+    from .pytest_plugin import SystemFactory
+    from .report.stats import Proportion
+    from .system import NodeSpec
+    from .system_trials import SystemTrials
 
 GROUP = "cloneguard.harness.faults"
 
@@ -44,14 +52,14 @@ class NamedFault:
 
     fault: str
     claim: str
-    nodes: Sequence | object
+    nodes: Sequence[NodeSpec] | Composition
     trials: Callable[..., Callable[..., Mapping | None]]
     container_args: Sequence[str] | None = None
     quick: int = 3
     deep: int = 200
     at_least: float | None = None
 
-    def run(self, system_factory, system_trials):
+    def run(self, system_factory: SystemFactory, system_trials: SystemTrials) -> Proportion:
         """Start the composition and run its trials (in a test, with its
         fixtures); the survival rate, as ``system_trials`` returns it."""
         system = system_factory(self.nodes, self.container_args)

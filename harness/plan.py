@@ -25,10 +25,31 @@ import argparse
 import os
 import random
 import zlib
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
 
 import pytest
 
 from .errors import HarnessTimeout  # not .client: that imports rclpy
+
+if TYPE_CHECKING:
+    from .diagnose import Diagnosis
+    from .report.record import Resilience
+    from .rig import Outcome, Rig
+
+    class RunTrials(Protocol):
+        """What the ``run_trials`` fixture gives a test."""
+
+        def __call__(
+            self,
+            trial: Callable[[int, int], Outcome],
+            settle: Callable[[Outcome], object],
+            quick: int,
+            deep: int,
+            *,
+            rig: Rig | None = None,
+        ) -> int: ...
+
 
 ENV_DEEP = "CLONEGUARD_DEEP"
 #: planned trials from which a scenario holds its deep floor (a 99% floor
@@ -51,7 +72,7 @@ def trial_count_arg(text: str) -> int:
     return value
 
 
-def add_options(parser) -> None:
+def add_options(parser: pytest.Parser) -> None:
     group = parser.getgroup("cloneguard trials")
     group.addoption(
         "--deep", action="store_true", default=False, help="run the deep trial counts (hundreds per scenario)"
@@ -80,17 +101,17 @@ def parse_shard(text: str) -> tuple[int, int]:
     return k, n
 
 
-def shard_of(config) -> tuple[int, int] | None:
+def shard_of(config: pytest.Config) -> tuple[int, int] | None:
     text = config.getoption("--shard", default=None)
     return parse_shard(text) if text else None
 
 
-def is_deep(config) -> bool:
+def is_deep(config: pytest.Config) -> bool:
     """--deep, or CLONEGUARD_DEEP=1 in the environment."""
     return bool(config.getoption("--deep", default=False)) or os.environ.get(ENV_DEEP, "") == "1"
 
 
-def trial_plan_of(config) -> dict:
+def trial_plan_of(config: pytest.Config) -> dict:
     """What decides which trials a run makes (runs merge only if equal)."""
     plan = {
         "seed": config.getoption("--seed", default=None),
@@ -103,7 +124,7 @@ def trial_plan_of(config) -> dict:
     return plan
 
 
-def trial_count(config, quick: int, deep: int) -> int:
+def trial_count(config: pytest.Config, quick: int, deep: int) -> int:
     if config.getoption("--trial-seed", default=None) is not None:
         return 1
     forced = config.getoption("--trials")
@@ -112,11 +133,11 @@ def trial_count(config, quick: int, deep: int) -> int:
     return deep if is_deep(config) else quick
 
 
-def long_run(config) -> bool:
+def long_run(config: pytest.Config) -> bool:
     return is_deep(config) or config.getoption("--trials") is not None
 
 
-def give_long_timeouts(config, items) -> None:
+def give_long_timeouts(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A deep run's tests get LONG_RUN_TIMEOUT_S (before any timeout marker
     of their own, which sized the quick run)."""
     if long_run(config):
@@ -135,13 +156,13 @@ def plan(count: int, rng: random.Random, shard: tuple[int, int] | None) -> list[
     return out
 
 
-def scenario_rng(config, nodeid: str) -> random.Random:
+def scenario_rng(config: pytest.Config, nodeid: str) -> random.Random:
     """A Random seeded from --seed and the test's node id."""
     return random.Random(config.getoption("--seed") * 1_000_003 + zlib.crc32(nodeid.encode()))
 
 
 @pytest.fixture
-def trial_plan(request):
+def trial_plan(request: pytest.FixtureRequest) -> Callable[[int, int], list[tuple[int, int]]]:
     def make(quick: int, deep: int) -> list[tuple[int, int]]:
         config = request.config
         shard = shard_of(config)
@@ -160,10 +181,10 @@ def trial_plan(request):
 
 
 @pytest.fixture
-def record_trial(resilience):
+def record_trial(resilience: Resilience) -> Callable[[int, int, Outcome], None]:
     """record_trial(index, seed, Outcome): one trial into the report."""
 
-    def record(index: int, seed: int, out) -> None:
+    def record(index: int, seed: int, out: Outcome) -> None:
         resilience.trial(outcome=out.outcome, index=index, seed=seed, latency_ms=out.latency_ms, details=out.details)
         if out.diagnosis is not None:
             record_hang(resilience, index, out.diagnosis)
@@ -171,7 +192,7 @@ def record_trial(resilience):
     return record
 
 
-def record_hang(resilience, index: int, d) -> None:
+def record_hang(resilience: Resilience, index: int, d: Diagnosis) -> None:
     """A hung trial's diagnosis (diagnose.Diagnosis) into the report."""
     first = d.blocked[0] if d.blocked else None
     resilience.hang(
@@ -185,7 +206,11 @@ def record_hang(resilience, index: int, d) -> None:
 
 
 @pytest.fixture
-def run_trials(request, record_trial, trial_plan):
+def run_trials(
+    request: pytest.FixtureRequest,
+    record_trial: Callable[[int, int, Outcome], None],
+    trial_plan: Callable[[int, int], list[tuple[int, int]]],
+) -> RunTrials:
     """run_trials(trial, settle, quick, deep, rig=None): the trial loop every
     rate scenario shares: ``trial(seed, index) -> Outcome`` for each planned
     trial, recorded, then ``settle(outcome)`` (which replaces a broken
@@ -196,7 +221,14 @@ def run_trials(request, record_trial, trial_plan):
     shard of a sharded deep run has a share of the trials, but the floor is
     judged on them all, by ``harness merge``)."""
 
-    def run(trial, settle, quick: int, deep: int, *, rig=None) -> int:
+    def run(
+        trial: Callable[[int, int], Outcome],
+        settle: Callable[[Outcome], object],
+        quick: int,
+        deep: int,
+        *,
+        rig: Rig | None = None,
+    ) -> int:
         for i, seed in trial_plan(quick, deep):
             try:
                 out = trial(seed, i)

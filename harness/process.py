@@ -232,8 +232,8 @@ class ContainerProcess:
             self.memory_cgroup.close()
         return self.exit_status
 
-    def __enter__(self):
+    def __enter__(self) -> ContainerProcess:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.stop()

@@ -43,6 +43,9 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import pytest
 
@@ -50,6 +53,23 @@ from . import domains, plan, procfs, selection, shm
 from .plan import record_trial, run_trials, trial_plan  # noqa: F401  (plugin)
 from .process import DISCOVERY_RANGE_VARIABLES, loopback_variables
 from .system_trials import system_trials  # noqa: F401  (plugin)
+
+if TYPE_CHECKING:
+    from .client import ContainerClient
+    from .composition import Composition
+    from .factory import ContainerFactory
+    from .process import ContainerProcess
+    from .system import NodeSpec, System
+
+    class SystemFactory(Protocol):
+        """What the ``system_factory`` fixture gives a test."""
+
+        def __call__(
+            self,
+            nodes: Sequence[NodeSpec] | Composition,
+            container_args: Sequence[str] | None = None,
+            memory_limit: int | None = None,
+        ) -> System: ...
 
 
 def _hold_seconds(text: str) -> float:
@@ -62,7 +82,7 @@ def _hold_seconds(text: str) -> float:
     return value
 
 
-def pytest_addoption(parser):
+def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("cloneguard")
     group.addoption(
         "--container-exe",
@@ -95,7 +115,7 @@ def pytest_addoption(parser):
     selection.add_options(parser)
 
 
-def pytest_configure(config):
+def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "shm: the test runs Fast DDS with shared memory on")
     selection.register_markers(config)
     # The ROS wheels' rosidl parsers import lark, which imports two modules
@@ -105,13 +125,13 @@ def pytest_configure(config):
         config.addinivalue_line("filterwarnings", f"ignore:module '{module}' is deprecated:DeprecationWarning:lark")
 
 
-def pytest_collection_modifyitems(config, items):
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     selection.select(config, items)
     plan.give_long_timeouts(config, items)
 
 
 @pytest.fixture
-def ros_environment(monkeypatch):
+def ros_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     for key in DISCOVERY_RANGE_VARIABLES:
         monkeypatch.delenv(key, raising=False)
     for key, value in loopback_variables().items():
@@ -119,7 +139,7 @@ def ros_environment(monkeypatch):
 
 
 @pytest.fixture
-def domain_id():
+def domain_id() -> Iterator[int]:
     with domains.lease() as lease:
         yield lease.domain_id
 
@@ -135,7 +155,9 @@ def container_env() -> dict[str, str]:
 
 
 @pytest.fixture
-def container_factory(request, ros_environment, domain_id, tmp_path, _leftovers):
+def container_factory(
+    request: pytest.FixtureRequest, ros_environment: None, domain_id: int, tmp_path: Path, _leftovers: _Leftovers
+) -> Iterator[ContainerFactory]:
     from .factory import ContainerFactory, log_tail  # imports rclpy: only now, with ros_environment set
 
     factory = ContainerFactory(domain_id, tmp_path, exe=request.config.getoption("--container-exe"))
@@ -147,23 +169,29 @@ def container_factory(request, ros_environment, domain_id, tmp_path, _leftovers)
 
 
 @pytest.fixture
-def container(container_factory, container_args, container_env):
+def container(
+    container_factory: ContainerFactory, container_args: list[str], container_env: dict[str, str]
+) -> ContainerProcess:
     return container_factory.start(container_args, extra_env=container_env)
 
 
 @pytest.fixture
-def client(container_factory, container):
+def client(container_factory: ContainerFactory, container: ContainerProcess) -> ContainerClient:
     return container_factory.connect(container)
 
 
 @pytest.fixture
-def system_factory(request, container_factory):
+def system_factory(request: pytest.FixtureRequest, container_factory: ContainerFactory) -> SystemFactory:
     from .composition import Composition
     from .system import System
 
     more = list(request.config.getoption("--container-arg"))
 
-    def make(nodes, container_args=None, memory_limit=None):
+    def make(
+        nodes: Sequence[NodeSpec] | Composition,
+        container_args: Sequence[str] | None = None,
+        memory_limit: int | None = None,
+    ) -> System:
         if isinstance(nodes, Composition):  # read from a file: its arguments unless given
             container_args = container_args if container_args is not None else nodes.container_args
             nodes = nodes.nodes
@@ -177,7 +205,7 @@ JANITOR_GRACE_S = 10.0
 
 
 class _Leftovers:
-    def __init__(self):
+    def __init__(self) -> None:
         self.factories: list = []  # the ContainerFactory of each test
         self.shm_before = shm.segments()
 
@@ -223,7 +251,7 @@ class _Leftovers:
 
 
 @pytest.fixture
-def _leftovers():
+def _leftovers() -> Iterator[_Leftovers]:
     tracker = _Leftovers()
     yield tracker
     problems = tracker.problems()

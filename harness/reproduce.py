@@ -25,6 +25,7 @@ point group ``cloneguard.harness.faults``) the same way, by its name:
 
 from __future__ import annotations
 
+import argparse
 import os
 import random
 import shutil
@@ -40,7 +41,7 @@ from cloneguard.harness.factory import ContainerFactory
 from cloneguard.harness.memory_cgroup import MemoryCgroupUnavailable
 from cloneguard.harness.plan import trial_count_arg
 from cloneguard.harness.process import use_loopback_ros
-from cloneguard.harness.rig import PROFILES, Rig
+from cloneguard.harness.rig import PROFILES, Outcome, Rig
 
 from .report.model import TrialOutcome
 
@@ -59,7 +60,7 @@ def registry() -> tuple[dict, dict]:
     return found["faults"].load(), found["allocators"].load()
 
 
-def add_parser(subparsers) -> None:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     faults, allocators = registry()
     p = subparsers.add_parser(
         "reproduce",
@@ -116,7 +117,7 @@ def is_node_id(target: str) -> bool:
     return "::" in target or target.endswith(".py")
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     if is_node_id(args.fault):
         return run_scenario(args)
     if args.fault in named_faults.names():
@@ -161,7 +162,7 @@ def run(args) -> int:
                 shutil.rmtree(log_dir, ignore_errors=True)
 
 
-def scenario_command(args) -> list[str]:
+def scenario_command(args: argparse.Namespace) -> list[str]:
     """The pytest run that replays a scenario of yours: its trials stop at
     the first that does not survive, whose container is held (until
     Ctrl-C; with --no-wait, not at all)."""
@@ -193,7 +194,7 @@ def _config_in(directory: Path) -> Path:
     return next((p for p in found if p.is_file()), Path(os.devnull))
 
 
-def run_scenario(args) -> int:
+def run_scenario(args: argparse.Namespace) -> int:
     """pytest's exit status. Ctrl-C is pytest's to handle (it stops a held
     container and writes the report): this process ignores it meanwhile,
     and the child starts with the default action, which Python turns into
@@ -208,7 +209,7 @@ def run_scenario(args) -> int:
         signal.signal(signal.SIGINT, previous)
 
 
-def _report_stuck(rig: Rig, out, log_dir: Path, *, wait: bool) -> None:
+def _report_stuck(rig: Rig, out: Outcome, log_dir: Path, *, wait: bool) -> None:
     print(f"\n{out.outcome.upper()}: {out.details.get('why', '')}")
     if out.diagnosis is not None:
         stacks = log_dir / "stacks.txt"

@@ -22,16 +22,22 @@ from __future__ import annotations
 
 import signal
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cloneguard_interfaces.msg import ComponentEvent
 from std_msgs.msg import UInt64
 
 from . import diagnose, firing, procfs, symbols
-from .client import ContainerClient, HarnessTimeout
+from .client import ContainerClient, HarnessTimeout, Recorder
 from .factory import log_tail
 from .process import ContainerProcess
 from .report.model import TrialOutcome
+
+if TYPE_CHECKING:
+    from .factory import ContainerFactory
 
 SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
 CRASH_LOG_LINES = 40  # of a container that died in a trial, kept in the report
@@ -109,12 +115,12 @@ class Outcome:
 class Rig:
     def __init__(
         self,
-        factory,
+        factory: ContainerFactory,
         profile: str,
         *,
-        extra_args=(),
-        extra_env=None,
-        fastdds_profile=None,
+        extra_args: Sequence[str] = (),
+        extra_env: dict[str, str] | None = None,
+        fastdds_profile: Path | None = None,
         memory_limit: int | None = None,
     ):
         self._factory = factory
@@ -231,7 +237,7 @@ class Rig:
             return self.not_survived(stopped, out)
         return out
 
-    def keeps_flowing(self, rec, what: str, out: Outcome, more: int = 3, timeout: float = 5.0) -> Outcome:
+    def keeps_flowing(self, rec: Recorder, what: str, out: Outcome, more: int = 3, timeout: float = 5.0) -> Outcome:
         """After a death judged ``out``: ``out`` if ``rec`` (a sibling's
         progress topic) gets ``more`` messages within ``timeout``, else the
         not-survived outcome saying that ``what`` stopped."""

@@ -29,6 +29,7 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from .message_faults import Corrupt, Delay, Drop, Duplicate, MessageFault, Partition, Reorder, stale
 
@@ -36,6 +37,9 @@ __all__ = [
     "At", "Corrupt", "Delay", "Drop", "Duplicate", "Freeze", "Kill", "KillAt", "MessageFault", "Partition",
     "Reorder", "Starve", "as_schedule", "random_over", "run_schedule", "sequence", "stale",
 ]  # fmt: skip
+
+if TYPE_CHECKING:
+    from .system import Fault, System
 
 
 @dataclass(frozen=True)
@@ -46,7 +50,7 @@ class Kill:
     sig: int = signal.SIGKILL
     lasts = False
 
-    def apply(self, system) -> None:
+    def apply(self, system: System) -> None:
         system.kill(self.node, self.sig)
 
 
@@ -63,7 +67,7 @@ class KillAt:
     lock: str = ""
     lasts = False
 
-    def apply(self, system) -> None:
+    def apply(self, system: System) -> None:
         system.kill_at(self.node, self.place, after=self.after, lock=self.lock)
 
 
@@ -75,7 +79,7 @@ class Freeze:
     seconds: float
     lasts = True
 
-    def apply(self, system) -> None:
+    def apply(self, system: System) -> None:
         system.freeze(self.node, self.seconds)
 
 
@@ -88,7 +92,7 @@ class Starve:
     seconds: float
     lasts = True
 
-    def apply(self, system) -> None:
+    def apply(self, system: System) -> None:
         system.starve(self.node, self.cpus, self.seconds)
 
 
@@ -103,7 +107,7 @@ class At:
     seconds: float
     fault: ScheduledFault
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not 0 <= self.seconds <= 3600:
             raise ValueError(f"a fault's time is 0-3600 s from the schedule's start, not {self.seconds!r}")
 
@@ -122,7 +126,7 @@ def random_over(rng: random.Random, window_s: float, faults: Sequence[ScheduledF
                   key=lambda a: a.seconds)  # fmt: skip
 
 
-def as_schedule(schedule) -> list[At]:
+def as_schedule(schedule: At | ScheduledFault | Iterable[At | ScheduledFault]) -> list[At]:
     """A schedule from what ``System.inject`` takes: an ``At``, a fault (at
     once), or a list of those; anything else is refused, saying what."""
     items = [schedule] if isinstance(schedule, (At, *FAULTS)) else list(schedule)
@@ -140,7 +144,7 @@ def as_schedule(schedule) -> list[At]:
     return sorted(out, key=lambda a: a.seconds)
 
 
-def run_schedule(system, schedule: At | ScheduledFault | Iterable[At | ScheduledFault]) -> list:
+def run_schedule(system: System, schedule: At | ScheduledFault | Iterable[At | ScheduledFault]) -> list[Fault]:
     """Run ``schedule`` on ``system``; the System faults it recorded."""
     items = as_schedule(schedule)
     first = len(system.faults)

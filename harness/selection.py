@@ -17,13 +17,18 @@ words, as the report's fault column is.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import pytest
+
 MARKERS = {
     "fault": "fault(*kinds): the faults this scenario injects (SIGKILL, freeze, python-lock, ...), for --fault",
     "node": "node(*full_names): the nodes this scenario hurts (/planner), for --node",
 }
 
 
-def add_options(parser) -> None:
+def add_options(parser: pytest.Parser) -> None:
     group = parser.getgroup("cloneguard")
     group.addoption(
         "--fault",
@@ -41,16 +46,16 @@ def add_options(parser) -> None:
     )
 
 
-def register_markers(config) -> None:
+def register_markers(config: pytest.Config) -> None:
     for text in MARKERS.values():
         config.addinivalue_line("markers", text)
 
 
-def _named(item, marker: str) -> set[str]:
+def _named(item: pytest.Item, marker: str) -> set[str]:
     return {str(arg) for mark in item.iter_markers(marker) for arg in mark.args}
 
 
-def select(config, items: list) -> None:
+def select(config: pytest.Config, items: list) -> None:
     """Deselect the tests whose markers name none of the --fault kinds or
     none of the --node names asked for."""
     wanted = {marker: set(config.getoption(f"--{marker}")) for marker in MARKERS}

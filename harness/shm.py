@@ -194,7 +194,7 @@ _SEM_FAILED = None  # ctypes returns a NULL sem_t* as None
 _libc = None
 
 
-def _c():
+def _c() -> ctypes.CDLL:
     global _libc
     if _libc is None:
         libc = ctypes.CDLL(None, use_errno=True)

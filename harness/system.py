@@ -21,8 +21,9 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 from cloneguard_interfaces.msg import ComponentEvent
 
@@ -36,6 +37,12 @@ from .message_faults import MessageEngine, MessageFault, run_message_fault
 from .process import ContainerProcess
 from .schedule import run_schedule
 from .talk import GoalOutcome, Talker
+
+if TYPE_CHECKING:
+    from rclpy.client import Client
+    from rclpy.qos import QoSProfile
+
+    from .schedule import At, ScheduledFault
 
 #: How long a load, a death's CRASHED event or a restart is waited for.
 WAIT_S = 15.0
@@ -155,26 +162,26 @@ class System:
 
     # -- what to watch ------------------------------------------------------------
 
-    def topic(self, msg_type, name: str, qos=10) -> Recorder:
+    def topic(self, msg_type: type, name: str, qos: QoSProfile | int = 10) -> Recorder:
         """Every message on ``name`` from now on, stamped on arrival. The
         topic is *watched*: seeded trials record what it did in each one."""
         rec = self.client.subscribe(msg_type, name, qos)
         self.watched[name] = rec
         return rec
 
-    def service(self, srv_type, name: str):
+    def service(self, srv_type: type, name: str) -> Client:
         """An rclpy client of ``name``, for ``call_latency``."""
         return self.client.service_client(srv_type, name)
 
     # -- talking to the nodes (talk.py) ------------------------------------------------
 
-    def call(self, srv_type, name: str, request, timeout: float = WAIT_S):
+    def call(self, srv_type: type, name: str, request: object, timeout: float = WAIT_S) -> Any:
         """Call service ``name`` (of type ``srv_type``) with ``request``; its
         answer. HarnessTimeout if it is not offered, or does not answer,
         within ``timeout``."""
         return self._talk.call(srv_type, name, request, timeout)
 
-    def send_goal(self, action_type, name: str, goal, timeout: float = WAIT_S) -> GoalOutcome:
+    def send_goal(self, action_type: type, name: str, goal: object, timeout: float = WAIT_S) -> GoalOutcome:
         """Send ``goal`` to action server ``name``: a GoalOutcome (accepted,
         the feedback it sent, its final status and result), waited for
         within ``timeout``."""
@@ -312,7 +319,7 @@ class System:
         self.faults.append(recorded)
         return recorded
 
-    def inject(self, schedule) -> list[Fault]:
+    def inject(self, schedule: At | ScheduledFault | Iterable[At | ScheduledFault]) -> list[Fault]:
         """Run a fault schedule (schedule.py: faults at times from now, in
         order, overlapping where their times do; a single fault runs at
         once); blocks until the last ends; the faults it injected. An
@@ -330,7 +337,7 @@ class System:
         e.g. ``python-lock`` or ``native-mutex``; any if empty)."""
         running = self.node(full_name)
 
-        def repaired(ev) -> bool:
+        def repaired(ev: ComponentEvent) -> bool:
             return (
                 ev.event_type == ComponentEvent.REPAIRED
                 and ev.unique_id == running.unique_id
@@ -344,7 +351,7 @@ class System:
         again after its death; the new process becomes the node's."""
         old = self.node(full_name)
 
-        def again(ev) -> bool:
+        def again(ev: ComponentEvent) -> bool:
             return (
                 ev.event_type == ComponentEvent.LOADED
                 and ev.full_node_name == full_name
@@ -418,7 +425,7 @@ def longest_gap(rec: Recorder, since_ns: int, until_ns: int | None = None) -> fl
     return max(b - a for a, b in zip(edges, edges[1:], strict=False)) / 1e9
 
 
-def call_latency(system: System, client, request, timeout: float = 5.0) -> float:
+def call_latency(system: System, client: Client, request: object, timeout: float = 5.0) -> float:
     """Seconds from sending ``request`` on ``client`` (``System.service``)
     to its answer; HarnessTimeout (an AssertionError) if the service is not
     offered, or does not answer, within ``timeout``."""

@@ -34,9 +34,9 @@ import math
 import random
 import signal
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import pytest
 
@@ -45,6 +45,28 @@ from .cpu_starve import CpuStarveUnavailable
 from .errors import HarnessTimeout
 from .plan import record_hang
 from .report.model import TrialOutcome
+
+if TYPE_CHECKING:
+    from .client import Recorder
+    from .report.record import Resilience
+    from .report.stats import Proportion
+    from .system import Fault, System
+
+    class SystemTrials(Protocol):
+        """What the ``system_trials`` fixture gives a test."""
+
+        def __call__(
+            self,
+            system: System,
+            trial: Callable[[SystemTrial], Mapping | None],
+            *,
+            fault: str,
+            claim: str,
+            quick: int = 3,
+            deep: int = 200,
+            at_least: float | None = None,
+        ) -> Proportion: ...
+
 
 #: A container is replaced after this many node deaths (each dead node
 #: leaves its DDS participant behind: rig.DEATHS_PER_CONTAINER says why).
@@ -90,7 +112,7 @@ class Measure(NamedTuple):
     unit: str
 
 
-def _measurements(measured: Mapping | None, resilience) -> dict:
+def _measurements(measured: Mapping | None, resilience: Resilience) -> dict:
     """A trial's returned measurements as the report takes them: values,
     with the units of those not in ms told to the scenario."""
     if measured is None:
@@ -110,7 +132,7 @@ def _measurements(measured: Mapping | None, resilience) -> dict:
 DEFAULT_PROFILE = "shared"
 
 
-def profile_of(container_args) -> str:
+def profile_of(container_args: Iterable[str]) -> str:
     """The report's profile of a container started with these arguments:
     ``threads`` without --isolated, else its participant profile."""
     args = list(container_args)
@@ -129,7 +151,7 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _outcome(system, exc: BaseException | None) -> tuple[str, str]:
+def _outcome(system: System, exc: BaseException | None) -> tuple[str, str]:
     """(outcome, cause) of a trial that returned (exc None) or raised."""
     if not system.alive():
         return TrialOutcome.CRASHED.value, f"the container died (exit status {system.proc.wait(0)})"
@@ -140,11 +162,11 @@ def _outcome(system, exc: BaseException | None) -> tuple[str, str]:
     return TrialOutcome.FAILED.value, _first_line(exc)
 
 
-def _window(rec, start_ns: int, end_ns: int) -> list[int]:
+def _window(rec: Recorder, start_ns: int, end_ns: int) -> list[int]:
     return [r.at_ns for r in rec.items() if start_ns <= r.at_ns <= end_ns]
 
 
-def topic_facts(system, start_ns: int, end_ns: int) -> dict[str, dict]:
+def topic_facts(system: System, start_ns: int, end_ns: int) -> dict[str, dict]:
     """What each watched topic did between the two times: messages, rate
     (Hz) and longest gap (s, the window's edges counted)."""
     span = max(end_ns - start_ns, 1)
@@ -161,7 +183,7 @@ def topic_facts(system, start_ns: int, end_ns: int) -> dict[str, dict]:
     return out
 
 
-def fault_record(fault, start_ns: int) -> dict:
+def fault_record(fault: Fault, start_ns: int) -> dict:
     """A fault as a trial records it: which node, what kind, what exactly,
     from when to when (ms from the trial's start)."""
     return {
@@ -173,7 +195,7 @@ def fault_record(fault, start_ns: int) -> dict:
     }
 
 
-def timeline(system, start_ns: int, end_ns: int) -> dict:
+def timeline(system: System, start_ns: int, end_ns: int) -> dict:
     """The trial and its recovery as the report draws them (with the
     trial's faults): messages per TIMELINE_BIN_MS bin of each watched
     topic."""
@@ -188,7 +210,9 @@ def timeline(system, start_ns: int, end_ns: int) -> dict:
     return {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
 
 
-def crash_reports(system, start_ns: int, end_ns: int, faults, *, all_deaths: bool) -> dict[str, str]:
+def crash_reports(
+    system: System, start_ns: int, end_ns: int, faults: Iterable[Fault], *, all_deaths: bool
+) -> dict[str, str]:
     """The crash reports of the node processes that died in the trial (a
     CRASHED event between the two times), by "node (pid N)": of those that
     died on their own always, of those a fault of the trial ended only
@@ -217,7 +241,7 @@ def crash_reports(system, start_ns: int, end_ns: int, faults, *, all_deaths: boo
 TRIAL_EVENTS = ("CRASHED", "REPAIRED", "LOAD_FAILED", "UNLOADED")
 
 
-def container_events(system, start_ns: int, end_ns: int) -> list[dict]:
+def container_events(system: System, start_ns: int, end_ns: int) -> list[dict]:
     """The container's CRASHED, REPAIRED, LOAD_FAILED and UNLOADED events
     between the two times, in order: when (ms from ``start_ns``), which,
     of which node and process, and what it says. A REPAIRED's node and
@@ -249,7 +273,7 @@ def container_events(system, start_ns: int, end_ns: int) -> list[dict]:
     return out
 
 
-def _heard_again(system, within_s: float) -> None:
+def _heard_again(system: System, within_s: float) -> None:
     """Until each watched topic has had HEARD_AGAIN messages more, or
     ``within_s``."""
     deadline = time.monotonic() + within_s
@@ -269,7 +293,7 @@ def _bin_end(start_ns: int) -> int:
     return end
 
 
-def _settle(system, outcome: str, start_ns: int) -> None:
+def _settle(system: System, outcome: str, start_ns: int) -> None:
     """The composition whole again for the next trial."""
     if outcome == TrialOutcome.SURVIVED.value:
         try:
@@ -282,7 +306,11 @@ def _settle(system, outcome: str, start_ns: int) -> None:
 
 
 def run_trials(
-    system, trial: Callable[[SystemTrial], Mapping | None], planned, resilience, hold: Callable | None = None
+    system: System,
+    trial: Callable[[SystemTrial], Mapping | None],
+    planned: Sequence[tuple[int, int]],
+    resilience: Resilience,
+    hold: Callable | None = None,
 ) -> None:
     """Each planned (index, seed) trial of ``system``, recorded. A trial
     may return a mapping of measurements (a series each): numbers in ms, or
@@ -342,12 +370,12 @@ def run_trials(
             )
 
 
-def holder(config, seconds: float) -> Callable:
+def holder(config: pytest.Config, seconds: float) -> Callable:
     """What ``--hold-failed SECONDS`` does with a trial that did not
     survive: say where the container and its nodes are, on the terminal
     (past pytest's capture), and keep them that long (inf: until Ctrl-C)."""
 
-    def hold(system, index: int, seed: int, cause: str) -> None:
+    def hold(system: System, index: int, seed: int, cause: str) -> None:
         capture = config.pluginmanager.getplugin("capturemanager")
         with capture.global_and_fixture_disabled():
             print(f"\ntrial {index} (--trial-seed {seed}) did not survive: {cause}")
@@ -375,7 +403,11 @@ def holder(config, seconds: float) -> Callable:
 
 
 @pytest.fixture
-def system_trials(request, resilience, trial_plan):
+def system_trials(
+    request: pytest.FixtureRequest,
+    resilience: Resilience,
+    trial_plan: Callable[[int, int], list[tuple[int, int]]],
+) -> SystemTrials:
     """system_trials(system, trial, *, fault, claim, quick=3, deep=200,
     at_least=None): run ``trial(SystemTrial)`` as seeded trials of
     ``system`` (``quick`` by default, ``deep`` with --deep, N with
@@ -384,7 +416,16 @@ def system_trials(request, resilience, trial_plan):
     allow no container death). Returns the survival rate so far
     (``stats.Proportion``: successes, trials, rate, and its 95% interval low, high)."""
 
-    def run(system, trial, *, fault: str, claim: str, quick: int = 3, deep: int = 200, at_least: float | None = None):
+    def run(
+        system: System,
+        trial: Callable[[SystemTrial], Mapping | None],
+        *,
+        fault: str,
+        claim: str,
+        quick: int = 3,
+        deep: int = 200,
+        at_least: float | None = None,
+    ) -> Proportion:
         __tracebackhide__ = True
         resilience.describe(
             fault=fault,

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from lifecycle_msgs.msg import State
 from lifecycle_msgs.srv import ChangeState, GetState
@@ -22,6 +24,10 @@ from rclpy.action import ActionClient
 
 from .client import ContainerClient, Recorder
 from .errors import HarnessTimeout
+
+if TYPE_CHECKING:
+    from rclpy.client import Client
+    from rclpy.task import Future
 
 #: A lifecycle node's primary states, by their ids (lifecycle_msgs/State).
 STATE_LABELS = {
@@ -73,10 +79,12 @@ class Talker:
 
     def __init__(self, client: ContainerClient):
         self._client = client
-        self._services: dict[tuple[str, type], object] = {}
+        self._services: dict[tuple[str, type], Client] = {}
         self._actions: dict[tuple[str, type], ActionClient] = {}
 
-    def call(self, srv_type, name: str, request, timeout: float, *, resend_after: float | None = None):
+    def call(
+        self, srv_type: type, name: str, request: object, timeout: float, *, resend_after: float | None = None
+    ) -> Any:
         """``request`` to service ``name``; its answer. ``resend_after``:
         as ContainerClient.call's, for a request that changes nothing."""
         key = (name, srv_type)
@@ -84,7 +92,7 @@ class Talker:
             self._services[key] = self._client.service_client(srv_type, name)
         return self._client.call(self._services[key], request, timeout, resend_after=resend_after)
 
-    def send_goal(self, action_type, name: str, goal, timeout: float) -> GoalOutcome:
+    def send_goal(self, action_type: type, name: str, goal: object, timeout: float) -> GoalOutcome:
         """Send ``goal`` to action server ``name``; wait for its acceptance
         and, if accepted, its result: all within ``timeout``."""
         key = (name, action_type)
@@ -115,7 +123,7 @@ class Talker:
         outcome.status, outcome.result = done.status, done.result
         return outcome
 
-    def _on_client_thread(self, send, timeout: float):
+    def _on_client_thread(self, send: Callable[[], Future], timeout: float) -> Future:
         """``send()`` run on the harness client's spin thread, its future.
         rclpy 7.1's ActionClient sends a request before it records the
         future that waits for the answer, without a lock (rclpy issue
@@ -164,7 +172,7 @@ class Talker:
         return state.label or STATE_LABELS.get(state.id, str(state.id))
 
 
-def _wait(future, timeout: float, what: str):
+def _wait(future: Future, timeout: float, what: str) -> Any:
     """The result of an rclpy future the client's thread completes."""
     done = threading.Event()
     future.add_done_callback(lambda _f: done.set())

@@ -15,11 +15,18 @@ from __future__ import annotations
 import enum
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from cloneguard_interfaces.msg import ComponentEvent
 
 from .client import ContainerClient, HarnessTimeout
+
+if TYPE_CHECKING:
+    from typing import Unpack
+
+    from .client import LoadFields
 
 LOADING_FALLBACK_S = 10.0
 
@@ -66,7 +73,9 @@ class NodeTracker:
 
     # -- what the launcher does ---------------------------------------------------
 
-    def load(self, package_name: str, plugin_name: str, *, timeout: float = 30.0, **fields) -> TrackedNode:
+    def load(
+        self, package_name: str, plugin_name: str, *, timeout: float = 30.0, **fields: Unpack[LoadFields]
+    ) -> TrackedNode:
         node = TrackedNode(package_name, plugin_name, fields.get("node_name", ""))
         with self._cond:
             self._nodes.append(node)
@@ -101,7 +110,7 @@ class NodeTracker:
         with self._cond:
             return list(self._nodes)
 
-    def wait_state(self, node: TrackedNode, states, timeout: float) -> State:
+    def wait_state(self, node: TrackedNode, states: State | Iterable[State], timeout: float) -> State:
         wanted = {states} if isinstance(states, State) else set(states)
         with self._cond:
             if not self._cond.wait_for(lambda: node.state in wanted, timeout):

@@ -7,15 +7,22 @@ rclpy's QoS overrides (``qos_overrides.<topic>.publisher.history``,
 ``QoSOverridingOptions`` does.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from std_msgs.msg import UInt64
 
 from . import checks
 
+if TYPE_CHECKING:
+    from typing import Any
+
 
 class Heartbeat(Node):
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__("heartbeat", **kwargs)
         period = checks.period(self.declare_parameter("period", 0.05).value)
         self._beats = 0
@@ -24,6 +31,6 @@ class Heartbeat(Node):
         )
         self._timer = self.create_timer(period, self._beat)
 
-    def _beat(self):
+    def _beat(self) -> None:
         self._beats += 1
         self._pub.publish(UInt64(data=self._beats))

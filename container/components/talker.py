@@ -6,6 +6,10 @@ nodes by reference, and to DDS only for subscribers outside the container.
 ``limit`` > 0 stops it after that many messages.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from rclpy.node import Node
 from std_msgs.msg import String
 
@@ -13,9 +17,12 @@ from cloneguard.container import intra
 
 from . import checks
 
+if TYPE_CHECKING:
+    from typing import Any
+
 
 class Talker(Node):
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__("talker", **kwargs)
         topic = self.declare_parameter("topic", "chatter").value
         period = checks.period(self.declare_parameter("period", 0.1).value)
@@ -25,7 +32,7 @@ class Talker(Node):
         self._pub = intra.create_publisher(self, String, topic, 10)
         self._timer = self.create_timer(period, self._tick)
 
-    def _tick(self):
+    def _tick(self) -> None:
         if self._limit and self._count >= self._limit:
             self._timer.cancel()
             return

@@ -36,6 +36,7 @@ import threading
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -44,6 +45,27 @@ from .bus import PublisherEntry, SubscriptionEntry, get_bus, log
 from .dds_reader import GidFilteredReader, publisher_gid
 from .pool import Loan
 from .queue import MessageQueue
+
+if TYPE_CHECKING:
+    from typing import Any, TypedDict, Unpack
+
+    from rclpy.callback_groups import CallbackGroup
+    from rclpy.node import Node
+    from rclpy.subscription import Subscription as RclpySubscription
+
+    class _PublisherOptions(TypedDict, total=False):
+        """``create_publisher``'s keyword arguments: :class:`Publisher`'s."""
+
+        intra_process: bool | None
+        callback_group: CallbackGroup | None
+
+    class _SubscriptionOptions(TypedDict, total=False):
+        """``create_subscription``'s keyword arguments: :class:`Subscription`'s."""
+
+        intra_process: bool | None
+        loaned_field: str | None
+        callback_group: CallbackGroup | None
+
 
 KEEP_ALL_LIMIT = 10_000
 
@@ -66,12 +88,12 @@ def constructing(owner: object, enabled: bool) -> Iterator[None]:
         _constructing.load = None
 
 
-def adopt(node, owner: object, enabled: bool) -> None:
+def adopt(node: Node, owner: object, enabled: bool) -> None:
     """Remember ``node``'s load, for endpoints it creates after construction."""
     _nodes[node] = (owner, enabled)
 
 
-def destroy_endpoints(node) -> None:
+def destroy_endpoints(node: Node) -> None:
     """Destroy every endpoint this API made for ``node``. Call it before
     ``node.destroy_node()``, which does not know about them (a subscription's
     DDS reader is a waitable of the node, not one of its subscriptions); the
@@ -80,17 +102,17 @@ def destroy_endpoints(node) -> None:
         endpoint.destroy()
 
 
-def _track(node, endpoint) -> None:
+def _track(node: Node, endpoint: Publisher | Subscription) -> None:
     _endpoints.setdefault(node, []).append(endpoint)
 
 
-def _untrack(node, endpoint) -> None:
+def _untrack(node: Node, endpoint: Publisher | Subscription) -> None:
     live = _endpoints.get(node)
     if live is not None and endpoint in live:
         live.remove(endpoint)
 
 
-def _load_of(node) -> tuple[object, bool]:
+def _load_of(node: Node) -> tuple[object, bool]:
     known = _nodes.get(node)
     if known is not None:
         return known
@@ -115,7 +137,7 @@ def _profile(qos: QoSProfile | int) -> QoSProfile:
 _BYTE_FIELDS = {"sequence<uint8>": "B", "sequence<int8>": "b"}
 
 
-def check_byte_field(msg_type, field: str) -> str:
+def check_byte_field(msg_type: type[Any], field: str) -> str:
     kind = msg_type.get_fields_and_field_types().get(field)
     if kind is None:
         raise ValueError(f"{msg_type.__name__} has no field {field!r}")
@@ -134,7 +156,7 @@ class LoanedMessage:
 
     __slots__ = ("message", "field", "_loan", "_payload")
 
-    def __init__(self, message, field: str, loan: Loan | None = None, payload: memoryview | None = None):
+    def __init__(self, message: Any, field: str, loan: Loan | None = None, payload: memoryview | None = None) -> None:
         self.message = message
         self.field = field
         self._loan = loan
@@ -152,7 +174,7 @@ class LoanedMessage:
         """True if the payload is in the container's pool (not a DDS copy)."""
         return self._loan is not None
 
-    def to_message(self):
+    def to_message(self) -> Any:
         """An ordinary message: the other fields shared, the payload copied."""
         full = type(self.message)()
         for name in self.message.get_fields_and_field_types():
@@ -164,7 +186,7 @@ class LoanedMessage:
         return full
 
     @classmethod
-    def wrap(cls, message, field: str) -> LoanedMessage:
+    def wrap(cls, message: Any, field: str) -> LoanedMessage:
         """A DDS-received message seen through the same interface (no copy)."""
         return cls(message, field, None, memoryview(getattr(message, field)).toreadonly())
 
@@ -172,14 +194,14 @@ class LoanedMessage:
 class Publisher:
     def __init__(
         self,
-        node,
-        msg_type,
+        node: Node,
+        msg_type: type[Any],
         topic: str,
         qos: QoSProfile | int = 10,
         *,
         intra_process: bool | None = None,
-        callback_group=None,
-    ):
+        callback_group: CallbackGroup | None = None,
+    ) -> None:
         owner, enabled = _load_of(node)
         self.intra = enabled if intra_process is None else intra_process
         profile = _profile(qos) if self.intra else (QoSProfile(depth=qos) if isinstance(qos, int) else qos)
@@ -201,7 +223,7 @@ class Publisher:
             get_bus().add_publisher(self._entry)
         _track(node, self)
 
-    def publish(self, msg) -> None:
+    def publish(self, msg: Any) -> None:
         if not isinstance(msg, self.msg_type):
             raise TypeError(f"expected {self.msg_type.__name__}, got {type(msg).__name__}")
         if self._entry is None:
@@ -218,7 +240,7 @@ class Publisher:
         """A writable buffer of ``nbytes`` from the container's pool."""
         return get_bus().pool.loan(nbytes)
 
-    def publish_loan(self, loan: Loan, message, field: str) -> None:
+    def publish_loan(self, loan: Loan, message: Any, field: str) -> None:
         """Publish ``message`` with ``loan``'s bytes as its ``field``.
 
         ``message``'s own ``field`` should be empty; the loan is sealed (your
@@ -248,10 +270,10 @@ class Publisher:
             get_bus().remove(self._entry)
             self._entry = None
         self.node.destroy_publisher(self._dds)
-        self._dds = None
+        self._dds = None  # type: ignore[assignment]  # destroyed: it publishes no more
         _untrack(self.node, self)
 
-    def _hand_over(self, msg, targets: list[SubscriptionEntry]) -> None:
+    def _hand_over(self, msg: object, targets: list[SubscriptionEntry]) -> None:
         for sub in targets:
             if sub.queue.put(msg):  # it was empty: its executor may be asleep
                 try:
@@ -269,16 +291,16 @@ class Publisher:
 class Subscription:
     def __init__(
         self,
-        node,
-        msg_type,
+        node: Node,
+        msg_type: type[Any],
         topic: str,
         callback: Callable,
         qos: QoSProfile | int = 10,
         *,
         intra_process: bool | None = None,
         loaned_field: str | None = None,
-        callback_group=None,
-    ):
+        callback_group: CallbackGroup | None = None,
+    ) -> None:
         owner, enabled = _load_of(node)
         self.intra = enabled if intra_process is None else intra_process
         if loaned_field is not None:
@@ -291,7 +313,9 @@ class Subscription:
         self.received_dds = 0
         self._entry = None
         if not self.intra:
-            self._dds = node.create_subscription(msg_type, topic, self._on_dds, qos, callback_group=callback_group)
+            self._dds: RclpySubscription | None = node.create_subscription(
+                msg_type, topic, self._on_dds, qos, callback_group=callback_group
+            )
             self._reader = None
             self.topic = self._dds.topic_name
             _track(node, self)
@@ -316,7 +340,7 @@ class Subscription:
         self._waker = get_bus().waker(owner) if owner is not None else None
         if self._waker is not None:
             self._token = self._waker.add(self._wake)
-            wake = functools.partial(self._waker.post, self._token)
+            wake: Callable[[], None] = functools.partial(self._waker.post, self._token)
         else:
             wake = self._wake.trigger
         self._entry = SubscriptionEntry(
@@ -353,11 +377,11 @@ class Subscription:
             self.received_intra += 1
             self._deliver(msg)
 
-    def _on_dds(self, msg) -> None:
+    def _on_dds(self, msg: Any) -> None:
         self.received_dds += 1
         self._deliver(msg)
 
-    def _deliver(self, msg) -> None:
+    def _deliver(self, msg: object) -> None:
         if self.loaned_field is not None:
             if isinstance(msg, LoanedMessage) and msg.field != self.loaned_field:
                 msg = msg.to_message()
@@ -381,11 +405,18 @@ class Subscription:
             )
 
 
-def create_publisher(node, msg_type, topic: str, qos: QoSProfile | int = 10, **kwargs) -> Publisher:
+def create_publisher(
+    node: Node, msg_type: type[Any], topic: str, qos: QoSProfile | int = 10, **kwargs: Unpack[_PublisherOptions]
+) -> Publisher:
     return Publisher(node, msg_type, topic, qos, **kwargs)
 
 
 def create_subscription(
-    node, msg_type, topic: str, callback: Callable, qos: QoSProfile | int = 10, **kwargs
+    node: Node,
+    msg_type: type[Any],
+    topic: str,
+    callback: Callable,
+    qos: QoSProfile | int = 10,
+    **kwargs: Unpack[_SubscriptionOptions],
 ) -> Subscription:
     return Subscription(node, msg_type, topic, callback, qos, **kwargs)

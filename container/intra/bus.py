@@ -139,7 +139,9 @@ class Bus:
         return removed
 
     @staticmethod
-    def _set(table: dict, topic: str, value) -> None:
+    def _set(
+        table: dict, topic: str, value: tuple[SubscriptionEntry, ...] | tuple[PublisherEntry, ...] | frozenset[bytes]
+    ) -> None:
         if value:
             table[topic] = value
         else:

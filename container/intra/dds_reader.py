@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
@@ -38,6 +38,15 @@ from rclpy.type_support import check_is_valid_msg_type
 from rclpy.waitable import NumberOfEntities, Waitable
 
 from .._rclglue import ffi, lib
+
+if TYPE_CHECKING:
+    from types import TracebackType
+
+    from rclpy._rclpy_pybind11 import Publisher as PublisherHandle
+    from rclpy._rclpy_pybind11 import Subscription as SubscriptionHandle
+    from rclpy._rclpy_pybind11 import WaitSet
+    from rclpy.node import Node
+    from rclpy.publisher import Publisher
 
 GID_SIZE = lib.CGR_GID_SIZE
 
@@ -51,17 +60,17 @@ INITIAL_CAPACITY = 4096
 MAX_BATCH = 10_000
 
 
-def _error_text(buf) -> str:
+def _error_text(buf: Any) -> str:
     return ffi.string(buf).decode("utf-8", "replace")
 
 
-def publisher_gid(publisher) -> bytes:
+def publisher_gid(publisher: Publisher | PublisherHandle) -> bytes:
     """The DDS gid (16 bytes) of an rclpy Publisher (or its ``handle``).
 
     It is what a :class:`GidFilteredReader` passes to ``drop_from`` for the
     messages this publisher sent. Fixed for the publisher's lifetime.
     """
-    handle = getattr(publisher, "handle", publisher)
+    handle: PublisherHandle = getattr(publisher, "handle", publisher)
     gid = ffi.new("uint8_t[]", GID_SIZE)
     err = ffi.new("char[]", lib.CGR_ERR_SIZE)
     with handle:  # in use: rclpy will not finalize it during the call
@@ -120,14 +129,14 @@ class GidFilteredReader(Waitable):
 
     def __init__(
         self,
-        node,
-        msg_type,
+        node: Node,
+        msg_type: type[Any],
         topic: str,
         qos_profile: QoSProfile | int,
         callback: Callable[[Any], Any],
         drop_from: Callable[[bytes], bool],
         callback_group: CallbackGroup | None = None,
-    ):
+    ) -> None:
         if isinstance(qos_profile, int):
             if qos_profile < 0:
                 raise ValueError("history depth must be greater than or equal to zero")
@@ -170,7 +179,7 @@ class GidFilteredReader(Waitable):
         node.add_waitable(self)
 
     @property
-    def handle(self):
+    def handle(self) -> SubscriptionHandle:
         """The rclpy (pybind) Subscription handle; ``handle.pointer`` is the rcl_subscription_t *."""
         return self._handle
 
@@ -180,20 +189,20 @@ class GidFilteredReader(Waitable):
 
     # --- Waitable API (rclpy 7.1, rclpy/waitable.py) -------------------------
 
-    def __enter__(self):
+    def __enter__(self) -> None:
         # The executor enters every waitable before building the wait set:
         # the handle stays in use (not finalizable) until __exit__. Raises
         # InvalidHandle once destroyed; the executor then leaves us out of
         # the entity count.
         self._handle.__enter__()
 
-    def __exit__(self, t, v, tb):
+    def __exit__(self, t: type[BaseException] | None, v: BaseException | None, tb: TracebackType | None) -> None:
         self._handle.__exit__(t, v, tb)
 
     def get_num_entities(self) -> NumberOfEntities:
         return NumberOfEntities(num_subs=1)
 
-    def add_to_wait_set(self, wait_set) -> None:
+    def add_to_wait_set(self, wait_set: WaitSet) -> None:
         # rclpy 7.1's executor calls this even for a waitable whose __enter__
         # raised InvalidHandle (it only skips counting it): then there is no
         # slot for us in the wait set, so add nothing.
@@ -204,10 +213,10 @@ class GidFilteredReader(Waitable):
         except InvalidHandle:
             pass
 
-    def is_ready(self, wait_set) -> bool:
+    def is_ready(self, wait_set: WaitSet) -> bool:
         return self._index is not None and wait_set.is_ready("subscription", self._index)
 
-    def take_data(self):
+    def take_data(self) -> tuple[list[Any], Exception | None]:
         """Take every message there is (up to MAX_BATCH), deserialize those not dropped.
 
         Returns (messages, error): an error met after some messages were taken
@@ -236,7 +245,7 @@ class GidFilteredReader(Waitable):
                 return messages, exc
         return messages, None
 
-    async def execute(self, taken_data) -> None:
+    async def execute(self, taken_data: tuple[list[Any], Exception | None]) -> None:
         if not taken_data:
             return
         messages, error = taken_data

@@ -130,8 +130,8 @@ class Loan:
         """A read-only view of the payload (valid while this loan is referenced)."""
         return memoryview(self._block)[: self.nbytes].toreadonly()
 
-    def __del__(self):
-        block, self._block = self._block, None
+    def __del__(self) -> None:
+        block, self._block = self._block, None  # type: ignore[assignment]  # the loan is being collected
         if block is None:
             return
         if self._writable is not None:

@@ -10,7 +10,12 @@ with the container, does the trigger.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from .._rclglue import ffi, lib
+
+if TYPE_CHECKING:
+    from rclpy.guard_condition import GuardCondition
 
 CLOSE_TIMEOUT_MS = 1000
 
@@ -24,7 +29,7 @@ class Waker:
         self._w = out[0]
         self._closed = False
 
-    def add(self, guard_condition) -> int:
+    def add(self, guard_condition: GuardCondition) -> int:
         """A token for ``guard_condition`` (an rclpy GuardCondition)."""
         with guard_condition.handle:
             token = lib.cgw_add(self._w, ffi.cast("void *", guard_condition.handle.pointer))

@@ -249,7 +249,7 @@ class _Checker:
         return ok
 
 
-def core_module():
+def core_module() -> tuple[Any, Any]:
     """The clone core's cffi module (ffi, lib), or IsolationUnavailable
     saying it is not built here."""
     try:
@@ -362,7 +362,7 @@ def check_multithreaded() -> None:
         )
 
 
-def _probe_condwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> Layout:
+def _probe_condwait(ck: _Checker, ffi: Any, lib: Any, L: Layout, overrides: dict) -> Layout:
     """A live pthread blocked in pthread_cond_wait, read from outside."""
     p = ffi.new("struct cg_condwait_probe *")
     if lib.cg_probe_condwait(L.cleanup, p) != 0:
@@ -413,7 +413,7 @@ PID_CURSOR = "/proc/sys/kernel/ns_last_pid"
 MUTEX_NO_ELISION = 512  # PTHREAD_MUTEX_NO_ELISION_NP
 
 
-def _probe_mutexwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tuple[Layout, str]:
+def _probe_mutexwait(ck: _Checker, ffi: Any, lib: Any, L: Layout, overrides: dict) -> tuple[Layout, str]:
     """Live pthreads blocked on each kind of plain mutex, and on a
     glibc-internal lock, read from outside the way mutexes.c reads a
     waiter. A failure does not refuse isolation: it says why dead nodes'
@@ -492,7 +492,7 @@ FUTEX_CLOCK_REALTIME = 256
 TIMED_FIELDS = ("timed_wait_pc", "timed_ret_slot", "mutex_timed_ret", "rwlock_ret", "rwlock_futex_off")
 
 
-def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tuple[Layout, str]:
+def _probe_timedwait(ck: _Checker, ffi: Any, lib: Any, L: Layout, overrides: dict) -> tuple[Layout, str]:
     """Live pthreads blocked in the timed mutex locks and in the rwlock lock
     calls, read from outside the way mutexes.c reads a waiter. Needs the
     plain waits' layout (mutex_wait_pc) to tell them apart. A failure does
@@ -587,7 +587,7 @@ def _probe_timedwait(ck: _Checker, ffi, lib, L: Layout, overrides: dict) -> tupl
     return Layout(**{**L.as_dict(), **values}), "; ".join(failed)
 
 
-def _probe_py_stack(ck: _Checker, ffi, lib) -> None:
+def _probe_py_stack(ck: _Checker, ffi: Any, lib: Any) -> None:
     """crash.c records a crashing child's Python frames by following the
     thread state's frame chain (gilrepair.c cg_record_py_stack): here it
     must give this thread's frames, innermost first, at their lines."""
@@ -611,7 +611,7 @@ def _probe_py_stack(ck: _Checker, ffi, lib) -> None:
     )
 
 
-def _probe_gil(ck: _Checker, ffi, lib) -> None:
+def _probe_gil(ck: _Checker, ffi: Any, lib: Any) -> None:
     """gilrepair.c's compiled view of the GIL against the running one."""
     g = ffi.new("struct cg_gil_probe *")
     lib.cg_gil_probe(g)
@@ -650,7 +650,7 @@ def _probe_gil(ck: _Checker, ffi, lib) -> None:
     )
 
 
-def _probe_interp(ck: _Checker, ffi, lib) -> None:
+def _probe_interp(ck: _Checker, ffi: Any, lib: Any) -> None:
     """interp.c's compiled view of the collector and free lists against the
     running interpreter (the release itself: _probe_gil)."""
     import gc
@@ -682,7 +682,7 @@ def _probe_interp(ck: _Checker, ffi, lib) -> None:
 class _Memory:
     """Reads of the calling thread's memory and glibc's symbols, through the core."""
 
-    def __init__(self, ffi, lib) -> None:
+    def __init__(self, ffi: Any, lib: Any) -> None:
         self.ffi, self.lib = ffi, lib
 
     def u64(self, addr: int) -> int:
@@ -730,7 +730,7 @@ class _Thread:
         return False
 
 
-def _discover_and_verify(ck: _Checker, ffi, lib, overrides: dict) -> Layout:
+def _discover_and_verify(ck: _Checker, ffi: Any, lib: Any, overrides: dict) -> Layout:
     mem = _Memory(ffi, lib)
     for name in ("_dl_allocate_tls", "_dl_deallocate_tls"):
         ck.check(

@@ -23,9 +23,13 @@ import ctypes
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from .. import seams
 from ..robust import RobustMutex
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 SLOTS = 256
 
@@ -64,7 +68,7 @@ def current() -> ProgressBoard | None:
 
 
 class ProgressBoard:
-    def __init__(self, on_repair=None):
+    def __init__(self, on_repair: Callable[[BoardRepair], None] | None = None) -> None:
         global _current
         self._slots = (_Slot * SLOTS)()
         self._free = list(range(SLOTS - 1, -1, -1))

@@ -27,6 +27,10 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from typing import IO
 
 CFS_PERIOD_US = 100_000
 
@@ -124,7 +128,7 @@ class NodeCgroups:
             (self.v2_root / "cgroup.subtree_control").write_text("+cpu")
         self._janitor_pipe = self._start_janitor()
 
-    def _start_janitor(self):
+    def _start_janitor(self) -> IO[bytes]:
         """Start the process that removes our cgroups if we end without
         close() (cgroup_janitor.py); the write end of the pipe whose end of
         file it waits for, which only this process holds."""
@@ -141,7 +145,7 @@ class NodeCgroups:
         except (OSError, subprocess.TimeoutExpired) as exc:
             _rmdir(self.v2_root)
             raise CgroupsUnavailable(f"cannot start the cgroup janitor: {exc}") from None
-        return first.stdin
+        return first.stdin  # type: ignore[return-value]  # stdin=PIPE: never None
 
     def _reclaim_stale(self) -> list[str]:
         """Remove cgroups already named for us that no process is in (left

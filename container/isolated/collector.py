@@ -22,6 +22,10 @@ import gc
 import os
 import threading
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from typing import Any
 
 # How often the counts are looked at, off the GIL. CPython collects
 # generation 0 every 700 allocations of tracked objects; a busy node makes
@@ -31,7 +35,7 @@ INTERVAL_US = 2000
 
 
 class Collector:
-    def __init__(self, ffi, lib, after_collection: Callable[[], object] | None = None):
+    def __init__(self, ffi: Any, lib: Any, after_collection: Callable[[], object] | None = None) -> None:
         """``after_collection``: run on the collector's thread, holding the
         GIL, after each collection (the core keeps pybind11's registry
         ahead there)."""

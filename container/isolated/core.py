@@ -194,7 +194,7 @@ class _Entry:
         return self.death_reported
 
 
-def _lib():
+def _lib() -> tuple[Any, Any]:
     from cloneguard.container.isolated._clonecore import ffi, lib
 
     return ffi, lib
@@ -393,7 +393,12 @@ class CloneCore:
             locks.activate()
 
     def _start_monitor(
-        self, ffi, lib, stop_signal: int, dump_tools: DumpTools | None, memory_watch: tuple[MemoryLimit, int] | None
+        self,
+        ffi: Any,
+        lib: Any,
+        stop_signal: int,
+        dump_tools: DumpTools | None,
+        memory_watch: tuple[MemoryLimit, int] | None,
     ) -> int:
         """Start the C monitor, the one of this process (one CloneCore may be
         open): the fd its events come on."""
@@ -781,7 +786,7 @@ class CloneCore:
     def __enter__(self) -> CloneCore:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- internals --------------------------------------------------------
@@ -897,7 +902,7 @@ class CloneCore:
                     entry.death_reported = True
                     self._changed.notify_all()
 
-    def _pkey_fault(self, block) -> PkeyFault:
+    def _pkey_fault(self, block: Any) -> PkeyFault:
         ffi, lib = _lib()
         addr = int(ffi.cast("uintptr_t", block.crash_addr))
         slot = lib.cg_alloc_slot_of(block.crash_addr)

@@ -28,6 +28,10 @@ import os
 import queue
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from typing import Any
 
 STDERR = 2
 
@@ -44,14 +48,14 @@ class RecordedStacks:
 
 
 class CrashStacks:
-    def __init__(self, lib, ffi, fd: int = STDERR):
+    def __init__(self, lib: Any, ffi: Any, fd: int = STDERR) -> None:
         self._lib, self._ffi, self._fd = lib, ffi, fd
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._pending = 0
         self._done = threading.Condition()
         self._thread: threading.Thread | None = None
 
-    def take(self, block) -> RecordedStacks | None:
+    def take(self, block: Any) -> RecordedStacks | None:
         """The stacks a dead child's crash report recorded, its code objects
         held; None if it wrote no report, or wrote it whole itself."""
         ffi = self._ffi

@@ -42,7 +42,7 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.context import Context
@@ -73,6 +73,20 @@ from .profiles import DEFAULT, PROFILES, SHARED, ProfileRule
 from .profiles import choose as choose_profile
 from .spare import Spare, serves, spare_target
 
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+    from rclpy.node import Node
+
+    from ..events import EventPublisher
+    from ..options import NodeArguments
+    from .board import BoardRepair
+    from .cgroups import NodeCgroups
+    from .core import Child
+    from .core_events import CoreEvent
+    from .placeholder import Placeholder
+
 STOP_TIMEOUT_S = 0.5
 CONSTRUCT_TIMEOUT_S = 60.0
 # After a failed construction the child tears its half-made node and DDS
@@ -90,7 +104,7 @@ class _Handoff:
     Words are one byte and the waiter reads one: the child's word and the
     monitor's DIED (it exits right after posting) never run together."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._r, self._w = os.pipe2(os.O_CLOEXEC)
         self.closed = False
 
@@ -142,8 +156,8 @@ class IsolatedHost:
         context: Context,
         *,
         profile: str = DEFAULT,
-        logger,
-        cgroups=None,
+        logger: RcutilsLogger,
+        cgroups: NodeCgroups | None = None,
         mitigations: Mitigations | None = None,
         warm_spare: bool = True,
         container_argv: Sequence[str] = (),
@@ -152,14 +166,14 @@ class IsolatedHost:
         stop_signal: int = 0,
         node_memory_limit: int = 0,
         memory_watch: tuple[MemoryLimit, int] | None = None,
-    ):
+    ) -> None:
         if profile not in PROFILES:
             raise ValueError(f"unknown profile {profile!r}; expected one of {PROFILES}")
         self._context = context
         self.profile = profile
         self.profile_rules = list(profile_rules)  # --profile-for, before the default
         self.node_memory_limit = node_memory_limit  # bytes, 0: none (memory_budget.py)
-        self._on_death = None  # report_deaths_to
+        self._on_death: Callable[[int, NodeDeath], None] | None = None  # report_deaths_to
         self._herald_handle = None  # publish_crashed_with: the publisher, in use
         self._log = logger
         # The container's command line: the global ROS arguments a node built
@@ -196,13 +210,13 @@ class IsolatedHost:
 
     # -- host interface ---------------------------------------------------------
 
-    def report_deaths_to(self, on_death) -> None:
+    def report_deaths_to(self, on_death: Callable[[int, NodeDeath], None]) -> None:
         """Where a node's death goes (the manager's on_death); said once."""
         if self._on_death is not None:
             raise RuntimeError("deaths are already reported elsewhere")
         self._on_death = on_death
 
-    def publish_crashed_with(self, events) -> None:
+    def publish_crashed_with(self, events: EventPublisher) -> None:
         """Let the core publish a node's CRASHED event itself, on ``events``'
         publisher (herald.c: a thread of its own, no Python on the way), for
         the nodes ``arm_crashed`` arms. The publisher stays in use, so
@@ -255,7 +269,7 @@ class IsolatedHost:
         except ValueError:  # released meanwhile
             return None
 
-    def start(self, unique_id: int, cls, args) -> Hosted:
+    def start(self, unique_id: int, cls: type[Node], args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
         if args.memory_limit and not self.mitigations.alloc_guard:
@@ -291,7 +305,7 @@ class IsolatedHost:
             self._crashed(proc, died)
         return hosted
 
-    def _start(self, proc: _NodeProcess, cls, args) -> None:
+    def _start(self, proc: _NodeProcess, cls: type[Node], args: NodeArguments) -> None:
         unique_id = proc.unique_id
         limit = self.node_memory_limit if args.memory_limit is None else args.memory_limit
         oom_score_adj = args.oom_score_adj or 0
@@ -327,7 +341,7 @@ class IsolatedHost:
                 self._core.go(proc.child)
         processes.node_is(proc.child.pid, unique_id, "")  # named for a dead lock holder; the name once built
         if proc.cgroup is not None:
-            self.cgroups.attach(proc.cgroup, proc.child.pid)
+            self.cgroups.attach(proc.cgroup, proc.child.pid)  # type: ignore[union-attr]  # with --cgroups only
         self._await_construction(proc)
 
     def _undo(self, proc: _NodeProcess) -> None:
@@ -337,7 +351,7 @@ class IsolatedHost:
         if proc.child is not None and proc.state != "gone":
             steps.append(lambda: self._end_child(proc))
         if proc.cgroup is not None:
-            steps.append(lambda: self.cgroups.remove(proc.cgroup))
+            steps.append(lambda: self.cgroups.remove(proc.cgroup))  # type: ignore[union-attr]  # with --cgroups only
         if proc.slot >= 0:
             steps.append(lambda: self.board.unregister(proc.unique_id))
         steps.append(lambda: proc.handoff.close())
@@ -381,7 +395,7 @@ class IsolatedHost:
     def stop(self, hosted: Hosted) -> None:
         self._stop_all([hosted.detail])
 
-    def close(self, hosted_nodes) -> None:
+    def close(self, hosted_nodes: Sequence[Hosted]) -> None:
         with self._lock:
             self._closing = True
         # Before the nodes stop: no CRASHED for them.
@@ -435,26 +449,28 @@ class IsolatedHost:
                 raise handler.exception()
             handler.result()
 
-    def _fresh_target(self, proc: _NodeProcess, cls, args):
+    def _fresh_target(self, proc: _NodeProcess, cls: type[Node], args: NodeArguments) -> Callable[[], None]:
         """A per-node child: its own Context, held by a placeholder node."""
 
-        def run():
+        def run() -> None:
             ctx, placeholder = held_context(lambda: self._new_context(args.forward_global_arguments))
             self._build_and_spin(proc, ctx, cls, args, placeholder)
 
         return run
 
-    def _shared_target(self, proc: _NodeProcess, cls, args):
+    def _shared_target(self, proc: _NodeProcess, cls: type[Node], args: NodeArguments) -> Callable[[], None]:
         """A shared-profile child: the node is built on the container's
         Context, but here, in its own process, like a per-node one: a
         constructor that crashes ends this process, not the container."""
 
-        def run():
+        def run() -> None:
             self._build_and_spin(proc, self._context, cls, args, None)
 
         return run
 
-    def _build_and_spin(self, proc: _NodeProcess, ctx: Context, cls, args, placeholder):
+    def _build_and_spin(
+        self, proc: _NodeProcess, ctx: Context, cls: type[Node], args: NodeArguments, placeholder: Placeholder | None
+    ) -> None:
         """In a node's child: build the node on ``ctx``, say READY (or
         FAILED), spin it until asked to stop, then tear it all down. A
         per-node child's ``placeholder`` (placeholder.py), which holds its
@@ -531,7 +547,7 @@ class IsolatedHost:
             self._name_dump(spare.child, "spare")
             self._spare = spare
 
-    def _take_spare(self, args) -> Spare | None:
+    def _take_spare(self, args: NodeArguments) -> Spare | None:
         """The spare, if it can serve this load (caller holds self._lock)."""
         spare = self._spare
         if spare is None or not serves(args):
@@ -591,7 +607,7 @@ class IsolatedHost:
                     continue
                 proc.state = "stopping"
             if proc.cgroup is not None:
-                self.cgroups.unthrottle(proc.cgroup)
+                self.cgroups.unthrottle(proc.cgroup)  # type: ignore[union-attr]  # with --cgroups only
             self._core.request_stop(proc.child)
             self._core.kill(proc.child, signal.SIGTERM)
             live.append(proc)
@@ -633,9 +649,9 @@ class IsolatedHost:
             self._core.release(proc.child)
         if proc.cgroup is not None:  # the process is reaped (above): the group is empty
             cgroup, proc.cgroup = proc.cgroup, None
-            self.cgroups.remove(cgroup)
+            self.cgroups.remove(cgroup)  # type: ignore[union-attr]  # with --cgroups only
 
-    def _on_core_event(self, event) -> None:
+    def _on_core_event(self, event: CoreEvent) -> None:
         if isinstance(event, MutexReport):  # its dead holder may be forgotten already
             mutex_reports.handle(event, self._log)
             return
@@ -674,7 +690,7 @@ class IsolatedHost:
         if state == "running":
             self._crashed(proc, event)
 
-    def _name_dump(self, child, name: str) -> None:
+    def _name_dump(self, child: Child, name: str) -> None:
         """--core-dumps: the file the child's dump goes to, named after what
         it runs (core_dumps.path_for)."""
         if self._core_dumps is not None:
@@ -698,7 +714,7 @@ class IsolatedHost:
         self._core.kill(proc.child, signal.SIGABRT)
         return True
 
-    def _board_repaired(self, repair) -> None:
+    def _board_repaired(self, repair: BoardRepair) -> None:
         # Runs in whichever process locked the board next (maybe a child).
         self._log.warning(
             "progress board: its lock's owner died holding it (EOWNERDEAD); repaired "
@@ -740,7 +756,7 @@ class IsolatedHost:
         self._forget(proc, leak=not clean)
 
 
-def _robust_context_lock(context: Context, logger) -> None:
+def _robust_context_lock(context: Context, logger: RcutilsLogger) -> None:
     """In the shared profile every child's executor calls the container's
     ``Context.ok()`` on each spin, and rclpy guards it with a threading.Lock
     (rclpy 7.1: ``Context._lock``, used only as ``with self._lock:``). A

@@ -8,12 +8,23 @@ deletion can then spin as it does upstream (eProsima/Fast-DDS#6513)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from cloneguard.container.isolated._clonecore import ffi, lib
+
+if TYPE_CHECKING:
+    from typing import Protocol
+
+    class _Log(Protocol):
+        """What ``bound`` says a failed check on: rclpy's logger, or logging's."""
+
+        def warning(self, message: str, /) -> object: ...
+
 
 WHY_SIZE = 256
 
 
-def bound(log) -> bool:
+def bound(log: _Log) -> bool:
     """Install it; True when installed (or already), False when libfastrtps
     is not loaded (another RMW: nothing to do) or a check failed (said on
     ``log``)."""

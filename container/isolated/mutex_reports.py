@@ -11,9 +11,20 @@ silent.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from .. import processes, repairs
 from .core_events import RWLOCK_KIND, MutexReport, MutexVerdict
 from .mappings import describe
+
+if TYPE_CHECKING:
+    from typing import Protocol
+
+    class _Log(Protocol):
+        """Where ``handle`` says what it did not repair: a logger with .warning."""
+
+        def warning(self, message: str, /) -> object: ...
+
 
 _TYPES = ("NORMAL", "RECURSIVE", "ERRORCHECK", "ADAPTIVE")
 _FLAGS = (
@@ -109,7 +120,7 @@ def text(r: MutexReport) -> str:
     )
 
 
-def handle(r: MutexReport, log) -> None:
+def handle(r: MutexReport, log: _Log) -> None:
     """Record a release as a repair (published REPAIRED); say the rest on
     ``log`` (a logger with .warning)."""
     sentence = text(r)

@@ -22,10 +22,16 @@ resort runs without the GIL, ends that.
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+    from .host import IsolatedHost
 
 
 class NodeWatchdog:
-    def __init__(self, node, host, limit_s: float):
+    def __init__(self, node: Node, host: IsolatedHost, limit_s: float) -> None:
         if limit_s <= 0:
             raise ValueError("node watchdog limit must be positive")
         self.limit_s = limit_s

@@ -13,8 +13,14 @@ the GIL held, and Fast DDS can busy-wait in that deletion
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 from .._rclglue import ffi, lib
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from rclpy.context import Context
 
 PLACEHOLDER_PREFIX = "_cloneguard_spare_"
 
@@ -29,12 +35,18 @@ class Placeholder:
     process) then blocked every Python thread of the container, not only
     this process (seen in deep runs)."""
 
-    def __init__(self, ctx, name: str):
+    def __init__(self, ctx: Context, name: str) -> None:
         err = ffi.new("char[]", lib.CGR_ERR_SIZE)
         out = ffi.new("rcl_node_t **")
-        with ctx.handle:
+        # rclpy types Context.handle as an Optional ContextHandle, a protocol without .pointer: an
+        # initialised Context's is the pybind11 handle, which has it.
+        with ctx.handle:  # type: ignore[union-attr]
             rc = lib.cgr_node_init(
-                out, name.encode(), ffi.cast("rcl_context_t *", ctx.handle.pointer), err, lib.CGR_ERR_SIZE
+                out,
+                name.encode(),
+                ffi.cast("rcl_context_t *", ctx.handle.pointer),  # type: ignore[union-attr]
+                err,
+                lib.CGR_ERR_SIZE,
             )
         if rc != 0:
             raise RuntimeError(ffi.string(err).decode(errors="replace"))
@@ -49,14 +61,14 @@ class Placeholder:
             raise RuntimeError(ffi.string(err).decode(errors="replace"))
 
 
-def held_context(new_context) -> tuple:
+def held_context(new_context: Callable[[], Context]) -> tuple[Context, Placeholder]:
     """In a node's process: ``new_context()`` and the placeholder that makes
     and holds its participant; (ctx, placeholder)."""
     ctx = new_context()
     return ctx, Placeholder(ctx, f"{PLACEHOLDER_PREFIX}{os.getpid()}")
 
 
-def release_context(ctx, placeholder: Placeholder | None = None) -> None:
+def release_context(ctx: Context, placeholder: Placeholder | None = None) -> None:
     """In a node's process: its placeholder (which deletes the participant
     off the GIL when it is the last node), then the Context."""
     if placeholder is not None:

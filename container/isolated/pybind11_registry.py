@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import functools
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from types import ModuleType
 
 # Inserts a node process may make between two looks without rehashing.
 # Each bucket is a pointer: the reserve costs 16 bytes per slot kept.
@@ -48,7 +52,7 @@ def state() -> tuple[int, int, int]:
 
 
 @functools.cache
-def _module():
+def _module() -> ModuleType:
     from cloneguard.container.isolated import _pybind11_registry
 
     return _pybind11_registry

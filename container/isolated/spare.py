@@ -23,10 +23,20 @@ Every per-node process, spare or not, starts the same way (placeholder.py).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .core import wait_for_go
 from .placeholder import held_context, release_context
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from ..options import NodeArguments
+    from .host import _NodeProcess
+    from .placeholder import Placeholder
 
 
 @dataclass
@@ -35,22 +45,26 @@ class Spare:
     order: tuple | None = None  # (proc, cls, args): set before its go
 
 
-def spare_target(spare: Spare, new_context, build_and_spin):
+def spare_target(
+    spare: Spare,
+    new_context: Callable[[], Context],
+    build_and_spin: Callable[[_NodeProcess, Context, type[Node], NodeArguments, Placeholder | None], None],
+) -> Callable[[], None]:
     """What a spare runs: ``held_context(new_context)``, then
     ``build_and_spin(proc, ctx, cls, args, placeholder)`` once handed a
     load, or its own clean-up if asked to stop first."""
 
-    def run():
+    def run() -> None:
         ctx, placeholder = held_context(new_context)
         if wait_for_go():
             release_context(ctx, placeholder)
             return
-        proc, cls, args = spare.order
+        proc, cls, args = spare.order  # type: ignore[misc]  # set before its go
         build_and_spin(proc, ctx, cls, args, placeholder)
 
     return run
 
 
-def serves(args) -> bool:
+def serves(args: NodeArguments) -> bool:
     """Can a spare's Context (made with no ROS arguments) hold this load?"""
     return not args.forward_global_arguments

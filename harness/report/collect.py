@@ -32,7 +32,7 @@ _SESSION = pytest.StashKey[ReportSession]()
 # --------------------------------------------------------------------------
 # Module-level hooks
 # --------------------------------------------------------------------------
-def pytest_addoption(parser):
+def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("cloneguard-report", "cloneguard crash-resilience reports")
     group.addoption(
         "--report-dir",
@@ -59,7 +59,7 @@ def pytest_addoption(parser):
 
 
 @pytest.hookimpl(tryfirst=True)
-def pytest_configure(config):
+def pytest_configure(config: pytest.Config) -> None:
     shard = config.getoption("--shard", default=None)
     if shard:
         try:
@@ -75,7 +75,7 @@ def pytest_configure(config):
     config.pluginmanager.register(session, "cloneguard-report-session")
 
 
-def pytest_unconfigure(config):
+def pytest_unconfigure(config: pytest.Config) -> None:
     session = config.stash.get(_SESSION, None)
     if session is not None:
         config.pluginmanager.unregister(session)

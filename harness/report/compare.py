@@ -89,13 +89,13 @@ class Comparison:
         return [d for d in self.deltas if d.verdict == "better"]
 
 
-def _key_full(s: Scenario):
+def _key_full(s: Scenario) -> tuple[str, str, str] | None:
     if s.fault is None or s.profile is None:
         return None
     return (s.fault, s.profile, json.dumps(s.mitigations, sort_keys=True, default=str))
 
 
-def _key_short(s: Scenario):
+def _key_short(s: Scenario) -> tuple[str, str] | None:
     if s.fault is None or s.profile is None:
         return None
     return (s.fault, s.profile)

@@ -41,7 +41,7 @@ def _commit(report: Report) -> str:
     return f"{git.get('commit') or '?'}{' (dirty)' if git.get('dirty') else ''}"
 
 
-def _seed_of(report: Report):
+def _seed_of(report: Report) -> object:
     return (report.run.plan or {}).get("seed")
 
 

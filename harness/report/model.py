@@ -17,9 +17,14 @@ import os
 import tempfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from . import stats
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    _D = TypeVar("_D", bound=DataclassInstance)
 
 SCHEMA = "cloneguard-report/1"
 REPORT_JSON = "report.json"
@@ -78,7 +83,7 @@ def jsonable(value: Any, _depth: int = 0) -> Any:
     return repr(value)
 
 
-def _from(cls, data: dict | None):
+def _from(cls: type[_D], data: dict | None) -> _D:
     """Build dataclass ``cls`` from ``data``, ignoring unknown keys (newer or
     derived fields) and leaving missing ones at their defaults."""
     data = data or {}

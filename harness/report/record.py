@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Generator, Mapping
 from datetime import UTC, datetime
 from typing import Any
 
@@ -253,12 +253,12 @@ def _check_latencies(latency_ms: Mapping) -> dict:
 # --------------------------------------------------------------------------
 # The fixture, and the hook that sends a record on with the teardown report
 # --------------------------------------------------------------------------
-def sharded(config) -> bool:
+def sharded(config: pytest.Config) -> bool:
     return bool(config.getoption("--shard", default=None))
 
 
 @pytest.fixture
-def resilience(request) -> Resilience:
+def resilience(request: pytest.FixtureRequest) -> Resilience:
     """Records a scenario's description, trials, hangs, expectations and notes
     for the crash-resilience report."""
     recorders = request.config.stash.setdefault(_RECORDERS, {})
@@ -271,7 +271,9 @@ def resilience(request) -> Resilience:
 
 
 @pytest.hookimpl(wrapper=True)
-def pytest_runtest_makereport(item, call):
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
     rep = yield
     if rep.when == "teardown":
         recorder = item.config.stash.get(_RECORDERS, {}).pop(item.nodeid, None)

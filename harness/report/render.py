@@ -24,7 +24,7 @@ STATUS_TEXT = {
 }
 
 
-def e(value) -> str:
+def e(value: object) -> str:
     """Escaped text for HTML content and attribute values."""
     return escape("" if value is None else str(value), quote=True)
 
@@ -290,7 +290,7 @@ def _matrix(report: Report, ids: dict[int, str]) -> str:
     if not report.scenarios:
         return "<p>No scenarios ran.</p>"
 
-    def label(v, what):
+    def label(v: str | None, what: str) -> str:
         return e(v) if v is not None else f'<span class="muted">(no {what})</span>'
 
     head = "".join(f"<th>{label(p, 'profile')}</th>" for p in profiles)
@@ -410,7 +410,7 @@ def _latency(s: Scenario) -> str:
     )
 
 
-def _hang_anchor(anchor: str, trial) -> str:
+def _hang_anchor(anchor: str, trial: int | None) -> str:
     return f"{anchor}-hang-{trial}"
 
 

@@ -34,7 +34,7 @@ SCENARIO_DIRS = ["scenarios"]
 LONGREPR_LIMIT = 40_000
 
 
-def scenario_dirs(config) -> list[str]:
+def scenario_dirs(config: pytest.Config) -> list[str]:
     """The directory names (or paths from the root directory) whose tests
     get a report."""
     return [d.strip("/") for d in config.getini(SCENARIO_DIRS_INI) or SCENARIO_DIRS]
@@ -58,7 +58,7 @@ def _under_scenarios(path: Path, root: Path, dirs: list[str]) -> bool:
     return False
 
 
-def _args_run_scenarios(config) -> bool:
+def _args_run_scenarios(config: pytest.Config) -> bool:
     """Whether the command line names a scenario directory, a file in one,
     or a directory holding one."""
     base = Path(config.invocation_params.dir)
@@ -82,7 +82,7 @@ class ReportSession:
     process that writes the report: the one pytest process, or the xdist
     controller."""
 
-    def __init__(self, config):
+    def __init__(self, config: pytest.Config):
         self.config = config
         self.started = time.time()
         self.records: dict[str, Scenario] = {}  # every test seen, in order
@@ -130,7 +130,7 @@ class ReportSession:
             self.records[nodeid] = record
         return record
 
-    def pytest_runtest_logreport(self, report):
+    def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         """Every phase report of every test, from this process or a worker."""
         try:
             record = self._record(report.nodeid)
@@ -148,7 +148,7 @@ class ReportSession:
         except Exception:  # never break the run over the report
             self.error = traceback.format_exc()
 
-    def _update(self, record: Scenario, rep) -> None:
+    def _update(self, record: Scenario, rep: pytest.TestReport) -> None:
         record.duration_s += float(getattr(rep, "duration", 0.0) or 0.0)
         when = rep.when
         if hasattr(rep, "wasxfail"):
@@ -186,7 +186,7 @@ class ReportSession:
         elif when == "teardown" and record.outcome is None:
             record.outcome = "passed"
 
-    def pytest_collectreport(self, report):
+    def pytest_collectreport(self, report: pytest.CollectReport) -> None:
         """A scenario file that fails to import is a scenario that errored."""
         if not report.failed:
             return
@@ -208,7 +208,7 @@ class ReportSession:
 
     # -- the end ---------------------------------------------------------
     @pytest.hookimpl(trylast=True)
-    def pytest_sessionfinish(self, session, exitstatus):
+    def pytest_sessionfinish(self, session: pytest.Session, exitstatus: int | pytest.ExitCode) -> None:
         finished = time.time()
         if not self.in_scope:
             self._drop_unused_junit()
@@ -274,7 +274,7 @@ class ReportSession:
             paths.update_latest(self.reports_root, run_dir.name)
         return run_dir
 
-    def pytest_terminal_summary(self, terminalreporter):
+    def pytest_terminal_summary(self, terminalreporter: pytest.TerminalReporter) -> None:
         tr = terminalreporter
         if self.error:
             tr.write_sep("-", "cloneguard report: internal error", red=True)

@@ -16,7 +16,7 @@ from . import stats
 from .model import Scenario, Trial, TrialOutcome
 
 
-def e(value) -> str:
+def e(value: object) -> str:
     return escape("" if value is None else str(value))
 
 
