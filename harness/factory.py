@@ -100,6 +100,12 @@ class ContainerFactory:
         wait_ready(cli, proc)
         return cli
 
+    def disconnect(self, cli: ContainerClient) -> None:
+        """Close ``cli`` (a client of a container that is gone) now, not at
+        stop_all: each is a DDS participant of this process."""
+        cli.close()
+        self.clients.remove(cli)
+
     def stop_all(self) -> list[ExitStatus]:
         for cli in self.clients:
             cli.close()

@@ -19,6 +19,7 @@ from cloneguard.faults import PACKAGE as RIG
 from .system import NodeSpec
 
 if TYPE_CHECKING:
+    from .client import Received, Recorder
     from .pytest_plugin import SystemFactory
 
 #: Container arguments per profile (the rig's scenarios' names).
@@ -47,6 +48,13 @@ class ChatterProbe:
         self.heard = self.system.topic(String, "/message_probe/heard", qos=1000)
         self.heard.wait_count(5, timeout=15)
 
+    def _now(self, rec: Recorder, since: int = 0) -> list[Received]:
+        """What ``rec`` got, from its ``since``-th message on, from the
+        container now running: after a restart the Talker counts from 0
+        again, and the recorders hold the old one's numbers too."""
+        start = self.system.started_ns
+        return [r for r in rec.items()[since:] if r.at_ns >= start]
+
     def settle(self) -> int:
         """Let SETTLE_MESSAGES more go and every one of them be heard; the
         last number sent."""
@@ -56,18 +64,23 @@ class ChatterProbe:
         return last
 
     def sent_numbers(self) -> list[int]:
-        return [number(r.msg) for r in self.sent.items()]
+        return [number(r.msg) for r in self._now(self.sent)]
+
+    def heard_items(self, since: int = 0) -> list[Received]:
+        """Each heard (``.msg``, ``.at_ns``), from the ``since``-th on."""
+        return self._now(self.heard, since)
 
     def heard_numbers(self, since: int = 0) -> list[int]:
         """In the order heard, from the ``since``-th message heard on."""
-        return [number(r.msg) for r in self.heard.items()[since:]]
+        return [number(r.msg) for r in self.heard_items(since)]
 
     def sent_at(self) -> dict[int, int]:
         """Number -> when the harness got it as sent (monotonic ns)."""
-        return {number(r.msg): r.at_ns for r in self.sent.items()}
+        return {number(r.msg): r.at_ns for r in self._now(self.sent)}
 
     def missing(self) -> list[int]:
-        """Sent while the probe listened, never heard (after settle())."""
+        """Sent while the probe listened, never heard (after settle()), in
+        the container now running."""
         last = self.settle()
         heard = self.heard_numbers()
         return sorted(set(range(min(heard), last + 1)) - set(heard))

@@ -130,11 +130,20 @@ class System:
         self._messages_lock = threading.Lock()  # faults of a schedule start together
         self.watched: dict[str, Recorder] = {}  # every topic() asked for, by name
         self.proc: ContainerProcess
-        self.client: ContainerClient
+        self.client: ContainerClient  # of the container now running; a restart makes another
+        #: when the container now running was started (time.monotonic_ns()):
+        #: what a recorder holds from before it came from an earlier one
+        self.started_ns = 0
         self.nodes: dict[str, Running] = {}
         self._start()
+        # What a caller keeps, the recorders of topic() and the clients of
+        # service(), name topics and services, not a container: they are
+        # made on the first container's client, which lives as long as the
+        # System, so that they go on across restarts.
+        self._watch = self.client
 
     def _start(self) -> None:
+        self.started_ns = time.monotonic_ns()
         self.proc = self._factory.start(self.container_args, memory_limit=self.memory_limit)
         self.client = self._factory.connect(self.proc)
         self._talk = Talker(self.client)
@@ -165,13 +174,13 @@ class System:
     def topic(self, msg_type: type, name: str, qos: QoSProfile | int = 10) -> Recorder:
         """Every message on ``name`` from now on, stamped on arrival. The
         topic is *watched*: seeded trials record what it did in each one."""
-        rec = self.client.subscribe(msg_type, name, qos)
+        rec = self._watch.subscribe(msg_type, name, qos)
         self.watched[name] = rec
         return rec
 
     def service(self, srv_type: type, name: str) -> Client:
         """An rclpy client of ``name``, for ``call_latency``."""
-        return self.client.service_client(srv_type, name)
+        return self._watch.service_client(srv_type, name)
 
     # -- talking to the nodes (talk.py) ------------------------------------------------
 
@@ -365,9 +374,14 @@ class System:
 
     def restart(self) -> None:
         """A fresh container with the whole composition loaded again (after
-        a trial that did not survive, say)."""
+        a trial that did not survive, say). Recorders from ``topic()`` and
+        clients from ``service()`` go on; what the old container sent stays
+        in the recorders (``started_ns`` says when the new one started)."""
         self.proc.stop()
+        old = self.client
         self._start()
+        if old is not self._watch:  # a participant a restart: none kept
+            self._factory.disconnect(old)
 
     @property
     def restarts_crashed_nodes(self) -> bool:

@@ -5,12 +5,13 @@ trial puts one fault, drawn from its seed, on that subscriber for a
 second, and the harness compares what was sent with what was heard.
 Per-node and shared profiles, over DDS and intra-process delivery."""
 
+import math
 import statistics
 
 import pytest
 
 from cloneguard.harness.message_probe import ChatterProbe, number
-from cloneguard.harness.report.stats import wilson_interval
+from cloneguard.harness.report.stats import wilson_interval, z_for
 from cloneguard.harness.schedule import Corrupt, Delay, Drop, Duplicate, Partition, Reorder
 from cloneguard.harness.system_trials import Measure
 
@@ -19,7 +20,10 @@ cells = pytest.mark.parametrize("profile, transport", CELLS, ids=[f"{p}-{t}" for
 FAULT_S = 1.0
 AT_LEAST = 0.99
 TRIAL_SLACK_MS = 5.0
-MEDIAN_MIN_TRIALS = 30
+OVER_TRIALS_MIN = 30
+#: a trial's dropped share against the asked probability: a gross error
+#: only (a correct engine falls outside once in a million trials)
+TRIAL_SHARE_CONFIDENCE = 1 - 1e-6
 
 
 def probe(system_factory, profile: str, transport: str) -> ChatterProbe:
@@ -27,8 +31,9 @@ def probe(system_factory, profile: str, transport: str) -> ChatterProbe:
 
 
 @cells
-def test_a_drop_loses_the_share_it_asks_for(system_factory, system_trials, profile, transport):
+def test_a_drop_loses_the_share_it_asks_for(system_factory, system_trials, resilience, profile, transport):
     w = probe(system_factory, profile, transport)
+    drawn: list[tuple[int, int, float]] = []  # each trial's (dropped, seen, asked)
 
     def trial(t):
         p = round(t.rng.uniform(0.2, 0.8), 2)
@@ -37,13 +42,30 @@ def test_a_drop_loses_the_share_it_asks_for(system_factory, system_trials, profi
         lost = set(w.missing()) - missing_before
         seen, dropped = fault.counts.get("seen", 0), fault.counts.get("dropped", 0)
         assert dropped == len(lost), f"the engine dropped {dropped}, the subscriber missed {len(lost)}"
-        low, high = wilson_interval(dropped, seen, 0.999)
-        assert low <= p <= high, f"{dropped} of {seen} dropped, asked {p}: 99.9% interval {low:.2f}-{high:.2f}"
+        drawn.append((dropped, seen, p))
+        low, high = wilson_interval(dropped, seen, TRIAL_SHARE_CONFIDENCE)
+        assert low <= p <= high, f"{dropped} of {seen} dropped, asked {p}: interval {low:.2f}-{high:.2f}"
         return {"dropped minus asked": Measure(100 * (dropped / seen - p), "points")}
 
     system_trials(w.system, trial, fault="drop a drawn share (20-80%) for 1 s",
                   claim="exactly the messages the engine dropped are missing, and their share is the asked "
-                        "probability within its 99.9% interval", at_least=AT_LEAST)  # fmt: skip
+                        "probability (within its 1-in-a-million interval each trial, 99.9% over the trials)",
+                  at_least=AT_LEAST)  # fmt: skip
+    # The share over every trial: the draws are the engine's, one a message,
+    # so the dropped count is a sum of independent Bernoulli(p) draws, with
+    # mean sum(p * seen) and variance sum(p * (1 - p) * seen). A trial alone
+    # (~50 messages) is judged only against a gross error: at 99.9% a
+    # correct engine missed 1 trial in 1,000 (seed 3901, trial 3: 20 of 50
+    # at 0.63), which 3 quick trials a cell would make a flaky test.
+    dropped = sum(d for d, _, _ in drawn)
+    mean = sum(p * n for _, n, p in drawn)
+    sd = math.sqrt(sum(p * (1 - p) * n for _, n, p in drawn))
+    said = f"dropped {dropped} of {sum(n for _, n, _ in drawn)} over {len(drawn)} trials, {mean:.1f} expected"
+    if len(drawn) < OVER_TRIALS_MIN:
+        resilience.note(f"{said}; the share over the trials is judged on {OVER_TRIALS_MIN} trials or more (--deep)")
+    else:
+        z = (dropped - mean) / sd
+        assert abs(z) <= z_for(0.999), f"{said}: {z:+.2f} standard deviations off (99.9%: within {z_for(0.999):.2f})"
 
 
 @cells
@@ -73,14 +95,14 @@ def test_a_delay_adds_what_it_asks_for(system_factory, system_trials, resilience
     system_trials(w.system, trial, fault="delay by a drawn 50-300 ms for 1 s",
                   claim=f"no message lost, each trial's median added latency within {TRIAL_SLACK_MS:g} ms of "
                         "the asked delay, and over the trials within 1 ms", at_least=AT_LEAST)  # fmt: skip
-    # The claim on the median over the trials, judged on MEDIAN_MIN_TRIALS
+    # The claim on the median over the trials, judged on OVER_TRIALS_MIN
     # or more (--deep): a trial's own median lies between -0.5 and +1.3 ms
     # (100 trials a cell, shared profile, with the holder's lead: median
     # +0.22 ms intra, +0.36 ms DDS), and a median of 3 is no estimate of it.
     overall = statistics.median(errors)
     said = f"added minus asked, median over {len(errors)} trials: {overall:+.2f} ms"
-    if len(errors) < MEDIAN_MIN_TRIALS:
-        resilience.note(f"{said}; the 1 ms claim is judged on {MEDIAN_MIN_TRIALS} trials or more (--deep)")
+    if len(errors) < OVER_TRIALS_MIN:
+        resilience.note(f"{said}; the 1 ms claim is judged on {OVER_TRIALS_MIN} trials or more (--deep)")
     else:
         assert abs(overall) <= 1.0, said
 
@@ -149,4 +171,4 @@ def _heard_under(w: ChatterProbe, fault):
 
 
 def _heard(w: ChatterProbe, since: int):
-    return [(r, number(r.msg)) for r in w.heard.items()[since:]]
+    return [(r, number(r.msg)) for r in w.heard_items(since)]

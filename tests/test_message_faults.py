@@ -25,6 +25,20 @@ def test_a_drop_hits_every_message_its_subscriber_would_have_had_for_its_time(sy
     assert w.system.alive()
 
 
+def test_after_a_restart_the_probe_counts_the_new_containers_messages_only(system_factory):
+    """A trial that fails restarts the container, whose Talker counts from 0
+    again. Before, the old container's numbers in the recorders hid what the
+    new one lost ("the engine dropped 9, the subscriber missed 0" in every
+    trial after the first failure of a deep run)."""
+    w = ChatterProbe(system_factory)
+    w.settle()
+    w.system.restart()
+    missing_before = set(w.missing())
+    [fault] = w.system.inject(Drop("/chatter", 1.0))
+    lost = set(w.missing()) - missing_before
+    assert fault.counts == {"seen": len(lost), "dropped": len(lost)} and len(lost) >= 25
+
+
 def test_a_seed_replays_which_messages_are_dropped(system_factory):
     w = ChatterProbe(system_factory)
     patterns = []
