@@ -356,14 +356,15 @@ def test_a_discovery_server_profile_is_the_no_shm_one_made_a_server():
     ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
     root = ET.fromstring(ds.server_profile(12345))
     [rtps] = root.findall(".//f:participant[@is_default_profile='true']/f:rtps", ns)
-    assert rtps.find("f:useBuiltinTransports", ns).text == "false"  # no shared memory
-    assert rtps.find("f:prefix", ns).text == ds.SERVER_PREFIX
-    assert rtps.find("f:builtin/f:discovery_config/f:discoveryProtocol", ns).text == "SERVER"
+    assert rtps.findtext("f:useBuiltinTransports", namespaces=ns) == "false"  # no shared memory
+    assert rtps.findtext("f:prefix", namespaces=ns) == ds.SERVER_PREFIX
+    assert rtps.findtext("f:builtin/f:discovery_config/f:discoveryProtocol", namespaces=ns) == "SERVER"
     udp = rtps.find("f:builtin/f:metatrafficUnicastLocatorList/f:locator/f:udpv4", ns)
-    assert (udp.find("f:address", ns).text, udp.find("f:port", ns).text) == ("127.0.0.1", "12345")
+    assert udp is not None
+    assert (udp.findtext("f:address", namespaces=ns), udp.findtext("f:port", namespaces=ns)) == ("127.0.0.1", "12345")
     # the profile's announcement period and library settings stay
     assert rtps.find("f:builtin/f:discovery_config/f:leaseAnnouncement", ns) is not None
-    assert root.find("f:library_settings/f:intraprocess_delivery", ns).text == "OFF"
+    assert root.findtext("f:library_settings/f:intraprocess_delivery", namespaces=ns) == "OFF"
 
 
 def test_the_memory_watch_benchmark_leaks_only_in_a_memory_cgroup_of_its_own(tmp_path):

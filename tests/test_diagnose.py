@@ -189,6 +189,7 @@ def test_a_live_busy_loop_is_told_from_a_sleeper():
         "print('ready', flush=True)\ntime.sleep(60)\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None  # stdout=PIPE
     try:
         assert proc.stdout.readline().strip() == "ready"
         d = diagnose(proc.pid)

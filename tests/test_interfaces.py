@@ -354,7 +354,7 @@ def test_load_node_round_trip(ros):
 
 def test_component_event_pub_sub(ros):
     node, executor = ros
-    received = []
+    received: list[ComponentEvent] = []
     subscription = node.create_subscription(ComponentEvent, "smoke/component_events", received.append, 10)
     publisher = node.create_publisher(ComponentEvent, "smoke/component_events", 10)
     try:

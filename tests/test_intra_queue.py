@@ -74,7 +74,7 @@ def _die_inside(core, hook_name: str, action):
 
 
 def test_publisher_killed_mid_put_leaves_a_consistent_queue(core):
-    repaired = []
+    repaired: list[MessageQueue] = []
     q = MessageQueue(4, on_repair=repaired.append)
     q.put("before")
     _die_inside(core, "queue_mid_put", lambda: q.put("torn"))

@@ -188,8 +188,15 @@ def test_restart_policy_reloads_a_crashed_node_with_backoff(client):
 def test_a_node_that_dies_at_every_start_is_restarted_up_to_the_limit(client, container):
     client.load_ok(TESTRIG, "faults::SegfaultInCallback", node_name="loop", parameters={"delay": 0.01})
     seen = []
+
+    def third_crash(e):
+        if e.event_type != ComponentEvent.CRASHED:
+            return False
+        seen.append(e)
+        return len(seen) == 3
+
     client.events.wait_for(
-        lambda e: e.event_type == ComponentEvent.CRASHED and seen.append(e) is None and len(seen) == 3,
+        third_crash,
         timeout=15,
         what="the third crash",
     )

@@ -23,11 +23,20 @@ import textwrap
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from cloneguard.container.isolated.assumptions import IsolationUnavailable, self_check
-from cloneguard.container.isolated.core import CloneCore, Death, StopRequested, in_child, stop_requested, wait_for_go
+from cloneguard.container.isolated.core import (
+    Child,
+    CloneCore,
+    Death,
+    StopRequested,
+    in_child,
+    stop_requested,
+    wait_for_go,
+)
 from cloneguard.container.robust import MutexNotRecoverable, RobustMutex
 from cloneguard.harness import procfs
 
@@ -169,7 +178,7 @@ def test_child_has_own_pid_and_shares_the_address_space(core):
 
 
 def test_libc_and_python_work_in_the_child(core):
-    out = {}
+    out: dict[str, Any] = {}
 
     def child():
         x = 2.5
@@ -228,7 +237,7 @@ def test_child_uses_the_parents_mangled_pointers(core):
     (its function pointers stored mangled), the child calls through them."""
     want = "h\u00e9llo".encode("iso8859-2")
     assert _iconv("h\u00e9llo".encode(), b"ISO-8859-2") == want
-    out = {}
+    out: dict[str, bytes] = {}
     assert run(core, lambda: out.update(r=_iconv("h\u00e9llo".encode(), b"ISO-8859-2"))).exit_code == 0
     assert out["r"] == want
 
@@ -286,7 +295,7 @@ def test_child_can_fork_and_run_subprocesses(core):
     pthread (its list link must be valid); subprocess and the resolver work."""
     import socket
 
-    out = {}
+    out: dict[str, Any] = {}
 
     def child():
         out["sub"] = subprocess.run(["echo", "sub ok"], capture_output=True, text=True).stdout.strip()
@@ -326,7 +335,7 @@ def _segv():
 
 
 def _segv_faulthandler():
-    faulthandler._sigsegv(True)  # release_gil=True
+    faulthandler._sigsegv(True)  # type: ignore[attr-defined]  # CPython's private test helper, not in typeshed; release_gil=True
 
 
 def _abort():
@@ -462,8 +471,10 @@ def test_robust_mutex_waiter_gets_owner_died_and_gil_is_free_while_blocked(core)
 
     t = threading.Thread(target=waiter)
     t.start()
+    tid = t.native_id
+    assert tid is not None  # set before start() returns
     assert blocked.wait(10)
-    wait_until(lambda: blocked_in(t.native_id, 202), what="waiter in futex")
+    wait_until(lambda: blocked_in(tid, 202), what="waiter in futex")
     # The waiter is blocked inside lock(); this thread still runs Python.
     count = sum(range(100000))
     assert count > 0
@@ -661,6 +672,7 @@ CONTAINER_SCRIPT = textwrap.dedent("""
 
 def test_children_die_with_the_container():
     proc = subprocess.Popen([sys.executable, "-c", CONTAINER_SCRIPT], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None  # stdout=PIPE
     try:
         child_pid = int(proc.stdout.readline())
         pidfd = os.pidfd_open(child_pid)
@@ -796,6 +808,8 @@ def test_close_lets_a_death_still_being_reported_finish_before_releasing():
     # A container stopping while a node's death is still in its handler
     # (the handler publishes CRASHED, destroys the node, then releases the
     # child): close() must not release that child under the handler's feet.
+    box: list[Child]
+    core: CloneCore  # assigned below, after on_event that uses it (else mypy takes the module's core fixture)
     gate, entered, outcome, box = threading.Event(), threading.Event(), [], []
 
     def on_event(event):

@@ -80,12 +80,13 @@ def test_a_crashing_child_reports_and_still_dies_of_the_signal(core, capfd, targ
     name = signal.Signals(sig).name
     where = r"0x[0-9a-f]+" if fault else "-"
     head = rf"cloneguard: pid {c.pid} caught {name} at {where} \(pc 0x[0-9a-f]+\)\n"
-    assert re.search(head, err), err
+    found = re.search(head, err)
+    assert found, err
     if sig == signal.SIGSEGV:
         assert f"caught {name} at 0x0 " in err
     python = err.index(f"cloneguard: pid {c.pid} Python stack (most recent call first):\n")
     native = err.index(f"cloneguard: pid {c.pid} native stack:\n")
-    assert re.search(head, err).start() < python < native
+    assert found.start() < python < native
     # The Python frames, innermost first, as faulthandler writes them.
     frames = err[python:native].splitlines()[1:]
     assert frames and all(re.fullmatch(r'  File ".+", line \d+ in \S+', f) for f in frames), frames

@@ -92,10 +92,15 @@ def test_collections_run_on_the_containers_thread_only(core):
     by the collector's thread, and a collection asked for in a child runs
     there too and answers the child."""
     assert _gc_state().enabled == 0 and gc.isenabled()
-    names = []
-    gc.callbacks.append(lambda phase, info: phase == "start" and names.append(threading.current_thread().name))
+    names: list[str] = []
+
+    def note_thread(phase, info):
+        if phase == "start":
+            names.append(threading.current_thread().name)
+
+    gc.callbacks.append(note_thread)
     try:
-        seen = {}
+        seen: dict[str, object] = {}
 
         def child():
             seen["collected"] = gc.collect()
@@ -106,7 +111,7 @@ def test_collections_run_on_the_containers_thread_only(core):
         core.release(c)
         assert isinstance(seen["collected"], int) and names == ["cloneguard-gc"], (seen, names)
         names.clear()
-        garbage = [[] for _ in range(5000)]
+        garbage: list[list[object]] = [[] for _ in range(5000)]
         for item in garbage:
             item.append(item)  # cycles: only a collection frees them
         del garbage, item

@@ -15,6 +15,7 @@ import ctypes
 import os
 import threading
 import time
+from typing import Any
 
 import pytest
 
@@ -31,7 +32,7 @@ def core():
 
 
 def test_a_child_creates_and_joins_threads_100_times(core):
-    out = {"rounds": 0, "pids": set(), "tids": set(), "sums": set()}
+    out: dict[str, Any] = {"rounds": 0, "pids": set(), "tids": set(), "sums": set()}
     lock = threading.Lock()
 
     def work(i):

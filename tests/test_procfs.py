@@ -10,7 +10,7 @@ def test_lasting_fds_keep_what_stays_open_and_drop_what_closes_between_readings(
     brief = os.open(tmp_path / "brief", os.O_CREAT | os.O_RDONLY)
     # The first pause between readings closes one fd: it was in the first
     # listing only, as a /proc file the container reads for a moment is.
-    pauses = []
+    pauses: list[float] = []
 
     def pause(_seconds):
         if not pauses:

@@ -94,7 +94,7 @@ def test_rlock_semantics_match_cpythons():
         lock, out = make(), []
         out.append(_outcome(lock.release))
         out.append((lock.acquire(), lock.acquire(), lock._recursion_count(), lock._is_owned()))
-        other = {}
+        other: dict[str, object] = {}
         t = threading.Thread(
             target=lambda lock=lock, other=other: other.update(
                 release=_outcome(lock.release),

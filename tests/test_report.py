@@ -343,7 +343,8 @@ def test_resilience_outside_scenarios_still_reports(pytester, report_root):
     suite = ET.parse(run_dir / "junit.xml").getroot()
     assert [c.get("name") for c in suite.iter("testcase")] == ["test_uses_fixture", "test_fails"]
     (failure,) = suite.iter("failure")
-    assert "boom <here>" in failure.get("message")
+    message = failure.get("message")
+    assert message is not None and "boom <here>" in message
 
 
 def test_report_dir_from_environment_and_user_junit(pytester, tmp_path, report_root, monkeypatch):

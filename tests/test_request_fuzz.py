@@ -23,6 +23,9 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
+from typing import Any
 
 import pytest
 import rclpy
@@ -196,13 +199,13 @@ def make_machine(world: World):
             unloads = [data.draw(st.sampled_from(live), label="unload") for k in plan if k == "unload"]
             same = data.draw(st.sampled_from(live), label="unload-same") if "unload-same" in plan else None
             unloads += [same] * (2 * plan.count("unload-same"))
-            results: dict[int, object] = {}
+            results: dict[int, Any] = {}
 
             def run(i, call):
                 results[i] = call()
 
-            calls = [lambda ld=ld: client.send_load(ld.request, 70.0) for ld in loads]
-            calls += [lambda uid=uid: client.unload(uid, timeout=70.0) for uid in unloads]
+            calls: list[Callable[[], object]] = [partial(client.send_load, ld.request, 70.0) for ld in loads]
+            calls += [partial(client.unload, uid, timeout=70.0) for uid in unloads]
             calls += [lambda: client.list(timeout=70.0)] * plan.count("list")
             threads = [threading.Thread(target=run, args=(i, c)) for i, c in enumerate(calls)]
             for t in threads:

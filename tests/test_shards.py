@@ -14,7 +14,7 @@ from test_report import plugin_args
 
 from cloneguard.harness.__main__ import main as harness_main
 from cloneguard.harness.report.merge import MergeError, merge_reports
-from cloneguard.harness.report.model import load_report
+from cloneguard.harness.report.model import Report, load_report
 
 pytest_plugins = ["pytester"]
 
@@ -45,7 +45,7 @@ def cells(pytester):
     return pytester
 
 
-def run(pytester, out, *args) -> dict:
+def run(pytester, out, *args) -> Report:
     pytester.runpytest(
         *plugin_args(), "-p", "no:cacheprovider", "--report-dir", str(out), "--seed", "5", *args, "scenarios"
     )

@@ -55,6 +55,7 @@ class Peer:
         assert self.proc.stdout.readline().strip() == "ready"
 
     def stop(self):
+        assert self.proc.stdin is not None  # stdin=PIPE
         self.proc.stdin.close()
         assert self.proc.wait(timeout=10) == 0
 
