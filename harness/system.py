@@ -34,6 +34,7 @@ from .crash_report import STACKS_WAIT_S, wait_for_report
 from .errors import HarnessTimeout
 from .factory import ContainerFactory
 from .message_faults import MessageEngine, MessageFault, run_message_fault
+from .node_memory import MemorySample, NodeMemory
 from .process import ContainerProcess
 from .schedule import run_schedule
 from .talk import GoalOutcome, Talker
@@ -141,6 +142,7 @@ class System:
         # made on the first container's client, which lives as long as the
         # System, so that they go on across restarts.
         self._watch = self.client
+        self._memory = NodeMemory(self._watch, self.proc.fqn)
 
     def _start(self) -> None:
         self.started_ns = time.monotonic_ns()
@@ -177,6 +179,18 @@ class System:
         rec = self._watch.subscribe(msg_type, name, qos)
         self.watched[name] = rec
         return rec
+
+    def memory(self, full_name: str, since_ns: int = 0) -> list[MemorySample]:
+        """Node ``full_name``'s memory as the container reported it on
+        /diagnostics (once a second), from ``since_ns`` on: each a
+        ``MemorySample`` (``at_ns``, on a recorder's clock; ``in_use`` and
+        ``limit``, its budget, in bytes, 0: none). Isolated mode only (the
+        allocator guard counts it); in thread mode, none."""
+        return self._memory.by_node(since_ns).get(full_name, [])
+
+    def memory_by_node(self, since_ns: int = 0, until_ns: int | None = None) -> dict[str, list[MemorySample]]:
+        """Every node's, as ``memory``, from ``since_ns`` to ``until_ns``."""
+        return self._memory.by_node(since_ns, until_ns)
 
     def service(self, srv_type: type, name: str) -> Client:
         """An rclpy client of ``name``, for ``call_latency``."""

@@ -43,6 +43,7 @@ import pytest
 from . import diagnose
 from .cpu_starve import CpuStarveUnavailable
 from .errors import HarnessTimeout
+from .node_memory import series_ms
 from .plan import record_hang
 from .report.model import TrialOutcome
 
@@ -198,7 +199,7 @@ def fault_record(fault: Fault, start_ns: int) -> dict:
 def timeline(system: System, start_ns: int, end_ns: int) -> dict:
     """The trial and its recovery as the report draws them (with the
     trial's faults): messages per TIMELINE_BIN_MS bin of each watched
-    topic."""
+    topic, and each node's memory as its container reported it."""
     bin_ns = TIMELINE_BIN_MS * 1_000_000
     bins = max(1, (end_ns - start_ns) // bin_ns)  # whole bins: a cut one would read as a drop
     topics = {}
@@ -207,7 +208,11 @@ def timeline(system: System, start_ns: int, end_ns: int) -> dict:
         for at in _window(rec, start_ns, start_ns + bins * bin_ns - 1):
             counts[(at - start_ns) // bin_ns] += 1
         topics[name] = counts
-    return {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
+    drawn = {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
+    memory = series_ms(system.memory_by_node(start_ns, start_ns + bins * bin_ns), start_ns)
+    if memory:
+        drawn["memory_mib"] = memory
+    return drawn
 
 
 def crash_reports(

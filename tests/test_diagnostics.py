@@ -54,6 +54,13 @@ def test_isolated_nodes_show_their_memory_and_budget(system_factory):
     assert statuses["/holder"].message.startswith("near its memory budget: ")
     assert 0 < int(odometry["memory_in_use_bytes"]) < 32 * MiB
     assert statuses["/odometry"].level == DiagnosticStatus.OK
+    # The harness's view of the same (System.memory, the report's memory
+    # strips): the holder's samples in order, the last holding what it
+    # holds, under its budget.
+    held = robot.memory("/holder")
+    assert [s.at_ns for s in held] == sorted(s.at_ns for s in held)
+    assert held[-1].in_use >= HELD and {s.limit for s in held} == {64 * MiB}
+    assert robot.memory("/odometry") and robot.memory("/nobody") == []
 
 
 @pytest.mark.parametrize("args", [[], ["--isolated", "--no-alloc-guard"]], ids=["threads", "no-alloc-guard"])
@@ -61,6 +68,7 @@ def test_where_nothing_counts_memory_a_node_shows_its_ids_only(system_factory, a
     robot = system_factory([ODOMETRY], args)
     status = _latest(robot.topic(DiagnosticArray, "/diagnostics"), {"/odometry"})["/odometry"]
     assert set(_values(status)) == {"unique_id", "pid"} and status.level == DiagnosticStatus.OK
+    assert robot.memory("/odometry") == []
 
 
 def test_a_node_leaves_the_diagnostics_at_its_unload(system_factory):

@@ -14,10 +14,13 @@ from types import SimpleNamespace
 import pytest
 
 from cloneguard.harness.client import Received, Recorder
+from cloneguard.harness.node_memory import MemorySample
+from cloneguard.harness.report.system_view import timeline_svg
 from cloneguard.harness.system import Fault, NodeSpec
 from cloneguard.harness.system_trials import fault_record, profile_of, timeline, topic_facts
 
 MS = 1_000_000
+MiB = 1 << 20
 
 
 @pytest.mark.parametrize(
@@ -49,13 +52,20 @@ def test_a_fault_ends_the_node_when_its_signal_does(what, ends):
     assert Fault("/n", what, 0, 0, 1).ends_the_node is ends
 
 
-def _system(stamps_ms: dict[str, list[float]], start_ns: int):
+def _system(stamps_ms: dict[str, list[float]], start_ns: int, memory: dict[str, list[MemorySample]] | None = None):
     watched = {}
     for name, stamps in stamps_ms.items():
         rec = Recorder(name)
         rec._items.extend(Received(None, start_ns + int(ms * MS)) for ms in stamps)
         watched[name] = rec
-    return SimpleNamespace(watched=watched)
+
+    def memory_by_node(since_ns: int, until_ns: int) -> dict[str, list[MemorySample]]:
+        got = {
+            node: [s for s in samples if since_ns <= s.at_ns <= until_ns] for node, samples in (memory or {}).items()
+        }
+        return {node: samples for node, samples in got.items() if samples}
+
+    return SimpleNamespace(watched=watched, memory_by_node=memory_by_node)
 
 
 def test_topic_facts_count_the_window_only_and_its_edges_as_gaps():
@@ -79,6 +89,17 @@ def test_a_timeline_bins_whole_bins_and_places_the_faults():
     }  # fmt: skip
     frozen = Fault("/map", "freeze 0.5 s", start + 10 * MS, start + 510 * MS, 4)
     assert fault_record(frozen, start)["kind"] == "freeze" and fault_record(frozen, start)["to_ms"] == 510.0
+
+
+def test_a_timeline_draws_each_nodes_memory_in_its_window():
+    start = 10_000 * MS
+    leak = [MemorySample(start + ms * MS, mib * MiB, 0) for ms, mib in [(-500, 1), (100, 2), (250, 40), (900, 3)]]
+    system = _system({"/odom": [5, 150, 250]}, start, {"/leak": leak})
+    tl = timeline(system, start, start + 300 * MS)
+    assert tl["memory_mib"] == {"/leak": [[100.0, 2.0], [250.0, 40.0]]}  # the window's samples, from its start
+    svg = timeline_svg(tl, [])
+    assert ">/leak memory<" in svg and ">40 MiB<" in svg and svg.count("<polyline") == 2 and svg.count("<circle") == 2
+    assert "memory_mib" not in timeline(_system({"/odom": [5]}, start), start, start + 300 * MS)
 
 
 USER_SCENARIOS = textwrap.dedent("""

@@ -10,6 +10,8 @@ Reads only what trials recorded in their details (``why``, ``faults``,
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Callable
 from html import escape
 
 from . import stats
@@ -98,16 +100,18 @@ def _timeline_trial(s: Scenario) -> Trial | None:
 
 def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
     """One row a fault on top (a bar from its start to its end, labelled),
-    then a strip per topic (messages per second, bin by bin) on the same
-    time axis, the faults shaded across the strips."""
+    then a strip per topic (messages per second, bin by bin) and a strip
+    per node whose memory the container reported (MiB in use, sample by
+    sample), on the same time axis, the faults shaded across the strips."""
     bin_ms = tl["bin_ms"]
     topics = tl["topics"]
+    memory = tl.get("memory_mib", {})
     n_bins = max((len(c) for c in topics.values()), default=1)
     span_ms = n_bins * bin_ms
     left, right, strip_h, gap, row_h = 150.0, 12.0, 34.0, 8.0, 15.0
     plot_w = width - left - right
     top = 6.0 + len(faults) * row_h + 4.0
-    bottom = top + len(topics) * (strip_h + gap)
+    bottom = top + (len(topics) + len(memory)) * (strip_h + gap)
     height = int(bottom + 22)
 
     def x(ms: float) -> float:
@@ -132,19 +136,12 @@ def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
         at_end = x0 > left + 0.6 * plot_w
         tx, anchor = (x0 - 4, "end") if at_end else (x0 + w + 4, "start")
         out.append(f'<text x="{tx:.1f}" y="{y + row_h - 5:.1f}" text-anchor="{anchor}" class="tick">{e(label)}</text>')
-    for i, (name, counts) in enumerate(topics.items()):
-        y0 = top + i * (strip_h + gap)
-        hz = [c * 1000.0 / bin_ms for c in counts]
-        peak = max(hz) or 1.0
+    strips = [(name, [((j + 0.5) * bin_ms, c * 1000.0 / bin_ms) for j, c in enumerate(counts)], "Hz")
+              for name, counts in topics.items()]  # fmt: skip
+    strips += [(f"{node} memory", [(ms, mib) for ms, mib in points], "MiB") for node, points in memory.items()]
+    for i, (name, points, unit) in enumerate(strips):
         color = TOPIC_COLORS[i % len(TOPIC_COLORS)]
-        points = " ".join(
-            f"{x((j + 0.5) * bin_ms):.1f},{y0 + strip_h - (v / peak) * strip_h:.1f}" for j, v in enumerate(hz)
-        )
-        out.append(f'<rect x="{left}" y="{y0}" width="{plot_w:.1f}" height="{strip_h}" class="band"/>')
-        out.append(f'<polyline points="{points}" fill="none" stroke="{color}" stroke-width="1.6"/>')
-        mid = y0 + strip_h / 2 + 4
-        out.append(f'<text x="{left - 6}" y="{mid:.1f}" text-anchor="end" class="tick">{e(name)}</text>')
-        out.append(f'<text x="{left - 6}" y="{y0 + 9:.1f}" text-anchor="end" class="tick">{peak:.0f} Hz</text>')
+        out.extend(_strip(name, points, unit, (top + i * (strip_h + gap), strip_h), x, color, marks=unit == "MiB"))
     out.extend(shades)
     axis = bottom - gap + 4
     step_s = max(1, round(span_ms / 1000 / 8))
@@ -158,6 +155,37 @@ def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
     return "".join(out)
 
 
+def _strip(
+    name: str,
+    points: list[tuple[float, float]],
+    unit: str,
+    box: tuple[float, float],
+    x: Callable[[float], float],
+    color: str,
+    marks: bool = False,
+) -> list[str]:
+    """One strip of the timeline, ``box`` (top, height) high, across the
+    time axis ``x`` (ms to a position, clamped to the plot): ``points``
+    (ms, value) as a line from 0 at its foot to the peak at its top,
+    labelled with ``name`` and the peak in ``unit``; with ``marks``, a dot
+    a point."""
+    y0, height = box
+    peak = max((v for _, v in points), default=0.0) or 1.0
+    xy = [(x(ms), y0 + height - (v / peak) * height) for ms, v in points]
+    left, right = x(0.0), x(math.inf)
+    out = [
+        f'<rect x="{left}" y="{y0}" width="{right - left:.1f}" height="{height}" class="band"/>',
+        f'<polyline points="{" ".join(f"{px:.1f},{py:.1f}" for px, py in xy)}" fill="none" stroke="{color}" '
+        'stroke-width="1.6"/>',
+        f'<text x="{left - 6}" y="{y0 + height / 2 + 4:.1f}" text-anchor="end" class="tick">{e(name)}</text>',
+        f'<text x="{left - 6}" y="{y0 + 9:.1f}" text-anchor="end" class="tick">{peak:.{1 if peak < 10 else 0}f} '
+        f"{unit}</text>",
+    ]
+    if marks:  # samples seconds apart: each shown, a lone one too
+        out += [f'<circle cx="{px:.1f}" cy="{py:.1f}" r="2.2" fill="{color}"/>' for px, py in xy]
+    return out
+
+
 def timeline(s: Scenario) -> str:
     t = _timeline_trial(s)
     if t is None:
@@ -165,7 +193,8 @@ def timeline(s: Scenario) -> str:
     return (
         f"<h4>Timeline of trial {e(t.index)} ({e(t.outcome)})</h4>"
         "<p class=\"muted small\">Each watched topic's messages per second, in 100 ms bins, from the trial's "
-        "start; the faults shaded.</p>" + timeline_svg(t.details["timeline"], t.details.get("faults", []))
+        "start, and each node's memory in use as its container reported it (once a second, isolated mode); "
+        "the faults shaded.</p>" + timeline_svg(t.details["timeline"], t.details.get("faults", []))
     )
 
 
