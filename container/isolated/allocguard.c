@@ -1442,7 +1442,7 @@ static void *tls_probe_thread(void *unused)
         if (w == arena) {
             at_arena = (long)off;
             arenas++;
-        } else if (((uintptr_t)w & 15) == 0 && mapped((char *)w - sizeof(size_t)) &&
+        } else if (w && ((uintptr_t)w & 15) == 0 && mapped((char *)w - sizeof(size_t)) &&
                    mapped((void *)((uintptr_t)w & ~(GLIBC_HEAP_MAX - 1))) &&
                    glibc_arena_of(w) == arena && block_bytes(w) == GLIBC_TCACHE_CHUNK) {
             at_tcache = (long)off;

@@ -224,6 +224,16 @@ bool cg_peek(const void *addr, void *out, size_t len)
     return process_vm_readv(getpid(), &here, 1, &there, 1, 0) == (ssize_t)len;
 }
 
+/* Could p be an object's (or a frame's, a code object's, a type's)
+   address?  Words read from a dead thread's frames are not trusted: one
+   seen there was 0x23.  Only an aligned pointer is followed, so that no
+   member of a misaligned one is even named (undefined behaviour in C,
+   which UBSan reports, before cg_peek would refuse to read it). */
+static bool aligned(const void *p)
+{
+    return p && ((uintptr_t)p & (_Alignof(PyObject) - 1)) == 0;
+}
+
 /* op, if it is a tracked GC object whose list neighbours agree, unlinked.
    An object here has a type whose own type is a type, with HAVE_GC and no
    tp_is_gc (never call code found through memory not yet trusted). */
@@ -232,8 +242,9 @@ static int untrack_object(PyObject *op)
     PyTypeObject *type, *meta;
     unsigned long flags, meta_flags;
     inquiry is_gc;
-    if (!op || !PEEK(&op->ob_type, type) || !type || !PEEK(&type->ob_base.ob_base.ob_type, meta) ||
-        !meta || !PEEK(&meta->tp_flags, meta_flags) || !(meta_flags & Py_TPFLAGS_TYPE_SUBCLASS) ||
+    if (!aligned(op) || !PEEK(&op->ob_type, type) || !aligned(type) ||
+        !PEEK(&type->ob_base.ob_base.ob_type, meta) || !aligned(meta) ||
+        !PEEK(&meta->tp_flags, meta_flags) || !(meta_flags & Py_TPFLAGS_TYPE_SUBCLASS) ||
         !PEEK(&type->tp_flags, flags) || !(flags & Py_TPFLAGS_HAVE_GC) ||
         !PEEK(&type->tp_is_gc, is_gc) || is_gc)
         return 0;
@@ -247,30 +258,30 @@ static int untrack_object(PyObject *op)
 }
 
 /* The dead thread state's frames (3.11: tstate->cframe->current_frame,
-   then previous): every local (locals are always a live reference or NULL;
-   the value stack of the frame that was running is not known, and not
-   read) and every cell's content. */
+   then previous): every local (a live reference or NULL in a frame that
+   is whole; the value stack of the frame that was running is not known,
+   and not read) and every cell's content. */
 static long untrack_locals(PyThreadState *t)
 {
     long n = 0, frames = 0;
     _PyCFrame *cframe;
     _PyInterpreterFrame *f;
-    if (!t || !PEEK(&t->cframe, cframe) || !cframe || !PEEK(&cframe->current_frame, f))
+    if (!t || !PEEK(&t->cframe, cframe) || !aligned(cframe) || !PEEK(&cframe->current_frame, f))
         return 0;
-    for (; f && frames < 10000; frames++) {
+    for (; aligned(f) && frames < 10000; frames++) {
         PyCodeObject *code;
         PyTypeObject *code_type;
         int count;
-        if (!PEEK(&f->f_code, code) || !code || !PEEK(&code->ob_base.ob_base.ob_type, code_type) ||
-            code_type != &PyCode_Type || !PEEK(&code->co_nlocalsplus, count) || count < 0 ||
-            count > (1 << 16))
+        if (!PEEK(&f->f_code, code) || !aligned(code) ||
+            !PEEK(&code->ob_base.ob_base.ob_type, code_type) || code_type != &PyCode_Type ||
+            !PEEK(&code->co_nlocalsplus, count) || count < 0 || count > (1 << 16))
             break;
         for (int i = 0; i < count; i++) {
             PyObject *op, *content;
             PyTypeObject *type;
             if (!PEEK(&f->localsplus[i], op))
                 break;
-            if (op && PEEK(&op->ob_type, type) && type == &PyCell_Type &&
+            if (aligned(op) && PEEK(&op->ob_type, type) && type == &PyCell_Type &&
                 PEEK(&((PyCellObject *)op)->ob_ref, content))
                 n += untrack_object(content);
             n += untrack_object(op);
