@@ -7,7 +7,7 @@
 # past the width, a misaligned or null-based pointer, an out-of-range enum
 # ...) ends the process that met it, and its report, with the stack, is
 # written to a file the run then shows; one report fails the run, whichever
-# process (the test's, a container's, a node process) met it. About 4
+# process (the test's, a container's, a node process) met it. About 8
 # minutes, most of it the venv. Extra arguments go to pytest.
 #
 # Not AddressSanitizer: it replaces malloc and keeps a shadow of every
