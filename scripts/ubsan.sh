@@ -8,7 +8,8 @@
 # ...) ends the process that met it, and its report, with the stack, is
 # written to a file the run then shows; one report fails the run, whichever
 # process (the test's, a container's, a node process) met it. About 8
-# minutes, most of it the venv. Extra arguments go to pytest.
+# minutes on a busy 2-core machine: 2 for the venv and the build, 6 for the
+# tests. Extra arguments go to pytest.
 #
 # Not AddressSanitizer: it replaces malloc and keeps a shadow of every
 # mapping, where the product is itself a malloc interposer (the allocator
