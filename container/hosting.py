@@ -54,6 +54,9 @@ class NodeDeath:
     # It exited with status 0 after an outside SIGTERM or SIGINT (the
     # container's process group being stopped, say): a clean stop, no crash.
     stopped: bool = False
+    # (bytes in use, budget in bytes, 0: none) at its death, as the
+    # allocator guard counted them; None where nothing counts them.
+    memory: tuple[int, int] | None = None
 
 
 class Host(Protocol):

@@ -35,7 +35,7 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.qos import QoSProfile, qos_profile_services_default
 
-from . import diagnostics, events, intra, options, registry, repairs, seams
+from . import diagnostics, events, intra, memory_budget, options, registry, repairs, seams
 from .events import EventPublisher
 from .hosting import Host, Hosted, NodeDeath
 from .options import LoadError
@@ -347,7 +347,7 @@ class ComponentManager:
         if death.stopped:
             self._log.info(f"{who} ended: {reason}")
         else:
-            self._log.error(f"{who} died: {reason}")
+            self._log.error(f"{who} died: {reason}{memory_budget.at_death(death.memory)}")
 
     def reload(self, request: LoadNode.Request, lineage: Lineage) -> None:
         """The restart policy's callback: load ``request`` again."""

@@ -51,3 +51,13 @@ def parse_size(value: object) -> int:
 
 def describe(limit_bytes: int) -> str:
     return f"{limit_bytes / (1 << 20):.1f} MiB" if limit_bytes else "none"
+
+
+def at_death(memory: tuple[int, int] | None) -> str:
+    """What a node's death adds to its log line: its process's memory then
+    (bytes in use, budget, 0: none, as the guard counted them), or nothing
+    where nothing counts it."""
+    if memory is None:
+        return ""
+    in_use, limit = memory
+    return f" ({in_use / (1 << 20):.1f} MiB in use" + (f" of its {describe(limit)} budget" if limit else "") + ")"

@@ -87,6 +87,23 @@ def test_a_leaking_node_is_ended_alone_at_its_budget(limited, args, kind, step):
     assert robot.proc.memory_cgroup.oom_kills() == 0
 
 
+def test_a_death_logs_what_the_node_had_in_use(system_factory):
+    """Any death, not only one for memory: the log line says what the
+    guard counted of the node process when it died."""
+    step = MiB - 4096  # a 1 MiB block under either allocator
+    holder = _leak("bytes", step, budget=64 * MiB, steps=30, period=0.01, delay=0.0)
+    robot = system_factory([holder], ["--isolated"])
+    robot.topic(UInt64, f"{LEAK}/held").wait_for(lambda m: m.data == 30 * step, 15, "30 MiB held")
+    pid = robot.node(LEAK).pid
+    robot.kill(LEAK, signal.SIGKILL)
+    robot.wait_crashed(LEAK)
+    said = robot.proc.wait_for_log(
+        rf"{LEAK} \(unique_id \d+, pid {pid}\) died: .* \((?P<used>[\d.]+) MiB in use of its 64.0 MiB budget\)",
+        timeout=10,
+    )
+    assert 30 * step / MiB <= float(said["used"]) < 64
+
+
 def test_a_nodes_own_budget_wins_over_the_containers(limited):
     robot = limited([ODOMETRY, _leak("bytes", 4 * MiB, budget=64 * MiB)], ["--isolated", "--node-memory-limit", "1G"])
     said = OVER.search(robot.wait_crashed(LEAK, timeout=60).error_message)

@@ -269,6 +269,16 @@ class IsolatedHost:
         except ValueError:  # released meanwhile
             return None
 
+    def _memory_at_death(self, proc: _NodeProcess) -> tuple[int, int] | None:
+        """What the guard counted of a dead node process (its slot keeps the
+        count until the next process in its context starts)."""
+        if proc.child is None:
+            return None
+        try:
+            return self._core.memory(proc.child)
+        except ValueError:  # released meanwhile
+            return None
+
     def start(self, unique_id: int, cls: type[Node], args: NodeArguments) -> Hosted:
         if args.cpu_quota is not None and self.cgroups is None:
             raise LoadError(f"a CPU quota ({CPU_QUOTA}) needs a container started with --cgroups")
@@ -743,6 +753,9 @@ class IsolatedHost:
                     allocator_quarantined=death.alloc_quarantined,
                     claimed=death.claimed,
                     stopped=death.exit_code == 0 and proc.stop_signal is not None and not death.repaired,
+                    # Read before _forget: until the context is given back no
+                    # other node process can take its slot and its count.
+                    memory=self._memory_at_death(proc),
                 ),
             )
         if death.core_file:
