@@ -36,7 +36,7 @@ import signal
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple
 
 import pytest
 
@@ -52,21 +52,6 @@ if TYPE_CHECKING:
     from .report.record import Resilience
     from .report.stats import Proportion
     from .system import Fault, System
-
-    class SystemTrials(Protocol):
-        """What the ``system_trials`` fixture gives a test."""
-
-        def __call__(
-            self,
-            system: System,
-            trial: Callable[[SystemTrial], Mapping | None],
-            *,
-            fault: str,
-            claim: str,
-            quick: int = 3,
-            deep: int = 200,
-            at_least: float | None = None,
-        ) -> Proportion: ...
 
 
 #: A container is replaced after this many node deaths (each dead node
@@ -407,21 +392,26 @@ def holder(config: pytest.Config, seconds: float) -> Callable:
     return hold
 
 
-@pytest.fixture
-def system_trials(
-    request: pytest.FixtureRequest,
-    resilience: Resilience,
-    trial_plan: Callable[[int, int], list[tuple[int, int]]],
-) -> SystemTrials:
-    """system_trials(system, trial, *, fault, claim, quick=3, deep=200,
-    at_least=None): run ``trial(SystemTrial)`` as seeded trials of
+class SystemTrials:
+    """What the ``system_trials`` fixture gives a test: called as
+    ``system_trials(system, trial, *, fault, claim, quick=3, deep=200,
+    at_least=None)``, it runs ``trial(SystemTrial)`` as seeded trials of
     ``system`` (``quick`` by default, ``deep`` with --deep, N with
-    --trials N), record each in the report under ``fault`` and ``claim``,
-    then, with ``at_least``, hold the survival rate to it (and, isolated,
-    allow no container death). Returns the survival rate so far
+    --trials N), records each in the report under ``fault`` and ``claim``,
+    then, with ``at_least``, holds the survival rate to it (and, isolated,
+    allows no container death). Returns the survival rate so far
     (``stats.Proportion``: successes, trials, rate, and its 95% interval low, high)."""
 
-    def run(
+    def __init__(
+        self,
+        request: pytest.FixtureRequest,
+        resilience: Resilience,
+        trial_plan: Callable[[int, int], list[tuple[int, int]]],
+    ):
+        self._request, self._resilience, self._trial_plan = request, resilience, trial_plan
+
+    def __call__(
+        self,
         system: System,
         trial: Callable[[SystemTrial], Mapping | None],
         *,
@@ -432,19 +422,28 @@ def system_trials(
         at_least: float | None = None,
     ) -> Proportion:
         __tracebackhide__ = True
+        resilience = self._resilience
         resilience.describe(
             fault=fault,
             profile=profile_of(system.container_args),
             mitigations={"container args": " ".join(system.container_args) or "(none)"},
             claim=claim,
         )
-        seconds = request.config.getoption("--hold-failed", default=None)
-        hold = None if seconds is None else holder(request.config, seconds)
-        run_trials(system, trial, trial_plan(quick, deep), resilience, hold)
+        seconds = self._request.config.getoption("--hold-failed", default=None)
+        hold = None if seconds is None else holder(self._request.config, seconds)
+        run_trials(system, trial, self._trial_plan(quick, deep), resilience, hold)
         if at_least is not None:
             if profile_of(system.container_args) != "threads":
                 resilience.expect_no_container_death()
             resilience.expect_rate(TrialOutcome.SURVIVED, at_least=at_least)
         return resilience.rate()
 
-    return run
+
+@pytest.fixture
+def system_trials(
+    request: pytest.FixtureRequest,
+    resilience: Resilience,
+    trial_plan: Callable[[int, int], list[tuple[int, int]]],
+) -> SystemTrials:
+    """A ``SystemTrials`` of this test (its docstring says what it does)."""
+    return SystemTrials(request, resilience, trial_plan)
