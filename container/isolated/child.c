@@ -100,18 +100,18 @@ static void on_stop_signal(int sig)
 static void jemalloc_setup(struct cg_child *c)
 {
     c->arena = -1;
-    if (!g_mallctl)
+    if (!cg_mallctl())
         return;
-    if (g_cfg.jemalloc_own_arena) {
+    if (cg_cfg()->jemalloc_own_arena) {
         unsigned a;
         size_t sz = sizeof a;
-        if (g_mallctl("arenas.create", &a, &sz, NULL, 0) == 0 &&
-            g_mallctl("thread.arena", NULL, NULL, &a, sizeof a) == 0)
+        if (cg_mallctl()("arenas.create", &a, &sz, NULL, 0) == 0 &&
+            cg_mallctl()("thread.arena", NULL, NULL, &a, sizeof a) == 0)
             c->arena = (int)a;
     }
-    if (!g_cfg.jemalloc_tcache) {
+    if (!cg_cfg()->jemalloc_tcache) {
         bool off = false;
-        g_mallctl("thread.tcache.enabled", NULL, NULL, &off, sizeof off);
+        cg_mallctl()("thread.tcache.enabled", NULL, NULL, &off, sizeof off);
     }
 }
 
@@ -159,13 +159,14 @@ static int child_main(void *arg)
     }
     /* 2. The kernel marks robust mutexes we hold as owner-died on our exit
        only if it knows our list.  Must be done by this task itself. */
-    syscall(SYS_set_robust_list, c->tcb + g_layout.robust_head, sizeof(struct robust_list_head));
+    syscall(SYS_set_robust_list, c->tcb + cg_tcb_layout()->robust_head,
+            sizeof(struct robust_list_head));
     /* 2b. With the allocator guard: threads we create find our slot by pid. */
     if (c->ctx)
         guard_child_start();
     /* 3. Locale: the fresh TLS has no ctype tables; uselocale sets them. */
     uselocale(LC_GLOBAL_LOCALE);
-    AT(c->tcb, g_layout.resp_tls, struct __res_state *) = &c->res;
+    AT(c->tcb, cg_tcb_layout()->resp_tls, struct __res_state *) = &c->res;
     /* 4. Die with the monitor thread (= the container).  If it is already
        gone we have been reparented: leave. */
     prctl(PR_SET_PDEATHSIG, SIGKILL);
@@ -185,10 +186,10 @@ static int child_main(void *arg)
     sigemptyset(&sa.sa_mask);
     sigaction(SIGTERM, &sa, NULL);
     sigaction(SIGINT, &sa, NULL);
-    if (g_cfg.crash_report)
+    if (cg_cfg()->crash_report)
         crash_handlers_install(c);
-    if (g_cfg.stop_signal)
-        stop_requests_take(g_cfg.stop_signal);
+    if (cg_cfg()->stop_signal)
+        stop_requests_take(cg_cfg()->stop_signal);
     if (!c->ctx)
         jemalloc_setup(c);
     sigset_t none;
@@ -268,7 +269,7 @@ long child_clone(struct cg_child *c)
     a.flags = CLONE_VM | CLONE_FS | CLONE_FILES | CLONE_PIDFD | CLONE_SETTLS | CLONE_CLEAR_SIGHAND |
               CLONE_CHILD_SETTID | CLONE_PARENT_SETTID;
     a.pidfd = (uintptr_t)&c->pidfd;
-    a.child_tid = a.parent_tid = (uintptr_t)(c->tcb + g_layout.tid);
+    a.child_tid = a.parent_tid = (uintptr_t)(c->tcb + cg_tcb_layout()->tid);
     a.exit_signal = SIGCHLD;
     a.stack = (uintptr_t)(c->map + (c->map_len - c->stack_size));
     a.stack_size = c->stack_size;

@@ -34,10 +34,27 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-struct cg_layout g_layout;
-struct cg_config g_cfg;
-mallctl_fn g_mallctl;
+/* Set once by cg_start, before anything reads them; read-only afterwards,
+   through the accessors below. */
+static struct cg_layout g_layout;
+static struct cg_config g_cfg;
+static mallctl_fn g_mallctl;
 static int g_started;
+
+const struct cg_config *cg_cfg(void)
+{
+    return &g_cfg;
+}
+
+const struct cg_layout *cg_tcb_layout(void)
+{
+    return &g_layout;
+}
+
+mallctl_fn cg_mallctl(void)
+{
+    return g_mallctl;
+}
 
 /* ---------------------------------------------------------------------- */
 /* The core.                                                               */

@@ -4,7 +4,7 @@
  * glibc gives each pthread a TLS block with its struct pthread at the thread
  * pointer; a child gets one too, from glibc's own _dl_allocate_tls, filled in
  * here by the parent with what pthread_create would have set (offsets from
- * g_layout).  With the allocator guard (allocguard.c, preloaded), a TLS block
+ * cg_tcb_layout()).  With the allocator guard (allocguard.c, preloaded), a TLS block
  * is bound to an allocator slot for good: the pair is a context (core.h),
  * pooled and reused by the next child unless its child died inside the
  * allocator.  Runs on container threads, never in a child.
@@ -67,12 +67,12 @@ int tls_init(void)
 void tls_reset(char *tcb)
 {
     /* Empty robust list: list points at the head itself. */
-    AT(tcb, g_layout.robust_head, void *) = tcb + g_layout.robust_head;
-    AT(tcb, g_layout.robust_head + 8, long) = g_layout.robust_futex_offset;
-    AT(tcb, g_layout.robust_head + 16, void *) = NULL;
+    AT(tcb, cg_tcb_layout()->robust_head, void *) = tcb + cg_tcb_layout()->robust_head;
+    AT(tcb, cg_tcb_layout()->robust_head + 8, long) = cg_tcb_layout()->robust_futex_offset;
+    AT(tcb, cg_tcb_layout()->robust_head + 16, void *) = NULL;
     /* No pthread_cleanup record (one is left by a death in a condvar wait,
        and gilrepair.c reads it). */
-    AT(tcb, g_layout.cleanup, void *) = NULL;
+    AT(tcb, cg_tcb_layout()->cleanup, void *) = NULL;
 }
 
 char *tls_new(void)
@@ -82,24 +82,26 @@ char *tls_new(void)
         return NULL;
     char *me = (char *)cg_thread_pointer();
 
-    AT(tcb, g_layout.tcb, void *) = tcb; /* THREAD_SELF reads these */
-    AT(tcb, g_layout.self, void *) = tcb;
+    AT(tcb, cg_tcb_layout()->tcb, void *) = tcb; /* THREAD_SELF reads these */
+    AT(tcb, cg_tcb_layout()->self, void *) = tcb;
     /* x86 catomic_* skip the lock prefix when this is 0: must be 1. */
-    AT(tcb, g_layout.multiple_threads, int) = 1;
+    AT(tcb, cg_tcb_layout()->multiple_threads, int) = 1;
     /* The canary only needs to be stable per task, but pointer_guard must
        equal every other thread's: mangled pointers (setjmp buffers, atexit
        and dl handlers) are shared. */
-    AT(tcb, g_layout.stack_guard, uintptr_t) = AT(me, g_layout.stack_guard, uintptr_t);
-    AT(tcb, g_layout.pointer_guard, uintptr_t) = AT(me, g_layout.pointer_guard, uintptr_t);
+    AT(tcb, cg_tcb_layout()->stack_guard, uintptr_t) =
+        AT(me, cg_tcb_layout()->stack_guard, uintptr_t);
+    AT(tcb, cg_tcb_layout()->pointer_guard, uintptr_t) =
+        AT(me, cg_tcb_layout()->pointer_guard, uintptr_t);
     /* Not on GL(dl_stack_used): an empty self-linked list keeps list_del
        (fork in a child) harmless. */
-    AT(tcb, g_layout.list, void *) = tcb + g_layout.list;
-    AT(tcb, g_layout.list + 8, void *) = tcb + g_layout.list;
+    AT(tcb, cg_tcb_layout()->list, void *) = tcb + cg_tcb_layout()->list;
+    AT(tcb, cg_tcb_layout()->list + 8, void *) = tcb + cg_tcb_layout()->list;
     /* pthread_getspecific for keys < 32 goes through specific[0]. */
-    AT(tcb, g_layout.specific, void *) = tcb + g_layout.specific_1stblock;
+    AT(tcb, cg_tcb_layout()->specific, void *) = tcb + cg_tcb_layout()->specific_1stblock;
     /* rseq is not registered for the child: RSEQ_CPU_ID_REGISTRATION_FAILED
        makes sched_getcpu fall back to the syscall. */
-    AT(tcb, g_layout.rseq_cpu_id, int32_t) = -2;
+    AT(tcb, cg_tcb_layout()->rseq_cpu_id, int32_t) = -2;
     tls_reset(tcb);
     /* tid is written by the kernel (CLONE_{CHILD,PARENT}_SETTID). */
     return tcb;

@@ -31,7 +31,7 @@
  *                gilrepair.c, lastresort.c write with it)
  *
  * x86_64 and glibc only.  Everything layout-dependent comes from
- * assumptions.py through struct cg_layout (g_layout), checked against a live
+ * assumptions.py through struct cg_layout (cg_tcb_layout()), checked against a live
  * thread before anything here runs.  The extension is built with
  * -fvisibility=hidden: nothing declared here is visible outside it.
  */
@@ -462,12 +462,13 @@ static inline int64_t cg_mono_ns(void)
 }
 #define MIB ((uint64_t)1 << 20) /* bytes, in the words for a death */
 
-/* clonecore.c: set by cg_start, read-only afterwards. */
-extern struct cg_layout g_layout;
-extern struct cg_config g_cfg;
+/* clonecore.c: what cg_start was given (set once, before anything else
+   runs; read-only afterwards): the configuration, glibc's TCB layout. */
+const struct cg_config *cg_cfg(void);
+const struct cg_layout *cg_tcb_layout(void);
 /* jemalloc's mallctl when jemalloc is the process's malloc, else NULL. */
 typedef int (*mallctl_fn)(const char *, void *, size_t *, void *, size_t);
-extern mallctl_fn g_mallctl;
+mallctl_fn cg_mallctl(void);
 
 /* monitor.c */
 int monitor_start(int *event_fd);

@@ -187,7 +187,7 @@ static void on_crash(int sig, siginfo_t *si, void *uc_)
         cg_dump_py_stack(2); /* "Stack (most recent call first): ..." */
     }
 
-    if (claimed && g_cfg.core_dumps)
+    if (claimed && cg_cfg()->core_dumps)
         wait_for_dump(c, timer_ok, timer);
     if (container) {
         /* Then whoever handled it before us: faulthandler dumps every

@@ -110,7 +110,7 @@ static char *const HELPER_ENV[] = {"PATH=/usr/bin:/bin", "LC_ALL=C", NULL};
 
 int dumps_start(void)
 {
-    if (!g_cfg.core_dumps)
+    if (!cg_cfg()->core_dumps)
         return 0;
     if (pipe2(g_req, O_CLOEXEC) < 0 || fcntl(g_req[0], F_SETFL, O_NONBLOCK) < 0)
         return -errno;
@@ -265,7 +265,10 @@ static void start_next(int64_t now)
         static char pid[16], gcore[CG_CORE_PATH + 8];
         snprintf(pid, sizeof pid, "%d", c->pid);
         snprintf(gcore, sizeof gcore, "gcore %s", g_path);
-        char *const argv[] = {g_cfg.gdb, "-nx", "-batch", "-p", pid, "-ex", gcore, NULL};
+        /* execve's argv is char *const[] (for old callers' sake); it writes
+           none of the strings, so the configuration's are passed as they are. */
+        char *const argv[] = {
+            (char *)cg_cfg()->gdb, "-nx", "-batch", "-p", pid, "-ex", gcore, NULL};
         guard_dump_exclude(1);
         int r = spawn_helper(argv, now);
         if (r < 0) {
@@ -300,8 +303,8 @@ static void helper_ended(int64_t now)
             const char *line = last_line();
             say(c, "gdb wrote none: ", line[0] ? line : "no output");
             finish(CG_CORE_FAILED);
-        } else if (g_cfg.fallocate[0]) {
-            char *const argv[] = {g_cfg.fallocate, "--dig-holes", g_path, NULL};
+        } else if (cg_cfg()->fallocate[0]) {
+            char *const argv[] = {(char *)cg_cfg()->fallocate, "--dig-holes", g_path, NULL};
             if (spawn_helper(argv, now) == 0)
                 g_stage = HOLES;
             else /* the file stays whole */

@@ -173,8 +173,9 @@ static struct cg_dead as_dead(const struct cg_child *c)
 
 static struct cg_repair_cfg repair_cfg(void)
 {
-    return (struct cg_repair_cfg){g_cfg.gil_repair, g_cfg.condvar_repair, g_cfg.interp_repair,
-                                  g_layout.cleanup, (uintptr_t)g_layout.cond_cleanup};
+    return (struct cg_repair_cfg){cg_cfg()->gil_repair, cg_cfg()->condvar_repair,
+                                  cg_cfg()->interp_repair, cg_tcb_layout()->cleanup,
+                                  (uintptr_t)cg_tcb_layout()->cond_cleanup};
 }
 
 void repair_step_aside(struct cg_child *c)
@@ -196,7 +197,7 @@ void repair_step_aside(struct cg_child *c)
    condvar reference another dead child holds. */
 static void repair_after_death(struct cg_child *reaped)
 {
-    if (!g_cfg.gil_repair && !g_cfg.condvar_repair)
+    if (!cg_cfg()->gil_repair && !cg_cfg()->condvar_repair)
         return;
     struct cg_dead d[32];
     struct cg_child *who[32];
@@ -285,7 +286,7 @@ static void reap(struct cg_child *c, int64_t t)
        the death's report needs next. */
     report_stop(c, t); /* never after the death record */
     mutexes_bury(c);   /* its tasks may prove a mutex's owner dead */
-    if (g_cfg.core_dumps)
+    if (cg_cfg()->core_dumps)
         dumps_forget(c); /* Python may release it once told */
     epoll_ctl(g_epfd, EPOLL_CTL_DEL, c->pidfd, NULL);
     for (struct cg_child **p = &g_children; *p; p = &(*p)->next)
@@ -320,7 +321,7 @@ static void *monitor_main(void *unused)
         /* Commands, stop notices and dumps first, deaths second: a stop
            notice of a child must reach Python before its death record. */
         for (int i = 0; i < n; i++) {
-            if (g_cfg.core_dumps && dumps_event(evs[i].data.ptr, t)) {
+            if (cg_cfg()->core_dumps && dumps_event(evs[i].data.ptr, t)) {
                 evs[i].data.ptr = NULL; /* handled: not a child */
             } else if (evs[i].data.ptr == &TAG_WAKE) {
                 uint64_t v;

@@ -324,7 +324,7 @@ static void see_one(int tid, void *arg)
    at that cursor or later, never earlier). */
 void mutexes_see(struct cg_child *c)
 {
-    if (!g_cfg.mutex_repair)
+    if (!cg_cfg()->mutex_repair)
         return;
     cursor_update();
     each_task(c->pid, see_one, &c->seen);
@@ -333,7 +333,7 @@ void mutexes_see(struct cg_child *c)
 /* Child c is dead (every task of it is gone) and about to be reaped. */
 void mutexes_bury(const struct cg_child *c)
 {
-    if (!g_cfg.mutex_repair || c->seen.n == 0)
+    if (!cg_cfg()->mutex_repair || c->seen.n == 0)
         return;
     struct dead_set *d = &g_dead[g_dead_next];
     g_dead_next = (g_dead_next + 1) % NDEAD;
@@ -441,7 +441,7 @@ static void report_if_stuck(int verdict, int waiter, int owner, int kind, uintpt
 static bool mutex_caller(uintptr_t ret)
 {
     for (int i = 0; i < CG_MUTEX_CALLERS; i++)
-        if (ret && ret == (uintptr_t)g_layout.mutex_ret[i])
+        if (ret && ret == (uintptr_t)cg_tcb_layout()->mutex_ret[i])
             return true;
     return false;
 }
@@ -488,7 +488,7 @@ static void mutex_waiter(int waiter, uintptr_t addr, int64_t now)
 static bool timed_mutex_caller(uintptr_t ret)
 {
     for (int i = 0; i < CG_TIMED_TYPES; i++)
-        if (ret && ret == (uintptr_t)g_layout.mutex_timed_ret[i])
+        if (ret && ret == (uintptr_t)cg_tcb_layout()->mutex_timed_ret[i])
             return true;
     return false;
 }
@@ -498,7 +498,7 @@ static bool timed_mutex_caller(uintptr_t ret)
 static int rwlock_caller(uintptr_t ret)
 {
     for (int i = 0; i < CG_RWLOCK_CALLERS; i++)
-        if (ret && ret == (uintptr_t)g_layout.rwlock_ret[i])
+        if (ret && ret == (uintptr_t)cg_tcb_layout()->rwlock_ret[i])
             return i;
     return -1;
 }
@@ -554,22 +554,24 @@ static void look_at(int tid, void *arg)
         return;
     int op = (int)sc.args[1] & FUTEX_CMD_MASK;
     uintptr_t addr = sc.args[0];
-    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 && sc.pc == (uintptr_t)g_layout.mutex_wait_pc) {
+    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 &&
+        sc.pc == (uintptr_t)cg_tcb_layout()->mutex_wait_pc) {
         uintptr_t ret;
-        if (read_mem(sc.sp + 8 * (uintptr_t)g_layout.mutex_ret_slot, &ret, sizeof ret) == 0 &&
+        if (read_mem(sc.sp + 8 * (uintptr_t)cg_tcb_layout()->mutex_ret_slot, &ret, sizeof ret) ==
+                0 &&
             mutex_caller(ret))
             mutex_waiter(tid, addr, now);
-    } else if (op == FUTEX_WAIT_BITSET && g_layout.timed_wait_pc &&
-               sc.pc == (uintptr_t)g_layout.timed_wait_pc) {
+    } else if (op == FUTEX_WAIT_BITSET && cg_tcb_layout()->timed_wait_pc &&
+               sc.pc == (uintptr_t)cg_tcb_layout()->timed_wait_pc) {
         uintptr_t ret;
         int k;
-        if (read_mem(sc.sp + 8 * (uintptr_t)g_layout.timed_ret_slot, &ret, sizeof ret) < 0)
+        if (read_mem(sc.sp + 8 * (uintptr_t)cg_tcb_layout()->timed_ret_slot, &ret, sizeof ret) < 0)
             return;
         if ((int)sc.args[2] == 2 && timed_mutex_caller(ret))
             mutex_waiter(tid, addr, now);
         else if ((k = rwlock_caller(ret)) >= 0)
-            rwlock_waiter(tid, addr - (uintptr_t)g_layout.rwlock_futex_off[k], now);
-    } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)g_layout.private_wait_pc) {
+            rwlock_waiter(tid, addr - (uintptr_t)cg_tcb_layout()->rwlock_futex_off[k], now);
+    } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)cg_tcb_layout()->private_wait_pc) {
         report_if_stuck(CG_MUTEX_LIBC_LOCK, tid, 0, -1, addr, now);
     } else if (op == FUTEX_LOCK_PI || op == FUTEX_LOCK_PI2) {
         unsigned word; /* a PI futex word holds its owner */
@@ -641,7 +643,7 @@ static void scan(struct cg_child *children, int64_t now)
 
 int mutexes_start(void)
 {
-    if (!g_cfg.mutex_repair)
+    if (!cg_cfg()->mutex_repair)
         return 0;
     g_pid_max = read_int("/proc/sys/kernel/pid_max");
     g_cursor = read_int("/proc/sys/kernel/ns_last_pid");
@@ -653,7 +655,7 @@ int mutexes_start(void)
    long the monitor may sleep (ms), -1: until something happens. */
 int mutexes_tick(struct cg_child *children, int64_t now)
 {
-    if (!g_cfg.mutex_repair)
+    if (!cg_cfg()->mutex_repair)
         return -1;
     bool dead = false;
     if (now >= g_next_look) {
