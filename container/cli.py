@@ -642,6 +642,7 @@ class _Container:
     node_watchdog: NodeWatchdog | None
     failure: list[BaseException] = field(default_factory=list)
     threads: list[threading.Thread] = field(default_factory=list)
+    services_stopping: threading.Event = field(default_factory=threading.Event)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -743,7 +744,9 @@ def _serve(c: _Container) -> int:
     a stop signal (or a callback's exception) comes; its number."""
     c.threads = [
         threading.Thread(target=_spin, args=(c.executor, c.stop_signals, c.failure), name="container-executor"),
-        threading.Thread(target=_serve_services, args=(c.services, c.node), name="container-services"),
+        threading.Thread(
+            target=_serve_services, args=(c.services, c.node, c.services_stopping), name="container-services"
+        ),
     ]
     for t in c.threads:
         t.start()
@@ -776,6 +779,7 @@ def _stop(c: _Container, signum: int) -> int:
     if unanswered:
         log.warning(f"stopping with {unanswered} request(s) unanswered after {ANSWER_WAIT_S:g} s")
     spinner, server = c.threads
+    c.services_stopping.set()
     c.services.shutdown()
     server.join()
     c.executor.shutdown()
@@ -805,16 +809,19 @@ def _stop(c: _Container, signum: int) -> int:
     return status
 
 
-def _serve_services(services: MultiThreadedExecutor, node: Node) -> None:
+def _serve_services(services: MultiThreadedExecutor, node: Node, stopping: threading.Event) -> None:
     """The services' executor: its callbacks contain their own failures
     (manager.py); should anything still escape, it is logged and serving
-    goes on."""
+    goes on. Once ``stopping`` is set, nothing is logged: rclpy 7.1's
+    shutdown() destroys the executor's guard condition under a spin in
+    progress, which then raises InvalidHandle ("destruction was requested";
+    seen once in a thread-mode stop under load)."""
     while True:
         try:
             services.spin()
             return  # shut down
         except Exception:
-            if not node.context.ok():
+            if stopping.is_set() or not node.context.ok():
                 return
             node.get_logger().error("a service callback raised (served on):\n" + traceback.format_exc())
 
