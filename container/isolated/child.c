@@ -99,19 +99,20 @@ static void on_stop_signal(int sig)
    child). */
 static void jemalloc_setup(struct cg_child *c)
 {
+    mallctl_fn mallctl = cg_mallctl();
     c->arena = -1;
-    if (!cg_mallctl())
+    if (!mallctl)
         return;
     if (cg_cfg()->jemalloc_own_arena) {
         unsigned a;
         size_t sz = sizeof a;
-        if (cg_mallctl()("arenas.create", &a, &sz, NULL, 0) == 0 &&
-            cg_mallctl()("thread.arena", NULL, NULL, &a, sizeof a) == 0)
+        if (mallctl("arenas.create", &a, &sz, NULL, 0) == 0 &&
+            mallctl("thread.arena", NULL, NULL, &a, sizeof a) == 0)
             c->arena = (int)a;
     }
     if (!cg_cfg()->jemalloc_tcache) {
         bool off = false;
-        cg_mallctl()("thread.tcache.enabled", NULL, NULL, &off, sizeof off);
+        mallctl("thread.tcache.enabled", NULL, NULL, &off, sizeof off);
     }
 }
 

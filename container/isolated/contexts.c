@@ -66,42 +66,42 @@ int tls_init(void)
    in the same TLS block must not inherit. */
 void tls_reset(char *tcb)
 {
+    const struct cg_layout *L = cg_tcb_layout();
     /* Empty robust list: list points at the head itself. */
-    AT(tcb, cg_tcb_layout()->robust_head, void *) = tcb + cg_tcb_layout()->robust_head;
-    AT(tcb, cg_tcb_layout()->robust_head + 8, long) = cg_tcb_layout()->robust_futex_offset;
-    AT(tcb, cg_tcb_layout()->robust_head + 16, void *) = NULL;
+    AT(tcb, L->robust_head, void *) = tcb + L->robust_head;
+    AT(tcb, L->robust_head + 8, long) = L->robust_futex_offset;
+    AT(tcb, L->robust_head + 16, void *) = NULL;
     /* No pthread_cleanup record (one is left by a death in a condvar wait,
        and gilrepair.c reads it). */
-    AT(tcb, cg_tcb_layout()->cleanup, void *) = NULL;
+    AT(tcb, L->cleanup, void *) = NULL;
 }
 
 char *tls_new(void)
 {
+    const struct cg_layout *L = cg_tcb_layout();
     char *tcb = dl_allocate_tls(NULL); /* struct pthread zeroed, dtv set */
     if (!tcb)
         return NULL;
     char *me = (char *)cg_thread_pointer();
 
-    AT(tcb, cg_tcb_layout()->tcb, void *) = tcb; /* THREAD_SELF reads these */
-    AT(tcb, cg_tcb_layout()->self, void *) = tcb;
+    AT(tcb, L->tcb, void *) = tcb; /* THREAD_SELF reads these */
+    AT(tcb, L->self, void *) = tcb;
     /* x86 catomic_* skip the lock prefix when this is 0: must be 1. */
-    AT(tcb, cg_tcb_layout()->multiple_threads, int) = 1;
+    AT(tcb, L->multiple_threads, int) = 1;
     /* The canary only needs to be stable per task, but pointer_guard must
        equal every other thread's: mangled pointers (setjmp buffers, atexit
        and dl handlers) are shared. */
-    AT(tcb, cg_tcb_layout()->stack_guard, uintptr_t) =
-        AT(me, cg_tcb_layout()->stack_guard, uintptr_t);
-    AT(tcb, cg_tcb_layout()->pointer_guard, uintptr_t) =
-        AT(me, cg_tcb_layout()->pointer_guard, uintptr_t);
+    AT(tcb, L->stack_guard, uintptr_t) = AT(me, L->stack_guard, uintptr_t);
+    AT(tcb, L->pointer_guard, uintptr_t) = AT(me, L->pointer_guard, uintptr_t);
     /* Not on GL(dl_stack_used): an empty self-linked list keeps list_del
        (fork in a child) harmless. */
-    AT(tcb, cg_tcb_layout()->list, void *) = tcb + cg_tcb_layout()->list;
-    AT(tcb, cg_tcb_layout()->list + 8, void *) = tcb + cg_tcb_layout()->list;
+    AT(tcb, L->list, void *) = tcb + L->list;
+    AT(tcb, L->list + 8, void *) = tcb + L->list;
     /* pthread_getspecific for keys < 32 goes through specific[0]. */
-    AT(tcb, cg_tcb_layout()->specific, void *) = tcb + cg_tcb_layout()->specific_1stblock;
+    AT(tcb, L->specific, void *) = tcb + L->specific_1stblock;
     /* rseq is not registered for the child: RSEQ_CPU_ID_REGISTRATION_FAILED
        makes sched_getcpu fall back to the syscall. */
-    AT(tcb, cg_tcb_layout()->rseq_cpu_id, int32_t) = -2;
+    AT(tcb, L->rseq_cpu_id, int32_t) = -2;
     tls_reset(tcb);
     /* tid is written by the kernel (CLONE_{CHILD,PARENT}_SETTID). */
     return tcb;

@@ -548,30 +548,29 @@ static void rwlock_waiter(int waiter, uintptr_t addr, int64_t now)
 
 static void look_at(int tid, void *arg)
 {
+    const struct cg_layout *L = cg_tcb_layout();
     int64_t now = *(int64_t *)arg;
     struct task_syscall sc;
     if (tid == (int)syscall(SYS_gettid) || task_syscall(tid, &sc) < 0 || sc.nr != SYS_futex)
         return;
     int op = (int)sc.args[1] & FUTEX_CMD_MASK;
     uintptr_t addr = sc.args[0];
-    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 &&
-        sc.pc == (uintptr_t)cg_tcb_layout()->mutex_wait_pc) {
+    if (op == FUTEX_WAIT && (int)sc.args[2] == 2 && sc.pc == (uintptr_t)L->mutex_wait_pc) {
         uintptr_t ret;
-        if (read_mem(sc.sp + 8 * (uintptr_t)cg_tcb_layout()->mutex_ret_slot, &ret, sizeof ret) ==
-                0 &&
+        if (read_mem(sc.sp + 8 * (uintptr_t)L->mutex_ret_slot, &ret, sizeof ret) == 0 &&
             mutex_caller(ret))
             mutex_waiter(tid, addr, now);
-    } else if (op == FUTEX_WAIT_BITSET && cg_tcb_layout()->timed_wait_pc &&
-               sc.pc == (uintptr_t)cg_tcb_layout()->timed_wait_pc) {
+    } else if (op == FUTEX_WAIT_BITSET && L->timed_wait_pc &&
+               sc.pc == (uintptr_t)L->timed_wait_pc) {
         uintptr_t ret;
         int k;
-        if (read_mem(sc.sp + 8 * (uintptr_t)cg_tcb_layout()->timed_ret_slot, &ret, sizeof ret) < 0)
+        if (read_mem(sc.sp + 8 * (uintptr_t)L->timed_ret_slot, &ret, sizeof ret) < 0)
             return;
         if ((int)sc.args[2] == 2 && timed_mutex_caller(ret))
             mutex_waiter(tid, addr, now);
         else if ((k = rwlock_caller(ret)) >= 0)
-            rwlock_waiter(tid, addr - (uintptr_t)cg_tcb_layout()->rwlock_futex_off[k], now);
-    } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)cg_tcb_layout()->private_wait_pc) {
+            rwlock_waiter(tid, addr - (uintptr_t)L->rwlock_futex_off[k], now);
+    } else if (op == FUTEX_WAIT && sc.pc == (uintptr_t)L->private_wait_pc) {
         report_if_stuck(CG_MUTEX_LIBC_LOCK, tid, 0, -1, addr, now);
     } else if (op == FUTEX_LOCK_PI || op == FUTEX_LOCK_PI2) {
         unsigned word; /* a PI futex word holds its owner */
