@@ -392,10 +392,9 @@ class System:
         clients from ``service()`` go on; what the old container sent stays
         in the recorders (``started_ns`` says when the new one started)."""
         self.proc.stop()
-        old = self.client
+        if self.client is not self._watch:  # else a participant a restart would stay
+            self._factory.disconnect(self.client)
         self._start()
-        if old is not self._watch:  # a participant a restart: none kept
-            self._factory.disconnect(old)
 
     @property
     def restarts_crashed_nodes(self) -> bool:

@@ -263,15 +263,12 @@ class IsolatedHost:
     def memory(self, hosted: Hosted) -> tuple[int, int] | None:
         """(bytes in use, budget in bytes, 0: none) of the node's process as
         the allocator guard counts them; None without the guard, or once
-        its process is gone."""
-        try:
-            return self._core.memory(hosted.detail.child)
-        except ValueError:  # released meanwhile
-            return None
+        the host has forgotten its process."""
+        return self._memory_of(hosted.detail)
 
-    def _memory_at_death(self, proc: _NodeProcess) -> tuple[int, int] | None:
-        """What the guard counted of a dead node process (its slot keeps the
-        count until the next process in its context starts)."""
+    def _memory_of(self, proc: _NodeProcess) -> tuple[int, int] | None:
+        """What the guard counts of ``proc``, alive or dead (a dead one's
+        slot keeps its count until the next process in its context starts)."""
         if proc.child is None:
             return None
         try:
@@ -755,7 +752,7 @@ class IsolatedHost:
                     stopped=death.exit_code == 0 and proc.stop_signal is not None and not death.repaired,
                     # Read before _forget: until the context is given back no
                     # other node process can take its slot and its count.
-                    memory=self._memory_at_death(proc),
+                    memory=self._memory_of(proc),
                 ),
             )
         if death.core_file:

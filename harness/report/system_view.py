@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from html import escape
 
 from . import stats
@@ -138,7 +138,7 @@ def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
         out.append(f'<text x="{tx:.1f}" y="{y + row_h - 5:.1f}" text-anchor="{anchor}" class="tick">{e(label)}</text>')
     strips = [(name, [((j + 0.5) * bin_ms, c * 1000.0 / bin_ms) for j, c in enumerate(counts)], "Hz")
               for name, counts in topics.items()]  # fmt: skip
-    strips += [(f"{node} memory", [(ms, mib) for ms, mib in points], "MiB") for node, points in memory.items()]
+    strips += [(f"{node} memory", points, "MiB") for node, points in memory.items()]
     for i, (name, points, unit) in enumerate(strips):
         color = TOPIC_COLORS[i % len(TOPIC_COLORS)]
         out.extend(_strip(name, points, unit, (top + i * (strip_h + gap), strip_h), x, color, marks=unit == "MiB"))
@@ -157,7 +157,7 @@ def timeline_svg(tl: dict, faults: list[dict], width: int = 640) -> str:
 
 def _strip(
     name: str,
-    points: list[tuple[float, float]],
+    points: Sequence[Sequence[float]],
     unit: str,
     box: tuple[float, float],
     x: Callable[[float], float],
