@@ -186,17 +186,28 @@ def system_factory(request: pytest.FixtureRequest, container_factory: ContainerF
     from .system import System
 
     more = list(request.config.getoption("--container-arg"))
+    made: list[System] = []
 
     def make(
         nodes: Sequence[NodeSpec] | Composition,
         container_args: Sequence[str] | None = None,
         memory_limit: int | None = None,
     ) -> System:
+        running = [s for s in made if s.alive()]
+        if running:
+            # Every container of a test shares its ROS domain and is named
+            # /ComponentManager: a second one's loads, topics and services
+            # would reach the first's.
+            raise RuntimeError(
+                "one running System at a time in a test: the first is still running "
+                f"({' '.join(running[0].container_args) or 'thread mode'}); stop it first with its stop()"
+            )
         if isinstance(nodes, Composition):  # read from a file: its arguments unless given
             container_args = container_args if container_args is not None else nodes.container_args
             nodes = nodes.nodes
         args = ("--isolated",) if container_args is None else container_args
-        return System(container_factory, nodes, [*args, *more], memory_limit=memory_limit)
+        made.append(System(container_factory, nodes, [*args, *more], memory_limit=memory_limit))
+        return made[-1]
 
     return make
 

@@ -18,6 +18,7 @@ stamps each message with, and what ``kill``/``freeze`` return.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import threading
 import time
@@ -35,7 +36,7 @@ from .errors import HarnessTimeout
 from .factory import ContainerFactory
 from .message_faults import MessageEngine, MessageFault, run_message_fault
 from .node_memory import MemorySample, NodeMemory
-from .process import ContainerProcess
+from .process import ContainerProcess, ExitStatus
 from .schedule import run_schedule
 from .talk import GoalOutcome, Talker
 
@@ -185,7 +186,9 @@ class System:
         /diagnostics (once a second), from ``since_ns`` on: each a
         ``MemorySample`` (``at_ns``, on a recorder's clock; ``in_use`` and
         ``limit``, its budget, in bytes, 0: none). Isolated mode only (the
-        allocator guard counts it); in thread mode, none."""
+        allocator guard counts it); in thread mode, none. KeyError for a
+        name that is none of its nodes'."""
+        self.node(full_name)  # a typo is an error, not "no samples"
         return self._memory.by_node(since_ns).get(full_name, [])
 
     def memory_by_node(self, since_ns: int = 0, until_ns: int | None = None) -> dict[str, list[MemorySample]]:
@@ -226,6 +229,17 @@ class System:
             return self.nodes[full_name]
         except KeyError:
             raise KeyError(f"no node {full_name!r} in this system; it has {sorted(self.nodes)}") from None
+
+    def log_text(self) -> str:
+        """The log of the container now running (its stdout and stderr: the
+        container's and every node's logging), so far."""
+        return self.proc.log_text()
+
+    def wait_for_log(self, pattern: str, timeout: float = WAIT_S) -> re.Match:
+        """The first match of regular expression ``pattern`` in that log,
+        waited for; HarnessTimeout, with the log's end, if none comes within
+        ``timeout``."""
+        return self.proc.wait_for_log(pattern, timeout)
 
     def alive(self) -> bool:
         """Is the container process still running?"""
@@ -385,6 +399,12 @@ class System:
         running = Running(old.spec, ev.unique_id, full_name, ev.pid)
         self.nodes[full_name] = running
         return running
+
+    def stop(self) -> ExitStatus:
+        """Stop the container (SIGTERM, as a launch file's shutdown does);
+        how it ended. The test's end stops it anyway; this is for a test
+        that starts a second System after the first."""
+        return self.proc.stop()
 
     def restart(self) -> None:
         """A fresh container with the whole composition loaded again (after

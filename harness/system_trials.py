@@ -57,6 +57,9 @@ if TYPE_CHECKING:
 #: A container is replaced after this many node deaths (each dead node
 #: leaves its DDS participant behind: rig.DEATHS_PER_CONTAINER says why).
 DEATHS_PER_CONTAINER = 100
+#: How far before a trial the timeline looks for each node's last memory
+#: report (container/diagnostics.py reports once a second).
+MEMORY_LOOKBACK_NS = 1_500_000_000
 #: Bins of a trial's timeline (the report's picture of each watched topic).
 TIMELINE_BIN_MS = 100
 #: How long a drawn trial's picture waits after the recovery for every
@@ -194,7 +197,13 @@ def timeline(system: System, start_ns: int, end_ns: int) -> dict:
             counts[(at - start_ns) // bin_ns] += 1
         topics[name] = counts
     drawn = {"bin_ms": TIMELINE_BIN_MS, "topics": topics}
-    memory = series_ms(system.memory_by_node(start_ns, start_ns + bins * bin_ns), start_ns)
+    # From each node's last report before the trial (the container reports
+    # once a second, and a trial may be shorter): a node killed early in
+    # the trial has a strip too, ending where it died.
+    before = system.memory_by_node(start_ns - MEMORY_LOOKBACK_NS, start_ns - 1)
+    during = system.memory_by_node(start_ns, start_ns + bins * bin_ns)
+    samples = {node: [*before.get(node, [])[-1:], *during.get(node, [])] for node in {*before, *during}}
+    memory = series_ms(dict(sorted(samples.items())), start_ns)
     if memory:
         drawn["memory_mib"] = memory
     return drawn

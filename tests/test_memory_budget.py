@@ -97,7 +97,7 @@ def test_a_death_logs_what_the_node_had_in_use(system_factory):
     pid = robot.node(LEAK).pid
     robot.kill(LEAK, signal.SIGKILL)
     robot.wait_crashed(LEAK)
-    said = robot.proc.wait_for_log(
+    said = robot.wait_for_log(
         rf"{LEAK} \(unique_id \d+, pid {pid}\) died: .* \((?P<used>[\d.]+) MiB in use of its 64.0 MiB budget\)",
         timeout=10,
     )

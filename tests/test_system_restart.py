@@ -8,6 +8,7 @@ until a container's watchdog fired."""
 
 import os
 
+import pytest
 from rcl_interfaces.srv import ListParameters
 from std_msgs.msg import String
 
@@ -44,3 +45,15 @@ def test_a_restart_keeps_what_the_caller_holds_and_adds_no_participant(system_fa
     # The System's first client stays (the recorders and service clients
     # are its); each later container's goes when the next one starts.
     assert _participants() <= before + 1
+
+
+def test_a_second_system_waits_for_the_first_to_stop(system_factory):
+    """Both would be /ComponentManager in the test's ROS domain: before,
+    the second one's nodes were loaded into the first container."""
+    first = system_factory([TALKER])
+    with pytest.raises(RuntimeError, match="one running System at a time"):
+        system_factory([TALKER], [])
+    assert first.stop().returncode == 0
+    second = system_factory([TALKER], [])
+    second.wait_for_log(r"Loaded cloneguard::Talker as /talker", timeout=5)  # in its own container
+    assert first.log_text().count("Loaded cloneguard::Talker") == 1

@@ -91,14 +91,21 @@ def test_a_timeline_bins_whole_bins_and_places_the_faults():
     assert fault_record(frozen, start)["kind"] == "freeze" and fault_record(frozen, start)["to_ms"] == 510.0
 
 
-def test_a_timeline_draws_each_nodes_memory_in_its_window():
+def test_a_timeline_draws_each_nodes_memory_from_its_last_report_before():
     start = 10_000 * MS
-    leak = [MemorySample(start + ms * MS, mib * MiB, 0) for ms, mib in [(-500, 1), (100, 2), (250, 40), (900, 3)]]
-    system = _system({"/odom": [5, 150, 250]}, start, {"/leak": leak})
+    samples = [(-2500, 9), (-900, 1), (-500, 1), (100, 2), (250, 40), (900, 3)]
+    leak = [MemorySample(start + ms * MS, mib * MiB, 0) for ms, mib in samples]
+    # Killed before its first report in the trial: its last one before it.
+    killed = [MemorySample(start - 700 * MS, 5 * MiB, 64 * MiB)]
+    system = _system({"/odom": [5, 150, 250]}, start, {"/leak": leak, "/killed": killed})
     tl = timeline(system, start, start + 300 * MS)
-    assert tl["memory_mib"] == {"/leak": [[100.0, 2.0], [250.0, 40.0]]}  # the window's samples, from its start
+    assert tl["memory_mib"] == {
+        "/killed": [[-700.0, 5.0]],
+        "/leak": [[-500.0, 1.0], [100.0, 2.0], [250.0, 40.0]],  # the last before the trial, then the window's
+    }
     svg = timeline_svg(tl, [])
-    assert ">/leak memory<" in svg and ">40 MiB<" in svg and svg.count("<polyline") == 2 and svg.count("<circle") == 2
+    assert ">/leak memory<" in svg and ">40 MiB<" in svg and ">/killed memory<" in svg
+    assert svg.count("<polyline") == 3 and svg.count("<circle") == 4
     assert "memory_mib" not in timeline(_system({"/odom": [5]}, start), start, start + 300 * MS)
 
 

@@ -193,7 +193,8 @@ def timeline(s: Scenario) -> str:
     return (
         f"<h4>Timeline of trial {e(t.index)} ({e(t.outcome)})</h4>"
         "<p class=\"muted small\">Each watched topic's messages per second, in 100 ms bins, from the trial's "
-        "start, and each node's memory in use as its container reported it (once a second, isolated mode); "
+        "start, and each node's memory in use as its container reported it (once a second, isolated mode; "
+        "from its last report before the trial; a node with no report in that time has no strip); "
         "the faults shaded.</p>" + timeline_svg(t.details["timeline"], t.details.get("faults", []))
     )
 
