@@ -182,3 +182,17 @@ def test_a_container_of_every_kind_of_node_ends_on_sigterm_by_itself(kinds_syste
     status = system.proc.stop(grace=10.0)
     assert (status.returncode, status.forced) == (0, False), status
     assert _unclean(system.proc.log_text()) == [], f"stopped in {status.stop_seconds:.2f} s"
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("kinds_system", ["shared"], indirect=True)
+def test_every_kind_works_again_after_a_restart(kinds_system):
+    """System.restart() (what seeded trials do after one that failed): the
+    services, the action server and the lifecycle nodes of the new
+    container answer the harness as the first container's did; the
+    lifecycle nodes start over from unconfigured."""
+    system = kinds_system
+    shown = _watch(system)
+    _use_every_kind(system, shown)
+    system.restart()
+    _use_every_kind(system, shown)
