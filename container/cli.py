@@ -29,13 +29,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import rclpy  # noqa: E402
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from . import allocator, memory_budget, seams
-from .executors import NodesMultiThreadedExecutor
+from .executors import NodesMultiThreadedExecutor, NodesSingleThreadedExecutor, NodeWork
 from .hosting import ThreadHost
 from .isolated import profiles
 from .isolated.node_watchdog import NodeWatchdog
@@ -533,12 +533,12 @@ def _watch_clock(opts: argparse.Namespace) -> ClockFactory:
 def _make_host(
     opts: argparse.Namespace,
     argv: list[str],
-    executor: SingleThreadedExecutor | MultiThreadedExecutor,
+    executor: NodeWork,
     context: Context,
     logger: RcutilsLogger,
 ) -> ThreadHost | IsolatedHost:
     if not opts.isolated:
-        return ThreadHost(executor, context)
+        return ThreadHost(executor, context, logger)
     # Imported here: thread mode must work where the C core cannot (not
     # built on this platform: setup.py); the self-check says so.
     from .isolated.assumptions import IsolationUnavailable, core_module
@@ -633,7 +633,7 @@ class _Container:
     stop_signals: StopSignals
     context: Context
     node: Node
-    executor: SingleThreadedExecutor | MultiThreadedExecutor
+    executor: NodeWork
     services: MultiThreadedExecutor
     host: Any
     manager: ComponentManager
@@ -712,7 +712,7 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
     executor = (
         NodesMultiThreadedExecutor(context=context)
         if opts.use_multi_threaded_executor
-        else SingleThreadedExecutor(context=context)
+        else NodesSingleThreadedExecutor(context=context)
     )
     services = MultiThreadedExecutor(num_threads=SERVICE_THREADS, context=context)
     try:
@@ -826,7 +826,7 @@ def _serve_services(services: MultiThreadedExecutor, node: Node, stopping: threa
             node.get_logger().error("a service callback raised (served on):\n" + traceback.format_exc())
 
 
-def _spin(executor: SingleThreadedExecutor | MultiThreadedExecutor, stop: StopSignals, failure: list) -> None:
+def _spin(executor: NodeWork, stop: StopSignals, failure: list) -> None:
     try:
         executor.spin()
     except BaseException as exc:

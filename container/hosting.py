@@ -23,9 +23,10 @@ from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
 
 if TYPE_CHECKING:
     from rclpy.context import Context
-    from rclpy.executors import Executor
+    from rclpy.impl.rcutils_logger import RcutilsLogger
 
     from .events import EventPublisher
+    from .executors import NodeWork
 
 
 @dataclass
@@ -103,9 +104,14 @@ class Host(Protocol):
 class ThreadHost:
     """Every node on the container's own executor, as upstream's containers."""
 
-    def __init__(self, executor: Executor, context: Context) -> None:
+    # How long an unload waits for a callback of the node that is running
+    # (a long action goal, say) before destroying the node under it.
+    RETIRE_WAIT_S = 2.0
+
+    def __init__(self, executor: NodeWork, context: Context, log: RcutilsLogger) -> None:
         self._executor = executor
         self._context = context
+        self._log = log
         # unique_id -> "built" / "running" / "stopped": an UnloadNode sent
         # on seeing LOADED can come before run() (the event goes out first).
         self._lock = threading.Lock()
@@ -149,6 +155,11 @@ class ThreadHost:
         assert node is not None, "thread mode holds every node it built"
         if was == "running":
             self._executor.remove_node(node)
+            if not self._executor.retire(node, self.RETIRE_WAIT_S):
+                self._log.warning(
+                    f"{hosted.full_node_name}: a callback of it still ran {self.RETIRE_WAIT_S:g} s after its "
+                    "unload began; it is destroyed under that callback"
+                )
             self._quiesce()
         construction.destroy(node)
 

@@ -11,15 +11,16 @@ from cloneguard.harness.domains import lease
 
 
 @contextmanager
-def ros_nodes(*names: str):
+def ros_nodes(*names: str, executor_class=SingleThreadedExecutor):
     """Nodes in this process on a leased ROS domain (the harness plugin has
     already pointed Fast DDS at the loopback-only profile), all on one
-    executor that the caller spins: yields (nodes, executor)."""
+    executor (of ``executor_class``) that the caller spins: yields (nodes,
+    executor)."""
     held = lease()
     context = Context()
     rclpy.init(context=context, domain_id=held.domain_id)
     nodes = [rclpy.create_node(name, context=context) for name in names]
-    executor = SingleThreadedExecutor(context=context)
+    executor = executor_class(context=context)
     for node in nodes:
         executor.add_node(node)
     try:

@@ -8,14 +8,17 @@ build takes it, after the build took the handlers and before it adds them
 (rclpy takes every waitable, then adds every one).
 """
 
+import threading
+
 import pytest
 from rclpy.exceptions import InvalidHandle
 from rclpy.executors import MultiThreadedExecutor
+from rclpy.task import Future
 from rclpy.waitable import NumberOfEntities, Waitable
 from ros_support import ros_nodes
 from std_msgs.msg import String
 
-from cloneguard.container.executors import NodesMultiThreadedExecutor
+from cloneguard.container.executors import NodesMultiThreadedExecutor, NodesSingleThreadedExecutor
 
 
 class _DestroysWhenTaken(Waitable):
@@ -81,3 +84,115 @@ def test_the_containers_builds_the_wait_set_again_without_the_destroyed_publishe
 def test_a_waitable_destroyed_but_left_on_its_node_still_ends_the_spin():
     with pytest.raises(InvalidHandle):
         _spin_with(NodesMultiThreadedExecutor, _Stale)
+
+
+# A node's work after its unload (NodeWork). The interleaving of the CI
+# failure, made exactly: a node's callback completes a future whose done
+# callback publishes on the node's publisher (fixtures/node_kinds.py's
+# Clients node does this with each response); the node is removed and
+# destroyed while that callback is still running, before the done callback
+# (a task of its own) has run.
+
+EXECUTORS = {"single": NodesSingleThreadedExecutor, "multi": NodesMultiThreadedExecutor}
+
+
+class _CompletesAFuture:
+    """On ``node``'s first timer tick: complete a future whose done callback
+    publishes on ``node``, then wait for ``go_on`` before returning."""
+
+    def __init__(self, node, executor):
+        self.publisher = node.create_publisher(String, "done", 10)
+        self.in_callback, self.go_on = threading.Event(), threading.Event()
+        self.done_callback_ran = threading.Event()
+        self._executor = executor
+        self._timer = node.create_timer(0.01, self._tick)
+
+    def _tick(self):
+        self._timer.cancel()
+        future = Future(executor=self._executor)
+        future.add_done_callback(self._publish)
+        future.set_result(None)  # its done callback is now a task of the executor
+        self.in_callback.set()
+        assert self.go_on.wait(10)
+
+    def _publish(self, _future):
+        self.done_callback_ran.set()
+        self.publisher.publish(String(data="done"))
+
+
+def _turns(executor, times):
+    """Let the executor go round its loop ``times`` times (a task of no node,
+    created after the last turn, has run each time)."""
+    for _ in range(times):
+        turned = threading.Event()
+        executor.create_task(turned.set)
+        assert turned.wait(10), "the executor stopped going round"
+
+
+@pytest.mark.parametrize("kind", list(EXECUTORS))
+def test_a_nodes_pending_done_callback_never_runs_once_it_is_retired(kind):
+    with ros_nodes("owner", executor_class=EXECUTORS[kind]) as ((node,), executor):
+        owner = _CompletesAFuture(node, executor)
+        failure = []
+        spinner = threading.Thread(target=lambda: _spin_catching(executor, failure))
+        spinner.start()
+        try:
+            assert owner.in_callback.wait(10)
+            executor.remove_node(node)
+            retired = []
+            retiring = threading.Thread(target=lambda: retired.append(executor.retire(node, 10.0)))
+            retiring.start()
+            retiring.join(0.3)
+            assert retiring.is_alive(), "retire returned while a callback of the node was running"
+            owner.go_on.set()
+            retiring.join(10)
+            assert retired == [True]
+            node.destroy_publisher(owner.publisher)  # as destroying the node does
+            _turns(executor, 3)
+            assert not owner.done_callback_ran.is_set()
+        finally:
+            owner.go_on.set()
+            executor.shutdown()
+            spinner.join(10)
+        assert failure == []
+
+
+def test_rclpys_executor_runs_that_done_callback_after_the_node_is_gone():
+    """The same with rclpy's executor: the done callback belongs to no node
+    and runs after it, on the destroyed publisher."""
+    with ros_nodes("owner") as ((node,), executor):
+        owner = _CompletesAFuture(node, executor)
+        failure = []
+        spinner = threading.Thread(target=lambda: _spin_catching(executor, failure))
+        spinner.start()
+        assert owner.in_callback.wait(10)
+        executor.remove_node(node)
+        node.destroy_publisher(owner.publisher)
+        owner.go_on.set()
+        spinner.join(10)
+        assert owner.done_callback_ran.is_set()
+        assert [type(exc) for exc in failure] == [InvalidHandle]
+
+
+def test_retire_says_when_a_callback_of_the_node_still_runs():
+    with ros_nodes("owner", executor_class=NodesSingleThreadedExecutor) as ((node,), executor):
+        owner = _CompletesAFuture(node, executor)
+        spinner = threading.Thread(target=lambda: _spin_catching(executor, []))
+        spinner.start()
+        try:
+            assert owner.in_callback.wait(10)
+            executor.remove_node(node)
+            assert executor.retire(node, 0.05) is False
+            owner.go_on.set()
+            assert executor.retire(node, 10.0) is True
+        finally:
+            owner.go_on.set()
+            executor.shutdown()
+            spinner.join(10)
+
+
+def _spin_catching(executor, failure):
+    try:
+        executor.spin()
+    except Exception as exc:
+        failure.append(exc)

@@ -6,6 +6,7 @@ from composition_interfaces.srv import LoadNode
 from ros_support import ros_nodes
 
 from cloneguard.container import options, registry
+from cloneguard.container.executors import NodesSingleThreadedExecutor
 from cloneguard.container.hosting import ThreadHost
 
 
@@ -16,8 +17,8 @@ def _heartbeat():
 
 def test_a_node_runs_once_let_and_never_after_it_was_stopped():
     cls, args = _heartbeat()
-    with ros_nodes("container") as ((container,), executor):
-        host = ThreadHost(executor, container.context)
+    with ros_nodes("container", executor_class=NodesSingleThreadedExecutor) as ((container,), executor):
+        host = ThreadHost(executor, container.context, container.get_logger())
         built = host.start(1, cls, args)
         assert built.node not in executor.get_nodes()  # built, not yet running
         host.run(built)
