@@ -24,6 +24,7 @@ from ros_support import ros_nodes
 from test_isolated_core import Recorder, blocked_in, wait_sleeping, wait_until
 
 from cloneguard.container import events
+from cloneguard.container.executors import NodesSingleThreadedExecutor
 from cloneguard.container.hosting import NodeDeath, ThreadHost
 from cloneguard.container.isolated._clonecore import ffi, lib
 from cloneguard.container.isolated.core import CloneCore
@@ -378,8 +379,8 @@ class AnnouncingHost(ThreadHost):
     that it has published their CRASHED itself: what the isolated host
     says between the core's publish and the death reaching the manager."""
 
-    def __init__(self, executor, context):
-        super().__init__(executor, context)
+    def __init__(self, executor, context, log):
+        super().__init__(executor, context, log)
         self.claimed: set[int] = set()
         self.armed: list[int] = []
 
@@ -394,8 +395,11 @@ class AnnouncingHost(ThreadHost):
 
 
 def test_the_manager_neither_lists_nor_unloads_a_node_announced_dead_nor_publishes_it_again():
-    with ros_nodes("herald_manager", "herald_manager_client") as ((node, client), executor):
-        host = AnnouncingHost(executor, node.context)
+    with ros_nodes("herald_manager", "herald_manager_client", executor_class=NodesSingleThreadedExecutor) as (
+        (node, client),
+        executor,
+    ):
+        host = AnnouncingHost(executor, node.context, node.get_logger())
         manager = ComponentManager(node, host)
         heard = Heard()
         topic = events.EVENTS_TOPIC.replace("~", node.get_fully_qualified_name())
