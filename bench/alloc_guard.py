@@ -61,7 +61,8 @@ def _worker(activate: bool, pairs: int, blocks: int, repeat: int) -> dict:
 
         def in_child(fn) -> None:
             child = core.spawn(fn)
-            assert core.wait(child, 60).exit_code == 0
+            death = core.wait(child, 60)
+            assert death is not None and death.exit_code == 0
             core.release(child)
 
         for _ in range(repeat):

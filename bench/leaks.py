@@ -105,7 +105,7 @@ def sample(pid: int, client, mode: str) -> Sample:
     rest.wait_at_rest(client.node, pid, spare=PROCESSES_AT_REST.get(mode, 0) > 0)
     fds = procfs.lasting_fds(pid)
     return Sample(
-        rss_kib=int(procfs.status_field(pid, "VmRSS").split()[0]),
+        rss_kib=procfs.rss_kib(pid),
         fds=len(fds),
         fd_targets=fds,
         threads=len(os.listdir(f"/proc/{pid}/task")),

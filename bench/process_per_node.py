@@ -28,6 +28,7 @@ import json  # noqa: E402
 import os  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
+from typing import Any  # noqa: E402
 
 _PR_SET_PDEATHSIG = 1
 
@@ -76,7 +77,9 @@ def main(argv=None) -> int:
     cli_args = ["--ros-args"] + (["-r", f"__node:={opts.node_name}"] if opts.node_name else [])
     for param in opts.param:
         cli_args += ["-p", param]
-    node = cls(context=ctx, cli_args=cli_args, use_global_arguments=False)
+    # A component's constructor takes Node's keywords but for its name (as construction.py).
+    node_kwargs: dict[str, Any] = {"context": ctx, "cli_args": cli_args, "use_global_arguments": False}
+    node = cls(**node_kwargs)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     ready_ns = time.monotonic_ns()

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cloneguard.container.isolated import _pylocks
+import cloneguard.container.isolated._pylocks as _pylocks  # an extension module
 
 from .cli import DEFAULT_OUT, arg_parser, command_line, finish
 from .figures import fmt_ratio, ratio, stats

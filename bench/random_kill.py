@@ -189,7 +189,12 @@ def _serve_env(alloc_guard: bool, jemalloc: bool, python_pools: bool) -> dict[st
     from cloneguard.container import allocator
 
     env = dict(os.environ)
-    preload = ([allocator.GUARD_PATH] if alloc_guard else []) + ([allocator.jemalloc_path()] if jemalloc else [])
+    preload = [allocator.GUARD_PATH] if alloc_guard else []
+    if jemalloc:
+        path = allocator.jemalloc_path()
+        if path is None:
+            raise SystemExit("random_kill: jemalloc asked for, but libjemalloc2 is not installed")
+        preload.append(path)
     env["LD_PRELOAD"] = " ".join(preload)
     if not python_pools:
         env[allocator.PY_POOLS_OFF] = "0"

@@ -185,9 +185,10 @@ class DieHoldingContainerLock(_FaultNode):
         super().__init__("lock_holder", **kwargs)
         from cloneguard.container.isolated import board
 
-        self._board = board.current()
-        if self._board is None:
+        current = board.current()
+        if current is None:
             raise RuntimeError("faults::DieHoldingContainerLock needs an isolated container (--isolated)")
+        self._board = current
 
     def fire(self):
         slot = self._board.slot_of_pid(os.getpid())

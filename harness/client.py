@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -37,8 +37,8 @@ if TYPE_CHECKING:
         node_namespace: str
         log_level: int
         remap_rules: Sequence[str]
-        parameters: dict[str, object] | Sequence[ParameterMsg]
-        extra_arguments: dict[str, object] | Sequence[ParameterMsg]
+        parameters: Mapping[str, object] | Sequence[ParameterMsg]
+        extra_arguments: Mapping[str, object] | Sequence[ParameterMsg]
 
 
 EVENT_QOS = QoSProfile(
@@ -145,7 +145,7 @@ class Recorder:
                 )
 
 
-def to_parameter_msgs(values: dict[str, object]) -> list[ParameterMsg]:
+def to_parameter_msgs(values: Mapping[str, object]) -> list[ParameterMsg]:
     return [Parameter(name, value=value).to_parameter_msg() for name, value in values.items()]
 
 
@@ -225,8 +225,8 @@ class ContainerClient:
         node_namespace: str = "",
         log_level: int = 0,
         remap_rules: Sequence[str] = (),
-        parameters: dict[str, object] | Sequence[ParameterMsg] = (),
-        extra_arguments: dict[str, object] | Sequence[ParameterMsg] = (),
+        parameters: Mapping[str, object] | Sequence[ParameterMsg] = (),
+        extra_arguments: Mapping[str, object] | Sequence[ParameterMsg] = (),
     ) -> LoadNode.Request:
         req = LoadNode.Request()
         req.package_name = package_name
@@ -235,9 +235,9 @@ class ContainerClient:
         req.node_namespace = node_namespace
         req.log_level = log_level
         req.remap_rules = list(remap_rules)
-        req.parameters = to_parameter_msgs(parameters) if isinstance(parameters, dict) else list(parameters)
+        req.parameters = to_parameter_msgs(parameters) if isinstance(parameters, Mapping) else list(parameters)
         req.extra_arguments = (
-            to_parameter_msgs(extra_arguments) if isinstance(extra_arguments, dict) else list(extra_arguments)
+            to_parameter_msgs(extra_arguments) if isinstance(extra_arguments, Mapping) else list(extra_arguments)
         )
         return req
 

@@ -30,6 +30,7 @@ import json
 import math
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import KW_ONLY, dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
@@ -62,8 +63,8 @@ class MessageFault:
     _: KW_ONLY
     probability: float = 1.0
     every: int = 0
-    subscribers: tuple[str, ...] = ()
-    publishers: tuple[str, ...] = ()
+    subscribers: Sequence[str] = ()  # kept as a tuple
+    publishers: Sequence[str] = ()  # kept as a tuple
     seed: int | None = None
     kind: ClassVar[str] = ""
     lasts: ClassVar[bool] = True
@@ -93,8 +94,8 @@ class MessageFault:
             salt=self.describe(),  # the same fault draws alike in every run, whatever its id
             probability=self.probability,
             every=self.every,
-            subscribers=self.subscribers,
-            publishers=self.publishers,
+            subscribers=tuple(self.subscribers),
+            publishers=tuple(self.publishers),
             **self._extra(),
         )
 

@@ -123,6 +123,15 @@ def status_field(pid: int, key: str) -> str | None:
     return None
 
 
+def rss_kib(pid: int) -> int:
+    """The resident memory of ``pid`` in KiB (its VmRSS; a process sharing
+    an address space shows all of it); ProcessLookupError if it is gone."""
+    field = status_field(pid, "VmRSS")
+    if field is None:
+        raise ProcessLookupError(f"pid {pid} has no VmRSS (gone, or a zombie)")
+    return int(field.split()[0])
+
+
 def lasting_fds(pid: int, readings: int = 3, apart: float = 0.05) -> dict[int, str]:
     """The open fds of ``pid`` (fd: what it names) present in each of
     ``readings`` readings ``apart`` seconds apart: what it keeps open. An

@@ -70,7 +70,7 @@ class GoalOutcome:
     accepted: bool
     feedback: Recorder
     status: int = 0
-    result: object = None
+    result: Any = None  # the action's Result message (ROS messages have no stubs)
 
 
 class Talker:

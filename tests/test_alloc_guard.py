@@ -289,9 +289,10 @@ def run(case: str, backend: str) -> dict:
     env = dict(os.environ)
     preload = [allocator.GUARD_PATH]
     if backend == "jemalloc":
-        if allocator.jemalloc_path() is None:
+        jemalloc = allocator.jemalloc_path()
+        if jemalloc is None:
             pytest.skip("libjemalloc2 is not installed")
-        preload.append(allocator.jemalloc_path())
+        preload.append(jemalloc)
     env["LD_PRELOAD"] = " ".join(preload)
     script = PRELUDE + textwrap.dedent(CASES[case]) + "\nprint(json.dumps(out))\n"
     proc = subprocess.run(

@@ -16,15 +16,23 @@ from cloneguard.harness import procfs
 PKG = "cloneguard"
 CG_ARGS = ["--isolated", "--cgroups"]
 
-HAS_CPU = v1_cpu_mount() is not None or "cpu" in (cgroup2_mount() / "cgroup.controllers").read_text()
+V2 = cgroup2_mount()
+HAS_CPU = v1_cpu_mount() is not None or (V2 is not None and "cpu" in (V2 / "cgroup.controllers").read_text())
+
+
+def _v2() -> Path:
+    assert V2 is not None, "the container made its cgroups where there is no cgroup2 mount"
+    return V2
+
+
 needs_cpu = pytest.mark.skipif(not HAS_CPU, reason="no cpu controller on this machine")
 
 
 def _cgroup_dirs(container_pid):
     name = f"cloneguard-{container_pid}"
-    dirs = [cgroup2_mount() / name]
-    if v1_cpu_mount():
-        dirs.append(v1_cpu_mount() / name)
+    dirs = [_v2() / name]
+    if (v1_cpu := v1_cpu_mount()) is not None:
+        dirs.append(v1_cpu / name)
     return dirs
 
 
@@ -34,9 +42,9 @@ def test_each_node_is_born_in_its_own_cgroup_which_goes_with_it(client, containe
     pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=uid).pid
     v2_line = [ln for ln in Path(f"/proc/{pid}/cgroup").read_text().splitlines() if ln.startswith("0::")][0]
     assert v2_line == f"0::/cloneguard-{container.pid}/node-{uid}"
-    assert (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").is_dir()
+    assert (_v2() / f"cloneguard-{container.pid}" / f"node-{uid}").is_dir()
     client.unload(uid)
-    assert not (cgroup2_mount() / f"cloneguard-{container.pid}" / f"node-{uid}").exists()
+    assert not (_v2() / f"cloneguard-{container.pid}" / f"node-{uid}").exists()
 
 
 @needs_cpu
@@ -50,7 +58,7 @@ def test_a_cpu_quota_throttles_a_busy_node(client, container):
     )
     pid = client.wait_for_event(ComponentEvent.LOADED, unique_id=resp.unique_id).pid
     v1 = v1_cpu_mount()
-    group = (v1 if v1 else cgroup2_mount()) / f"cloneguard-{container.pid}" / f"node-{resp.unique_id}"
+    group = (v1 if v1 else _v2()) / f"cloneguard-{container.pid}" / f"node-{resp.unique_id}"
     assert str(pid) in (group / "cgroup.procs").read_text().split()
     # A node spinning at 100% against a 20% quota gets throttled, in the
     # kernel's own count, within a few periods.
@@ -146,7 +154,8 @@ def test_a_closed_node_cgroups_janitor_ends_and_is_no_child_of_ours(request):
 def _stale_tree(name: str) -> list[Path]:
     """What a SIGKILLed container leaves: its root and a node's cgroup in
     each hierarchy it used, with no process in them."""
-    roots = [cgroup2_mount() / name] + ([v1_cpu_mount() / name] if v1_cpu_mount() else [])
+    v1_cpu = v1_cpu_mount()
+    roots = [_v2() / name] + ([v1_cpu / name] if v1_cpu is not None else [])
     for root in roots:
         (root / "node-7").mkdir(parents=True)
     return roots

@@ -305,7 +305,8 @@ def test_a_node_crashing_while_it_waits_for_the_gil_holds_nobody_up_during_its_d
         core.release(c)
         # The condvar still works for many hand-overs.
         sib = core.spawn(lambda: [sum(range(100)) for _ in range(20000)])
-        assert core.wait(sib, 20).exit_code == 0
+        death = core.wait(sib, 20)
+        assert death is not None and death.exit_code == 0
         core.release(sib)
     finally:
         counter.stop()

@@ -78,12 +78,13 @@ Thread 3 (Thread 0x7f5729ffb6c0 (LWP 24196) "python"):
 
 def test_a_mutex_is_described_by_the_function_that_takes_it_and_a_shared_one_says_so():
     [t] = parse_threads(POOL, pid=24190)
-    kind, addr, taker = _lock_wait(t)
-    assert (kind, addr, taker) == (
+    wait = _lock_wait(t)
+    assert wait == (
         "pthread mutex",
         "0x55d08e863088",
         "eprosima::fastrtps::rtps::TopicPayloadPool::release_payload",
     )
+    kind, addr, taker = wait
     b = BlockedOn(
         tid=24196,
         kind=kind,

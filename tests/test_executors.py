@@ -133,7 +133,7 @@ def _turns(executor, times):
 def test_a_nodes_pending_done_callback_never_runs_once_it_is_retired(kind):
     with ros_nodes("owner", executor_class=EXECUTORS[kind]) as ((node,), executor):
         owner = _CompletesAFuture(node, executor)
-        failure = []
+        failure: list[Exception] = []
         spinner = threading.Thread(target=lambda: _spin_catching(executor, failure))
         spinner.start()
         try:
@@ -162,7 +162,7 @@ def test_rclpys_executor_runs_that_done_callback_after_the_node_is_gone():
     and runs after it, on the destroyed publisher."""
     with ros_nodes("owner") as ((node,), executor):
         owner = _CompletesAFuture(node, executor)
-        failure = []
+        failure: list[Exception] = []
         spinner = threading.Thread(target=lambda: _spin_catching(executor, failure))
         spinner.start()
         assert owner.in_callback.wait(10)

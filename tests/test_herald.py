@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Any
 
 import pytest
 from cloneguard_interfaces.msg import ComponentEvent
@@ -157,7 +158,7 @@ def _only_the_marker_is_heard(core, heard) -> None:
     core.release(marker)
 
 
-ARM = {
+ARM: dict[str, Any] = {  # CloneCore.arm_crashed's keywords
     "unique_id": 42,
     "full_node_name": "/robot/planner_é",  # not ASCII: the bytes go as they are
     "package_name": "my_pkg",

@@ -31,8 +31,8 @@ def test_each_node_is_its_own_process_in_one_address_space(client, container):
     pids = [_loaded_pid(client, uid) for uid in ids]
     assert len(set(pids)) == 3 and container.pid not in pids
     for pid in pids:
-        assert procfs.stat(pid).ppid == container.pid
-        assert procfs.stat(pid).pgrp == container.pgid
+        stat = procfs.stat(pid)
+        assert stat is not None and (stat.ppid, stat.pgrp) == (container.pid, container.pgid)
         assert procfs.same_address_space(container.pid, pid)
     # A plain process is not in that address space (the check can say no).
     assert not procfs.same_address_space(container.pid, os.getpid())
@@ -52,7 +52,7 @@ def test_a_node_process_is_named_after_its_node_cut_to_the_kernels_15_bytes(clie
 def _wait_for_comm(pid: int, name: str, timeout: float = 10.0) -> None:
     """Its node starts spinning just after LOADED: the name comes then."""
     deadline = time.monotonic() + timeout
-    while (comm := procfs.stat(pid).comm) != name:
+    while (comm := _comm(pid)) != name:
         assert time.monotonic() < deadline, f"pid {pid} is named {comm!r}, not {name!r}"
         time.sleep(0.02)
 
@@ -371,3 +371,8 @@ def test_each_crash_report_shows_its_own_process_python_stack(client, container)
         # may land in the loop's own steps around a callback (seen once in
         # ~20 runs: board.beat, right after a heartbeat).
         assert "_spin_until_stopped" in stack, stack
+
+
+def _comm(pid: int) -> str | None:
+    stat = procfs.stat(pid)
+    return None if stat is None else stat.comm

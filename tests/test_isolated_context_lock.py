@@ -3,12 +3,16 @@
 import logging
 import threading
 import time
+from typing import Any
 
 import pytest
 from ros_support import ros_nodes
 
 from cloneguard.container.isolated.core import CloneCore
 from cloneguard.container.isolated.host import _robust_context_lock
+
+# What it logs with (it calls only warning()): Python's logging, which caplog reads.
+LOG: Any = logging.getLogger("test")
 
 
 @pytest.fixture
@@ -33,7 +37,7 @@ def _kill_holding(core, lock) -> None:
 
 
 def test_context_ok_goes_on_after_a_child_died_holding_its_lock(context):
-    _robust_context_lock(context, logging.getLogger("test"))
+    _robust_context_lock(context, LOG)
     core = CloneCore()
     try:
         _kill_holding(core, context._lock)
@@ -47,6 +51,6 @@ def test_context_ok_goes_on_after_a_child_died_holding_its_lock(context):
 def test_a_context_without_the_expected_lock_is_left_alone(context, caplog):
     context._lock = threading.RLock()  # not what rclpy 7.1 has
     with caplog.at_level(logging.WARNING):
-        _robust_context_lock(context, logging.getLogger("test"))
+        _robust_context_lock(context, LOG)
     assert isinstance(context._lock, type(threading.RLock()))
     assert "stays non-robust" in caplog.text

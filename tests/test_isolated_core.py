@@ -792,7 +792,8 @@ def test_spawns_of_any_stack_size_free_everything_by_close(rec):
                 return n if n >= 120 else deep(n + 1)
 
             c = core.spawn(lambda: depth.append(deep()), stack_size=size)
-            assert core.wait(c, 10).exit_code == 0
+            death = core.wait(c, 10)
+            assert death is not None and death.exit_code == 0
             core.release(c)
         assert depth == [120] * 5
         with pytest.raises(OSError, match="Invalid argument"):

@@ -143,7 +143,7 @@ def test_crash_reports_can_be_turned_off(capfd):
     with CloneCore(crash_report=False) as core:
         c = core.spawn(_segv_gil_released)
         death = core.wait(c, 10)
-        assert death.exit_signal == signal.SIGSEGV
+        assert death is not None and death.exit_signal == signal.SIGSEGV
         core.release(c)
     assert "cloneguard:" not in capfd.readouterr().err
 
@@ -169,7 +169,8 @@ def test_a_clean_exit_and_an_outside_kill_write_no_report(core, capfd):
 def test_closing_the_core_ends_its_crash_stack_writer(capfd):
     with CloneCore() as core:
         c = core.spawn(_segv_gil_released)
-        assert core.wait(c, 10).exit_signal == signal.SIGSEGV
+        death = core.wait(c, 10)
+        assert death is not None and death.exit_signal == signal.SIGSEGV
         core.release(c)
         assert core.flush_crash_reports(10)
         assert any(t.name == "cloneguard-crash-stacks" for t in threading.enumerate())

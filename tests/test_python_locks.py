@@ -22,7 +22,7 @@ import time
 import pytest
 from std_msgs.msg import UInt64
 
-from cloneguard.container.isolated import _pylocks
+import cloneguard.container.isolated._pylocks as _pylocks  # an extension module
 from cloneguard.faults import PACKAGE as TESTRIG
 
 LOCKS = {"cpython": _thread.allocate_lock, "ours": _pylocks.allocate_lock}

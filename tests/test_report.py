@@ -103,6 +103,7 @@ def test_quantiles_and_latency_summary():
     assert stats.quantile([1.0, 2.0, 3.0, 4.0], 0.5) == 2.5
     assert stats.quantile([1.0, 2.0, 3.0, 4.0], 0.9) == pytest.approx(3.7)
     summary = stats.summarize(float(v) for v in range(100, 0, -1))  # unsorted input
+    assert summary is not None
     assert (summary.n, summary.min, summary.max) == (100, 1.0, 100.0)
     assert summary.median == 50.5
     assert summary.p90 == pytest.approx(90.1)
@@ -743,7 +744,7 @@ def test_a_trials_measurements_keep_their_units_through_the_report(tmp_path):
     with pytest.raises(ValueError, match="'replans' is in count, not MiB"):
         _measurements({"replans": Measure(1, "MiB")}, resilience)
     with pytest.raises(TypeError, match="mapping of measurements"):
-        _measurements([1.0], resilience)
+        _measurements([1.0], resilience)  # type: ignore[arg-type]  # the wrong type is the point
 
     html = render_html(Report(RunInfo(id="u"), [scenario]))
     assert "Measurements" in html and "replans count</th>" in html and "get_map ms</th>" in html

@@ -98,6 +98,6 @@ def test_no_wait_says_it_stops_the_stuck_container_and_offers_no_debugger(capsys
     class Out:
         outcome, details, diagnosis = "hung", {"why": "no heartbeat"}, None
 
-    _report_stuck(Stuck(), Out(), tmp_path, wait=False)
+    _report_stuck(Stuck(), Out(), tmp_path, wait=False)  # type: ignore[arg-type]  # what it reads of both
     text = capsys.readouterr().out
     assert "stopping it now (--no-wait)" in text and "gdb -p" not in text and "Ctrl-C" not in text

@@ -98,7 +98,7 @@ class World:
         return (
             len(procfs.lasting_fds(pid)),
             len(os.listdir(f"/proc/{pid}/task")),
-            int(procfs.status_field(pid, "VmRSS").split()[0]),
+            procfs.rss_kib(pid),
         )
 
     def warm_up(self) -> None:

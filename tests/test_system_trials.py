@@ -10,6 +10,7 @@ import sys
 import textwrap
 import time
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 
@@ -323,7 +324,7 @@ def test_a_repaired_event_names_the_node_whose_death_left_it():
         (130, _event("REPAIRED", 9, repaired_state="intra-queue", error_message="a queue")),  # a node never seen
     ]:
         events._items.append(Received(ev, start + at_ms * MS))
-    system = SimpleNamespace(client=SimpleNamespace(events=events))
+    system: Any = SimpleNamespace(client=SimpleNamespace(events=events))  # all container_events reads
     crashed, repaired, unknown = container_events(system, start, start + 1000 * MS)
     assert (crashed["node"], crashed["pid"]) == ("/filter", 41)
     assert repaired == {

@@ -52,7 +52,8 @@ def test_a_load_is_served_by_the_spare_made_ahead_and_another_is_made(client, co
     spare = the_spare(container)
     # Its placeholder holds the participant; hidden by its leading underscore.
     wait_until(lambda: f"{PLACEHOLDER}{spare}" in placeholders(client), what="the spare's placeholder node")
-    assert procfs.stat(spare).comm == "cg-node"  # not "cg-monitor", the thread it was cloned from
+    stat = procfs.stat(spare)
+    assert stat is not None and stat.comm == "cg-node"  # not "cg-monitor", the thread it was cloned from
     uid = client.load_ok(PKG, "cloneguard::Heartbeat", node_name="hb").unique_id
     assert loaded_pid(client, uid) == spare
     client.subscribe(UInt64, "/hb/heartbeat").wait_count(3, timeout=10)

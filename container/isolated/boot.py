@@ -19,7 +19,7 @@ import sys
 def install() -> None:
     if "threading" in sys.modules:
         raise RuntimeError("too late: threading is imported already, and has CPython's lock types")
-    from cloneguard.container.isolated import _pylocks
+    import cloneguard.container.isolated._pylocks as _pylocks  # an extension module
 
     _thread.allocate_lock = _thread.allocate = _pylocks.allocate_lock
     _thread.LockType = _pylocks.LockType  # type: ignore[misc]

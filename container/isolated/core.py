@@ -35,7 +35,7 @@ import threading
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, overload
 
 from cloneguard.container import locks
 from cloneguard.container.isolated import assumptions, memory_watch, pybind11_registry
@@ -179,8 +179,8 @@ class _Entry:
 
     __slots__ = ("target", "child", "spawned", "dead", "death_reported", "death")
 
-    def __init__(self, target: Callable[[], None]) -> None:
-        self.target: Callable[[], None] | None = target  # alive until reaped
+    def __init__(self, target: Callable[[], object]) -> None:
+        self.target: Callable[[], object] | None = target  # alive until reaped
         self.child: Any = None  # the Child, once spawn() has it
         self.spawned = False  # spawn() has returned (or failed)
         self.dead = False  # reaped; death is set
@@ -387,7 +387,7 @@ class CloneCore:
         # locks to be taken over.
         self._pylocks = None
         if locks.installed():
-            from cloneguard.container.isolated import _pylocks
+            import cloneguard.container.isolated._pylocks as _pylocks  # an extension module
 
             self._pylocks = _pylocks
             locks.activate()
@@ -433,7 +433,7 @@ class CloneCore:
     # -- children ---------------------------------------------------------
     def spawn(
         self,
-        target: Callable[[], None],
+        target: Callable[[], object],
         *,
         cgroup_fd: int | None = None,
         stack_size: int = DEFAULT_STACK,
@@ -507,6 +507,11 @@ class CloneCore:
                 return True
             except ProcessLookupError:
                 return False
+
+    @overload
+    def wait(self, child: Child) -> Death: ...
+    @overload
+    def wait(self, child: Child, timeout: float | None) -> Death | None: ...
 
     def wait(self, child: Child, timeout: float | None = None) -> Death | None:
         """The child's Death once reaped, or None on timeout."""
@@ -854,6 +859,7 @@ class CloneCore:
                     kind, event = decode(rec)
                     if kind == KIND_CLOSED:
                         return
+                    assert event is not None, f"a record of a kind the monitor never sends: {kind}"
                     self._dispatch(kind, event)
         finally:
             os.close(self._event_fd)
@@ -869,7 +875,7 @@ class CloneCore:
         with self._lock:  # never report a child before spawn() returns
             self._changed.wait_for(lambda: entry.spawned)
         stacks = None
-        if kind == KIND_DEATH:
+        if isinstance(event, Death):
             if self._pylocks is not None:
                 self._pylocks.node_died(event.pid)
             # Before anything can release the child's control block.

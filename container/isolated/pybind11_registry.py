@@ -24,7 +24,7 @@ HEADROOM = 16384
 def unavailable() -> str | None:
     """Why the registry cannot be kept ahead here, or None."""
     try:
-        from cloneguard.container.isolated import _pybind11_registry
+        import cloneguard.container.isolated._pybind11_registry as _pybind11_registry  # an extension module
     except ImportError as e:
         return f"its module was not built ({e})"
     rclpy_module = sys.modules.get("rclpy._rclpy_pybind11")
@@ -53,6 +53,6 @@ def state() -> tuple[int, int, int]:
 
 @functools.cache
 def _module() -> ModuleType:
-    from cloneguard.container.isolated import _pybind11_registry
+    import cloneguard.container.isolated._pybind11_registry as _pybind11_registry  # an extension module
 
     return _pybind11_registry
