@@ -58,6 +58,9 @@ HEADER_PACKAGES = (
     "type_description_interfaces",
     "service_msgs",
     "builtin_interfaces",
+    # ComponentEvent's C struct, for the herald's event (rosidl's, generated
+    # from the .msg by scripts/build_interfaces.py before this is built).
+    "cloneguard_interfaces",
 )
 
 

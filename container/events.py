@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ctypes
 import time
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from cloneguard_interfaces.msg import ComponentEvent
 from rclpy._rclpy_pybind11 import RCLError
@@ -32,43 +34,50 @@ CRASHED = ComponentEvent.CRASHED
 REPAIRED = ComponentEvent.REPAIRED
 
 
+def message(
+    event_type: int,
+    *,
+    unique_id: int = 0,
+    full_node_name: str = "",
+    package_name: str = "",
+    plugin_name: str = "",
+    error_message: str = "",
+    pid: int = 0,
+    exit_signal: int = 0,
+    exit_code: int = 0,
+    start_time_ns: int = 0,
+    allocator_quarantined: bool = False,
+    repaired_state: str = "",
+    stamp_ns: int | None = None,
+) -> ComponentEvent:
+    """One event, stamped now unless ``stamp_ns`` says when."""
+    now = time.time_ns() if stamp_ns is None else stamp_ns
+    msg = ComponentEvent()
+    msg.stamp.sec, msg.stamp.nanosec = divmod(now, 1_000_000_000)
+    msg.event_type = event_type
+    msg.unique_id = unique_id
+    msg.full_node_name = full_node_name
+    msg.package_name = package_name
+    msg.plugin_name = plugin_name
+    msg.error_message = error_message
+    msg.pid = pid
+    msg.exit_signal = exit_signal
+    msg.exit_code = exit_code
+    msg.start_time = start_time_ns
+    msg.allocator_quarantined = allocator_quarantined
+    msg.repaired_state = repaired_state
+    return msg
+
+
 class EventPublisher:
     def __init__(self, node: Node) -> None:
         self._node = node
         self._pub = node.create_publisher(ComponentEvent, EVENTS_TOPIC, EVENTS_QOS)
 
-    def publish(
-        self,
-        event_type: int,
-        *,
-        unique_id: int = 0,
-        full_node_name: str = "",
-        package_name: str = "",
-        plugin_name: str = "",
-        error_message: str = "",
-        pid: int = 0,
-        exit_signal: int = 0,
-        exit_code: int = 0,
-        start_time_ns: int = 0,
-        allocator_quarantined: bool = False,
-        repaired_state: str = "",
-        stamp_ns: int | None = None,
-    ) -> ComponentEvent:
-        now = time.time_ns() if stamp_ns is None else stamp_ns
-        msg = ComponentEvent()
-        msg.stamp.sec, msg.stamp.nanosec = divmod(now, 1_000_000_000)
-        msg.event_type = event_type
-        msg.unique_id = unique_id
-        msg.full_node_name = full_node_name
-        msg.package_name = package_name
-        msg.plugin_name = plugin_name
-        msg.error_message = error_message
-        msg.pid = pid
-        msg.exit_signal = exit_signal
-        msg.exit_code = exit_code
-        msg.start_time = start_time_ns
-        msg.allocator_quarantined = allocator_quarantined
-        msg.repaired_state = repaired_state
+    def publish(self, event_type: int, **fields: Any) -> ComponentEvent | None:
+        """Publish one event (``message``'s fields); the message, or None
+        once the container's context is gone (nothing was published)."""
+        msg = message(event_type, **fields)
         # Children can die while the container shuts down (they got the same
         # SIGTERM); once the context is gone there is no one to tell.
         if not self._context_ok():
@@ -87,14 +96,17 @@ class EventPublisher:
         it from C (``publish_from_c``) keeps it in use (``with handle``)."""
         return self._pub.handle
 
-    def publish_from_c(self) -> tuple[int, int]:
-        """(the address of rclglue's cgr_publish_cdr, the rcl publisher's):
-        what a thread without the GIL needs to publish serialized events
-        here (isolated/herald.c)."""
+    def publish_from_c(self) -> tuple[int, int, int]:
+        """(the addresses of rclglue's cgr_event_publish and
+        cgr_event_write_death, the rcl publisher's): what a thread without
+        the GIL needs to publish events made by ``in_c`` here
+        (isolated/herald.c)."""
         from . import _rclglue
 
-        publish = _rclglue.ffi.cast("uintptr_t", _rclglue.ffi.addressof(_rclglue.lib, "cgr_publish_cdr"))
-        return int(publish), self.handle.pointer
+        ffi, lib = _rclglue.ffi, _rclglue.lib
+        publish = ffi.cast("uintptr_t", ffi.addressof(lib, "cgr_event_publish"))
+        write_death = ffi.cast("uintptr_t", ffi.addressof(lib, "cgr_event_write_death"))
+        return int(publish), int(write_death), self.handle.pointer
 
     def _context_ok(self) -> bool:
         """Is the context still up? (Once destroyed, asking raises.)"""
@@ -102,3 +114,44 @@ class EventPublisher:
             return self._node.context.ok()
         except InvalidHandle:
             return False
+
+
+@dataclass(frozen=True)
+class CEvent:
+    """An event as rosidl's C message (``cloneguard_interfaces__msg__ComponentEvent``),
+    for C that publishes it (isolated/herald.c). Whoever holds it destroys
+    it once: ``destroy()``, or the C it was handed to, with the function at
+    ``destroy_address``."""
+
+    pointer: int
+    destroy_address: int
+
+    def destroy(self) -> None:
+        ctypes.CFUNCTYPE(None, ctypes.c_void_p)(self.destroy_address)(self.pointer)
+
+
+def in_c(msg: ComponentEvent) -> CEvent:
+    """``msg`` made into rosidl's C message by its type's own conversion
+    (the functions rclpy's publish uses, from the capsules of the type
+    support), so that the C side never restates the message's fields."""
+    cls = type(msg)
+    if cls._CREATE_ROS_MESSAGE is None:
+        cls.__class__.__import_type_support__()  # type: ignore[attr-defined]  # rosidl's metaclass
+    create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_capsule(cls._CREATE_ROS_MESSAGE))
+    convert = ctypes.PYFUNCTYPE(ctypes.c_bool, ctypes.py_object, ctypes.c_void_p)(_capsule(cls._CONVERT_FROM_PY))
+    pointer = create()
+    if not pointer:
+        raise MemoryError("rosidl could not make a ComponentEvent")
+    event = CEvent(pointer, _capsule(cls._DESTROY_ROS_MESSAGE))
+    if not convert(msg, pointer):
+        event.destroy()
+        raise ValueError(f"rosidl could not convert {msg!r}")
+    return event
+
+
+def _capsule(capsule: object) -> int:
+    get = ctypes.pythonapi.PyCapsule_GetPointer
+    get.restype, get.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    address = get(capsule, None)
+    assert address, "a type support capsule with no pointer"
+    return int(address)

@@ -22,6 +22,7 @@ from .memory_budget import MEMORY_LIMIT, OOM_SCORE_ADJ
 from .options import CPU_QUOTA, PROFILE, LoadError, NodeArguments
 
 if TYPE_CHECKING:
+    from cloneguard_interfaces.msg import ComponentEvent
     from rclpy.context import Context
     from rclpy.impl.rcutils_logger import RcutilsLogger
 
@@ -85,9 +86,10 @@ class Host(Protocol):
         """A host that can may publish a node's CRASHED event itself, on the
         manager's event publisher (``events``), as soon as the node dies."""
 
-    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
-        """From now on it does so for this node; ``on_death`` then says it
-        did (``death.claimed``)."""
+    def arm_crashed(self, hosted: Hosted, event: ComponentEvent) -> None:
+        """From now on it does so for this node, publishing ``event`` (its
+        CRASHED with every field known at load) completed with the death;
+        ``on_death`` then says it did (``death.claimed``)."""
 
     def disarm_crashed(self, hosted: Hosted) -> bool:
         """Take that back: False if too late (the node is dead, its CRASHED
@@ -182,7 +184,7 @@ class ThreadHost:
     def publish_crashed_with(self, events: EventPublisher) -> None:
         """No deaths, nothing to announce (see report_deaths_to)."""
 
-    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
+    def arm_crashed(self, hosted: Hosted, event: ComponentEvent) -> None:
         pass
 
     def disarm_crashed(self, hosted: Hosted) -> bool:

@@ -259,7 +259,7 @@ class ComponentManager:
         else:
             if self._restarts is None:  # else CRASHED says what the policy decided
                 try:
-                    self._host.arm_crashed(hosted, package_name=spec.package_name, plugin_name=spec.plugin_name)
+                    self._host.arm_crashed(hosted, events.message(events.CRASHED, **self._node_fields(entry)))
                 except Exception as exc:  # then its CRASHED goes out through Python
                     self._log.warning(f"unique_id {unique_id}: its CRASHED stays Python's: {type(exc).__name__}: {exc}")
             # Its callbacks start now, not while the event and the log line
@@ -469,14 +469,17 @@ class ComponentManager:
             )
 
     def _publish(self, event_type: int, entry: _Entry, **extra: Unpack[_CrashFields]) -> None:
+        self._events.publish(event_type, **self._node_fields(entry), **extra)
+
+    @staticmethod
+    def _node_fields(entry: _Entry) -> dict[str, Any]:
+        """What every event of a loaded node says of it."""
         hosted = entry.hosted
-        self._events.publish(
-            event_type,
-            unique_id=hosted.unique_id,
-            full_node_name=hosted.full_node_name,
-            package_name=entry.spec.package_name,
-            plugin_name=entry.spec.plugin_name,
-            pid=hosted.pid,
-            start_time_ns=hosted.start_time_ns,
-            **extra,
-        )
+        return {
+            "unique_id": hosted.unique_id,
+            "full_node_name": hosted.full_node_name,
+            "package_name": entry.spec.package_name,
+            "plugin_name": entry.spec.plugin_name,
+            "pid": hosted.pid,
+            "start_time_ns": hosted.start_time_ns,
+        }

@@ -9,8 +9,8 @@
  * id), so a byte comparison is exact.
  *
  * And finalize a service rclpy leaves unfinalized (cgr_service_fini), and
- * publish bytes already serialized, from a thread without the GIL: the clone
- * core's herald, which publishes a node's CRASHED event (cgr_publish_cdr).
+ * publish a ComponentEvent from a thread without the GIL: the clone core's
+ * herald, which publishes a node's CRASHED event (cgr_event_publish).
  *
  * The pointers come from rclpy's handles (`handle.pointer`).  The caller
  * keeps the handle in use (`with handle:`) around every call, so rclpy can
@@ -25,6 +25,9 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
+
+#include "cloneguard_interfaces/msg/detail/component_event__struct.h"
 
 #include "rcl/error_handling.h"
 #include "rmw/rmw.h"
@@ -162,20 +165,32 @@ int cgr_service_fini(rcl_service_t *service, rcl_node_t *node, char *err, size_t
     return 0;
 }
 
-/* Publish cdr (len bytes, serialized with its CDR header) on publisher.
- * Called by the clone core's herald thread (isolated/herald.c), never with
- * the GIL; the publisher outlives it (the herald stops first). */
-int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len, char *err,
-                    size_t err_size)
+/* The herald's event (rclglue.h).  The layout is rosidl's, generated from
+ * ComponentEvent.msg: the message is defined there alone. */
+void cgr_event_write_death(void *msg, int32_t exit_signal, int32_t exit_code, int quarantined,
+                           const char *text)
 {
-    rcl_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
-    msg.buffer = cdr;
-    msg.buffer_length = len;
-    msg.buffer_capacity = len;
-    msg.allocator = rcutils_get_default_allocator(); /* never used: not resized */
-    rcl_ret_t ret = rcl_publish_serialized_message(publisher, &msg, NULL);
+    cloneguard_interfaces__msg__ComponentEvent *e = msg;
+    e->exit_signal = exit_signal;
+    e->exit_code = exit_code;
+    e->allocator_quarantined = quarantined != 0;
+    rosidl_runtime_c__String *s = &e->error_message;
+    size_t n = s->capacity ? strnlen(text, s->capacity - 1) : 0; /* capacity counts the NUL */
+    memcpy(s->data, text, n);
+    s->data[n] = '\0';
+    s->size = n;
+}
+
+int cgr_event_publish(const rcl_publisher_t *publisher, void *msg, char *err, size_t err_size)
+{
+    cloneguard_interfaces__msg__ComponentEvent *e = msg;
+    struct timespec now;
+    clock_gettime(CLOCK_REALTIME, &now);
+    e->stamp.sec = (int32_t)now.tv_sec;
+    e->stamp.nanosec = (uint32_t)now.tv_nsec;
+    rcl_ret_t ret = rcl_publish(publisher, e, NULL);
     if (ret != RCL_RET_OK) {
-        take_error("rcl_publish_serialized_message", ret, err, err_size);
+        take_error("rcl_publish", ret, err, err_size);
         return CGR_ERROR;
     }
     return 0;

@@ -44,10 +44,17 @@ int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context, ch
                   size_t err_size);
 int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
 
-/* Publish serialized bytes (CDR header included): 0, or CGR_ERROR with the
-   text in err.  For a thread without the GIL (isolated/herald.c). */
-int cgr_publish_cdr(const rcl_publisher_t *publisher, uint8_t *cdr, size_t len, char *err,
-                    size_t err_size);
+/* A node's CRASHED event as the clone core's herald sends it
+   (isolated/herald.c): a cloneguard_interfaces/msg/ComponentEvent C message
+   Python made from the event it would publish itself.  What only the death
+   tells is written into it on the monitor thread, without allocating:
+   error_message's buffer was made big enough when Python made the message
+   (a longer text is cut to it). */
+void cgr_event_write_death(void *msg, int32_t exit_signal, int32_t exit_code, int quarantined,
+                           const char *text);
+/* Stamp msg with the time now and publish it on publisher: 0, or CGR_ERROR
+   with the text in err.  For a thread without the GIL (the herald's). */
+int cgr_event_publish(const rcl_publisher_t *publisher, void *msg, char *err, size_t err_size);
 /* cdef: end */
 
 #endif

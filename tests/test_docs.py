@@ -208,7 +208,7 @@ def _recipe_paths(page: Path) -> list[str]:
 
 def _recipe_names(page: Path) -> list[str]:
     """Code spans that name code: identifiers with an underscore, dotted or
-    not (``cg_herald_arm``, ``CloneCore.arm_crashed``), not file names."""
+    not (``cgr_event_write_death``, ``CloneCore.arm_crashed``), not file names."""
     return [s for s in _spans(page) if _IDENTIFIER.match(s) and "_" in s and not s.endswith(_EXTENSIONS)]
 
 
@@ -242,5 +242,5 @@ def test_the_recipe_checks_see_names():
     """Not vacuous: the ComponentEvent recipe's files and functions are seen."""
     assert "container/isolated/herald.c" in _recipe_paths(CONTRIBUTING)
     assert "faults/*.c" in _recipe_paths(CONTRIBUTING)
-    assert "cg_herald_arm" in _recipe_names(CONTRIBUTING)
-    assert "CloneCore.arm_crashed" in _recipe_names(CONTRIBUTING)
+    assert "cgr_event_write_death" in _recipe_names(CONTRIBUTING)
+    assert "herald_claim" in _recipe_names(CONTRIBUTING)

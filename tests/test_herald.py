@@ -139,7 +139,7 @@ def herald():
 def _armed_sleeper(core, **fields):
     child = core.spawn(lambda: time.sleep(60))
     wait_sleeping(child)
-    assert core.arm_crashed(child, **{**ARM, "pid": child.pid, **fields})
+    assert core.arm_crashed(child, _crashed(pid=child.pid, **fields))
     return child
 
 
@@ -158,13 +158,18 @@ def _only_the_marker_is_heard(core, heard) -> None:
     core.release(marker)
 
 
-ARM: dict[str, Any] = {  # CloneCore.arm_crashed's keywords
+ARM: dict[str, Any] = {  # what the manager knows of a node at its load
     "unique_id": 42,
     "full_node_name": "/robot/planner_é",  # not ASCII: the bytes go as they are
     "package_name": "my_pkg",
     "plugin_name": "my_pkg::Planner",
     "start_time_ns": 1_764_000_000_123_456_789,
 }
+
+
+def _crashed(**fields: Any) -> ComponentEvent:
+    """The CRASHED event the manager arms a node with (ARM's fields, or these)."""
+    return events.message(events.CRASHED, **{**ARM, **fields})
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSEGV])
@@ -200,7 +205,7 @@ def _exit_5_later():
 def test_an_exit_is_published_with_its_code(herald):
     core, rec, heard = herald
     child = core.spawn(_exit_5_later)
-    assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    assert core.arm_crashed(child, _crashed(pid=child.pid))
     death = core.wait(child, 10)
     assert death.claimed
     (msg,) = heard.wait(1)
@@ -218,7 +223,7 @@ def test_a_death_holding_the_gil_is_left_to_python(herald):
     # the core does not announce it.
     core, rec, heard = herald
     child = core.spawn(_exit_5_holding_the_gil)
-    assert core.arm_crashed(child, **{**ARM, "pid": child.pid})
+    assert core.arm_crashed(child, _crashed(pid=child.pid))
     death = core.wait(child, 10)
     rec.wait_for(lambda: death in rec.events)
     assert death.gil_frame and not death.claimed
@@ -273,7 +278,7 @@ def test_without_a_herald_an_armed_childs_death_is_pythons():
     try:
         for i in range(40):
             child = core.spawn(lambda: time.sleep(60))
-            assert core.arm_crashed(child, **{**ARM, "unique_id": i, "pid": child.pid})
+            assert core.arm_crashed(child, _crashed(unique_id=i, pid=child.pid))
             core.kill(child, signal.SIGKILL)
             death = core.wait(child, 10)
             assert death is not None and not death.claimed and not core.crashed_claimed(child)
@@ -351,8 +356,9 @@ def test_a_herald_stuck_in_a_publish_is_left_behind_and_a_new_one_works(herald):
     # every signal that could end it blocked), as a publish stuck on a lock
     # of Fast DDS's that a dead node held would be.
     pause = ctypes.cast(ctypes.CDLL(None).pause, ctypes.c_void_p).value
+    _, write_death, _ = heard.publisher.publish_from_c()
     core.stop_herald()
-    core.start_herald(pause, 0)
+    core.start_herald(pause, write_death, 0)
     # Handed to it while fewer than IN_FLIGHT wait (the first hangs in its
     # publish); past that, the deaths are Python's again.
     stuck = [_armed_sleeper(core, unique_id=i) for i in range(IN_FLIGHT + 2)]
@@ -385,7 +391,8 @@ class AnnouncingHost(ThreadHost):
         self.claimed: set[int] = set()
         self.armed: list[int] = []
 
-    def arm_crashed(self, hosted, *, package_name, plugin_name):
+    def arm_crashed(self, hosted, event):
+        assert (event.event_type, event.unique_id) == (ComponentEvent.CRASHED, hosted.unique_id)
         self.armed.append(hosted.unique_id)
 
     def disarm_crashed(self, hosted):

@@ -397,12 +397,11 @@ const char *cg_repair_name(unsigned bit);
 int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
                       char *out, int size);
 /* herald.c */
-int cg_herald_start(void *publish, const void *publisher);
+int cg_herald_start(void *publish, void *write_death, const void *publisher);
 int cg_herald_stop(int timeout_ms);
 long cg_herald_failures(void);
-int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
-                  const char *package_name, const char *plugin_name, int pid,
-                  uint64_t start_time_ns);
+int cg_herald_arm(struct cg_child *c, void *msg, void *destroy, const char *full_node_name,
+                  int pid);
 int cg_herald_disarm(struct cg_child *c);
 int cg_herald_claimed(const struct cg_child *c);
 /* lastresort.c */

@@ -35,7 +35,7 @@ import threading
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Literal, overload
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from cloneguard.container import locks
 from cloneguard.container.isolated import assumptions, memory_watch, pybind11_registry
@@ -56,6 +56,9 @@ from cloneguard.container.isolated.core_events import (
 )
 from cloneguard.container.isolated.crash_reports import CrashStacks
 from cloneguard.container.isolated.memory_watch import MemoryLimit
+
+if TYPE_CHECKING:
+    from cloneguard_interfaces.msg import ComponentEvent
 
 __all__ = [
     "CloneCore",
@@ -569,13 +572,16 @@ class CloneCore:
 
     # -- the herald (herald.c): CRASHED events published without Python ------
 
-    def start_herald(self, publish: int, publisher: int) -> None:
+    def start_herald(self, publish: int, write_death: int, publisher: int) -> None:
         """From now on the core publishes an armed child's CRASHED event
-        itself, at its death. ``publish``: the address of rclglue's
-        cgr_publish_cdr; ``publisher``: an rcl_publisher_t's, which must
-        outlive stop_herald() (close() calls it)."""
+        itself, at its death. ``publish``, ``write_death``: the addresses of
+        rclglue's cgr_event_publish and cgr_event_write_death; ``publisher``:
+        an rcl_publisher_t's, which must outlive stop_herald() (close() calls
+        it). ``EventPublisher.publish_from_c()`` gives all three."""
         ffi, lib = _lib()
-        rc = lib.cg_herald_start(ffi.cast("void *", publish), ffi.cast("void *", publisher))
+        rc = lib.cg_herald_start(
+            ffi.cast("void *", publish), ffi.cast("void *", write_death), ffi.cast("void *", publisher)
+        )
         if rc < 0:
             raise OSError(-rc, f"cannot start the herald: {os.strerror(-rc)}")
 
@@ -593,34 +599,31 @@ class CloneCore:
         _, lib = _lib()
         return int(lib.cg_herald_failures())
 
-    def arm_crashed(
-        self,
-        child: Child,
-        *,
-        unique_id: int,
-        full_node_name: str,
-        package_name: str,
-        plugin_name: str,
-        pid: int,
-        start_time_ns: int,
-    ) -> bool:
-        """Have the herald publish the child's CRASHED event with these
-        fields if it dies (the death's own come from the monitor). False if
-        it is dead already."""
-        _, lib = _lib()
+    def arm_crashed(self, child: Child, event: ComponentEvent) -> bool:
+        """Have the herald publish ``event``, the child's CRASHED with every
+        field known now, if it dies; the death's own fields (exit signal or
+        code, allocator_quarantined, error_message) come from the monitor.
+        False if it is dead already."""
+        from cloneguard.container import events  # ROS's: imported where needed
+
+        ffi, lib = _lib()
+        # The room the death's words get (rclglue writes them in, allocating nothing).
+        event.error_message = " " * (lib.CG_DEATH_TEXT - 1)
+        c_event = events.in_c(event)
         with self._lock:
-            if self._entry(child).dead:
-                return False
-            rc = lib.cg_herald_arm(
-                child._block,
-                unique_id,
-                full_node_name.encode(),
-                package_name.encode(),
-                plugin_name.encode(),
-                pid,
-                start_time_ns,
-            )
+            rc = -errno.ESRCH
+            if not self._entry(child).dead:
+                rc = lib.cg_herald_arm(
+                    child._block,
+                    ffi.cast("void *", c_event.pointer),
+                    ffi.cast("void *", c_event.destroy_address),
+                    event.full_node_name.encode(),
+                    event.pid,
+                )
         if rc < 0:
+            c_event.destroy()  # still ours
+            if rc == -errno.ESRCH:
+                return False
             raise OSError(-rc, f"cannot arm the CRASHED event: {os.strerror(-rc)}")
         return True
 

@@ -7,7 +7,7 @@
  * woken cold, decodes the record, takes the GIL and walks the host's and
  * the manager's bookkeeping before the publish.  Here the monitor claims
  * the event as it writes the record and hands it to the herald thread,
- * which publishes it through rcl (rclglue's cgr_publish_cdr): no Python and
+ * which publishes it through rcl (rclglue's cgr_event_publish): no Python and
  * no GIL on the way, so the event also goes out when a dead node left the
  * GIL unusable.  Python still does the rest (log, bookkeeping), and does
  * not publish what the record says was announced (CG_EVF_CLAIMED).
@@ -16,7 +16,7 @@
  *   OFF -> ARMED        cg_herald_arm (Python), once the node's LOADED is out
  *   ARMED -> CLAIMED    the monitor, at the node's death (herald_claim)
  *   ARMED -> OFF        cg_herald_disarm (Python: unload, abort, shutdown)
- * Whoever moves it from ARMED owns the buffer made at arming.  A CLAIMED
+ * Whoever moves it from ARMED owns the event made at arming.  A CLAIMED
  * node is dead and its CRASHED out (or on its way): Python neither lists
  * it nor unloads it any more.
  *
@@ -36,12 +36,15 @@
  * a lock a dead node held), the monitor claims no more and Python publishes,
  * as without the herald; the ones already handed over wait with the herald.
  *
- * The wire format (what rmw_fastrtps takes as a serialized message): CDR,
- * little-endian, encapsulation CDR_LE (00 01 00 00), then the fields of
- * cloneguard_interfaces/msg/ComponentEvent.msg in its order, each aligned
- * to its own size counted from the end of the 4-byte header; a string is a
- * uint32 length counting its NUL, its bytes, the NUL.  tests/test_herald.py
- * has rclpy deserialize what this writes.
+ * The event is rosidl's C message for cloneguard_interfaces/msg/ComponentEvent,
+ * which Python makes at arming from the CRASHED event it would publish
+ * itself (container/events.py), so that every field known at load is
+ * Python's, defined by the .msg alone.  What only the death tells (exit
+ * signal or code, allocator_quarantined, error_message) the monitor writes
+ * into it through rclglue's cgr_event_write_death, which knows the
+ * generated layout and allocates nothing (error_message's buffer was made
+ * CG_DEATH_TEXT long).  This file never sees the layout: the message is a
+ * void * with rclglue's functions and rosidl's destroy.
  */
 #include "core.h"
 
@@ -56,27 +59,25 @@
 #include <unistd.h>
 
 enum { OFF = 0, ARMED = 1, CLAIMED = 2 };
-#define CDR_HEADER 4
-#define EVENT_CRASHED 3     /* ComponentEvent.CRASHED */
-#define STAMP_AT CDR_HEADER /* the stamp (sec, nanosec) is the first field */
 
-struct cg_herald { /* one armed node's event, one allocation */
-    uint64_t unique_id, start_time_ns;
+typedef int (*publish_fn)(const void *publisher, void *msg, char *err, size_t err_size);
+typedef void (*write_death_fn)(void *msg, int32_t exit_signal, int32_t exit_code, int quarantined,
+                               const char *text);
+typedef void (*destroy_fn)(void *msg);
+
+struct cg_herald {      /* one armed node's event, one allocation */
+    void *msg;          /* its ComponentEvent (rosidl's C message) */
+    destroy_fn destroy; /* rosidl's: finalizes and frees msg */
     int32_t pid;
-    const char *full_node_name, *package_name, *plugin_name; /* in text[] */
-    size_t len;                                              /* of cdr[] in use */
-    uint8_t *cdr;                                            /* after text[] */
-    char text[];
+    char full_node_name[]; /* for a failure's words */
 };
-
-typedef int (*publish_fn)(const void *publisher, uint8_t *cdr, size_t len, char *err,
-                          size_t err_size);
 
 struct herald_thread { /* what one herald thread works with: its own,
                           so that a stuck one (cg_herald_stop) never
                           touches what a later one uses */
     int fd;            /* the pipe's read end */
     publish_fn publish;
+    write_death_fn write_death;
     const void *publisher;
     long in_flight; /* handed to it, not yet published (atomic) */
 };
@@ -90,60 +91,10 @@ static pthread_t g_thread;
 static struct herald_thread *g_self; /* the running herald's */
 static long g_failed;                /* publishes that failed, ever (atomic) */
 
-/* ---- CDR ----------------------------------------------------------------- */
-
-struct cdr {
-    uint8_t *p;
-    size_t n;
-};
-
-static void put(struct cdr *w, const void *v, size_t size)
+static void herald_free(struct cg_herald *h)
 {
-    while ((w->n - CDR_HEADER) % size)
-        w->p[w->n++] = 0;
-    memcpy(w->p + w->n, v, size);
-    w->n += size;
-}
-
-static void put_string(struct cdr *w, const char *s)
-{
-    uint32_t len = (uint32_t)strlen(s) + 1;
-    put(w, &len, sizeof len);
-    memcpy(w->p + w->n, s, len);
-    w->n += len;
-}
-
-/* Room a CRASHED event needs beyond its strings' bytes: header, fixed-size
-   fields, lengths, NULs and alignment (less than 96). */
-#define CDR_ROOM 128
-
-/* Serialize h's event, dead of (status, code), with error_message text. */
-static void serialize(struct cg_herald *h, int status, int code, bool quarantined, const char *text)
-{
-    struct cdr w = {h->cdr, 0};
-    static const uint8_t CDR_LE[CDR_HEADER] = {0x00, 0x01, 0x00, 0x00};
-    memcpy(w.p, CDR_LE, CDR_HEADER);
-    w.n = CDR_HEADER;
-    int32_t sec = 0;
-    uint32_t nanosec = 0; /* stamped by the herald, just before the publish */
-    uint8_t type = EVENT_CRASHED, q = quarantined;
-    bool killed = code == CLD_KILLED || code == CLD_DUMPED;
-    int32_t exit_signal = killed ? status : 0, exit_code = code == CLD_EXITED ? status : 0;
-    put(&w, &sec, 4);
-    put(&w, &nanosec, 4);
-    put(&w, &type, 1);
-    put(&w, &h->unique_id, 8);
-    put_string(&w, h->full_node_name);
-    put_string(&w, h->package_name);
-    put_string(&w, h->plugin_name);
-    put_string(&w, text);
-    put(&w, &h->pid, 4);
-    put(&w, &exit_signal, 4);
-    put(&w, &exit_code, 4);
-    put(&w, &h->start_time_ns, 8);
-    put(&w, &q, 1);
-    put_string(&w, ""); /* repaired_state */
-    h->len = w.n;
+    h->destroy(h->msg);
+    free(h);
 }
 
 /* ---- the herald thread ----------------------------------------------------- */
@@ -175,27 +126,22 @@ static void *herald_main(void *arg)
             free(self);
             return NULL;
         }
-        struct timespec now;
-        clock_gettime(CLOCK_REALTIME, &now);
-        int32_t sec = (int32_t)now.tv_sec;
-        uint32_t nanosec = (uint32_t)now.tv_nsec;
-        memcpy(h->cdr + STAMP_AT, &sec, 4);
-        memcpy(h->cdr + STAMP_AT + 4, &nanosec, 4);
         char err[256] = "";
-        if (self->publish(self->publisher, h->cdr, h->len, err, sizeof err) != 0) {
+        if (self->publish(self->publisher, h->msg, err, sizeof err) != 0) { /* stamps it */
             __atomic_add_fetch(&g_failed, 1, __ATOMIC_RELAXED);
             say("cloneguard: the CRASHED event of %s (pid %d) was not published: %s\n",
                 h->full_node_name, h->pid, err);
         }
-        free(h);
+        herald_free(h);
         __atomic_sub_fetch(&self->in_flight, 1, __ATOMIC_RELEASE);
     }
 }
 
-/* Start publishing armed nodes' CRASHED events with publish(publisher, ...)
-   (rclglue's cgr_publish_cdr, on the container's event publisher).  The
+/* Start publishing armed nodes' CRASHED events with publish(publisher, ...),
+   the death written into each with write_death (rclglue's cgr_event_publish
+   and cgr_event_write_death, on the container's event publisher).  The
    publisher must outlive cg_herald_stop. */
-int cg_herald_start(void *publish, const void *publisher)
+int cg_herald_start(void *publish, void *write_death, const void *publisher)
 {
     if (__atomic_load_n(&g_on, __ATOMIC_ACQUIRE))
         return -EALREADY;
@@ -211,7 +157,8 @@ int cg_herald_start(void *publish, const void *publisher)
         return -err;
     }
     fcntl(fds[1], F_SETFL, O_NONBLOCK); /* the monitor never waits */
-    *self = (struct herald_thread){fds[0], (publish_fn)publish, publisher, 0};
+    *self = (struct herald_thread){fds[0], (publish_fn)publish, (write_death_fn)write_death,
+                                   publisher, 0};
     /* Signals go to the container's other threads (as for the monitor),
        but the ones a fault raises: the container's crash report names it. */
     sigset_t all, old;
@@ -286,29 +233,23 @@ long cg_herald_failures(void)
 
 /* ---- arming and claiming ---------------------------------------------- */
 
-/* Arm c's CRASHED event with its fixed fields (Python, once its LOADED is
-   out).  0; -EALREADY if armed or claimed; -ENOMEM. */
-int cg_herald_arm(struct cg_child *c, uint64_t unique_id, const char *full_node_name,
-                  const char *package_name, const char *plugin_name, int pid,
-                  uint64_t start_time_ns)
+/* Arm c's CRASHED event (Python, once the node's LOADED is out): msg, its
+   ComponentEvent with every field known at load, is the core's from now on
+   (destroy finalizes and frees it); full_node_name and pid are for the
+   words of a failed publish.  0; -EALREADY if armed or claimed (msg stays
+   the caller's); -ENOMEM. */
+int cg_herald_arm(struct cg_child *c, void *msg, void *destroy, const char *full_node_name, int pid)
 {
     if (__atomic_load_n(&c->herald_state, __ATOMIC_ACQUIRE) != OFF)
         return -EALREADY;
-    size_t l1 = strlen(full_node_name) + 1, l2 = strlen(package_name) + 1;
-    size_t l3 = strlen(plugin_name) + 1;
-    size_t cap = CDR_ROOM + l1 + l2 + l3 + CG_DEATH_TEXT;
-    struct cg_herald *h = malloc(sizeof *h + l1 + l2 + l3 + cap);
+    size_t len = strlen(full_node_name) + 1;
+    struct cg_herald *h = malloc(sizeof *h + len);
     if (!h)
         return -ENOMEM;
-    h->unique_id = unique_id;
-    h->start_time_ns = start_time_ns;
+    h->msg = msg;
+    h->destroy = (destroy_fn)destroy;
     h->pid = pid;
-    char *t = h->text;
-    h->full_node_name = memcpy(t, full_node_name, l1);
-    h->package_name = memcpy(t + l1, package_name, l2);
-    h->plugin_name = memcpy(t + l1 + l2, plugin_name, l3);
-    h->cdr = (uint8_t *)(t + l1 + l2 + l3);
-    h->len = 0;
+    memcpy(h->full_node_name, full_node_name, len);
     c->herald = h;
     __atomic_store_n(&c->herald_state, ARMED, __ATOMIC_RELEASE);
     return 0;
@@ -321,7 +262,7 @@ int cg_herald_disarm(struct cg_child *c)
     int armed = ARMED;
     if (__atomic_compare_exchange_n(&c->herald_state, &armed, OFF, false, __ATOMIC_ACQ_REL,
                                     __ATOMIC_ACQUIRE)) {
-        free(c->herald);
+        herald_free(c->herald);
         c->herald = NULL;
         return 1;
     }
@@ -339,7 +280,7 @@ int cg_herald_claimed(const struct cg_child *c)
 void herald_forget(struct cg_child *c)
 {
     if (__atomic_load_n(&c->herald_state, __ATOMIC_ACQUIRE) == ARMED) {
-        free(c->herald);
+        herald_free(c->herald);
         c->herald = NULL;
         __atomic_store_n(&c->herald_state, OFF, __ATOMIC_RELEASE);
     }
@@ -364,7 +305,9 @@ bool herald_claim(struct cg_child *c, int status, int code, bool quarantined)
         __atomic_compare_exchange_n(&c->herald_state, &armed, CLAIMED, false, __ATOMIC_ACQ_REL,
                                     __ATOMIC_ACQUIRE)) {
         struct cg_herald *h = c->herald;
-        serialize(h, status, code, quarantined, c->death_text);
+        bool killed = code == CLD_KILLED || code == CLD_DUMPED;
+        g_self->write_death(h->msg, killed ? status : 0, code == CLD_EXITED ? status : 0,
+                            quarantined, c->death_text);
         __atomic_add_fetch(&g_self->in_flight, 1, __ATOMIC_ACQ_REL);
         sent = write(g_pipe_w, &h, sizeof h) == (ssize_t)sizeof h;
         if (sent) {

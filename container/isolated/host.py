@@ -76,6 +76,7 @@ from .spare import Spare, serves, spare_target
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from cloneguard_interfaces.msg import ComponentEvent
     from rclpy.impl.rcutils_logger import RcutilsLogger
     from rclpy.node import Node
 
@@ -231,23 +232,16 @@ class IsolatedHost:
             return
         self._herald_handle = handle
 
-    def arm_crashed(self, hosted: Hosted, *, package_name: str, plugin_name: str) -> None:
-        """Should the node's process die from now on, the core publishes its
-        CRASHED event (``publish_crashed_with``), and the manager hears of the
-        death with ``claimed`` set. Undone by ``disarm_crashed``."""
+    def arm_crashed(self, hosted: Hosted, event: ComponentEvent) -> None:
+        """Should the node's process die from now on, the core publishes
+        ``event``, its CRASHED, completed with the death (``publish_crashed_with``),
+        and the manager hears of the death with ``claimed`` set. Undone by
+        ``disarm_crashed``."""
         proc = hosted.detail
         with self._lock:  # against a stop or an abort changing its state
             if self._herald_handle is None or proc.state != "running":
                 return
-            self._core.arm_crashed(
-                proc.child,
-                unique_id=hosted.unique_id,
-                full_node_name=hosted.full_node_name,
-                package_name=package_name,
-                plugin_name=plugin_name,
-                pid=hosted.pid,
-                start_time_ns=hosted.start_time_ns,
-            )
+            self._core.arm_crashed(proc.child, event)
 
     def disarm_crashed(self, hosted: Hosted) -> bool:
         """Take the node's CRASHED event back from the core: True if its
