@@ -34,38 +34,16 @@ CRASHED = ComponentEvent.CRASHED
 REPAIRED = ComponentEvent.REPAIRED
 
 
-def message(
-    event_type: int,
-    *,
-    unique_id: int = 0,
-    full_node_name: str = "",
-    package_name: str = "",
-    plugin_name: str = "",
-    error_message: str = "",
-    pid: int = 0,
-    exit_signal: int = 0,
-    exit_code: int = 0,
-    start_time_ns: int = 0,
-    allocator_quarantined: bool = False,
-    repaired_state: str = "",
-    stamp_ns: int | None = None,
-) -> ComponentEvent:
-    """One event, stamped now unless ``stamp_ns`` says when."""
+def message(event_type: int, *, start_time_ns: int = 0, stamp_ns: int | None = None, **fields: Any) -> ComponentEvent:
+    """One event, stamped now unless ``stamp_ns`` says when; ``fields``: any
+    of ComponentEvent.msg's (unique_id, full_node_name, error_message, ...),
+    the rest left at their defaults. The .msg is the one list of them."""
+    unknown = sorted(set(fields) - set(ComponentEvent.get_fields_and_field_types()))
+    if unknown:
+        raise TypeError(f"ComponentEvent has no field {', '.join(unknown)}")
+    msg = ComponentEvent(event_type=event_type, start_time=start_time_ns, **fields)
     now = time.time_ns() if stamp_ns is None else stamp_ns
-    msg = ComponentEvent()
     msg.stamp.sec, msg.stamp.nanosec = divmod(now, 1_000_000_000)
-    msg.event_type = event_type
-    msg.unique_id = unique_id
-    msg.full_node_name = full_node_name
-    msg.package_name = package_name
-    msg.plugin_name = plugin_name
-    msg.error_message = error_message
-    msg.pid = pid
-    msg.exit_signal = exit_signal
-    msg.exit_code = exit_code
-    msg.start_time = start_time_ns
-    msg.allocator_quarantined = allocator_quarantined
-    msg.repaired_state = repaired_state
     return msg
 
 
