@@ -38,7 +38,9 @@ echo "== ubsan: the C extensions again, with -fsanitize=undefined"
 CFLAGS="-fsanitize=undefined -fno-sanitize-recover=undefined -fno-omit-frame-pointer -g" \
     LDFLAGS="-fsanitize=undefined" .venv/bin/python setup.py -q build_ext --inplace --force >build.log 2>&1 ||
     { tail -30 build.log; exit 1; }
-ldd container/isolated/_clonecore*.so | grep -q libubsan || { echo "ubsan: the C core was built without it" >&2; exit 1; }
+# build_ext goes on past a module that fails to compile: say why it did.
+ldd container/isolated/_clonecore*.so | grep -q libubsan ||
+    { echo "ubsan: the C core was built without it:" >&2; grep -i -B3 -A12 "error" build.log | tail -60 >&2; exit 1; }
 mkdir reports-ubsan
 status=0
 UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:log_path=$copy/reports-ubsan/ubsan" \
