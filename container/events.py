@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -112,24 +113,37 @@ def in_c(msg: ComponentEvent) -> CEvent:
     """``msg`` made into rosidl's C message by its type's own conversion
     (the functions rclpy's publish uses, from the capsules of the type
     support), so that the C side never restates the message's fields."""
-    cls = type(msg)
-    if cls._CREATE_ROS_MESSAGE is None:
-        cls.__class__.__import_type_support__()  # type: ignore[attr-defined]  # rosidl's metaclass
-    create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_capsule(cls._CREATE_ROS_MESSAGE))
-    convert = ctypes.PYFUNCTYPE(ctypes.c_bool, ctypes.py_object, ctypes.c_void_p)(_capsule(cls._CONVERT_FROM_PY))
+    create, convert, destroy_address = _conversions()
     pointer = create()
     if not pointer:
         raise MemoryError("rosidl could not make a ComponentEvent")
-    event = CEvent(pointer, _capsule(cls._DESTROY_ROS_MESSAGE))
+    event = CEvent(pointer, destroy_address)
     if not convert(msg, pointer):
         event.destroy()
         raise ValueError(f"rosidl could not convert {msg!r}")
     return event
 
 
-def _capsule(capsule: object) -> int:
-    get = ctypes.pythonapi.PyCapsule_GetPointer
-    get.restype, get.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
-    address = get(capsule, None)
-    assert address, "a type support capsule with no pointer"
-    return int(address)
+# CPython's PyCapsule_GetPointer, with a prototype of our own (setting
+# argtypes on ctypes.pythonapi's would change it for every other user).
+_capsule_pointer = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+    ("PyCapsule_GetPointer", ctypes.pythonapi)
+)
+
+
+@functools.cache
+def _conversions() -> tuple[Any, Any, int]:
+    """(create, convert, destroy's address) of ComponentEvent's type support,
+    looked up once (each load arms a CRASHED event through them)."""
+    cls = ComponentEvent
+    if cls._CREATE_ROS_MESSAGE is None:
+        cls.__class__.__import_type_support__()  # rosidl's metaclass
+
+    def address(capsule: object) -> int:
+        pointer = _capsule_pointer(capsule, None)
+        assert pointer, "a type support capsule with no pointer"
+        return int(pointer)
+
+    create = ctypes.CFUNCTYPE(ctypes.c_void_p)(address(cls._CREATE_ROS_MESSAGE))
+    convert = ctypes.PYFUNCTYPE(ctypes.c_bool, ctypes.py_object, ctypes.c_void_p)(address(cls._CONVERT_FROM_PY))
+    return create, convert, address(cls._DESTROY_ROS_MESSAGE)

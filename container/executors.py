@@ -120,16 +120,16 @@ class NodeWork(Executor):
     def retire(self, node: Node, timeout: float) -> bool:
         """After ``remove_node(node)``: none of the node's work starts any
         more; wait until none of it is running, then cancel what is left (it
-        would never run). False if some still ran after ``timeout`` seconds."""
+        would never run, and would stay in the task list for good). False if
+        some still ran after ``timeout`` seconds (that is left to end)."""
         with self._work_changed:
             self._retired.add(node)
-            if not self._work_changed.wait_for(lambda: not self._running[id(node)], timeout):
-                return False
+            ended = self._work_changed.wait_for(lambda: not self._running[id(node)], timeout)
             with self._tasks_lock:
-                left = [task for task, _entity, owner in self._tasks if owner is node]
+                left = [task for task, _entity, owner in self._tasks if owner is node and not task.executing()]
             for task in left:
                 task.cancel()
-        return True
+        return ended
 
     def _begin(self, node: Node) -> bool:
         with self._work_changed:

@@ -183,6 +183,9 @@ def test_retire_says_when_a_callback_of_the_node_still_runs():
             assert owner.in_callback.wait(10)
             executor.remove_node(node)
             assert executor.retire(node, 0.05) is False
+            # Its pending done callback is cancelled all the same: left, it
+            # would stay in the executor's task list for good.
+            assert [t for t, _, n in executor._tasks if n is node and not t.executing() and not t.cancelled()] == []
             owner.go_on.set()
             assert executor.retire(node, 10.0) is True
         finally:
