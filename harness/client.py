@@ -116,9 +116,10 @@ class Recorder:
         with self._cond:
             return len(self._items)
 
-    def wait_for(self, predicate: Callable[[Any], object], timeout: float, what: str = "") -> Any:
-        """Wait until ``predicate(msg)`` holds for some message; return it."""
-        scanned = 0
+    def wait_for(self, predicate: Callable[[Any], object], timeout: float, what: str = "", since: int = 0) -> Any:
+        """Wait until ``predicate(msg)`` holds for some message, from the
+        ``since``-th on; return it."""
+        scanned = since
 
         def first_match() -> Received | None:
             nonlocal scanned

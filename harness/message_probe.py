@@ -10,6 +10,7 @@ the public test API.
 
 from __future__ import annotations
 
+import bisect
 from typing import TYPE_CHECKING
 
 from std_msgs.msg import String
@@ -52,15 +53,21 @@ class ChatterProbe:
         """What ``rec`` got, from its ``since``-th message on, from the
         container now running: after a restart the Talker counts from 0
         again, and the recorders hold the old one's numbers too."""
-        start = self.system.started_ns
-        return [r for r in rec.items()[since:] if r.at_ns >= start]
+        items = rec.items()
+        return items[max(since, self._first_now(items)) :]
+
+    def _first_now(self, items: list[Received]) -> int:
+        """The index of the first of ``items`` the container now running
+        sent (a recorder appends in the order it gets, at_ns rising)."""
+        return bisect.bisect_left(items, self.system.started_ns, key=lambda r: r.at_ns)
 
     def settle(self) -> int:
         """Let SETTLE_MESSAGES more go and every one of them be heard; the
         last number sent."""
         self.sent.wait_count(len(self.sent) + SETTLE_MESSAGES, timeout=10)
         last = max(self.sent_numbers())
-        self.heard.wait_for(lambda msg: number(msg) >= last, timeout=10, what=f"m {last} heard")
+        since = self._first_now(self.heard.items())  # not the old container's higher numbers
+        self.heard.wait_for(lambda msg: number(msg) >= last, timeout=10, what=f"m {last} heard", since=since)
         return last
 
     def sent_numbers(self) -> list[int]:
