@@ -33,7 +33,7 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -53,6 +53,12 @@ CONTAINER_NOT_REPAIRED = "lock not repaired: "
 # taken; at SPIN_PERCENT or more of a CPU a thread of a hung container is
 # called spinning.
 CPU_WINDOW_S = 0.5
+# A stack shows a moment, and a thread caught waiting on a lock may have it
+# a moment later (a busy lock; the GIL passed from thread to thread): each
+# such waiter's system call is read again RECHECKS times over RECHECK_S
+# once the stacks are taken (_passing).
+RECHECKS = 10
+RECHECK_S = 0.2
 SPIN_PERCENT = 50
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 UNNAMED_CHILD = "a child process no event named"
@@ -291,7 +297,16 @@ def _state(t: ThreadStack) -> tuple[str, str]:
     return "running", _where(t)
 
 
-_GIL_OWNER = "((PyThreadState *)_PyRuntime.ceval.gil.last_holder._value)->native_thread_id"
+_GIL = "_PyRuntime.ceval.gil"
+#: What gdb reads in the container for a wait on the GIL: its last holder's
+#: native thread id, and where CPython's GIL state (its mutexes and
+#: condition variables, every futex word a GIL wait sleeps on) lies.
+_GIL_READS = {
+    ("GIL", ""): f"((PyThreadState *){_GIL}.last_holder._value)->native_thread_id",
+    ("GIL start", ""): f"(long)&{_GIL}",
+    ("GIL size", ""): f"(long)sizeof({_GIL})",
+}
+_GIL_FRAMES = ("take_gil", "drop_gil")
 
 
 def _read_ints(pid: int, expressions: list[str]) -> list[int | None]:
@@ -368,6 +383,9 @@ def diagnose(
         threads.extend(parse_threads(text, p))
     waits = [(t, _lock_wait(t)) for t in threads]
     owners = _owners(pid, waits)
+    start, size = owners.get(("GIL start", "")), owners.get(("GIL size", ""))
+    passing = _passing(waits, (start, start + size) if start and size else None)
+    waits = [(t, None if t.tid in passing else what) for t, what in waits]
     blocked, states = [], []
     for t, what in waits:
         if what is None:
@@ -436,13 +454,44 @@ def _owners(
         if what is None:
             continue
         kind, addr, _ = what
-        if kind == "GIL":
-            wanted.setdefault(pid, []).append(("GIL", ""))
-        elif addr and kind != "malloc arena lock":
+        if _on_the_gil(t):  # where the GIL lies too: its waits are rechecked against it
+            wanted.setdefault(pid, []).extend(_GIL_READS)
+        if kind != "GIL" and addr and kind != "malloc arena lock":
             wanted.setdefault(t.pid, []).append((kind, addr))
     owners: dict = {}
     for p, keys in wanted.items():
         keys = list(dict.fromkeys(keys))
-        exprs = [_GIL_OWNER if kind == "GIL" else f"((int *){addr})[2]" for kind, addr in keys]  # __owner
+        exprs = [_GIL_READS.get(key) or f"((int *){key[1]})[2]" for key in keys]  # __owner
         owners.update(zip(keys, _read_ints(p, exprs), strict=True))
     return owners
+
+
+def _on_the_gil(t: ThreadStack) -> bool:
+    """Its lock wait is part of taking or dropping the GIL."""
+    return any(f in _GIL_FRAMES for f in t.frames)
+
+
+def _passing(waits: Sequence[tuple[ThreadStack, tuple[str, str, str] | None]], gil: tuple[int, int] | None) -> set[int]:
+    """The tids whose lock wait the stacks caught was a passing one: read
+    again after the stacks (its system call, RECHECKS times over
+    RECHECK_S), the thread sleeps in another call, or on another futex
+    word than the lock's (a mutex's is at its start; a GIL wait's anywhere
+    in CPython's GIL state, ``gil``: (start, end), any futex word when
+    not known). A thread seen only running gives no sign either way."""
+    words: dict[int, tuple[int, int] | None] = {}
+    for t, what in waits:
+        if what is not None:
+            addr = int(what[1], 16) if what[1] else None
+            words[t.tid] = gil if _on_the_gil(t) else (addr, addr + 4) if addr is not None else None
+    moved: set[int] = set()
+    for i in range(RECHECKS):
+        if i:
+            time.sleep(RECHECK_S / (RECHECKS - 1))
+        for tid, span in words.items():
+            now = procfs.syscall_now(tid) if tid not in moved else None
+            if now is None:
+                continue
+            number, word = now
+            if number != procfs.SYS_FUTEX or (span is not None and not span[0] <= word < span[1]):
+                moved.add(tid)
+    return moved

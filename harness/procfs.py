@@ -154,6 +154,21 @@ def lasting_fds(pid: int, readings: int = 3, apart: float = 0.05) -> dict[int, s
 
 _SYS_KCMP = 312  # x86_64
 _KCMP_VM = 1
+SYS_FUTEX = 202  # x86_64
+
+
+def syscall_now(tid: int) -> tuple[int, int] | None:
+    """(number, first argument) of the system call the task sleeps in
+    (/proc/<tid>/syscall: for futex(2), the futex word's address); None
+    while it runs, when it is in none, or is gone."""
+    try:
+        with open(f"/proc/{tid}/syscall") as f:
+            fields = f.read().split()
+    except OSError:
+        return None
+    if len(fields) < 2 or not fields[0].isdigit():  # "running", or "-1 <sp> <pc>" outside a call
+        return None
+    return int(fields[0]), int(fields[1], 16)
 
 
 def same_address_space(pid1: int, pid2: int) -> bool:

@@ -290,3 +290,93 @@ def test_what_the_container_said_of_a_lock_it_left_comes_first():
     d = Diagnosis(pid=10, stacks_text="", threads=[], blocked=[], names={10: "container"}, container_said=said)
     assert d.summary().startswith("the container said: /w (pid 7) thread 7 is blocked on native NORMAL mutex")
     assert d.summary().endswith("no thread waits on a lock; every thread is idle (waiting for work that never comes)")
+
+
+HELD_MUTEX = """\
+import ctypes, threading, time
+libc = ctypes.CDLL(None)
+mutex = ctypes.create_string_buffer(40)  # a pthread_mutex_t, zeroed: PTHREAD_MUTEX_INITIALIZER
+libc.pthread_mutex_lock(mutex)
+tids = {}
+def run(name, wait):
+    tids[name] = threading.get_native_id()
+    wait()
+threads = [threading.Thread(target=run, args=a, daemon=True) for a in [
+    ("mutex", lambda: libc.pthread_mutex_lock(mutex)),  # the main thread holds it for good
+    ("event", threading.Event().wait),  # a futex too, on another word
+    ("sleep", lambda: time.sleep(60)),
+]]
+for t in threads:
+    t.start()
+while len(tids) < 3:
+    time.sleep(0.01)
+print(ctypes.addressof(mutex), tids["mutex"], tids["event"], tids["sleep"], flush=True)
+time.sleep(60)
+"""
+
+
+def _held_mutex_process():
+    """A process whose thread waits for good on a mutex its main thread
+    holds, another in a futex wait on a word of its own, a third asleep;
+    (proc, mutex address, their tids), once each sleeps where it should."""
+    import subprocess
+    import sys
+    import time
+
+    from cloneguard.harness import procfs
+
+    proc = subprocess.Popen([sys.executable, "-c", HELD_MUTEX], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None  # stdout=PIPE
+    addr, *tids = (int(x) for x in proc.stdout.readline().split())
+    deadline = time.monotonic() + 10
+    while not all(procfs.syscall_now(t) for t in tids):  # each in its call, not on the way to it
+        assert time.monotonic() < deadline, [procfs.syscall_now(t) for t in tids]
+        time.sleep(0.01)
+    return proc, addr, tids
+
+
+def test_a_lock_wait_the_stacks_caught_for_a_moment_is_not_called_blocked():
+    """The stacks show a moment: a thread caught in a lock wait that it
+    left (now asleep elsewhere) is not reported blocked (a silent-topic
+    hang once named a passing wait of an idle container's thread);
+    one still asleep on the lock's futex word is."""
+    from cloneguard.harness import procfs
+    from cloneguard.harness.diagnose import ThreadStack, _passing
+
+    proc, addr, (on_mutex, on_event, asleep) = _held_mutex_process()
+    try:
+        assert procfs.syscall_now(on_mutex) == (procfs.SYS_FUTEX, addr)
+        said = ("pthread mutex", hex(addr), "")  # what the stacks said of each of them
+        waits = [(ThreadStack(tid, "", proc.pid), said) for tid in (on_mutex, on_event, asleep)]
+        assert _passing(waits, None) == {on_event, asleep}
+        # A GIL wait sleeps on any futex word of CPython's GIL state.
+        now = procfs.syscall_now(on_event)
+        assert now is not None and now[0] == procfs.SYS_FUTEX
+        word = now[1]
+        gil_wait = (ThreadStack(on_event, "", proc.pid, frames=["take_gil"]), ("GIL", "", ""))
+        assert _passing([gil_wait], (word - 8, word + 40)) == set()
+        assert _passing([gil_wait], (word + 4, word + 52)) == {on_event}
+        assert _passing([gil_wait], None) == set()  # where the GIL lies is not known: any futex word
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_real_wait_on_a_held_mutex_is_named_with_its_owner():
+    """gdb on a real process: the wait that lasts is blocked, on the mutex
+    at its address, owned by the main thread; the others are not."""
+    import pytest
+
+    from cloneguard.harness.diagnose import diagnose, gdb_available
+
+    if not gdb_available():
+        pytest.skip("no gdb here")
+    proc, addr, (on_mutex, _, _) = _held_mutex_process()
+    try:
+        d = diagnose(proc.pid)
+        assert [(b.tid, b.kind, b.address, b.owner_tid) for b in d.blocked] == [
+            (on_mutex, "pthread mutex", hex(addr), proc.pid)
+        ]
+    finally:
+        proc.kill()
+        proc.wait()
