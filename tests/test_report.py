@@ -411,12 +411,15 @@ def test_fixture_rejects_bad_input(pytester, tmp_path, report_root):
             with pytest.raises(AssertionError, match="no trials"):
                 resilience.expect_rate("survived", at_least=0.5)
             resilience.trial("survived", latency_ms={"x": None, "y": 2})
-            resilience.trial("hung")
+            resilience.trial("hung", seed=41, details={"why": "no /odom within 10.0 s"})
             assert resilience.counts()["hung"] == 1
             assert resilience.rate("survived").rate == 0.5
             resilience.expect_rate("hung", at_most=0.5)
-            with pytest.raises(AssertionError, match=r"1/2 trials hung"):
+            # the failure names the trials against it, and why: a CI log shows only this line
+            with pytest.raises(AssertionError, match=r"1/2 trials hung.*; trial 1 \\(seed 41\\) hung: no /odom within"):
                 resilience.expect_rate("hung", at_most=0.25)
+            with pytest.raises(AssertionError, match=r"1/2 trials survived.*; trial 1 \\(seed 41\\) hung: no /odom"):
+                resilience.expect_rate("survived", at_least=0.99)
             resilience.hang(trial=1, summary="no lock found", lock="")
     """
         },
@@ -424,7 +427,7 @@ def test_fixture_rejects_bad_input(pytester, tmp_path, report_root):
     result.assert_outcomes(passed=1)
     (scenario,) = json.loads((out / "report.json").read_text())["scenarios"]
     assert [t["latency_ms"] for t in scenario["trials"]] == [{"y": 2.0}, {}]
-    assert [e["met"] for e in scenario["expectations"]] == [False, True, False]
+    assert [e["met"] for e in scenario["expectations"]] == [False, True, False, False]
     assert scenario["hangs"][0]["lock"] is None
 
 

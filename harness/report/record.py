@@ -34,6 +34,8 @@ from .model import CONTAINER_DEATH, TRIAL_OUTCOMES, Expectation, Hang, Scenario,
 
 #: the report attribute that carries a test's record to the report session
 RECORD_ATTR = "cloneguard_record"
+#: How many of the trials that broke an expectation its failure names.
+FIRST_AGAINST = 3
 _RECORDERS = pytest.StashKey[dict]()
 
 
@@ -210,8 +212,22 @@ class Resilience:
                 f"expected {outcome} rate {expectation.requirement()}, measured {expectation.rate:.1%} "
                 f"({expectation.successes}/{expectation.trials} trials {outcome}; 95% CI "
                 f"{expectation.ci_low:.1%}–{expectation.ci_high:.1%}; counts {self.counts()})"
+                + self._against(outcome, wanted=at_least is not None)
             )
         return expectation
+
+    def _against(self, outcome: str, wanted: bool) -> str:
+        """The first trials that broke an expectation on ``outcome`` (those
+        that had another outcome if it was wanted, else those that had it),
+        with their causes: what a CI log that shows only this line needs."""
+        with self._lock:
+            against = [t for t in self._scenario.trials if (t.outcome != outcome) == wanted]
+        said = [
+            f"trial {t.index} (seed {t.seed}) {t.outcome}" + (f": {t.details['why']}" if t.details.get("why") else "")
+            for t in against[:FIRST_AGAINST]
+        ]
+        more = f"; {len(against) - FIRST_AGAINST} more" if len(against) > FIRST_AGAINST else ""
+        return "; " + "; ".join(said) + more if said else ""
 
     def expect_no_container_death(self) -> Expectation:
         """The isolated cells' own floor, apart from any survival floor:
