@@ -2,6 +2,7 @@
 
     python -m cloneguard.bench.memory_watch                  # 0.25, 1, 2, 4, 8 GiB/s, 5 trials each, 1 GiB
     python -m cloneguard.bench.memory_watch --rates 2 --trials 20 --limit 2G --margin 32M
+    python -m cloneguard.bench.memory_watch --rates 2 8 --cpu-load 4      # every CPU busy beside it
 
 Each trial is a fresh ``component_container --isolated`` in a memory cgroup
 the benchmark makes with ``--limit`` (harness/memory_cgroup.py; never a
@@ -26,12 +27,17 @@ The margin a rate needs is at least the largest overshoot seen at it (N, or
 the use after the end where that is higher, less the trigger), with the
 number of trials it was seen in; a trial the watch lost (the kernel acted)
 says only that the margin was too small.
+
+``--cpu-load N`` keeps N processes of the benchmark's own spinning through
+each trial: every CPU busy, as under a full CI load, which the watch's
+thread (the monitor's, an ordinary one) and the leak share with them.
 """
 
 from __future__ import annotations
 
 import re
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -60,6 +66,7 @@ RATES = [0.25, 1.0, 2.0, 4.0, 8.0]  # GiB/s asked
 CONTAINER_ARGS = ["--isolated"]
 ODOMETRY = NodeSpec("demo_robot", "demo_robot::Odometry", parameters={"rate": 50.0})
 LEAK = "/leak"
+SPIN = "while True: pass"  # --cpu-load's processes
 AFTER_END_S = 0.5  # CRASHED -> the cgroup read: the node's end and the watch's reap
 ENDED = re.compile(r"out of memory: the container used (?P<used>[\d.]+) MiB of the (?P<limit>[\d.]+) MiB")
 TRIGGER_LOGGED = re.compile(r"memory watch: the container may use ([\d.]+) MiB .*; from ([\d.]+) MiB on")
@@ -108,10 +115,20 @@ def _achieved(held) -> tuple[float | None, int | None]:
 
 
 def trial(
-    session: Session, n: int, *, limit: int, margin: str | None, kind: str, rate: float, period: float, delay: float
+    session: Session,
+    n: int,
+    *,
+    limit: int,
+    margin: str | None,
+    kind: str,
+    rate: float,
+    period: float,
+    delay: float,
+    cpu_load: int = 0,
 ) -> tuple[dict, list[str]]:
-    """One fresh container, one leak at ``rate`` GiB/s: what happened, and
-    what it left behind (nothing, if all went well)."""
+    """One fresh container, one leak at ``rate`` GiB/s, ``cpu_load``
+    spinning processes beside it: what happened, and what it left behind
+    (nothing, if all went well)."""
     step = max(4096, round(rate * GiB * period))
     leak = NodeSpec(
         TESTRIG,
@@ -123,6 +140,7 @@ def trial(
     lease = session.lease()
     factory = ContainerFactory(lease.domain_id, session.log_dir / f"trial-{n:03d}")
     out: dict = {"rate_asked": rate, "step": step}
+    spinners = [subprocess.Popen([sys.executable, "-c", SPIN], start_new_session=True) for _ in range(cpu_load)]
     try:
         robot = System(factory, [ODOMETRY, leak], args, memory_limit=limit)
         cgroup = robot.proc.memory_cgroup
@@ -155,6 +173,9 @@ def trial(
             if e.event_type == ComponentEvent.CRASHED and e.full_node_name != LEAK
         ]
     finally:
+        for spinner in spinners:
+            spinner.kill()
+            spinner.wait()
         started = list(factory.started)
         factory.stop_all()
         session.release(lease)
@@ -189,6 +210,7 @@ def run(
     kind: str = "native",
     period: float = 0.01,
     delay: float = 2.0,
+    cpu_load: int = 0,
     out=DEFAULT_OUT,
     keep_logs: bool = False,
     quiet: bool = False,
@@ -196,6 +218,8 @@ def run(
     params = {"rates": list(rates), "trials": trials, "limit": limit, "kind": kind, "period": period, "delay": delay}
     if margin is not None:
         params["margin"] = margin
+    if cpu_load:
+        params["cpu_load"] = cpu_load
     limit_b = parse_size(limit)
     margin_b = MemoryLimit(limit_b, "", "").margin(parse_size(margin) if margin is not None else None)
     by_rate: dict[float, list[dict]] = {r: [] for r in rates}
@@ -207,7 +231,17 @@ def run(
         for _ in range(trials):
             for r in rates:  # interleaved: a slow spell of the machine hits every rate
                 n += 1
-                t, left = trial(session, n, limit=limit_b, margin=margin, kind=kind, rate=r, period=period, delay=delay)
+                t, left = trial(
+                    session,
+                    n,
+                    limit=limit_b,
+                    margin=margin,
+                    kind=kind,
+                    rate=r,
+                    period=period,
+                    delay=delay,
+                    cpu_load=cpu_load,
+                )
                 by_rate[r].append(t)
                 problems += left
     except MemoryCgroupUnavailable as exc:
@@ -264,7 +298,8 @@ def run(
         summary.append(
             summary_row(
                 "memory watch",
-                f"overshoot past the trigger, {r:g} GiB/s leak asked",
+                f"overshoot past the trigger, {r:g} GiB/s leak asked"
+                + (f", {cpu_load} processes spinning" if cpu_load else ""),
                 "isolated",
                 {"n": len(ts)},
                 median=f"{_mib(statistics.median(won))} MiB" if won else "–",
@@ -312,7 +347,8 @@ def run(
             + (f" --memory-margin {margin}" if margin is not None else "")
             + f"` in a memory cgroup of {_mib(limit_b)} MiB (swap held to it), with demo_robot::Odometry "
             f"(50 Hz) and faults::MemoryLeak kind={kind}, step = rate × {period:g} s every {period:g} s, "
-            f"from {delay:g} s after its construction; trials interleaved over the rates.",
+            f"from {delay:g} s after its construction; trials interleaved over the rates."
+            + (f" {cpu_load} processes of the benchmark's own spin through each trial." if cpu_load else ""),
             f"Margin: {'--memory-margin ' + margin if margin is not None else 'the default'} = "
             f"{_mib(margin_b)} MiB (default: 2% of the limit, at least {MIN_MARGIN >> 20} MiB); trigger = "
             "limit − margin, from the container's own log line. The watch looks every 1-100 ms, sleeping "
@@ -356,6 +392,7 @@ def main(argv=None) -> int:
     parser.add_argument("--kind", choices=["native", "bytes", "python"], default="native", help="what the leak keeps")
     parser.add_argument("--period", type=float, default=0.01, help="seconds between the leak's steps")
     parser.add_argument("--delay", type=float, default=2.0, help="seconds from the leak's load to its start")
+    parser.add_argument("--cpu-load", type=int, default=0, help="spinning processes through each trial (default 0)")
     opts = parser.parse_args(argv)
     result = run(
         rates=opts.rates,
@@ -365,6 +402,7 @@ def main(argv=None) -> int:
         kind=opts.kind,
         period=opts.period,
         delay=opts.delay,
+        cpu_load=opts.cpu_load,
         out=opts.out,
         keep_logs=opts.keep_logs,
     )
