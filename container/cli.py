@@ -34,7 +34,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from . import allocator, memory_budget, seams
+from . import allocator, diagnostics, memory_budget, seams
 from .executors import NodesMultiThreadedExecutor, NodesSingleThreadedExecutor, NodeWork
 from .hosting import ThreadHost
 from .isolated import profiles
@@ -705,6 +705,12 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
             f"open-file limit raised from {raised_fd_limit[0]} to {raised_fd_limit[1]}: "
             "node processes share this process's file descriptors"
         )
+    try:
+        diagnostics_period = diagnostics.declared_period(node)
+    except ValueError as exc:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        raise SystemExit(f"component_container: {exc}") from None
     # Thread mode's nodes spin on this executor (as upstream's containers);
     # the container's own services spin on one of their own, so that no
     # node's callback, nor a LoadNode waiting for a constructor, can keep
@@ -722,7 +728,10 @@ def _build(opts: argparse.Namespace, argv: list[str], raised_fd_limit: tuple[int
         rclpy.try_shutdown()
         raise
     manager = ComponentManager(
-        node, host, restart_limit=opts.restart_limit if opts.restart_policy == "on-crash" else None
+        node,
+        host,
+        restart_limit=opts.restart_limit if opts.restart_policy == "on-crash" else None,
+        diagnostics_period_s=diagnostics_period,
     )
     services.add_node(node)
     watchdog_s = opts.watchdog if opts.watchdog is not None else (10.0 if opts.isolated else 0.0)

@@ -1,6 +1,8 @@
 """Each node's figures on ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``),
 where ROS's monitors look (``ros2 topic echo /diagnostics``, rqt_robot_monitor,
-diagnostic_aggregator): once a second, one status per loaded node, named
+diagnostic_aggregator): once a second (the container node's parameter
+``diagnostic_updater.period``, as ROS's diagnostic_updater names it, says
+otherwise: ``--ros-args -p diagnostic_updater.period:=0.1``), one status per loaded node, named
 ``<container>: <node>``, with its unique_id and pid and, where the allocator
 guard counts them (isolated mode), its memory in use and its budget. A node
 at ``NEAR_BUDGET`` of its budget or more is a WARN, "near its memory
@@ -9,16 +11,19 @@ budget"; else OK.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
 
 if TYPE_CHECKING:
     from rclpy.node import Node
     from rclpy.timer import Timer
 
 PERIOD_S = 1.0
+PERIOD_PARAMETER = "diagnostic_updater.period"
 TOPIC = "/diagnostics"
 NEAR_BUDGET = 0.9
 MiB = 1 << 20
@@ -44,9 +49,25 @@ def status(container: str, full_name: str, unique_id: int, pid: int, memory: Mem
     )
 
 
-def publish_every_second(node: Node, nodes: Callable[[], Iterable[tuple[str, int, int, Memory]]]) -> Timer:
+def declared_period(node: Node) -> float:
+    """``node``'s ``diagnostic_updater.period``, declared: the seconds
+    between two publications (PERIOD_S unless the command line sets it;
+    read once, at start). ValueError, saying what it takes, if it is not a
+    number of seconds above 0."""
+    descriptor = ParameterDescriptor(
+        description="seconds between two publications of the nodes' statuses on /diagnostics",
+        dynamic_typing=True,  # 1 and 1.0 alike
+        read_only=True,
+    )
+    value = node.declare_parameter(PERIOD_PARAMETER, PERIOD_S, descriptor).value
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"{PERIOD_PARAMETER} is the seconds between two /diagnostics publications, not {value!r}")
+    return float(value)
+
+
+def publish_every(node: Node, period_s: float, nodes: Callable[[], Iterable[tuple[str, int, int, Memory]]]) -> Timer:
     """A timer on ``node`` that publishes the statuses of ``nodes()``:
-    (full name, unique_id, pid, memory) each."""
+    (full name, unique_id, pid, memory) each, every ``period_s``."""
     publisher = node.create_publisher(DiagnosticArray, TOPIC, 10)
     container = node.get_fully_qualified_name()
 
@@ -55,4 +76,4 @@ def publish_every_second(node: Node, nodes: Callable[[], Iterable[tuple[str, int
         array.header.stamp = node.get_clock().now().to_msg()
         publisher.publish(array)
 
-    return node.create_timer(PERIOD_S, tick)
+    return node.create_timer(period_s, tick)

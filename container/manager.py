@@ -141,10 +141,17 @@ class ComponentManager:
     REQUEST_QUEUE = 1000
 
     def __init__(
-        self, node: Node, host: Host, *, logger: RcutilsLogger | None = None, restart_limit: int | None = None
+        self,
+        node: Node,
+        host: Host,
+        *,
+        logger: RcutilsLogger | None = None,
+        restart_limit: int | None = None,
+        diagnostics_period_s: float = diagnostics.PERIOD_S,
     ) -> None:
         """``restart_limit``: reload a node whose process died (restart.py),
-        at most that many times in a row; None: never."""
+        at most that many times in a row; None: never. ``diagnostics_period_s``:
+        between two publications of the nodes' statuses (diagnostics.py)."""
         self._node = node
         self._host = host
         self._log = logger or node.get_logger()
@@ -183,7 +190,7 @@ class ComponentManager:
             srv.send_response = self._unanswered.answering(srv.send_response)  # type: ignore[method-assign,assignment]
         # Repairs recorded by whichever task did them (repairs.py), published here.
         self._repair_timer = node.create_timer(self.REPAIR_POLL_S, self.publish_repairs)
-        self._diagnostics_timer = diagnostics.publish_every_second(node, self._figures)
+        self._diagnostics_timer = diagnostics.publish_every(node, diagnostics_period_s, self._figures)
 
     # -- services -------------------------------------------------------------
 

@@ -1,5 +1,7 @@
 """Each node's memory over time, as its container reports it on
-``/diagnostics`` (container/diagnostics.py: once a second, a status a node
+``/diagnostics`` (container/diagnostics.py: once a second, or every
+``diagnostic_updater.period`` s where the container's command line sets
+it, a status a node
 named ``<container>: <node>``, with ``memory_in_use_bytes`` and
 ``memory_limit_bytes`` where the allocator guard counts them, isolated
 mode; thread mode reports none). The harness keeps every sample from the

@@ -183,7 +183,7 @@ class System:
 
     def memory(self, full_name: str, since_ns: int = 0) -> list[MemorySample]:
         """Node ``full_name``'s memory as the container reported it on
-        /diagnostics (once a second), from ``since_ns`` on: each a
+        /diagnostics (once a second, or every ``diagnostic_updater.period``), from ``since_ns`` on: each a
         ``MemorySample`` (``at_ns``, on a recorder's clock; ``in_use`` and
         ``limit``, its budget, in bytes, 0: none). Isolated mode only (the
         allocator guard counts it); in thread mode, none. KeyError for a

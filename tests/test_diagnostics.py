@@ -79,3 +79,30 @@ def test_a_node_leaves_the_diagnostics_at_its_unload(system_factory):
     _latest(diagnostics, {"/odometry"})
     assert robot.client.unload(robot.node("/odometry").unique_id).success
     diagnostics.wait_for(lambda a: not a.status, 5, "an array without the unloaded node")
+
+
+def test_the_period_is_the_diagnostic_updater_parameter_read_once_at_start(system_factory):
+    """``diagnostic_updater.period`` (its name in ROS's diagnostic_updater)
+    on the container's command line: the arrays come that often (their
+    stamps, the container's clock); set later, it is refused."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    robot = system_factory([ODOMETRY], ["--ros-args", "-p", "diagnostic_updater.period:=0.1"])
+    diagnostics = robot.topic(DiagnosticArray, "/diagnostics")
+    diagnostics.wait_count(12, timeout=10)
+    stamps = sorted(a.header.stamp.sec + a.header.stamp.nanosec / 1e9 for a in diagnostics.messages())
+    apart = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
+    assert 0.05 <= apart[len(apart) // 2] <= 0.25, apart  # the default's would be 1 s
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=2.0)
+    request = SetParameters.Request(parameters=[Parameter(name="diagnostic_updater.period", value=value)])
+    [result] = robot.call(SetParameters, "/ComponentManager/set_parameters", request).results
+    assert not result.successful and "read-only" in result.reason
+
+
+@pytest.mark.parametrize("value", ["0", "-1.0", "abc", "true"])
+def test_a_period_that_is_not_seconds_above_0_stops_the_start_saying_so(container_factory, value):
+    proc = container_factory.start(["--ros-args", "-p", f"diagnostic_updater.period:={value}"])
+    assert proc.wait(timeout=30) == 1
+    said = "component_container: diagnostic_updater.period is the seconds between two /diagnostics publications, not "
+    assert said in proc.log_text(), proc.log_text()[-2000:]
