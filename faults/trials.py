@@ -27,6 +27,7 @@ from cloneguard.harness import procfs
 from cloneguard.harness.client import HarnessTimeout
 from cloneguard.harness.rig import DEATHS_PER_CONTAINER, Outcome, Rig, TrialOutcome
 from cloneguard.harness.system import longest_gap
+from cloneguard.harness.system_trials import timeline, timeline_end
 
 from . import PACKAGE as TESTRIG
 from .outside import kill_at
@@ -668,6 +669,9 @@ OOM_LEAKS = {
     "huge": {"kind": "huge", "step": 3 * OOM_CGROUP_LIMIT // 2},
     "bytearray": {"kind": "bytes", "step": 8 * MiB, "period": 0.005},
 }
+#: The OOM containers' /diagnostics period (s): their leaks last about a
+#: second, and the report draws each node's memory from these reports.
+OOM_DIAGNOSTICS_PERIOD_S = 0.1
 #: How long a leak may take to be ended (a Python-object leak fills the
 #: container slowest, in a few seconds under load).
 OOM_JUDGE_S = 30.0
@@ -715,10 +719,11 @@ class OutOfMemory:
         if cause not in OUT_OF_MEMORY:
             raise ValueError(f"cause is one of {sorted(OUT_OF_MEMORY)}, not {cause!r}")
         self.rig, self.cause = rig, cause
-        if rig.memory_limit != OOM_CGROUP_LIMIT:
-            # A rig made without one (reproduce's): replaced by one whose
+        if rig.memory_limit != OOM_CGROUP_LIMIT or rig.diagnostics_period_s != OOM_DIAGNOSTICS_PERIOD_S:
+            # A rig made without them (reproduce's): replaced by one whose
             # containers each run in a memory cgroup of that limit.
             rig.memory_limit = OOM_CGROUP_LIMIT
+            rig.diagnostics_period_s = OOM_DIAGNOSTICS_PERIOD_S
             rig.restart()
 
     def _load(self, index: int, kind: str, details: dict):
@@ -738,6 +743,14 @@ class OutOfMemory:
         return None
 
     def trial(self, seed: int, index: int) -> Outcome:
+        """One leak, judged; its timeline (the survivor's heartbeat and
+        each node's memory, from the load to now) drawn in the report."""
+        start = time.monotonic_ns()
+        out = self._trial(seed, index)
+        out.details["timeline"] = timeline(self.rig, start, timeline_end(start))
+        return out
+
+    def _trial(self, seed: int, index: int) -> Outcome:
         rig = self.rig
         kind = random.Random(seed).choice(sorted(OOM_LEAKS))
         details: dict = {"leak": kind}

@@ -33,6 +33,7 @@ from std_msgs.msg import UInt64
 from . import diagnose, firing, procfs, symbols
 from .client import ContainerClient, HarnessTimeout, Recorder
 from .factory import log_tail
+from .node_memory import MemorySample, NodeMemory
 from .process import ContainerProcess
 from .report.model import TrialOutcome
 
@@ -122,10 +123,14 @@ class Rig:
         extra_env: dict[str, str] | None = None,
         fastdds_profile: Path | None = None,
         memory_limit: int | None = None,
+        diagnostics_period_s: float | None = None,
     ):
         self._factory = factory
         self.profile = profile
         self._args = [*PROFILES[profile], *extra_args]
+        #: seconds between the container's /diagnostics (its nodes' memory);
+        #: None: its own default. Set it and restart() as memory_limit.
+        self.diagnostics_period_s = diagnostics_period_s
         self._env = extra_env
         self._fastdds = fastdds_profile
         #: bytes: each container (each restart's too) runs in a memory
@@ -141,12 +146,24 @@ class Rig:
         kwargs: dict = {"extra_env": self._env, "memory_limit": self.memory_limit}
         if self._fastdds is not None:
             kwargs["fastdds_profile"] = self._fastdds
-        self.proc: ContainerProcess = self._factory.start(self._args, **kwargs)
+        period = self.diagnostics_period_s
+        args = self._args + (["--ros-args", "-p", f"diagnostic_updater.period:={period}"] if period else [])
+        self.proc: ContainerProcess = self._factory.start(args, **kwargs)
         self.client: ContainerClient = self._factory.connect(self.proc)
+        self._memory = NodeMemory(self.client, self.proc.fqn)
         resp = self.client.load_ok(*SURVIVOR, node_name="survivor", parameters={"period": 0.02})
         self.survivor_id = resp.unique_id
         self.beats = self.client.subscribe(UInt64, "/survivor/heartbeat")
         self.beats.wait_count(3, timeout=10)
+
+    @property
+    def watched(self) -> dict[str, Recorder]:
+        """The topics a trial's timeline draws: the survivor's heartbeat."""
+        return {"/survivor/heartbeat": self.beats}
+
+    def memory_by_node(self, since_ns: int = 0, until_ns: int | None = None) -> dict[str, list[MemorySample]]:
+        """Each node's memory as the container now running reports it."""
+        return self._memory.by_node(since_ns, until_ns)
 
     def restart(self) -> None:
         self.client.close()

@@ -36,7 +36,7 @@ import signal
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import pytest
 
@@ -49,9 +49,19 @@ from .report.model import TrialOutcome
 
 if TYPE_CHECKING:
     from .client import Recorder
+    from .node_memory import MemorySample
     from .report.record import Resilience
     from .report.stats import Proportion
     from .system import Fault, System
+
+
+class Drawable(Protocol):
+    """What a timeline is drawn from: a System, or the rig's own."""
+
+    @property
+    def watched(self) -> Mapping[str, Recorder]: ...
+
+    def memory_by_node(self, since_ns: int = 0, until_ns: int | None = None) -> dict[str, list[MemorySample]]: ...
 
 
 #: A container is replaced after this many node deaths (each dead node
@@ -184,7 +194,7 @@ def fault_record(fault: Fault, start_ns: int) -> dict:
     }
 
 
-def timeline(system: System, start_ns: int, end_ns: int) -> dict:
+def timeline(system: Drawable, start_ns: int, end_ns: int) -> dict:
     """The trial and its recovery as the report draws them (with the
     trial's faults): messages per TIMELINE_BIN_MS bin of each watched
     topic, and each node's memory as its container reported it."""
@@ -283,7 +293,7 @@ def _heard_again(system: System, within_s: float) -> None:
             return  # silent since: the picture shows it
 
 
-def _bin_end(start_ns: int) -> int:
+def timeline_end(start_ns: int) -> int:
     """Now, once the timeline bin now falls in is whole (what arrived in
     it so far would read as a drop)."""
     bin_ns = TIMELINE_BIN_MS * 1_000_000
@@ -363,7 +373,7 @@ def run_trials(
             # topic has spoken again (or TIMELINE_TAIL_S): the nodes back.
             if outcome != TrialOutcome.SURVIVED.value or index == planned[0][0]:
                 _heard_again(system, TIMELINE_TAIL_S)
-                details["timeline"] = timeline(system, start, _bin_end(start))
+                details["timeline"] = timeline(system, start, timeline_end(start))
             resilience.trial(
                 outcome, index=index, seed=seed, latency_ms=_measurements(measured, resilience), details=details
             )

@@ -34,7 +34,14 @@ from collections import Counter
 
 import pytest
 
-from cloneguard.faults.trials import FAULTS, MALLOC_ALLOCATORS, OOM_BUDGET, OOM_CGROUP_LIMIT, MiB
+from cloneguard.faults.trials import (
+    FAULTS,
+    MALLOC_ALLOCATORS,
+    OOM_BUDGET,
+    OOM_CGROUP_LIMIT,
+    OOM_DIAGNOSTICS_PERIOD_S,
+    MiB,
+)
 from cloneguard.harness.memory_cgroup import MemoryCgroupUnavailable
 from cloneguard.harness.plan import DEEP_FLOOR_TRIALS
 from cloneguard.harness.rig import TrialOutcome
@@ -62,7 +69,9 @@ CLAIMS = {
 
 def _rig(rig_factory, profile: str, args):
     try:
-        return rig_factory(profile, extra_args=args, memory_limit=OOM_CGROUP_LIMIT)
+        return rig_factory(
+            profile, extra_args=args, memory_limit=OOM_CGROUP_LIMIT, diagnostics_period_s=OOM_DIAGNOSTICS_PERIOD_S
+        )
     except MemoryCgroupUnavailable as why:
         pytest.skip(f"no memory cgroup can be made here: {why}")
 

@@ -26,7 +26,7 @@ TOPIC_COLORS = ("#2f6fb3", "#2e9d4f", "#b35b2f", "#7a6fb0", "#8c2d7a", "#3a8c8c"
 
 
 def has_system_view(s: Scenario) -> bool:
-    return any("topics" in (t.details or {}) for t in s.trials)
+    return any("topics" in (t.details or {}) or "timeline" in (t.details or {}) for t in s.trials)
 
 
 def _fmt(v: float | None, digits: int = 2) -> str:
@@ -193,7 +193,8 @@ def timeline(s: Scenario) -> str:
     return (
         f"<h4>Timeline of trial {e(t.index)} ({e(t.outcome)})</h4>"
         "<p class=\"muted small\">Each watched topic's messages per second, in 100 ms bins, from the trial's "
-        "start, and each node's memory in use as its container reported it (once a second, isolated mode; "
+        "start, and each node's memory in use as its container reported it (isolated mode: once a second, "
+        "or every diagnostic_updater.period; "
         "from its last report before the trial; a node with no report in that time has no strip); "
         "the faults shaded.</p>" + timeline_svg(t.details["timeline"], t.details.get("faults", []))
     )
