@@ -53,18 +53,18 @@ setup(
     ],
     ext_modules=[
         # Not a Python module: the allocator guard, a plain shared library an
-        # isolated container preloads (container/isolated/allocguard.c). Built
+        # isolated container preloads (container/isolated/allocguard/). Built
         # here so that it lands beside the package like the cffi modules.
         Extension(
             "cloneguard.container.isolated._allocguard",
             sources=[
-                "container/isolated/allocguard.c",
-                "container/isolated/pyalloc.c",
-                "container/isolated/heapkeys.c",
-                "container/isolated/stops.c",
-                "container/isolated/bigblocks.c",
+                "container/isolated/allocguard/allocguard.c",
+                "container/isolated/allocguard/pyalloc.c",
+                "container/isolated/allocguard/heapkeys.c",
+                "container/isolated/allocguard/stops.c",
+                "container/isolated/allocguard/bigblocks.c",
             ],
-            depends=["container/isolated/allocguard.h", "container/isolated/guard_internal.h"],
+            depends=["container/isolated/allocguard/allocguard.h", "container/isolated/allocguard/guard_internal.h"],
             extra_compile_args=["-std=gnu11", "-O2", *WARNINGS, "-fvisibility=hidden", "-fno-builtin"],
             libraries=["dl", "pthread"],
         ),
@@ -72,7 +72,7 @@ setup(
         Extension(
             "cloneguard.container.isolated._pylocks",
             sources=["container/isolated/pylocks.c"],
-            depends=["container/isolated/allocguard.h"],
+            depends=["container/isolated/allocguard/allocguard.h"],
             extra_compile_args=["-std=gnu11", *WARNINGS],
         ),
         # Not a Python module: the default QoS of the DDS participants made

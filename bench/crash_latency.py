@@ -357,7 +357,7 @@ def _notes(
         "Path in the container: the C monitor's pidfd becomes readable → waitid → the repair → the "
         "monitor writes the death into the event (rosidl's message, made at the load) and hands it to "
         "the core's herald thread, which stamps and publishes it "
-        "through rcl (isolated/herald.c; no Python); the death's record goes on down a pipe to the core's "
+        "through rcl (isolated/clonecore/herald.c; no Python); the death's record goes on down a pipe to the core's "
         "listener thread → IsolatedHost → ComponentManager.on_death (the log lines). With a restart policy, "
         "or a death whose event only Python can word (it held the GIL, a protection-key fault, a core "
         "dump), the manager publishes it instead. The standalone table is only the first steps (monitor, "

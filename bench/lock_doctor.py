@@ -1,4 +1,4 @@
-"""What the lock doctor (container/isolated/mutexes.c) costs the monitor
+"""What the lock doctor (container/isolated/clonecore/mutexes.c) costs the monitor
 thread, by the number of node processes.
 
     python -m cloneguard.bench.lock_doctor                  # 1, 10, 40 nodes

@@ -32,7 +32,7 @@ subprocess died). Only the subprocess can freeze.
                                            [--interp-repair 0]
 
 A ``crashed`` run (the container side died) is the container death the
-interpreter mitigations are for (container/isolated/interp.c, pyalloc.c).
+interpreter mitigations are for (container/isolated/clonecore/interp.c, pyalloc.c).
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 (node and service set-up and teardown, serialized takes) and intra/'s wakers.
 
 The C is rclglue.c (the generated module #includes it, so compiler messages
-point at rclglue.c lines) and intra/waker.c (a second source); rclglue.h and
-intra/waker.h are their interfaces, whose cdef blocks are the module's cdef
+point at rclglue.c lines) and waker.c (a second source), both in rclglue/; rclglue.h and
+waker.h are their interfaces, whose cdef blocks are the module's cdef
 (scripts/cdef.py), after what it assumes of rcl's types.
 
 It is compiled against the real rcl/rmw/rcutils headers of the ROS 2 Jazzy
@@ -95,7 +95,8 @@ typedef struct {
 } rcl_serialized_message_t;
 """
 # ... and ours, each written once, in the headers' cdef blocks (scripts/cdef.py).
-HEADERS = (HERE / "rclglue.h", HERE / "intra" / "waker.h")
+GLUE = HERE / "rclglue"  # the folder of this module's C
+HEADERS = (GLUE / "rclglue.h", GLUE / "waker.h")
 CDEF = RCL_TYPES + runpy.run_path(str(HERE.parent / "scripts" / "cdef.py"))["cdef"](HEADERS)
 
 ffibuilder = FFI()
@@ -103,14 +104,14 @@ ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "cloneguard.container._rclglue",
     '#include "rclglue.c"\n#include "waker.h"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.container._rclglue"),
-    sources=["container/intra/waker.c"],
-    include_dirs=[str(HERE), str(HERE / "intra"), *_include_dirs()],
+    sources=["container/rclglue/waker.c"],
+    include_dirs=[str(GLUE), *_include_dirs()],
     # setuptools wants paths relative to the repo root (where setup.py runs).
     depends=[
-        "container/rclglue.c",
-        "container/rclglue.h",
-        "container/intra/waker.c",
-        "container/intra/waker.h",
+        "container/rclglue/rclglue.c",
+        "container/rclglue/rclglue.h",
+        "container/rclglue/waker.c",
+        "container/rclglue/waker.h",
         "scripts/cdef.py",
     ],
     libraries=["rcl", "rmw", "rcutils"],

@@ -23,14 +23,14 @@ JEMALLOC_PATHS = (
     "/usr/lib64/libjemalloc.so.2",
     "/usr/lib/libjemalloc.so.2",
 )
-# The allocator guard (container/isolated/allocguard.c), built beside the package.
+# The allocator guard (container/isolated/allocguard/allocguard.c), built beside the package.
 GUARD_PATH = str(Path(__file__).resolve().parent / "isolated" / f"_allocguard{sysconfig.get_config_var('EXT_SUFFIX')}")
 _REEXEC_MARK = "CLONEGUARD_PRELOAD_REEXEC"
 # Set to "0" in the environment the guard starts in: CPython keeps its own
 # object allocator (pyalloc.c reads it before CPython starts).
 PY_POOLS_OFF = "CLONEGUARD_PYALLOC"
 # Set to "1" in the environment the guard starts in: it allocates memory
-# protection keys for node heaps (isolated/heapkeys.c) before main.
+# protection keys for node heaps (isolated/allocguard/heapkeys.c) before main.
 PKEYS_ON = "CLONEGUARD_PKEYS"
 
 
@@ -106,7 +106,7 @@ _own_arenas = False
 
 def python_pools_active() -> bool:
     """Does the allocator guard serve CPython's object allocator here, with
-    pools of their own for each node process (isolated/pyalloc.c)? Not
+    pools of their own for each node process (isolated/allocguard/pyalloc.c)? Not
     when PYTHONMALLOC chose another, or PY_POOLS_OFF turned it off."""
     lib = ctypes.CDLL(None)
     return hasattr(lib, "cga_py_active") and bool(lib.cga_py_active())

@@ -79,7 +79,7 @@ class EventPublisher:
         """(the addresses of rclglue's cgr_event_publish and
         cgr_event_write_death, the rcl publisher's): what a thread without
         the GIL needs to publish events made by ``in_c`` here
-        (isolated/herald.c)."""
+        (isolated/clonecore/herald.c)."""
         from . import _rclglue
 
         ffi, lib = _rclglue.ffi, _rclglue.lib
@@ -98,7 +98,7 @@ class EventPublisher:
 @dataclass(frozen=True)
 class CEvent:
     """An event as rosidl's C message (``cloneguard_interfaces__msg__ComponentEvent``),
-    for C that publishes it (isolated/herald.c). Whoever holds it destroys
+    for C that publishes it (isolated/clonecore/herald.c). Whoever holds it destroys
     it once: ``destroy()``, or the C it was handed to, with the function at
     ``destroy_address``."""
 

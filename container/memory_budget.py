@@ -7,7 +7,7 @@ just before the allocation that would have done it (SIGKILL to itself,
 outside the allocator: its heap stays sound for the next process in its
 slot), and its CRASHED event says "out of memory: N MiB in use, over its
 limit of M MiB (it asked for K MiB more)". What is counted is the allocator
-guard's (container/isolated/allocguard.c): its malloc'd blocks, glibc's
+guard's (container/isolated/allocguard/allocguard.c): its malloc'd blocks, glibc's
 mmapped ones, its Python objects; not memory it maps itself, its thread
 stacks, nor what its libraries allocated before the guard was on.
 

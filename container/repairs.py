@@ -4,7 +4,7 @@ A process that dies holding one of the container's robust mutexes leaves
 its state to the next locker, which repairs it (EOWNERDEAD): the progress
 board (a half-written slot), an intra-process queue. A Python lock it held
 is taken over by the next acquirer (locks.py), a pthread mutex released by
-the monitor (isolated/mutexes.c). The repairer may be a
+the monitor (isolated/clonecore/mutexes.c). The repairer may be a
 node process, which must not publish on the container's participant, so a
 repair is only recorded here (one append, in container memory) and the
 container's own thread publishes it as a ComponentEvent REPAIRED

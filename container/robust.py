@@ -6,7 +6,7 @@ told (EOWNERDEAD) instead of hanging forever.  That locker owns it, must bring
 the protected state back to something sane and mark it consistent; if it
 unlocks without doing so the mutex becomes unusable for good
 (ENOTRECOVERABLE).  Isolated children register their robust list at start
-(see isolated/child.c), which is what makes this work for them.  The C
+(see isolated/clonecore/child.c), which is what makes this work for them.  The C
 (robust.c) is an extension of its own: thread mode needs no clone core.
 
 Blocking happens in C with the GIL released (cffi API mode does that for every

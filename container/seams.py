@@ -6,7 +6,7 @@ while an intra-process queue operation holds its lock (to die right there),
 a progress-board write left half-done, and stop points: a node process that
 stops itself, when asked, inside the allocator, inside CPython's object
 allocator or holding a Python lock, so that a kill from outside lands there
-(isolated/stops.c; the harness asks with a sigqueue of the signal named by
+(isolated/allocguard/stops.c; the harness asks with a sigqueue of the signal named by
 ``CLONEGUARD_STOP_SIGNAL`` in the container's environment; a Python lock
 may be named, by ``stop_lock_key``). All are here,
 and all are off unless the test rig is installed: the cloneguard-testrig distribution

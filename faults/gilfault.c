@@ -1,6 +1,6 @@
 /* gilfault.c - die at a chosen point inside CPython 3.11's GIL machinery, as
  * a clone child SIGKILLed there would (tests of the GIL repair in
- * container/isolated/gilrepair.c).  A test extension of the rig: the
+ * container/isolated/clonecore/gilrepair.c).  A test extension of the rig: the
  * product's C has no test entry points.
  *
  * Reads the GIL's internal state (Python/ceval_gil.h) like gilrepair.c, so

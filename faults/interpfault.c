@@ -1,6 +1,6 @@
 /* interpfault.c - die half-way through changing CPython 3.11's interpreter
  * state, as a node process SIGKILLed at that instruction would (tests of
- * container/isolated/interp.c and pyalloc.c).  A test extension of the rig,
+ * container/isolated/clonecore/interp.c and pyalloc.c).  A test extension of the rig,
  * like gilfault.c: the product's C has no test entry points.
  *
  * Each function is called through cffi (which releases the GIL around the

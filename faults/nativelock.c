@@ -1,7 +1,7 @@
 /* nativelock.c - native locks of a C extension that every node process of
  * an isolated container shares (the extension is loaded once, into the one
  * address space), and ways to die holding them: what the lock doctor
- * (container/isolated/mutexes.c) is tested against.  A test extension of the
+ * (container/isolated/clonecore/mutexes.c) is tested against.  A test extension of the
  * rig, like gilfault.c.
  *
  * g_locks holds one mutex of each kind: NORMAL (as std::mutex), RECURSIVE

@@ -2,7 +2,7 @@
 native frames named (symbols.py).
 
 An isolated container writes a crashed node process's report in two parts
-on its stderr (container/isolated/crash.c, crash_reports.py): the head,
+on its stderr (container/isolated/clonecore/crash.c, crash_reports.py): the head,
 from the process itself as it dies (``cloneguard: pid PID caught SIGx at
 ... (pc ...)`` and the lines after it), and, after the CRASHED event, its
 stacks (``cloneguard: pid PID Python stack ...`` then ``cloneguard: pid

@@ -44,7 +44,7 @@ SURVIVOR = ("cloneguard", "cloneguard::Heartbeat")
 CRASH_LOG_LINES = 40  # of a container that died in a trial, kept in the report
 FATAL_MARK = "Fatal Python error: "  # faulthandler's first line (container/cli.py enables it)
 # The first line of the container's own report of a fatal signal, before
-# faulthandler's (isolated mode: container/isolated/crash.c): its native
+# faulthandler's (isolated mode: container/isolated/clonecore/crash.c): its native
 # stack and its faulting thread's Python stack.
 CONTAINER_CRASH_MARK = "cloneguard: container pid "
 NATIVE_STACK_CHARS = 12000

@@ -19,7 +19,7 @@ The places (``PLACES``):
 How: the harness starts every container with ``CLONEGUARD_STOP_SIGNAL`` in
 its environment (``STOP_SIGNAL``, a real-time signal); a node process of an
 isolated container with the allocator guard (the default) and the test rig
-installed takes requests on it (the container's seams.py, isolated/stops.c).
+installed takes requests on it (the container's seams.py, isolated/allocguard/stops.c).
 A request is a sigqueue of that signal whose value names the place and how
 many passes to let go by first. Where the container does not take requests
 (thread mode, ``--no-alloc-guard``, a container of another make) nothing
@@ -40,7 +40,7 @@ from .errors import HarnessTimeout
 #: The signal the harness asks on, told to containers by STOP_SIGNAL_ENV.
 STOP_SIGNAL = int(signal.SIGRTMAX) - 3
 STOP_SIGNAL_ENV = "CLONEGUARD_STOP_SIGNAL"
-#: place -> its number in a request (CGA_STOP_*, container/isolated/allocguard.h;
+#: place -> its number in a request (CGA_STOP_*, container/isolated/allocguard/allocguard.h;
 #: tests/test_stop_points.py checks they agree)
 PLACES = {"allocation": 1, "python-allocation": 2, "python-lock": 3}
 _PLACE_BITS = 4  # CGA_STOP_REQUEST(place, n) = place | n << 4

@@ -7,7 +7,7 @@ all of them. The container's Python lock types record their holder's
 process (container/locks.py): the sibling takes the lock over once the
 holder's process is dead. A pthread mutex records its owner's thread: the
 monitor proves that thread was the dead node's and releases the mutex for
-the sibling blocked on it (container/isolated/mutexes.c), whichever way it
+the sibling blocked on it (container/isolated/clonecore/mutexes.c), whichever way it
 waits: blocked in pthread_mutex_lock, a timed lock retried, the relock after
 a condvar wait, on a rwlock a writer holds; or, polling with trylock, never
 blocked: the monitor finds the mutex by sweeping memory a second after the

@@ -1,4 +1,4 @@
-"""The allocator guard (container/isolated/allocguard.c), under glibc and jemalloc.
+"""The allocator guard (container/isolated/allocguard/allocguard.c), under glibc and jemalloc.
 
 Each case runs a container side in a subprocess with the guard preloaded
 (and jemalloc after it, for the jemalloc cases): real clone children, real

@@ -240,7 +240,42 @@ def test_every_name_contributing_gives_code_is_in_the_code():
 
 def test_the_recipe_checks_see_names():
     """Not vacuous: the ComponentEvent recipe's files and functions are seen."""
-    assert "container/isolated/herald.c" in _recipe_paths(CONTRIBUTING)
+    assert "container/isolated/clonecore/herald.c" in _recipe_paths(CONTRIBUTING)
     assert "faults/*.c" in _recipe_paths(CONTRIBUTING)
     assert "cgr_event_write_death" in _recipe_names(CONTRIBUTING)
     assert "herald_claim" in _recipe_names(CONTRIBUTING)
+
+
+ISOLATED = ROOT / "container" / "isolated"
+#: The isolated README's map: its parts (### headings), and the folder and
+#: kinds of file they name between them.
+MAP_PARTS = [
+    (("`clonecore/`",), ISOLATED / "clonecore", (".c", ".h")),
+    (("`allocguard/`",), ISOLATED / "allocguard", (".c", ".h")),
+    (("One file, one artifact",), ISOLATED, (".c", ".cpp")),
+    (("One file, one artifact", "The Python that runs them"), ISOLATED, (".py",)),
+]
+
+
+def _files(folder: Path, suffixes: tuple[str, ...]) -> set[str]:
+    tracked = set(_tracked())
+    return {p.name for p in folder.iterdir() if p.suffix in suffixes and str(p.relative_to(ROOT)) in tracked}
+
+
+def _map_part(text: str, heading: str) -> set[str]:
+    """The names in the first column of the table under the ``###``
+    heading that begins with ``heading``."""
+    part = text.split(f"### {heading}", 1)[1].split("\n### ", 1)[0]
+    rows = [line for line in part.splitlines() if line.startswith("| `")]
+    return {name for row in rows for name in re.findall(r"`([^`]+)`", row.split("|")[1])}
+
+
+def test_the_isolated_readmes_map_names_every_file_of_each_folder_in_its_part():
+    """Each folder of C is one artifact (clonecore/, allocguard/), and the
+    map says so: a file added to a folder without its row, or a row left
+    for a file gone or moved, fails here."""
+    text = (ISOLATED / "README.md").read_text()
+    for headings, folder, suffixes in MAP_PARTS:
+        named = {n for h in headings for n in _map_part(text, h) if n.endswith(suffixes)}
+        there = _files(folder, suffixes)
+        assert named == there, f"{headings}: named, not there {named - there}; there, not named {there - named}"

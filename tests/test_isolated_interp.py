@@ -1,5 +1,5 @@
 """What a node process killed holding the GIL leaves in the interpreter, and
-what the container mends (container/isolated/interp.c, pyalloc.c,
+what the container mends (container/isolated/clonecore/interp.c, pyalloc.c,
 collector.py).
 
 The children die at exact points (faults/interpfault.c): half-way through

@@ -1,5 +1,5 @@
 """Memory budgets of node processes (container/memory_budget.py, the
-allocator guard's count: isolated/allocguard.c, pyalloc.c, bigblocks.c).
+allocator guard's count: isolated/allocguard/allocguard.c, pyalloc.c, bigblocks.c).
 
 A node that leaks is ended alone, just before the allocation that would
 take it over its budget, its CRASHED saying so; the rest go on. Every

@@ -1,4 +1,4 @@
-"""The container's memory watch (isolated/memwatch.c, memory_watch.py):
+"""The container's memory watch (isolated/clonecore/memwatch.c, memory_watch.py):
 before the container's memory reaches what its memory cgroup lets it use,
 it ends the node process that uses the most (weighed by its
 ``cloneguard.oom_score_adj``), alone; the kernel's OOM killer, which would

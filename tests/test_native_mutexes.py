@@ -1,4 +1,4 @@
-"""The lock doctor (container/isolated/mutexes.c): a native mutex whose owner
+"""The lock doctor (container/isolated/clonecore/mutexes.c): a native mutex whose owner
 died with its node process is released for the live task blocked on it;
 one whose owner is alive is left alone; what it cannot prove or must not
 touch is reported. Against the rig's C extension (faults/nativelock.c),

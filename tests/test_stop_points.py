@@ -1,5 +1,5 @@
 """Kills aimed at a place in a node's own code (harness/stops.py, the
-container's stop points: isolated/stops.c): the node's process stops itself
+container's stop points: isolated/allocguard/stops.c): the node's process stops itself
 there when asked, the kill lands there (the container's CRASHED says where
 it died), and the rest of the composition goes on."""
 

@@ -5,7 +5,7 @@ intra-process publishers by reference, and everything else over DDS. Such a
 publisher also publishes over DDS when there are subscribers outside the
 container, so the subscription would see those messages twice. rclpy's take
 gives no publisher gid, so :class:`GidFilteredReader` takes from the rcl
-subscription itself (container/rclglue.c: rcl_take_serialized_message
+subscription itself (container/rclglue/rclglue.c: rcl_take_serialized_message
 with its rmw_message_info_t) and drops each message whose publisher gid
 ``drop_from`` claims, before deserializing it.
 

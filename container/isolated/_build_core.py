@@ -1,6 +1,6 @@
 """cffi (API mode) builder for container.isolated._clonecore.
 
-The C lives next to this file, one job per file (core.h lists them): the
+The C lives in clonecore/, one job per file (core.h lists them): the
 generated module includes core.h, the declarations Python's calls need, and
 links the core's files as further sources; gilrepair.c is among them,
 compiled with Py_BUILD_CORE (it reads CPython's internal GIL state; see
@@ -45,8 +45,9 @@ SOURCES = (
 
 # What Python's calls need, each written once, in the C headers' cdef
 # blocks (scripts/cdef.py says how they become the cdef).
-HEADERS = ("allocguard.h", "repair.h", "core.h")
-CDEF = runpy.run_path(str(HERE.parents[1] / "scripts" / "cdef.py"))["cdef"]([HERE / h for h in HEADERS])
+CORE = HERE / "clonecore"  # the clone core's C; the allocator guard's API is in allocguard/
+HEADERS = (HERE / "allocguard" / "allocguard.h", CORE / "repair.h", CORE / "core.h")
+CDEF = runpy.run_path(str(HERE.parents[1] / "scripts" / "cdef.py"))["cdef"](HEADERS)
 
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
@@ -54,9 +55,13 @@ ffibuilder.set_source(
     "cloneguard.container.isolated._clonecore",
     '#include "core.h"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.container.isolated._clonecore"),
     # setuptools wants sources relative to the repo root (where setup.py runs).
-    sources=[f"container/isolated/{n}" for n in SOURCES],
-    include_dirs=[str(HERE)],
-    depends=[*(f"container/isolated/{n}" for n in (*HEADERS, "sigsafe.h")), "scripts/cdef.py"],
+    sources=[f"container/isolated/clonecore/{n}" for n in SOURCES],
+    include_dirs=[str(CORE)],
+    depends=[
+        *(f"container/isolated/clonecore/{n}" for n in ("core.h", "repair.h", "sigsafe.h")),
+        "container/isolated/allocguard/allocguard.h",
+        "scripts/cdef.py",
+    ],
     libraries=["dl", "pthread"],
     extra_compile_args=["-std=gnu11", *WARNINGS, "-Wno-unused-function", "-fvisibility=hidden"],
     # The C uses the non-limited C API (PyThreadState fields): cffi would

@@ -312,7 +312,7 @@ class IsolatedHost:
         oom_score_adj = args.oom_score_adj or 0
         if args.use_intra_process_comms:
             # Its subscriptions are woken by a container thread, never by a
-            # publisher's process (intra/waker.c); the manager's forget()
+            # publisher's process (rclglue/waker.c); the manager's forget()
             # closes it.
             intra.get_bus().open_waker(unique_id)
         proc.slot = self.board.register(unique_id)

@@ -47,7 +47,7 @@
 #include <time.h>
 #include <unistd.h>
 
-#include "allocguard.h"
+#include "allocguard/allocguard.h"
 
 #define SLICE_MS 100  /* a blocked acquire looks at its holder this often */
 #define STUCK_MS 1000 /* ... and says so once if none is known after this */

@@ -45,7 +45,7 @@ int cgr_node_init(rcl_node_t **out, const char *name, rcl_context_t *context, ch
 int cgr_node_fini(rcl_node_t *node, char *err, size_t err_size);
 
 /* A node's CRASHED event as the clone core's herald sends it
-   (isolated/herald.c): a cloneguard_interfaces/msg/ComponentEvent C message
+   (isolated/clonecore/herald.c): a cloneguard_interfaces/msg/ComponentEvent C message
    Python made from the event it would publish itself.  What only the death
    tells is written into it on the monitor thread, without allocating:
    error_message's buffer was made big enough when Python made the message

@@ -48,7 +48,7 @@
 #include <stdint.h>
 #include <time.h>
 
-#include "allocguard.h"
+#include "../allocguard/allocguard.h"
 #include "repair.h"
 
 #if !defined(__x86_64__)
