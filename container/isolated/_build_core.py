@@ -46,19 +46,30 @@ SOURCES = (
 # What Python's calls need, each written once, in the C headers' cdef
 # blocks (scripts/cdef.py says how they become the cdef).
 CORE = HERE / "clonecore"  # the clone core's C; the allocator guard's API is in allocguard/
-HEADERS = (HERE / "allocguard" / "allocguard.h", CORE / "repair.h", CORE / "core.h")
+# The headers whose cdef blocks Python sees, in order: the shapes (the
+# guard's, the repairs', the core's), then what each file offers.
+OFFERS = ("clonecore", "child", "crash", "contexts", "deathtext", "herald", "lastresort", "listenerwait", "probes",
+          "pkeys", "memwatch", "dumps")  # fmt: skip
+HEADERS = (
+    HERE / "allocguard" / "allocguard.h",
+    CORE / "repair.h",
+    CORE / "core.h",
+    *(CORE / f"{name}.h" for name in OFFERS),
+)
 CDEF = runpy.run_path(str(HERE.parents[1] / "scripts" / "cdef.py"))["cdef"](HEADERS)
 
 ffibuilder = FFI()
 ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "cloneguard.container.isolated._clonecore",
-    '#include "core.h"\n' + CFLAGS["cffi_init_prototype"]("cloneguard.container.isolated._clonecore"),
+    "".join(f'#include "{h.name}"\n' for h in HEADERS[2:])
+    + CFLAGS["cffi_init_prototype"]("cloneguard.container.isolated._clonecore"),
     # setuptools wants sources relative to the repo root (where setup.py runs).
     sources=[f"container/isolated/clonecore/{n}" for n in SOURCES],
     include_dirs=[str(CORE)],
     depends=[
-        *(f"container/isolated/clonecore/{n}" for n in ("core.h", "repair.h", "sigsafe.h")),
+        *(f"container/isolated/clonecore/{h.name}" for h in HEADERS[1:]),
+        "container/isolated/clonecore/sigsafe.h",
         "container/isolated/allocguard/allocguard.h",
         "scripts/cdef.py",
     ],

@@ -11,6 +11,11 @@
  * state, signal handlers.  It leaves with a raw SYS_exit.
  */
 #include "core.h"
+#include "child.h"
+#include "clonecore.h"
+#include "contexts.h"
+#include "crash.h"
+#include "monitor.h"
 
 #include <errno.h>
 #include <linux/futex.h> /* struct robust_list_head */

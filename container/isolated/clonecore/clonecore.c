@@ -27,6 +27,13 @@
  * the child itself (on_crash, on its own sigaltstack).
  */
 #include "core.h"
+#include "clonecore.h"
+#include "child.h"
+#include "contexts.h"
+#include "crash.h"
+#include "herald.h"
+#include "monitor.h"
+#include "probes.h"
 
 #include <errno.h>
 #include <string.h>

@@ -10,6 +10,9 @@
  * allocator.  Runs on container threads, never in a child.
  */
 #include "core.h"
+#include "contexts.h"
+#include "clonecore.h"
+#include "probes.h"
 #include "sigsafe.h"
 
 #include <asm/prctl.h>

@@ -1,6 +1,9 @@
 /*
- * core.h - what the clone core's C files share among themselves (gilrepair.c
- * shares only repair.h).  The core, file by file:
+ * core.h - the shapes the clone core's C files and Python share (the child's
+ * control block, the configuration, the layout, the event record); what each
+ * file offers is in its own header (monitor.h for monitor.c, ...), included
+ * by the files that call it.  gilrepair.c and interp.c, built against
+ * CPython's internal headers, share only repair.h.  The core, file by file:
  *
  *   clonecore.c  the calls Python makes: start/stop the core, spawn a child,
  *                ask it to stop, release or abandon it once reaped
@@ -370,86 +373,6 @@ struct cg_ctx {
 
 #define AT(base, off, type) (*(type *)((char *)(base) + (off)))
 
-/* ---- Called from Python (these are the cdef's: scripts/cdef.py) ------ */
-
-/* cdef: begin */
-
-/* clonecore.c */
-int cg_start(const struct cg_layout *layout, const struct cg_config *cfg, int *event_fd);
-int cg_stop(void);
-int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd, int flags,
-             struct cg_child **out);
-int cg_request_stop(struct cg_child *c);
-int cg_go(struct cg_child *c);
-int cg_release(struct cg_child *c);
-int cg_abandon(struct cg_child *c);
-/* child.c */
-int cg_self_stop_requested(void);
-int cg_self_wait_go(void);
-/* crash.c */
-void cg_write_native_stack(void *const *frames, int n, int fd);
-int cg_container_crash_report(void);
-/* contexts.c */
-int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
-int cg_py_slot_stats(int slot, struct cga_py_stats *out);
-/* deathtext.c */
-const char *cg_repair_name(unsigned bit);
-int cg_describe_death(int status, int code, uint32_t repairs, uint32_t alloc, int stop_signal,
-                      char *out, int size);
-/* herald.c */
-int cg_herald_start(void *publish, void *write_death, const void *publisher);
-int cg_herald_stop(int timeout_ms);
-long cg_herald_failures(void);
-int cg_herald_arm(struct cg_child *c, void *msg, void *destroy, const char *full_node_name,
-                  int pid);
-int cg_herald_disarm(struct cg_child *c);
-int cg_herald_claimed(const struct cg_child *c);
-/* lastresort.c */
-int cg_lastresort_start(int fd, const char *banner);
-void cg_lastresort_arm(int64_t after_ns);
-void cg_lastresort_stop(void);
-/* listenerwait.c */
-int cg_bound_listener_wait(char *why_out, int why_size);
-long cg_listener_waits_bounded(void);
-/* interp.c: cg_gc_wait_due, cg_gc_collect (repair.h, which interp.c sees) */
-/* probes.c */
-uintptr_t cg_thread_pointer(void);
-uintptr_t cg_robust_list_head(void);
-long cg_gettid(void);
-void *cg_lookup(const char *name, const char *version);
-long cg_mutex_futex_offset(void);
-int cg_probe_clone3(void);
-
-/* pkeys.c */
-struct cg_pkeys_probe {
-    int cpu_pku, os_pke; /* CPUID.7.0:ECX bits 3 and 4 */
-    int keys;            /* pkey_alloc gave this many (all freed) */
-    int alloc_errno;     /* why the last pkey_alloc failed, 0: none did */
-    uint32_t pkru;       /* the calling thread's PKRU (os_pke only) */
-    int mprotect_keeps;  /* 1 yes, 0 no, -1 not probed */
-    int thread_inherits; /* 1 yes, 0 no, -1 not probed */
-    int write_faults;    /* 1 yes, 0 no, -1 not probed */
-};
-int cg_pkeys_probe(struct cg_pkeys_probe *out);
-int cg_pkeys_in_use(int *keys, int max); /* contexts.c: the guard's keys */
-int cg_alloc_slot_of(const void *p);     /* contexts.c */
-int cg_child_slot(const struct cg_child *c);
-int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
-int cg_child_memory(const struct cg_child *c, struct cga_slot_memory *out);
-/* memwatch.c */
-int cg_memwatch_set(int usage_fd, int stat_fd, const char *stat_key, int meminfo, uint64_t limit,
-                    uint64_t margin); /* before cg_start */
-int cg_child_set_oom_score_adj(struct cg_child *c, int adj);
-int cg_probe_condwait(long cleanup_off, struct cg_condwait_probe *out);
-int cg_probe_mutexwait(struct cg_mutexwait_probe *out);
-int cg_probe_timedwait(struct cg_timedwait_probe *out);
-int cg_allocator(char *buf, size_t len);
-int cg_jemalloc_thread_tcache(void);
-int cg_jemalloc_thread_arena(void);
-/* dumps.c: any thread: CLOCK_MONOTONIC less dumps' time */
-int64_t cg_watch_clock_ns(void);
-/* cdef: end */
-
 /* ---- Among the core's files ------------------------------------------- */
 
 /* CLOCK_MONOTONIC in ns (the monitor's clock, listenerwait.c's). */
@@ -460,89 +383,7 @@ static inline int64_t cg_mono_ns(void)
     return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
 #define MIB ((uint64_t)1 << 20) /* bytes, in the words for a death */
-
-/* clonecore.c: what cg_start was given (set once, before anything else
-   runs; read-only afterwards): the configuration, glibc's TCB layout. */
-const struct cg_config *cg_cfg(void);
-const struct cg_layout *cg_tcb_layout(void);
-/* jemalloc's mallctl when jemalloc is the process's malloc, else NULL. */
+/* jemalloc's mallctl (cg_mallctl, find_mallctl). */
 typedef int (*mallctl_fn)(const char *, void *, size_t *, void *, size_t);
-mallctl_fn cg_mallctl(void);
-
-/* monitor.c */
-int monitor_start(int *event_fd);
-/* On the monitor thread (or before it runs): have its epoll wait also watch
-   fd for input, its events handed over with tag (dumps_event), and stop
-   watching it.  0, or -errno. */
-int monitor_watch(int fd, void *tag);
-void monitor_unwatch(int fd);
-int monitor_stop(void);                       /* -EBUSY while a child is unreaped */
-int monitor_spawn(struct cg_child *c);        /* from any thread; blocks */
-void monitor_wake(void);                      /* async-signal-safe */
-void monitor_emit(const struct cg_event *ev); /* on the monitor thread */
-void repair_step_aside(struct cg_child *c);   /* on the monitor thread:
-                                 c's main task waits for its dump */
-
-/* dumps.c: on the monitor thread, but dumps_ask */
-int dumps_start(void);                     /* with cg_config.core_dumps only */
-bool dumps_ask(struct cg_child *c);        /* a crashing child; async-signal-safe */
-bool dumps_event(void *tag, int64_t now);  /* true: an epoll tag of dumps.c's */
-int dumps_tick(int64_t now, int sleep_ms); /* sleep ms, -1 */
-void dumps_forget(struct cg_child *c);     /* c is dead, about to be reported */
-void dumps_stop(void);
-
-/* mutexes.c: all on the monitor thread */
-int mutexes_start(void);                                  /* -ENOENT: no pid cursor to read */
-void mutexes_see(struct cg_child *c);                     /* look at a child's tasks now */
-void mutexes_bury(const struct cg_child *c);              /* c is dead, not yet reaped */
-int mutexes_tick(struct cg_child *children, int64_t now); /* sleep ms, -1 */
-int task_syscall(int tid, struct task_syscall *out);      /* probes.c too */
-
-/* heldscan.c: on the monitor thread, for mutexes.c */
-struct held_owners {
-    int min, max;          /* every tid dead() may accept is in here */
-    bool (*dead)(int tid); /* a task proven dead */
-};
-bool held_sweep_start(void); /* false: no mapping could be read */
-bool held_sweep_step(struct held_owners *owners,
-                     void (*found)(uintptr_t addr, int owner, int kind)); /* false: done */
-
-/* memwatch.c: on the monitor thread */
-int memwatch_tick(struct cg_child *children, int sleep_ms); /* sleep ms */
-void memwatch_say(const struct cg_child *c, char *text, size_t cap);
-
-/* child.c */
-long child_clone(struct cg_child *c);                    /* on the monitor thread: pid or -errno */
-void child_gate_post(struct cg_child *c, unsigned stop); /* async-signal-safe */
-
-/* crash.c */
-void crash_report_prepare(void);                 /* in cg_start, never in a handler */
-void crash_handlers_install(struct cg_child *c); /* in the child */
-
-/* contexts.c */
-int tls_init(void); /* find glibc's TLS allocator */
-char *tls_new(void);
-void tls_reset(char *tcb);
-void tls_give_back(struct cg_child *c);
-int guard_start(void); /* -ENOENT: the guard is not preloaded */
-bool guard_active(void);
-struct cg_ctx *ctx_take(void);
-void guard_bind(struct cg_ctx *x);
-void guard_child_start(void);                     /* in the child */
-void stop_requests_take(int sig);                 /* in the child: the rig's stop points */
-int guard_retire(struct cg_ctx *x, bool faulted); /* CGA_RETIRE_* bits */
-/* Child c went over its memory budget (CGA_RETIRE_OVER_BUDGET): its figures
-   said at the end of its death text (n: the text's length so far). */
-void guard_say_over_budget(struct cg_ctx *x, char *text, size_t cap);
-int guard_py_owner(const void *p);   /* slot of a Python block, -1: unknown */
-int guard_dump_exclude(int exclude); /* dumps.c, while gdb writes */
-/* guard_py_abandon, guard_py_abandoned: repair.h (interp.c uses them) */
-
-/* probes.c */
-mallctl_fn find_mallctl(void);
-
-/* herald.c: herald_claim on the monitor thread, herald_forget on Python's */
-bool herald_claim(struct cg_child *c, int status, int code, bool quarantined);
-void herald_forget(struct cg_child *c);
 
 #endif

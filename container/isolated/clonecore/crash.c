@@ -26,6 +26,9 @@
  * stack) runs, and the process dies as it would have.
  */
 #include "core.h"
+#include "crash.h"
+#include "clonecore.h"
+#include "dumps.h"
 #include "sigsafe.h"
 
 #include <errno.h>

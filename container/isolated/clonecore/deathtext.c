@@ -5,6 +5,7 @@
  * sigsafe.h's writer.
  */
 #include "core.h"
+#include "deathtext.h"
 #include "sigsafe.h"
 
 #include <signal.h>

@@ -29,6 +29,10 @@
  * dumps_forget, on this same thread.
  */
 #include "core.h"
+#include "dumps.h"
+#include "clonecore.h"
+#include "contexts.h"
+#include "monitor.h"
 #include "sigsafe.h"
 
 #include <errno.h>

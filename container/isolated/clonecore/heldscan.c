@@ -28,6 +28,7 @@
  * promptly as ever.  No malloc, no stdio: static buffers only.
  */
 #include "core.h"
+#include "heldscan.h"
 
 #include <errno.h>
 #include <fcntl.h>

@@ -47,6 +47,7 @@
  * void * with rclglue's functions and rosidl's destroy.
  */
 #include "core.h"
+#include "herald.h"
 
 #include <errno.h>
 #include <fcntl.h>

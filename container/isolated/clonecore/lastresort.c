@@ -30,6 +30,8 @@
 #include <unistd.h>
 
 #include "core.h"
+#include "lastresort.h"
+#include "dumps.h"
 #include "sigsafe.h"
 
 /* How long to wait before looking again when not armed (the first arm

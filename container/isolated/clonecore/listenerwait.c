@@ -49,6 +49,7 @@
 #include <unistd.h>
 
 #include "core.h"
+#include "listenerwait.h"
 
 #undef p_type /* <resolv.h> (core.h) renames it to __p_type; here it is ElfW(Phdr)'s */
 

@@ -29,6 +29,8 @@
  * node is not yet reaped: one leak ends one node, not every node in turn.
  */
 #include "core.h"
+#include "memwatch.h"
+#include "contexts.h"
 #include "sigsafe.h"
 
 #include <errno.h>

@@ -16,6 +16,15 @@
  * (monitor_wake, from any thread or signal handler).
  */
 #include "core.h"
+#include "monitor.h"
+#include "child.h"
+#include "clonecore.h"
+#include "contexts.h"
+#include "deathtext.h"
+#include "dumps.h"
+#include "herald.h"
+#include "memwatch.h"
+#include "mutexes.h"
 
 #include <errno.h>
 #include <fcntl.h>

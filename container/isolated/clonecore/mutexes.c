@@ -74,6 +74,10 @@
  * with process_vm_readv, so a wrong address is an error, not a fault.
  */
 #include "core.h"
+#include "mutexes.h"
+#include "clonecore.h"
+#include "heldscan.h"
+#include "monitor.h"
 #include "sigsafe.h"
 
 #include <errno.h>

@@ -43,6 +43,8 @@
 #include <cpuid.h>
 
 #include "core.h"
+#include "pkeys.h"
+#include "contexts.h"
 
 #ifndef SEGV_PKUERR
 #define SEGV_PKUERR 4

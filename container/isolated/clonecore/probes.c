@@ -5,6 +5,8 @@
  * process runs on.  Called from Python at start-up, before any child exists.
  */
 #include "core.h"
+#include "probes.h"
+#include "mutexes.h"
 
 #include <asm/prctl.h>
 #include <dlfcn.h>
