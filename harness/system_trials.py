@@ -314,7 +314,7 @@ def _settle(system: System, outcome: str, start_ns: int) -> None:
     system.restart()
 
 
-def run_trials(
+def run_system_trials(
     system: System,
     trial: Callable[[SystemTrial], Mapping | None],
     planned: Sequence[tuple[int, int]],
@@ -450,7 +450,7 @@ class SystemTrials:
         )
         seconds = self._request.config.getoption("--hold-failed", default=None)
         hold = None if seconds is None else holder(self._request.config, seconds)
-        run_trials(system, trial, self._trial_plan(quick, deep), resilience, hold)
+        run_system_trials(system, trial, self._trial_plan(quick, deep), resilience, hold)
         if at_least is not None:
             if profile_of(system.container_args) != "threads":
                 resilience.expect_no_container_death()
