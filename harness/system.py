@@ -156,6 +156,16 @@ class System:
             running = self._load(spec)
             self.nodes[running.full_name] = running
 
+    def load(self, spec: NodeSpec) -> Running:
+        """Load one more node into the running container, after the rest:
+        it joins the composition (a restart loads it again). The node as
+        loaded; AssertionError, saying why, if the load fails (the
+        composition is then as it was)."""
+        running = self._load(spec)
+        self.specs = (*self.specs, spec)
+        self.nodes[running.full_name] = running
+        return running
+
     def _load(self, spec: NodeSpec) -> Running:
         resp = self.client.load(
             spec.package,

@@ -57,3 +57,18 @@ def test_a_second_system_waits_for_the_first_to_stop(system_factory):
     second = system_factory([TALKER], [])
     second.wait_for_log(r"Loaded cloneguard::Talker as /talker", timeout=5)  # in its own container
     assert first.log_text().count("Loaded cloneguard::Talker") == 1
+
+
+def test_a_node_loaded_later_joins_the_composition_and_a_restart_loads_it_again(system_factory):
+    robot = system_factory([TALKER], ["--isolated"])
+    late = NodeSpec("cloneguard", "cloneguard::Talker", name="late", parameters={"topic": "/later", "period": 0.02})
+    later = robot.topic(String, "/later")
+    running = robot.load(late)
+    assert robot.node("/late") == running and running.pid in robot.client.nodes_by_pid()
+    later.wait_count(3, timeout=10)
+    with pytest.raises(AssertionError, match="nobody::Nothing did not load"):
+        robot.load(NodeSpec("cloneguard", "nobody::Nothing"))
+    assert robot.specs == (TALKER, late) and set(robot.nodes) == {"/talker", "/late"}  # as it was
+    robot.restart()
+    assert set(robot.nodes) == {"/talker", "/late"} and robot.node("/late").unique_id == 2
+    later.wait_count(len(later) + 3, timeout=10)
