@@ -977,3 +977,41 @@ def test_the_monitor_blocks_every_signal_but_those_a_fault_raises():
         assert not blocked & (1 << (sig - 1)), f"{sig.name} is blocked on the monitor"
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD, signal.SIGUSR1):
         assert blocked & (1 << (sig - 1)), f"{sig.name} is not blocked on the monitor"
+
+
+def test_the_monitor_runs_real_time_and_what_it_clones_does_not(core):
+    """No node's use of the CPU may delay the monitor (a death's report,
+    the memory watch's race against a leak): as root it is SCHED_FIFO at
+    the lowest priority; its children get the ordinary policy
+    (SCHED_RESET_ON_FORK)."""
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE (the refusal: the test below)")
+    assert core.monitor_realtime() is None
+    tasks = Path(f"/proc/{os.getpid()}/task")
+    [monitor] = [int(t.name) for t in tasks.iterdir() if (t / "comm").read_text().strip() == "cg-monitor"]
+    assert os.sched_getscheduler(monitor) == os.SCHED_FIFO | os.SCHED_RESET_ON_FORK
+    assert os.sched_getparam(monitor).sched_priority == os.sched_get_priority_min(os.SCHED_FIFO)
+    child = core.spawn(lambda: time.sleep(0.2))
+    try:
+        assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER
+    finally:
+        core.wait(child)
+        core.release(child)
+
+
+def test_without_cap_sys_nice_the_monitor_says_why_it_is_not_real_time_and_children_run():
+    """Where SCHED_FIFO is refused (an unprivileged user's container), the
+    core says why and works as before: a child runs and its death is
+    reported. Run without CAP_SYS_NICE by setpriv."""
+    code = textwrap.dedent("""
+        from cloneguard.container.isolated.core import CloneCore
+        with CloneCore() as core:
+            child = core.spawn(lambda: None)
+            death = core.wait(child, 10)
+            core.release(child)
+            print(repr(core.monitor_realtime()), death.exit_code)
+    """)
+    drop = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", "--"]
+    out = subprocess.run([*drop, sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["'Operation", "not", "permitted'", "0"], out.stdout

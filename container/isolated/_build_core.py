@@ -49,7 +49,7 @@ CORE = HERE / "clonecore"  # the clone core's C; the allocator guard's API is in
 # The headers whose cdef blocks Python sees, in order: the shapes (the
 # guard's, the repairs', the core's), then what each file offers.
 OFFERS = ("clonecore", "child", "crash", "contexts", "deathtext", "herald", "lastresort", "listenerwait", "probes",
-          "pkeys", "memwatch", "dumps")  # fmt: skip
+          "pkeys", "memwatch", "dumps", "monitor")  # fmt: skip
 HEADERS = (
     HERE / "allocguard" / "allocguard.h",
     CORE / "repair.h",

@@ -829,6 +829,14 @@ class CloneCore:
             os.close(fd)
         self._watch_fds = ()
 
+    @staticmethod
+    def monitor_realtime() -> str | None:
+        """None if the monitor thread runs real-time (SCHED_FIFO, monitor.c:
+        no node's use of the CPU delays it); else why not."""
+        _, lib = _lib()
+        err = lib.cg_monitor_realtime()
+        return None if err == 0 else os.strerror(err)
+
     def set_oom_score_adj(self, child: Child, adj: int) -> None:
         """How the memory watch scores the child (-1000 to 1000, as the
         kernel's oom_score_adj: -1000 never ends it)."""

@@ -198,6 +198,7 @@ class IsolatedHost:
             dump_tools=core_dump_tools() if core_dumps is not None else None,
             memory_watch=memory_watch,  # (what the container may use, margin): memory_watch.py
         )
+        _say_monitor_priority(self._core.monitor_realtime(), logger)
         listener_wait.bound(logger)  # before any node's participant is deleted
         # The per-node profile's next process, made ahead (spare.py); not
         # with cgroups, where each node's process is born in its own.
@@ -758,6 +759,21 @@ class IsolatedHost:
         if clean and proc.profile == SHARED:
             self._destroy_built(proc)
         self._forget(proc, leak=not clean)
+
+
+def _say_monitor_priority(refused: str | None, logger: RcutilsLogger) -> None:
+    """Whether the monitor thread (deaths, the memory watch) is real-time."""
+    if refused is None:
+        logger.info(
+            "monitor thread: real-time (SCHED_FIFO 1): no node's use of the CPU delays a death's "
+            "report or the memory watch"
+        )
+    else:
+        logger.info(
+            f"monitor thread: not real-time ({refused}; SCHED_FIFO needs root, CAP_SYS_NICE or an "
+            "RLIMIT_RTPRIO of 1): under a full CPU load the memory watch may act later, by more of "
+            "its margin"
+        )
 
 
 def _robust_context_lock(context: Context, logger: RcutilsLogger) -> None:

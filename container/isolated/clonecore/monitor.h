@@ -4,6 +4,13 @@
 
 #include "core.h"
 
+/* Called from Python (the cdef's: scripts/cdef.py). */
+/* cdef: begin */
+/* 0 if the monitor thread runs real-time (SCHED_FIFO), else the errno that
+   refused it; after cg_start */
+int cg_monitor_realtime(void);
+/* cdef: end */
+
 int monitor_start(int *event_fd);
 /* On the monitor thread (or before it runs): have its epoll wait also watch
    fd for input, its events handed over with tag (dumps_event), and stop
