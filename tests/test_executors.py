@@ -9,6 +9,7 @@ build takes it, after the build took the handlers and before it adds them
 """
 
 import threading
+import time
 
 import pytest
 from rclpy.exceptions import InvalidHandle
@@ -98,21 +99,25 @@ EXECUTORS = {"single": NodesSingleThreadedExecutor, "multi": NodesMultiThreadedE
 
 class _CompletesAFuture:
     """On ``node``'s first timer tick: complete a future whose done callback
-    publishes on ``node``, then wait for ``go_on`` before returning."""
+    publishes on ``node`` (once ``complete`` is set, if given), then wait
+    for ``go_on`` before returning."""
 
-    def __init__(self, node, executor):
+    def __init__(self, node, executor, complete: threading.Event | None = None):
         self.publisher = node.create_publisher(String, "done", 10)
         self.in_callback, self.go_on = threading.Event(), threading.Event()
-        self.done_callback_ran = threading.Event()
+        self.completed, self.done_callback_ran = threading.Event(), threading.Event()
         self._executor = executor
+        self._complete = complete
         self._timer = node.create_timer(0.01, self._tick)
 
     def _tick(self):
         self._timer.cancel()
+        self.in_callback.set()
+        assert self._complete is None or self._complete.wait(10)
         future = Future(executor=self._executor)
         future.add_done_callback(self._publish)
         future.set_result(None)  # its done callback is now a task of the executor
-        self.in_callback.set()
+        self.completed.set()
         assert self.go_on.wait(10)
 
     def _publish(self, _future):
@@ -131,8 +136,14 @@ def _turns(executor, times):
 
 @pytest.mark.parametrize("kind", list(EXECUTORS))
 def test_a_nodes_pending_done_callback_never_runs_once_it_is_retired(kind):
+    """A response handled as the node's unload begins: its done callback,
+    a task of the node made once retire() began, never runs. (Made before,
+    a multi-threaded executor may run it at once on another thread, the
+    node still on it, as rclpy's own does: the CI failure was one that ran
+    after the node was destroyed.)"""
     with ros_nodes("owner", executor_class=EXECUTORS[kind]) as ((node,), executor):
-        owner = _CompletesAFuture(node, executor)
+        retiring_began = threading.Event()
+        owner = _CompletesAFuture(node, executor, complete=retiring_began)
         failure: list[Exception] = []
         spinner = threading.Thread(target=lambda: _spin_catching(executor, failure))
         spinner.start()
@@ -142,6 +153,12 @@ def test_a_nodes_pending_done_callback_never_runs_once_it_is_retired(kind):
             retired = []
             retiring = threading.Thread(target=lambda: retired.append(executor.retire(node, 10.0)))
             retiring.start()
+            deadline = time.monotonic() + 10
+            while node not in executor._retired:  # retire() has begun: none of the node's work starts
+                assert time.monotonic() < deadline, "retire() did not begin"
+                time.sleep(0.001)
+            retiring_began.set()
+            assert owner.completed.wait(10)  # its done callback is a pending task of the node now
             retiring.join(0.3)
             assert retiring.is_alive(), "retire returned while a callback of the node was running"
             owner.go_on.set()
