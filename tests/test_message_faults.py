@@ -116,7 +116,12 @@ def test_a_fault_on_a_node_the_system_has_not_is_refused_at_once(system_factory)
 def test_a_partition_cuts_only_the_named_publishers_from_the_named_subscribers(system_factory, intra):
     w = ChatterProbe(system_factory, intra=intra)
     [other] = w.system.inject(Partition(publishers=["/someone_else"], subscribers=["/message_probe"], seconds=0.5))
-    assert other.counts == {"seen": 0, "dropped": 0} and w.missing() == []  # not the talker's: not seen
+    # Not the talker's: none seen, none lost. An intra-process message handed
+    # over just before the rule was set has no publisher recorded and is
+    # passed as such, counted (faults/messages.py), as a full run once saw.
+    passed = {k: n for k, n in other.counts.items() if k not in ("seen", "dropped")}
+    assert (other.counts["seen"], other.counts["dropped"]) == (0, 0) and w.missing() == [], other.counts
+    assert set(passed) <= {"passed: publisher not known"}, other.counts
     [cut] = w.system.inject(Partition(publishers=["/talker"], subscribers=["/message_probe"], seconds=1.0))
     missing = w.missing()
     assert cut.counts == {"seen": len(missing), "dropped": len(missing)} and len(missing) >= 25
