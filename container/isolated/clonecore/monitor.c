@@ -10,6 +10,7 @@
  * after each, it runs the lock doctor (mutexes.c) and the memory watch (memwatch.c), which say how
  * long it may sleep.  With --core-dumps it also has crashing children dumped (dumps.c).  It never
  * takes the GIL.  It alone touches the child list (g_children) and cg_child.stop_reported.
+ * It runs real-time where the container may (monitor_realtime, below).
  *
  * Other threads talk to it through commands (spawn, stop) written as
  * pointers to a pipe, and through an eventfd that says "a stop flag was set"
