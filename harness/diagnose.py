@@ -484,6 +484,8 @@ def _passing(waits: Sequence[tuple[ThreadStack, tuple[str, str, str] | None]], g
             addr = int(what[1], 16) if what[1] else None
             words[t.tid] = gil if _on_the_gil(t) else (addr, addr + 4) if addr is not None else None
     moved: set[int] = set()
+    if not words:  # nobody waits on a lock: nothing to read again, no time to spend
+        return moved
     for i in range(RECHECKS):
         if i:
             time.sleep(RECHECK_S / (RECHECKS - 1))
