@@ -165,6 +165,19 @@ class Mitigations:
 
 
 @dataclass(frozen=True)
+class DeadFrames:
+    """The words a dead task's Python frames hold (CloneCore.dead_frame_refs):
+    references for certain; words its innermost frame holds that may point
+    at what its last instruction was changing; and that frame's (code
+    object address, instruction offset in code units, value stack words)
+    where it was running whole, else None."""
+
+    known: list[int]
+    maybe: list[int]
+    running: tuple[int, int, list[int]] | None
+
+
+@dataclass(frozen=True)
 class Child:
     pid: int
     pidfd: int
@@ -569,6 +582,36 @@ class CloneCore:
             rc = lib.cg_abandon(child._block)
         if rc < 0:
             raise OSError(-rc, f"abandon failed: {os.strerror(-rc)}")
+
+    def dead_frame_refs(self, child: Child, room: int = 1 << 16) -> DeadFrames | None:
+        """What a dead child's Python frames refer to (interp.c
+        cg_dead_frame_refs says which words are which). Only for a child
+        that was abandoned, not released. None if its frames could not be
+        read whole."""
+        ffi, lib = _lib()
+        known, maybe = ffi.new("uintptr_t[]", room), ffi.new("uintptr_t[]", room)
+        stack, top = ffi.new("uintptr_t[]", room), ffi.new("uintptr_t[3]")
+        counts = ffi.new("int[2]")
+        tstate = lib.cg_child_tstate(child._block)
+        if lib.cg_dead_frame_refs(tstate, known, room, maybe, room, stack, room, top, counts) < 0:
+            return None
+        return DeadFrames(
+            known=list(known[0 : counts[0]]),
+            maybe=list(maybe[0 : counts[1]]),
+            running=(top[0], top[1], list(stack[0 : top[2]])) if top[0] else None,
+        )
+
+    @staticmethod
+    def slot_drain(slot: int) -> tuple[int, int] | None:
+        """Free the blocks others freed for an idle slot now and give its
+        memory back (contexts.c cg_slot_drain): (Python object blocks,
+        native blocks; -1: not that kind here). None if a process has the
+        slot (it drains them itself) or there is no guard."""
+        ffi, lib = _lib()
+        counts = ffi.new("long[2]")
+        if lib.cg_slot_drain(slot, counts) < 0:
+            return None
+        return counts[0], counts[1]
 
     # -- the herald (herald.c): CRASHED events published without Python ------
 

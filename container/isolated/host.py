@@ -60,7 +60,7 @@ from ..hosting import Host, Hosted, NodeDeath
 from ..memory_budget import MEMORY_LIMIT
 from ..options import CPU_QUOTA, LoadError
 from ..robust import RobustMutex
-from . import listener_wait, mutex_reports
+from . import listener_wait, mutex_reports, reclaim
 from .board import ProgressBoard
 from .core import CloneCore, Death, Mitigations, StopRequested, stop_requested, wait_for_go
 from .core_dumps import path_for as core_dump_path
@@ -149,6 +149,7 @@ class _NodeProcess:
     stop_signal: int | None = None  # an outside SIGTERM/SIGINT it was sent
     death: Death | None = None
     handoff: _Handoff = field(default_factory=_Handoff)
+    kept: list = field(default_factory=list)  # dead-only objects held for good (reclaim.py)
 
 
 class IsolatedHost:
@@ -187,6 +188,9 @@ class IsolatedHost:
         self._lock = threading.Lock()
         self._by_pid: dict[int, _NodeProcess] = {}
         self.leaked: list[_NodeProcess] = []
+        # One thread gives dead nodes' memory back (reclaim.py): examining a
+        # big leak takes seconds, holding the GIL in turns.
+        self._reclaimer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cloneguard-reclaim")
         self.board = ProgressBoard(on_repair=self._board_repaired)
         self.cgroups = cgroups  # NodeCgroups, or None: no per-node cgroups
         self.mitigations = mitigations or Mitigations()
@@ -419,6 +423,7 @@ class IsolatedHost:
         if spare is not None:  # it winds down while the nodes do
             self._core.request_stop(spare.child)
         self._stop_all([h.detail for h in hosted_nodes])
+        self._reclaimer.shutdown(wait=True, cancel_futures=True)  # before the core goes: it reads dead frames
         if spare is not None:
             self._retire_spare(spare)
         self._core.close(kill=True)
@@ -630,9 +635,9 @@ class IsolatedHost:
             clean = death is not None and death.exit_code == 0
             if clean and proc.profile == SHARED:
                 self._destroy_built(proc)
-            self._forget(proc, leak=not clean)
+            self._forget(proc, leak=not clean, death=death)
 
-    def _forget(self, proc: _NodeProcess, *, leak: bool) -> None:
+    def _forget(self, proc: _NodeProcess, *, leak: bool, death: Death | None = None) -> None:
         with self._lock:
             self._by_pid.pop(proc.child.pid, None)
             proc.state = "gone"
@@ -647,11 +652,41 @@ class IsolatedHost:
                 + " are left in memory (destroying them could block on a lock it held); "
                 f"{len(self.leaked)} such leak(s) so far"
             )
+            if death is not None and proc.node is not None:
+                self._reclaimer.submit(self._give_back, proc, death)
         else:
             self._core.release(proc.child)
         if proc.cgroup is not None:  # the process is reaped (above): the group is empty
             cgroup, proc.cgroup = proc.cgroup, None
             self.cgroups.remove(cgroup)  # type: ignore[union-attr]  # with --cgroups only
+
+    def _give_back(self, proc: _NodeProcess, death: Death) -> None:
+        """Let go of the plain data that only the dead node's objects reach
+        (reclaim.py), and give its Python object pools' empty pages back."""
+        who = f"unique_id {proc.unique_id}"
+        if death.alloc_faulted:
+            self._log.info(f"{who}: its memory stays: it died of a fault of its own, and its heap may be torn")
+            return
+        began = time.monotonic()
+        frames = self._core.dead_frame_refs(proc.child)
+        if frames is None:
+            self._log.info(f"{who}: its memory stays: its Python frames could not be read whole")
+            return
+        try:
+            done = reclaim.release([proc.node, proc.executor], frames, torn=death.gil_repaired)
+        except reclaim.Refused as why:
+            self._log.warning(f"{who}: its memory stays: {why}")
+            return
+        proc.kept = done.kept
+        drained = self._core.slot_drain(death.alloc_slot) if death.alloc_slot > 0 else None
+        self._log.info(
+            f"{who}: let go of what only its dead process reached: {done.emptied} list(s), dict(s), set(s) or "
+            f"bytearray(s) emptied, {len(done.kept)} object(s) of other types kept (their end could run code), "
+            f"{done.alive} of the {done.found} found reachable from elsewhere"
+            + (f", {done.suspect} its last instruction may have been changing" if done.suspect else "")
+            + _drained(drained)
+            + f" ({(time.monotonic() - began) * 1e3:.0f} ms)"
+        )
 
     def _on_core_event(self, event: CoreEvent) -> None:
         if isinstance(event, MutexReport):  # its dead holder may be forgotten already
@@ -758,7 +793,13 @@ class IsolatedHost:
         clean = death.exit_code == 0 and not death.repaired
         if clean and proc.profile == SHARED:
             self._destroy_built(proc)
-        self._forget(proc, leak=not clean)
+        self._forget(proc, leak=not clean, death=death)
+
+
+def _drained(counts: tuple[int, int] | None) -> str:
+    """What a dead slot's drain freed (CloneCore.slot_drain), for the log."""
+    said = [f"{n} {kind}" for n, kind in zip(counts or (-1, -1), ("Python", "native"), strict=True) if n >= 0]
+    return f"; blocks freed into its slot now: {', '.join(said)}" if said else ""
 
 
 def _say_monitor_priority(refused: str | None, logger: RcutilsLogger) -> None:

@@ -1738,6 +1738,50 @@ EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
     return bits;
 }
 
+/* Idle slot s (no process in it; the caller keeps it so: contexts.c takes
+   its context out of the pool meanwhile) has the blocks handed to it freed
+   into its arenas now, by the caller, and its arenas purged, so that a dead
+   node's memory the container let go of (reclaim.py) goes back to the
+   kernel now, not when a next process in the slot drains it and jemalloc's
+   decay gets to it.  The rule still holds: nobody else is in the slot's
+   arenas, and its last process died outside them (an idle slot is not
+   quarantined).  Every block is freed with no thread cache (none of the
+   slot's blocks lands in the caller's).  jemalloc only: under glibc a block
+   goes into the freeing thread's cache, and the big ones (mmapped) went
+   back at their free.  Blocks freed, or -EBUSY (not idle), -ENOTSUP
+   (glibc), -EINVAL. */
+EXPORT long cga_slot_drain(int s)
+{
+    if (s <= 0 || s >= g_nslots)
+        return -EINVAL;
+    if (!g_je)
+        return -ENOTSUP;
+    if (atomic_load(&slots[s].state) != CGA_IDLE)
+        return -EBUSY;
+    long n = 0;
+    uint32_t pkru = hk_open(); /* the tables, and blocks under s's key */
+    void *lists[2] = {atomic_exchange(&owners[s].stack, NULL),
+                      atomic_exchange(&owners[s].held, NULL)};
+    for (int i = 0; i < 2; i++)
+        for (void *p = lists[i], *next; p; p = next, n++) {
+            next = *(void **)p;
+            if (i == 0) /* counted at their drain: the held ones were */
+                count_freed(s, p);
+            uintptr_t *mark = mark_word(p);
+            if (mark)
+                *mark = 0;
+            dallocx(p, JE_TCACHE_NONE);
+        }
+    hk_close(pkru);
+    unsigned arenas[2] = {slots[s].arena, slots[s].shared_arena};
+    for (int i = 0; i < 2; i++) {
+        char name[40];
+        snprintf(name, sizeof name, "arena.%u.purge", arenas[i]);
+        mallctl(name, NULL, NULL, NULL, 0);
+    }
+    return n;
+}
+
 /* Slot s's memory budget, in bytes (0: none), for its process from now on
    (the host sets it before the node's construction runs). */
 EXPORT int cga_slot_set_limit(int slot, uint64_t bytes)

@@ -26,8 +26,9 @@
  * main task, the slot's counter for its other threads) leaves only its own
  * pools torn: at retirement its generation is bumped and its pools are
  * abandoned for good (blocks in them stay valid while referenced; frees of
- * them are dropped and counted), and the next process in that slot starts
- * with fresh pools.  Blocks over SMALL_MAX bytes go to malloc (the guard),
+ * them are dropped and counted, and a pool whose last block is freed gives
+ * its pages back), and the next process in that slot starts with fresh
+ * pools.  Blocks over SMALL_MAX bytes go to malloc (the guard),
  * or with protection keys on to the slot's shared arena (heapkeys.c), as
  * does CPython's RAW domain then.
  *
@@ -79,6 +80,9 @@ struct pool {
     struct pool *next, *prev; /* in its owner's usable[cls] (or empty) */
 };
 #define HEADER (((sizeof(struct pool) + ALIGN - 1) / ALIGN) * ALIGN)
+/* An empty pool gives back the pages past its first (madvise takes whole
+   pages: the header's page stays, and with it three quarters go back). */
+#define PAGE ((uintptr_t)4096)
 
 struct owner {
     uint16_t gen;
@@ -201,23 +205,29 @@ static void put_back(struct owner *o, struct pool *p, void *b)
     if (p->used == 0) {
         unlink_pool(&o->usable[p->cls], p);
         push_pool(&o->empty, p);
-        if (++o->nempty > EMPTY_KEPT) /* keep the address, give the pages back */
-            madvise((char *)p + HEADER, POOL - HEADER, MADV_DONTNEED);
+        if (++o->nempty > EMPTY_KEPT) /* keep the address (and header), give the pages back */
+            madvise((char *)p + PAGE, POOL - PAGE, MADV_DONTNEED);
     }
 }
 
-static void drain(struct owner *o)
+/* The blocks handed to o, into its pools; how many (the rest were of
+   abandoned pools: dropped). */
+static long drain(struct owner *o)
 {
+    long n = 0;
     void *b = atomic_exchange_explicit(&o->handed, NULL, memory_order_acquire);
     while (b) {
         void *next = *(void **)b;
         struct pool *p = pool_of(b);
-        if (p->gen == o->gen)
+        if (p->gen == o->gen) {
             put_back(o, p, b);
-        else
+            n++;
+        } else {
             atomic_fetch_add_explicit(&o->dropped, 1, memory_order_relaxed);
+        }
         b = next;
     }
+    return n;
 }
 
 static void *small_alloc(size_t n)
@@ -256,8 +266,17 @@ static void small_free(void *b)
     struct pool *p = pool_of(b);
     int s = cga_caller_slot();
     struct owner *to = &owners[p->owner];
-    if (p->gen != to->gen) { /* an abandoned pool: leave it be */
+    if (p->gen != to->gen) { /* an abandoned pool: never written again but for its count */
         atomic_fetch_add_explicit(&to->dropped, 1, memory_order_relaxed);
+        /* Its last block freed: all its pages go back, the header's too
+           (nothing reads it again: a header is read only to free or
+           reallocate a block of its pool).  The address stays reserved.
+           A process killed anywhere in here never left a pool's count below
+           its blocks in use (small_alloc counts a block before returning
+           it, put_back frees it before uncounting it), so 0 means none is
+           referenced. */
+        if (__atomic_sub_fetch(&p->used, 1, __ATOMIC_RELAXED) == 0)
+            madvise(p, POOL, MADV_DONTNEED);
         return;
     }
     if (p->owner == s) {
@@ -394,13 +413,18 @@ __attribute__((constructor)) static void install(void)
    them are dropped; the slot starts a new generation with no pool.  Only
    while s's process cannot run: it is dead (or stopped) and nobody else
    ever writes its state. */
-static void abandon(struct owner *o)
+static void new_generation(struct owner *o)
 {
     o->gen++;
     memset(o->usable, 0, sizeof o->usable);
     o->empty = NULL;
     o->nempty = 0;
     atomic_store(&o->handed, NULL); /* blocks of abandoned pools: dropped */
+}
+
+static void abandon(struct owner *o)
+{
+    new_generation(o);
     atomic_fetch_add(&o->abandoned, 1);
 }
 
@@ -432,6 +456,32 @@ EXPORT int cga_py_abandon(int s)
         return -EINVAL;
     abandon(&owners[s]);
     return 0;
+}
+
+/* Slot s, idle (its process is gone, and no other may take the slot
+   meanwhile: contexts.c holds its context), has the blocks others freed
+   for it freed into its pools now, by the caller, holding the GIL (the
+   pools are written only so): a dead node's objects the container let go
+   of (reclaim.py).  Then its pools are abandoned, as after a death inside
+   here, so that the empty ones give back all their pages, header and all
+   (an empty pool the slot kept for reuse keeps its header page: a quarter
+   of it), and the rest theirs when their last block is freed
+   (small_free); the next process in the slot starts with fresh pools.
+   How many blocks were freed, or -EINVAL. */
+EXPORT long cga_py_drain(int s)
+{
+    if (!g_installed || s <= 0 || s >= CGA_NSLOTS)
+        return -EINVAL;
+    struct owner *o = &owners[s];
+    long n = drain(o);
+    struct pool *empty = o->empty;
+    new_generation(o);
+    while (empty) {
+        struct pool *next = empty->next; /* read before its pages go */
+        madvise(empty, POOL, MADV_DONTNEED);
+        empty = next;
+    }
+    return n;
 }
 
 /* Was block p (any pointer into it) made by this allocator in a pool since

@@ -275,6 +275,13 @@ int cg_release(struct cg_child *c)
     return 0;
 }
 
+/* Child c's Python thread state (reclaim.py reads a dead one's frames:
+   cg_dead_frame_refs).  Valid until cg_release. */
+void *cg_child_tstate(const struct cg_child *c)
+{
+    return c->tstate;
+}
+
 /* A reaped child whose Python state must stay where it is (the host keeps a
    crashed node's objects: destroying them could block on a lock the child
    held): its thread state and stacks stay allocated (its frames point into

@@ -14,6 +14,7 @@ int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
 int cg_abandon(struct cg_child *c);
+void *cg_child_tstate(const struct cg_child *c);
 /* cdef: end */
 
 /* What cg_start was given (set once, before anything else runs; read-only

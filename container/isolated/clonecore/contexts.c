@@ -43,6 +43,8 @@ static struct {
     cga_py_active_fn py_active;
     cga_py_abandon_fn py_abandon;
     cga_py_abandoned_fn py_abandoned;
+    cga_py_drain_fn py_drain;
+    cga_slot_drain_fn slot_drain;
     cga_slot_of_fn slot_of;
     cga_slot_set_limit_fn slot_set_limit;
     cga_slot_memory_fn slot_memory;
@@ -149,6 +151,8 @@ int guard_start(void)
     FIND(py_active, "cga_py_active");
     FIND(py_abandon, "cga_py_abandon");
     FIND(py_abandoned, "cga_py_abandoned");
+    FIND(py_drain, "cga_py_drain");
+    FIND(slot_drain, "cga_slot_drain");
     FIND(slot_of, "cga_slot_of");
     FIND(slot_set_limit, "cga_slot_set_limit");
     FIND(slot_memory, "cga_slot_memory");
@@ -157,7 +161,8 @@ int guard_start(void)
 #undef FIND
     if (!G.activate || !G.slot_new || !G.warm || !G.slot_bind || !G.child_start || !G.slot_retire ||
         !G.slot_stats || !G.py_stats || !G.py_owner || !G.py_active || !G.py_abandon ||
-        !G.py_abandoned || !G.slot_of || !G.slot_set_limit || !G.slot_memory) {
+        !G.py_abandoned || !G.py_drain || !G.slot_drain || !G.slot_of || !G.slot_set_limit ||
+        !G.slot_memory) {
         memset(&G, 0, sizeof G);
         return -ENOENT; /* not preloaded */
     }
@@ -244,6 +249,42 @@ int guard_py_abandon(int slot)
 int guard_py_abandoned(const void *p)
 {
     return G.py_abandoned ? G.py_abandoned(p) : 0;
+}
+
+/* An idle slot's handed blocks freed now, by the caller, and its memory
+   given back (a dead node's objects the container let go of: reclaim.py):
+   its Python object pools' (pyalloc.c cga_py_drain, holding the GIL,
+   taken here), then, under jemalloc, its arenas' (allocguard.c
+   cga_slot_drain).  Its context is out of the pool meanwhile, so that no
+   spawn binds the slot under them.  0, with how many blocks of each in
+   counts (-1: not that one: no guard's pools, or glibc); -EBUSY if its
+   context is not in the pool (a process has the slot: it drains them
+   itself), -ENOENT without the guard. */
+int cg_slot_drain(int slot, long *counts)
+{
+    counts[0] = counts[1] = -1;
+    if (!G.slot_drain || !G.py_drain)
+        return -ENOENT;
+    pthread_mutex_lock(&g_pool_lock);
+    struct cg_ctx **at = &g_pool;
+    while (*at && (*at)->slot != slot)
+        at = &(*at)->next;
+    struct cg_ctx *x = *at;
+    if (x)
+        *at = x->next;
+    pthread_mutex_unlock(&g_pool_lock);
+    if (!x)
+        return -EBUSY;
+    if (G.py_active && G.py_active()) {
+        PyGILState_STATE g = PyGILState_Ensure();
+        long n = G.py_drain(slot);
+        PyGILState_Release(g);
+        counts[0] = n < 0 ? -1 : n;
+    }
+    long n = G.slot_drain(slot);
+    counts[1] = n < 0 ? -1 : n;
+    ctx_put(x);
+    return 0;
 }
 
 /* Protection keys over node heaps (heapkeys.c): how many are in use, or

@@ -292,6 +292,156 @@ static long untrack_locals(PyThreadState *t)
     return n;
 }
 
+/* ---------------------------------------------------------------------- */
+/* 3. What a dead task's frames still refer to (reclaim.py gives back what
+   only a dead node could reach, counting references: a reference it may
+   count must be one for certain).  Read through cg_peek, with the GIL
+   held by the caller's thread (taken here), long after the death.
+
+   known    words that are references for certain, each once per reference:
+            in a frame below the innermost one (past its set-up: it is
+            suspended in a call, so it is whole), its function, code, locals
+            dict and frame object, and its locals; its value stack up to
+            stacktop where the call saved it (an inlined Python call does),
+            else not known.  In the innermost frame, running and whole
+            (stacktop -1: 3.11 saves it only to return, trace or call
+            Python), its locals (STORE_FAST writes a local before it drops
+            the old value, so the slot always holds one).  A generator's
+            frame (running: its stacktop is -1) counts its locals only.
+   unknown  the innermost frame's other words, what its last instruction
+            may have been changing: all of them if it is being set up or
+            torn down (stacktop saved), its function, code, locals dict and
+            frame object else.  Of the frames below, what is not known is
+            not read: the value stacks of frames that called C, what a
+            generator's traversal counts, any stack past a saved stacktop
+            (stale).  Whatever an outer frame's call was working on is
+            whole: C code that calls Python code leaves what it works on
+            whole, since that code may look at it.
+   stack    the running innermost frame's value stack, every word of it
+            (top: its code object's address, its instruction's offset in
+            code units, how many words): how deep it stands, and so which
+            words are references, only its bytecode tells (reclaim.py).
+            top[0] is 0 if the innermost frame is not running and whole
+            (its words are then unknown).
+   Returns 0 (counts[0], counts[1]: how many known and unknown), -ENOSPC if
+   an array was too small (then nothing may be counted), -EINVAL if no frame
+   could be read. */
+struct refs {
+    uintptr_t *w;
+    int n, max;
+};
+
+/* The running innermost frame's place and value stack. */
+struct top {
+    uintptr_t *where; /* code, offset, words */
+    struct refs stack;
+};
+
+static bool put(struct refs *r, const void *p)
+{
+    if (!p || !r) /* no r: a word nobody needs */
+        return true;
+    if (r->n >= r->max)
+        return false;
+    r->w[r->n++] = (uintptr_t)p;
+    return true;
+}
+
+/* localsplus[from, to) of f, each word into r. */
+static bool put_slots(struct refs *r, _PyInterpreterFrame *f, int from, int to)
+{
+    for (int i = from; i < to; i++) {
+        PyObject *op;
+        if (!PEEK(&f->localsplus[i], op) || !put(r, op))
+            return false;
+    }
+    return true;
+}
+
+static bool frame_refs(_PyInterpreterFrame *f, struct top *innermost, struct refs *known,
+                       struct refs *unknown)
+{
+    struct {
+        PyCodeObject *code;
+        PyFunctionObject *func;
+        PyObject *locals;
+        PyFrameObject *obj;
+        _Py_CODEUNIT *prev_instr;
+        int stacktop;
+        char owner;
+    } h;
+    int nlocals, stacksize, first;
+    PyTypeObject *code_type;
+    if (!PEEK(&f->f_code, h.code) || !aligned(h.code) ||
+        !PEEK(&h.code->ob_base.ob_base.ob_type, code_type) || code_type != &PyCode_Type ||
+        !PEEK(&h.code->co_nlocalsplus, nlocals) || !PEEK(&h.code->co_stacksize, stacksize) ||
+        !PEEK(&h.code->_co_firsttraceable, first) || nlocals < 0 || stacksize < 0 ||
+        nlocals + stacksize > (1 << 16) || !PEEK(&f->f_func, h.func) ||
+        !PEEK(&f->f_locals, h.locals) || !PEEK(&f->frame_obj, h.obj) ||
+        !PEEK(&f->prev_instr, h.prev_instr) || !PEEK(&f->stacktop, h.stacktop) ||
+        !PEEK(&f->owner, h.owner))
+        return false;
+    int top = nlocals + stacksize;
+    /* A generator's frame is whole once made.  Its generator's traversal
+       (_PyFrame_Traverse) counts its function, code, locals dict and frame
+       object always, and its locals and stack up to a saved stacktop: the
+       walk never counts those again. */
+    bool gen = h.owner == FRAME_OWNED_BY_GENERATOR;
+    bool whole =
+        gen || (h.owner == FRAME_OWNED_BY_THREAD && h.prev_instr >= _PyCode_CODE(h.code) + first);
+    bool saved = h.stacktop >= nlocals && h.stacktop <= top;
+    if (!whole || (innermost && h.stacktop != -1) ||
+        (gen && saved)) /* set up, torn down, or counted */
+        return put(unknown, h.code) && put(unknown, h.func) && put(unknown, h.locals) &&
+               put(unknown, h.obj) && put_slots(unknown, f, 0, top);
+    struct refs *specials_to = innermost || gen ? unknown : known;
+    if (!put(specials_to, h.code) || !put(specials_to, h.func) || !put(specials_to, h.locals) ||
+        !put(specials_to, h.obj))
+        return false;
+    if (innermost) { /* running */
+        for (int i = nlocals; i < top;
+             i++) { /* every word, NULL too: the bytecode says which count */
+            PyObject *op;
+            if (!PEEK(&f->localsplus[i], op) || innermost->stack.n >= innermost->stack.max)
+                return false;
+            innermost->stack.w[innermost->stack.n++] = (uintptr_t)op;
+        }
+        innermost->where[0] = (uintptr_t)h.code;
+        innermost->where[1] = (uintptr_t)(h.prev_instr - _PyCode_CODE(h.code));
+        innermost->where[2] = (uintptr_t)innermost->stack.n;
+        return put_slots(known, f, 0, nlocals);
+    }
+    if (saved) /* suspended in an inlined call: saved */
+        return put_slots(known, f, 0, h.stacktop);
+    return put_slots(known, f, 0, nlocals) && put_slots(unknown, f, nlocals, top);
+}
+
+int cg_dead_frame_refs(void *tstate, uintptr_t *known, int nknown, uintptr_t *unknown, int nunknown,
+                       uintptr_t *stack, int nstack, uintptr_t *top, int *counts)
+{
+    PyThreadState *t = tstate;
+    struct refs k = {known, 0, nknown}, u = {unknown, 0, nunknown};
+    struct top running = {top, {stack, 0, nstack}};
+    top[0] = top[1] = top[2] = 0;
+    _PyCFrame *cframe;
+    _PyInterpreterFrame *f;
+    int rc = 0, frames = 0;
+    PyGILState_STATE gs = PyGILState_Ensure();
+    if (!t || !PEEK(&t->cframe, cframe) || !aligned(cframe) || !PEEK(&cframe->current_frame, f))
+        rc = -EINVAL;
+    for (; rc == 0 && f && frames < 10000; frames++) {
+        if (!aligned(f) || !frame_refs(f, frames == 0 ? &running : NULL, &k, frames == 0 ? &u : NULL))
+            rc = k.n >= k.max || u.n >= u.max || running.stack.n >= running.stack.max ? -ENOSPC
+                                                                                      : -EINVAL;
+        else if (!PEEK(&f->previous, f))
+            rc = -EINVAL;
+    }
+    PyGILState_Release(gs);
+    counts[0] = k.n;
+    counts[1] = u.n;
+    return rc;
+}
+
 /* gc_list_merge(from, to), gcmodule.c's: every object of from, at the end
    of to. */
 static void merge(PyGC_Head *from, PyGC_Head *to)

@@ -157,6 +157,11 @@ void cg_write_py_stack(void *const *codes, const int *lasti, int n, int more, in
 /* "name (file:line)" of one such frame into buf (size bytes); its length. */
 int cg_frame_text(void *code, int lasti, char *buf, int size);
 
+/* interp.c: the references a dead task's Python frames hold (tstate: its
+   thread state, cg_child_tstate): known for certain, maybe, and its running
+   frame's value stack (top: code, offset, words); see there. */
+int cg_dead_frame_refs(void *tstate, uintptr_t *known, int nknown, uintptr_t *unknown, int nunknown,
+                       uintptr_t *stack, int nstack, uintptr_t *top, int *counts);
 /* interp.c: the collector's thread (collector.py) waits off the GIL until
    a collection is due (its generation; -1: woken), then runs it. */
 int cg_gc_wait_due(int interval_us, int *wake);
