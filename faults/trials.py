@@ -709,11 +709,12 @@ class OutOfMemory:
     and the leak loaded without one; nothing but the kernel's OOM killer
     can end it, and it ends the container: crashed.
 
-    A dead node's memory is not given back yet: it stays charged to the
-    container. So after a watch trial (the container at its limit) the
-    container is replaced, in a fresh cgroup; after a budget trial, once
-    the container has no longer room for another budget's worth above the
-    watch's margin."""
+    Each trial records the container's memory before the load, and after
+    it let go of what only the dead leak reached (reclaim.py; measured, not
+    judged: a native leak's memory stays). The container is replaced, in a
+    fresh cgroup, once it has no room left for another budget's worth above
+    the watch's margin: after a native leak, not after a Python one whose
+    memory came back (the next trial then runs beside what stayed)."""
 
     def __init__(self, rig: Rig, cause: str):
         if cause not in OUT_OF_MEMORY:
@@ -755,6 +756,8 @@ class OutOfMemory:
         kind = random.Random(seed).choice(sorted(OOM_LEAKS))
         details: dict = {"leak": kind}
         started, started_mono = time.time_ns(), time.monotonic_ns()  # events' clock, the recorders'
+        if rig.proc.memory_cgroup is not None:
+            details["cgroup_use_before_mib"] = round(rig.proc.memory_cgroup.usage() / MiB, 1)
         resp = self._load(index, kind, details)
         if resp is None:
             return Outcome(TrialOutcome.FAILED, details=details)
@@ -791,7 +794,7 @@ class OutOfMemory:
             return out
         gap = longest_gap(rig.beats, started_mono)
         out.latency_ms["survivor_longest_gap"] = gap * 1e3
-        out.details["cgroup_use_after_mib"] = round(cgroup.usage() / MiB, 1)
+        out.details.update(self._given_back(resp.unique_id, cgroup, details.get("cgroup_use_before_mib")))
         said = OUT_OF_MEMORY[self.cause].search(out.details.get("reason", ""))
         why = ""
         if said is None:
@@ -816,6 +819,19 @@ class OutOfMemory:
             out.outcome, out.details["why"] = TrialOutcome.FAILED, why
         return out
 
+    def _given_back(self, unique_id: int, cgroup, before_mib: float | None) -> dict:
+        """The container's memory once it let go of what the dead leak
+        alone reached (container/isolated/reclaim.py: its log line says
+        when, and what), and how much of it stayed since before the load:
+        measured, not judged (a native leak's stays)."""
+        try:
+            said = self.rig.proc.wait_for_log(rf"unique_id {unique_id}: (let go of|its memory stays)[^\n]*", 15.0)
+        except HarnessTimeout:
+            return {"given_back": "the container said nothing of it within 15 s"}
+        after = round(cgroup.usage() / MiB, 1)
+        kept = {} if before_mib is None else {"kept_mib": round(after - before_mib, 1)}
+        return {"cgroup_use_after_mib": after, "given_back": said[0], **kept}
+
     def _thread_mode(self, details: dict, cgroup) -> Outcome:
         """The baseline: nothing ends a leak but the kernel's OOM killer,
         which ends the whole container (crashed); hung if it stays alive."""
@@ -836,8 +852,10 @@ class OutOfMemory:
         if rig.settle(out):
             return
         cgroup = rig.proc.memory_cgroup
+        # A container whose dead leak's memory did not come back (a native
+        # leak) has no room for another: a fresh one, in a fresh cgroup.
         room = OOM_CGROUP_LIMIT - OOM_WATCH_MARGIN - (cgroup.usage() if cgroup is not None else 0)
-        if self.cause == "watch" or room < 2 * OOM_BUDGET:
+        if room < 2 * OOM_BUDGET:
             rig.restart()
 
 

@@ -22,14 +22,15 @@ is refused there (one process), and the same leak ends the container.
 Every container here runs in a memory cgroup of the harness's own making
 with a limit (``Rig(memory_limit=...)``: 512 MiB), never against the
 machine's memory; where none can be made the scenarios are skipped, saying
-why. A dead node's memory is not given back yet (it stays charged to the
-container), so a trial that fills the container leaves it at its limit:
-the rig replaces its container after each such trial, as it does after a
-trial that did not survive, and each new container is born in a fresh
-cgroup (the old one is removed with it). Budget trials share a container
-until it has no room left for another budget above the watch's margin.
+why. What only the dead leak reached is let go of (reclaim.py): each trial
+records the container's memory before the load and after, and the report
+notes how much stayed, by kind (a native leak's does). Trials share a
+container until it has no room left for another budget above the watch's
+margin; then, as after a trial that did not survive, the rig replaces it,
+the new one born in a fresh cgroup (the old one removed with it).
 """
 
+import statistics
 from collections import Counter
 
 import pytest
@@ -77,15 +78,26 @@ def _rig(rig_factory, profile: str, args):
 
 
 def _note_kinds(resilience) -> None:
-    """Which leaks the trials drew, and how each kind fared."""
+    """Which leaks the trials drew, how each kind fared, and how much of
+    the container's memory stayed after each death (median by kind)."""
     by_kind: Counter = Counter()
     survived: Counter = Counter()
+    kept: dict[str, list[float]] = {}
     for t in resilience.scenario.trials:
-        by_kind[t.details.get("leak")] += 1
-        survived[t.details.get("leak")] += t.outcome == TrialOutcome.SURVIVED
+        kind = t.details.get("leak")
+        by_kind[kind] += 1
+        survived[kind] += t.outcome == TrialOutcome.SURVIVED
+        if "kept_mib" in t.details:
+            kept.setdefault(kind, []).append(t.details["kept_mib"])
     resilience.note(
         "leaks: " + ", ".join(f"{kind} {survived[kind]}/{n} survived" for kind, n in sorted(by_kind.items()))
     )
+    if kept:
+        resilience.note(
+            "the container's memory after the leak's death, over what it was before its load (median MiB, "
+            "trials; what only the dead leak reached is let go of, a native leak's stays): "
+            + ", ".join(f"{kind} {statistics.median(mib):+.0f} ({len(mib)})" for kind, mib in sorted(kept.items()))
+        )
 
 
 @pytest.mark.timeout(180)
