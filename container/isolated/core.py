@@ -567,19 +567,20 @@ class CloneCore:
             if entry is not None and entry.child is child and not entry.dead:
                 ffi.memmove(child._block.core_path, data + b"\0", len(data) + 1)
 
-    def abandon(self, child: Child) -> None:
+    def abandon(self, child: Child, hold_context: bool = False) -> None:
         """Forget a reaped child whose Python objects are to be kept (a
         crashed node the host leaves in memory): its thread state and stacks
         stay allocated, since its frames point into them; its TLS context
         goes back to the pool for the next child (unless its allocator slot
-        is quarantined), and it is reaped and its pidfd closed."""
+        is quarantined), or with ``hold_context`` only at ``give_back``
+        (which must then come), and it is reaped and its pidfd closed."""
         _, lib = _lib()
         with self._lock:
             entry = self._entry(child)
             if not entry.dead:
                 raise RuntimeError(f"child {child.pid} has not been reaped yet")
             del self._entries[child.serial]
-            rc = lib.cg_abandon(child._block)
+            rc = lib.cg_abandon(child._block, int(hold_context))
         if rc < 0:
             raise OSError(-rc, f"abandon failed: {os.strerror(-rc)}")
 
@@ -602,15 +603,17 @@ class CloneCore:
         )
 
     @staticmethod
-    def slot_drain(slot: int) -> tuple[int, int] | None:
-        """Free the blocks others freed for an idle slot now and give its
-        memory back (contexts.c cg_slot_drain): (Python object blocks,
-        native blocks; -1: not that kind here). None if a process has the
-        slot (it drains them itself) or there is no guard."""
+    def give_back(child: Child) -> tuple[int, int]:
+        """An abandoned child's held context (``abandon(hold_context=True)``):
+        the blocks others freed for its slot freed now and its memory given
+        back (contexts.c cg_child_give_back), then the context back to the
+        pool. (Python object blocks, native blocks); -1: not that kind here
+        (no guard's pools, glibc, a quarantined slot)."""
         ffi, lib = _lib()
         counts = ffi.new("long[2]")
-        if lib.cg_slot_drain(slot, counts) < 0:
-            return None
+        rc = lib.cg_child_give_back(child._block, counts)
+        if rc < 0:
+            raise OSError(-rc, f"give back failed: {os.strerror(-rc)}")
         return counts[0], counts[1]
 
     # -- the herald (herald.c): CRASHED events published without Python ------

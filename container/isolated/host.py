@@ -644,7 +644,8 @@ class IsolatedHost:
         self.board.unregister(proc.unique_id)
         proc.slot = -1
         if leak:
-            self._core.abandon(proc.child)
+            give_back = proc.node is not None and death is not None
+            self._core.abandon(proc.child, hold_context=give_back)  # its slot stays out of use until then
             self.leaked.append(proc)
             self._log.warning(
                 f"unique_id {proc.unique_id}: the dead process's node, executor"
@@ -652,8 +653,11 @@ class IsolatedHost:
                 + " are left in memory (destroying them could block on a lock it held); "
                 f"{len(self.leaked)} such leak(s) so far"
             )
-            if death is not None and proc.node is not None:
-                self._reclaimer.submit(self._give_back, proc, death)
+            if give_back and death is not None:
+                try:
+                    self._reclaimer.submit(self._give_back, proc, death)
+                except RuntimeError:  # closing: nothing to let go of, the slot's context back
+                    self._core.give_back(proc.child)
         else:
             self._core.release(proc.child)
         if proc.cgroup is not None:  # the process is reaped (above): the group is empty
@@ -662,30 +666,33 @@ class IsolatedHost:
 
     def _give_back(self, proc: _NodeProcess, death: Death) -> None:
         """Let go of the plain data that only the dead node's objects reach
-        (reclaim.py), and give its Python object pools' empty pages back."""
-        who = f"unique_id {proc.unique_id}"
-        if death.alloc_faulted:
-            self._log.info(f"{who}: its memory stays: it died of a fault of its own, and its heap may be torn")
-            return
+        (reclaim.py), then give its slot's memory back and its context to
+        the pool (held since its death: no other process took its slot)."""
         began = time.monotonic()
+        try:
+            said = self._let_go(proc, death)
+        finally:
+            drained = self._core.give_back(proc.child)
+        took_ms = (time.monotonic() - began) * 1e3
+        self._log.info(f"unique_id {proc.unique_id}: {said}{_drained(drained)} ({took_ms:.0f} ms)")
+
+    def _let_go(self, proc: _NodeProcess, death: Death) -> str:
+        """What only the dead node reached, let go of (reclaim.py); in words."""
+        if death.alloc_faulted:
+            return "its memory stays: it died of a fault of its own, and its heap may be torn"
         frames = self._core.dead_frame_refs(proc.child)
         if frames is None:
-            self._log.info(f"{who}: its memory stays: its Python frames could not be read whole")
-            return
+            return "its memory stays: its Python frames could not be read whole"
         try:
             done = reclaim.release([proc.node, proc.executor], frames, torn=death.gil_repaired)
         except reclaim.Refused as why:
-            self._log.warning(f"{who}: its memory stays: {why}")
-            return
+            return f"its memory stays: {why}"
         proc.kept = done.kept
-        drained = self._core.slot_drain(death.alloc_slot) if death.alloc_slot > 0 else None
-        self._log.info(
-            f"{who}: let go of what only its dead process reached: {done.emptied} list(s), dict(s), set(s) or "
+        return (
+            f"let go of what only its dead process reached: {done.emptied} list(s), dict(s), set(s) or "
             f"bytearray(s) emptied, {len(done.kept)} object(s) of other types kept (their end could run code), "
             f"{done.alive} of the {done.found} found reachable from elsewhere"
             + (f", {done.suspect} its last instruction may have been changing" if done.suspect else "")
-            + _drained(drained)
-            + f" ({(time.monotonic() - began) * 1e3:.0f} ms)"
         )
 
     def _on_core_event(self, event: CoreEvent) -> None:
@@ -796,9 +803,9 @@ class IsolatedHost:
         self._forget(proc, leak=not clean, death=death)
 
 
-def _drained(counts: tuple[int, int] | None) -> str:
-    """What a dead slot's drain freed (CloneCore.slot_drain), for the log."""
-    said = [f"{n} {kind}" for n, kind in zip(counts or (-1, -1), ("Python", "native"), strict=True) if n >= 0]
+def _drained(counts: tuple[int, int]) -> str:
+    """What a dead slot's drain freed (CloneCore.give_back), for the log."""
+    said = [f"{n} {kind}" for n, kind in zip(counts, ("Python", "native"), strict=True) if n >= 0]
     return f"; blocks freed into its slot now: {', '.join(said)}" if said else ""
 
 

@@ -49,7 +49,9 @@ of its own may have torn anything: then nothing is let go of.
 
 Freeing from the container hands a dead node's blocks back to its slot
 (allocguard.c, pyalloc.c); the host then drains them at once
-(``CloneCore.slot_drain``), so that the slot's emptied Python object pools
+(``CloneCore.give_back``: the dead process's context was held out of the
+pool since its death, so no other process has taken the slot), so that
+the slot's emptied Python object pools
 and jemalloc's freed extents go back to the kernel now; glibc's mmapped
 blocks (a big bytearray) go back at their free. What is not given
 back: memory in the dead node's arenas that nothing points to (a native

@@ -1738,7 +1738,7 @@ EXPORT int cga_slot_retire(int slot, char *tcb, int faulted)
     return bits;
 }
 
-/* Idle slot s (no process in it; the caller keeps it so: contexts.c takes
+/* Idle slot s (no process in it; the caller keeps it so: contexts.c holds
    its context out of the pool meanwhile) has the blocks handed to it freed
    into its arenas now, by the caller, and its arenas purged, so that a dead
    node's memory the container let go of (reclaim.py) goes back to the

@@ -285,14 +285,15 @@ void *cg_child_tstate(const struct cg_child *c)
 /* A reaped child whose Python state must stay where it is (the host keeps a
    crashed node's objects: destroying them could block on a lock the child
    held): its thread state and stacks stay allocated (its frames point into
-   them); its TLS context goes back to the pool (or stays quarantined) and
-   its pidfd is closed.  -EBUSY if not reaped yet. */
-int cg_abandon(struct cg_child *c)
+   them); its TLS context goes back to the pool (or stays quarantined), or
+   with hold_context stays the child's until cg_child_give_back, and its
+   pidfd is closed.  -EBUSY if not reaped yet. */
+int cg_abandon(struct cg_child *c, int hold_context)
 {
     if (__atomic_load_n(&c->state, __ATOMIC_ACQUIRE) != CG_REAPED)
         return -EBUSY;
     herald_forget(c);
-    if (c->ctx)
+    if (c->ctx && !hold_context)
         tls_give_back(c);
     if (c->pidfd >= 0) {
         reap_zombie(c);

@@ -13,7 +13,7 @@ int cg_spawn(void *target, uint64_t serial, size_t stack_size, int cgroup_fd, in
 int cg_request_stop(struct cg_child *c);
 int cg_go(struct cg_child *c);
 int cg_release(struct cg_child *c);
-int cg_abandon(struct cg_child *c);
+int cg_abandon(struct cg_child *c, int hold_context);
 void *cg_child_tstate(const struct cg_child *c);
 /* cdef: end */
 

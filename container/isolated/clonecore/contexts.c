@@ -251,39 +251,32 @@ int guard_py_abandoned(const void *p)
     return G.py_abandoned ? G.py_abandoned(p) : 0;
 }
 
-/* An idle slot's handed blocks freed now, by the caller, and its memory
-   given back (a dead node's objects the container let go of: reclaim.py):
-   its Python object pools' (pyalloc.c cga_py_drain, holding the GIL,
-   taken here), then, under jemalloc, its arenas' (allocguard.c
-   cga_slot_drain).  Its context is out of the pool meanwhile, so that no
-   spawn binds the slot under them.  0, with how many blocks of each in
-   counts (-1: not that one: no guard's pools, or glibc); -EBUSY if its
-   context is not in the pool (a process has the slot: it drains them
-   itself), -ENOENT without the guard. */
-int cg_slot_drain(int slot, long *counts)
+/* A dead child's slot, whose context cg_abandon held back from the pool
+   (so that no spawn has bound the slot since): the blocks handed to it
+   freed now, by the caller, and its memory given back (a dead node's
+   objects the container let go of: reclaim.py): its Python object pools'
+   (pyalloc.c cga_py_drain, holding the GIL, taken here), then, under
+   jemalloc, its arenas' (allocguard.c cga_slot_drain).  Then the context
+   goes back to the pool.  How many blocks of each in counts (-1: not that
+   kind: no guard's pools, glibc, or a quarantined slot, which keeps what it
+   was handed).  -EINVAL if no context was held for c. */
+int cg_child_give_back(struct cg_child *c, long *counts)
 {
     counts[0] = counts[1] = -1;
-    if (!G.slot_drain || !G.py_drain)
-        return -ENOENT;
-    pthread_mutex_lock(&g_pool_lock);
-    struct cg_ctx **at = &g_pool;
-    while (*at && (*at)->slot != slot)
-        at = &(*at)->next;
-    struct cg_ctx *x = *at;
-    if (x)
-        *at = x->next;
-    pthread_mutex_unlock(&g_pool_lock);
-    if (!x)
-        return -EBUSY;
-    if (G.py_active && G.py_active()) {
-        PyGILState_STATE g = PyGILState_Ensure();
-        long n = G.py_drain(slot);
-        PyGILState_Release(g);
-        counts[0] = n < 0 ? -1 : n;
+    if (!c->ctx)
+        return -EINVAL;
+    if (G.slot_retire && !(c->retired & CGA_RETIRE_QUARANTINED)) {
+        int slot = c->ctx->slot;
+        if (G.py_active && G.py_active()) {
+            PyGILState_STATE g = PyGILState_Ensure();
+            long n = G.py_drain(slot);
+            PyGILState_Release(g);
+            counts[0] = n < 0 ? -1 : n;
+        }
+        long n = G.slot_drain(slot);
+        counts[1] = n < 0 ? -1 : n;
     }
-    long n = G.slot_drain(slot);
-    counts[1] = n < 0 ? -1 : n;
-    ctx_put(x);
+    tls_give_back(c);
     return 0;
 }
 

@@ -430,7 +430,8 @@ int cg_dead_frame_refs(void *tstate, uintptr_t *known, int nknown, uintptr_t *un
     if (!t || !PEEK(&t->cframe, cframe) || !aligned(cframe) || !PEEK(&cframe->current_frame, f))
         rc = -EINVAL;
     for (; rc == 0 && f && frames < 10000; frames++) {
-        if (!aligned(f) || !frame_refs(f, frames == 0 ? &running : NULL, &k, frames == 0 ? &u : NULL))
+        if (!aligned(f) ||
+            !frame_refs(f, frames == 0 ? &running : NULL, &k, frames == 0 ? &u : NULL))
             rc = k.n >= k.max || u.n >= u.max || running.stack.n >= running.stack.max ? -ENOSPC
                                                                                       : -EINVAL;
         else if (!PEEK(&f->previous, f))
