@@ -26,6 +26,7 @@ TESTS=(
     tests/test_pkeys.py tests/test_isolated_container.py tests/test_isolated_interp.py
     tests/test_isolated_gil.py tests/test_isolated_context_lock.py tests/test_python_locks.py
     tests/test_native_mutexes.py tests/test_memory_budget.py tests/test_core_dumps.py
+    tests/test_reclaim_container.py
 )
 
 copy=$(mktemp -d /var/tmp/cloneguard-ubsan.XXXXXX)
