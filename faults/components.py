@@ -473,7 +473,8 @@ class MemoryLeak(Node):
     ``native``   ``malloc`` in C, every page touched
     ``huge``     one allocation of ``step`` bytes, once
 
-    and publishes the bytes it holds on ``~/held`` each time (a malloc that
+    and publishes the bytes it holds on ``~/held`` each time (transient
+    local: a late subscriber that asks for it gets the last; a malloc that
     returns NULL leaks nothing: logged, not counted). It leaks from
     ``delay`` s after its construction on, ``steps`` times (0: for ever)."""
 
@@ -481,7 +482,10 @@ class MemoryLeak(Node):
 
     def __init__(self, **kwargs):
         super().__init__("memory_leak", **kwargs)
+        from rclpy.qos import DurabilityPolicy, QoSProfile
         from std_msgs.msg import UInt64
+
+        TRANSIENT_LOCAL = DurabilityPolicy.TRANSIENT_LOCAL
 
         self.kind = self.declare_parameter("kind", "bytes").value
         self.step = self.declare_parameter("step", 8 << 20).value
@@ -493,7 +497,9 @@ class MemoryLeak(Node):
         self._held: list = []
         self._bytes = 0
         self._msg = UInt64
-        self._pub = self.create_publisher(UInt64, "~/held", 10)
+        # Kept for late subscribers (transient local): in the per-node
+        # profile its participant may be discovered after its last step.
+        self._pub = self.create_publisher(UInt64, "~/held", QoSProfile(depth=10, durability=TRANSIENT_LOCAL))
         self._libc = ctypes.CDLL(None)
         self._libc.malloc.restype = ctypes.c_void_p
         self._libc.malloc.argtypes = [ctypes.c_size_t]  # not C's int: a step of 4 GiB or more would wrap

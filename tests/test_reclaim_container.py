@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import re
 import signal
-import time
 
 import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from std_msgs.msg import UInt64
 
 from cloneguard.container.memory_budget import MEMORY_LIMIT
 from cloneguard.faults import PACKAGE as TESTRIG
@@ -45,16 +46,6 @@ def _resident(pid: int) -> int:
         return int(re.search(r"^VmRSS:\s+(\d+) kB", f.read(), re.M)[1]) * 1024  # type: ignore[index]
 
 
-def _wait_until_it_holds(pid: int, resident: float, timeout: float = 30.0) -> None:
-    """Until the container's resident memory reaches ``resident`` (its
-    ~/held topic would do, but in the per-node profile the leak's own
-    participant may be discovered after its last step)."""
-    deadline = time.monotonic() + timeout
-    while _resident(pid) < resident:
-        assert time.monotonic() < deadline, f"the container never held {resident / MiB:.0f} MiB"
-        time.sleep(0.05)
-
-
 def _holder(kind: str, step: int) -> NodeSpec:
     return NodeSpec(
         TESTRIG, "faults::MemoryLeak", parameters={"kind": kind, "step": step, "steps": HELD // step, "period": 0.01}
@@ -64,11 +55,15 @@ def _holder(kind: str, step: int) -> NodeSpec:
 @pytest.mark.parametrize("kind", list(KINDS))
 @pytest.mark.parametrize("cell", list(CELLS))
 def test_a_dead_nodes_python_data_is_given_back(system_factory, cell, kind):
-    """Killed from outside once it holds its 200 MiB (at rest: no GIL)."""
+    """Killed from outside once it holds its 200 MiB and has stopped."""
     robot = system_factory([ODOMETRY], CELLS[cell])
     before = _resident(robot.proc.pid)
     robot.load(_holder(*KINDS[kind]))
-    _wait_until_it_holds(robot.proc.pid, before + HELD * 0.9)
+    # Its last step done (the last count kept for a late subscriber: in the
+    # per-node profile its participant may be discovered after it).
+    latest = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    robot.topic(UInt64, f"{LEAK}/held", latest).wait_for(lambda m: m.data >= HELD, 30, "200 MiB held")
+    assert _resident(robot.proc.pid) - before >= HELD * 0.9
     robot.kill(LEAK, signal.SIGKILL)
     said = robot.wait_for_log(LET_GO, timeout=30)
     assert int(said["emptied"]) >= 1
