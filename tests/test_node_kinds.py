@@ -17,6 +17,7 @@ process never ended and was killed, its participant leaked.
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import pytest
@@ -196,3 +197,26 @@ def test_every_kind_works_again_after_a_restart(kinds_system):
     _use_every_kind(system, shown)
     system.restart()
     _use_every_kind(system, shown)
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("kinds_system", ["per-node", "shared"], indirect=True)
+def test_every_kind_killed_in_use_is_looked_through_and_the_container_goes_on(kinds_system):
+    """After each kind's process is SIGKILLed in use (lifecycle nodes in
+    every state, action servers and clients, services, timers), the
+    container looks through what only the dead node reached
+    (container/isolated/reclaim.py) and says what it let go of, with no
+    error, and goes on loading nodes."""
+    system = kinds_system
+    _use_every_kind(system, _watch(system))
+    for name, running in list(system.nodes.items()):
+        system.kill(name, signal.SIGKILL)
+        system.wait_crashed(name)
+        said = system.wait_for_log(rf"unique_id {running.unique_id}: (let go of|its memory stays)[^\n]*", WAIT_S)
+        assert said[1] == "let go of", said[0]
+    errors = [line for line in system.proc.log_text().splitlines() if "[ERROR]" in line and " died: " not in line]
+    assert errors == []  # the deaths themselves are errors: nothing else
+    ticks = system.topic(String, "/kinds/timers")  # from now on: the dead Timers' are past
+    system.load(NodeSpec("node_kinds", "kinds::Timers", name="after"))
+    ticks.wait_for(lambda m: m.data.startswith(SHOWS["timers"]), WAIT_S, "the new node's tick")
+    assert system.alive()

@@ -608,12 +608,10 @@ class CloneCore:
         the blocks others freed for its slot freed now and its memory given
         back (contexts.c cg_child_give_back), then the context back to the
         pool. (Python object blocks, native blocks); -1: not that kind here
-        (no guard's pools, glibc, a quarantined slot)."""
+        (no guard, glibc, a quarantined slot)."""
         ffi, lib = _lib()
         counts = ffi.new("long[2]")
-        rc = lib.cg_child_give_back(child._block, counts)
-        if rc < 0:
-            raise OSError(-rc, f"give back failed: {os.strerror(-rc)}")
+        lib.cg_child_give_back(child._block, counts)
         return counts[0], counts[1]
 
     # -- the herald (herald.c): CRASHED events published without Python ------

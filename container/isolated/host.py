@@ -644,8 +644,8 @@ class IsolatedHost:
         self.board.unregister(proc.unique_id)
         proc.slot = -1
         if leak:
-            give_back = proc.node is not None and death is not None
-            self._core.abandon(proc.child, hold_context=give_back)  # its slot stays out of use until then
+            dead = death if proc.node is not None else None  # a built node's death: its memory to give back
+            self._core.abandon(proc.child, hold_context=dead is not None)  # its slot out of use until then
             self.leaked.append(proc)
             self._log.warning(
                 f"unique_id {proc.unique_id}: the dead process's node, executor"
@@ -653,9 +653,9 @@ class IsolatedHost:
                 + " are left in memory (destroying them could block on a lock it held); "
                 f"{len(self.leaked)} such leak(s) so far"
             )
-            if give_back and death is not None:
+            if dead is not None:
                 try:
-                    self._reclaimer.submit(self._give_back, proc, death)
+                    self._reclaimer.submit(self._give_back, proc, dead)
                 except RuntimeError:  # closing: nothing to let go of, the slot's context back
                     self._core.give_back(proc.child)
         else:
@@ -668,13 +668,15 @@ class IsolatedHost:
         """Let go of the plain data that only the dead node's objects reach
         (reclaim.py), then give its slot's memory back and its context to
         the pool (held since its death: no other process took its slot)."""
-        began = time.monotonic()
+        began, log = time.monotonic(), self._log.info
         try:
             said = self._let_go(proc, death)
+        except Exception as exc:  # a bug of ours: said, not lost in the executor's future
+            said, log = f"its memory stays: {type(exc).__name__}: {exc}\n{traceback.format_exc()}", self._log.error
         finally:
             drained = self._core.give_back(proc.child)
         took_ms = (time.monotonic() - began) * 1e3
-        self._log.info(f"unique_id {proc.unique_id}: {said}{_drained(drained)} ({took_ms:.0f} ms)")
+        log(f"unique_id {proc.unique_id}: {said}{_drained(drained)} ({took_ms:.0f} ms)")
 
     def _let_go(self, proc: _NodeProcess, death: Death) -> str:
         """What only the dead node reached, let go of (reclaim.py); in words."""

@@ -258,14 +258,14 @@ int guard_py_abandoned(const void *p)
    (pyalloc.c cga_py_drain, holding the GIL, taken here), then, under
    jemalloc, its arenas' (allocguard.c cga_slot_drain).  Then the context
    goes back to the pool.  How many blocks of each in counts (-1: not that
-   kind: no guard's pools, glibc, or a quarantined slot, which keeps what it
-   was handed).  -EINVAL if no context was held for c. */
-int cg_child_give_back(struct cg_child *c, long *counts)
+   kind: no guard, glibc, or a quarantined slot, which keeps what it was
+   handed).  Without the guard a child has no context: nothing to do. */
+void cg_child_give_back(struct cg_child *c, long *counts)
 {
     counts[0] = counts[1] = -1;
     if (!c->ctx)
-        return -EINVAL;
-    if (G.slot_retire && !(c->retired & CGA_RETIRE_QUARANTINED)) {
+        return;
+    if (!(c->retired & CGA_RETIRE_QUARANTINED)) {
         int slot = c->ctx->slot;
         if (G.py_active && G.py_active()) {
             PyGILState_STATE g = PyGILState_Ensure();
@@ -277,7 +277,6 @@ int cg_child_give_back(struct cg_child *c, long *counts)
         counts[1] = n < 0 ? -1 : n;
     }
     tls_give_back(c);
-    return 0;
 }
 
 /* Protection keys over node heaps (heapkeys.c): how many are in use, or

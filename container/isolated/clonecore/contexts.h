@@ -8,8 +8,8 @@
 /* cdef: begin */
 int cg_alloc_slot_stats(int slot, struct cga_slot_stats *out);
 int cg_py_slot_stats(int slot, struct cga_py_stats *out);
-int cg_child_give_back(struct cg_child *c, long *counts); /* takes the GIL */
-int cg_pkeys_in_use(int *keys, int max);                  /* the guard's keys */
+void cg_child_give_back(struct cg_child *c, long *counts); /* takes the GIL */
+int cg_pkeys_in_use(int *keys, int max);                   /* the guard's keys */
 int cg_alloc_slot_of(const void *p);
 int cg_child_slot(const struct cg_child *c);
 int cg_child_set_memory_limit(const struct cg_child *c, uint64_t bytes);
